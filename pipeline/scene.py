@@ -1,0 +1,208 @@
+"""Typed models of a scene config: units, frames, walls, fluid emitters, effects, outputs.
+
+Every model forbids unknown keys and documents its unit, so a misspelt key is an error that names it,
+never a value silently ignored. Stage parameters live with each stage (``Stage.Params``); this module
+holds only the scene description that several stages share.
+"""
+from __future__ import annotations
+
+import math
+from typing import Annotated, Literal, Union
+
+from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, field_validator, model_validator
+
+Vec3 = tuple[float, float, float]
+
+
+class Model(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+def _finite(v: Vec3) -> Vec3:
+    if not all(math.isfinite(c) for c in v):
+        raise ValueError("expected finite numbers")
+    return v
+
+
+# -- scene -------------------------------------------------------------------------------------
+class Units(Model):
+    meters_per_unit: float = Field(1.0, gt=0, description="metres per scene unit (1.0 = metres)")
+    up_axis: Literal["Y", "Z"] = Field("Z", description="the scene's up axis; gravity points against it")
+
+
+class Frames(Model):
+    fps: float = Field(30.0, gt=0, le=10000, description="output frames per second")
+    count: int = Field(60, ge=1, le=1_000_000, description="number of output frames (frame 0 is the start)")
+
+
+class Domain(Model):
+    min: Vec3 = Field(description="lower corner of the simulation domain, scene units")
+    max: Vec3 = Field(description="upper corner of the simulation domain, scene units")
+
+    _fin = field_validator("min", "max")(_finite)
+
+    @model_validator(mode="after")
+    def _ordered(self) -> "Domain":
+        if any(a >= b for a, b in zip(self.min, self.max)):
+            raise ValueError("domain.min must be below domain.max on every axis")
+        return self
+
+
+class Scene(Model):
+    name: str = Field(pattern=r"^[A-Za-z0-9_.-]{1,64}$", description="scene name; also the output folder name")
+    units: Units = Field(default_factory=Units)
+    frames: Frames = Field(default_factory=Frames)
+    domain: Domain | None = Field(None, description="simulation domain; default: the walls' bounds")
+
+
+# -- walls -------------------------------------------------------------------------------------
+class Placement(Model):
+    scale: float | Vec3 = Field(1.0, description="uniform or per-axis scale, applied first")
+    rotate: Vec3 = Field((0.0, 0.0, 0.0), description="rotation in degrees about X, then Y, then Z")
+    translate: Vec3 = Field((0.0, 0.0, 0.0), description="translation in scene units, applied last")
+    fit: Domain | None = Field(None, description="uniformly scale and move the model to fit this box")
+
+
+class BuiltinWall(Placement):
+    builtin: Literal["box_tank", "open_box", "cylinder", "plane"] = Field(
+        description="analytic wall: box_tank (closed box, fluid inside), open_box (no lid), "
+        "cylinder (closed, fluid inside), plane (floor through the origin)")
+    size: Vec3 = Field((1.0, 1.0, 1.0), description="box extent in scene units (cylinder: diameter, diameter, height)")
+    center: Vec3 = Field((0.0, 0.0, 0.0), description="centre of the box's footprint at its floor, scene units")
+    fluid: Literal["inside", "outside"] = Field("inside", description="which side of the wall the fluid is on")
+
+    @field_validator("size")
+    @classmethod
+    def _positive(cls, v: Vec3) -> Vec3:
+        if not all(math.isfinite(c) and c > 0 for c in v):
+            raise ValueError("expected three positive sizes")
+        return v
+
+
+class FileWall(Placement):
+    file: str = Field(description="OBJ/PLY/STL/OFF/GLB/GLTF path, relative to the config file")
+    fluid: Literal["inside", "outside"] = Field("outside", description="outside: a solid obstacle; inside: a container")
+    meters_per_unit: float | None = Field(None, gt=0, description="the file's units if not the scene's")
+
+
+class UsdWall(Placement):
+    usd: str = Field(description=".usda/.usdc/.usdz path, relative to the config file")
+    prims: list[str] = Field(default_factory=lambda: ["/**"], description="prim paths or glob patterns to use as walls")
+    include_invisible: bool = Field(False, description="also use prims whose visibility is 'invisible'")
+    fluid: Literal["inside", "outside"] = Field("outside", description="outside: a solid obstacle; inside: a container")
+
+
+def _kind_by_key(*keys: str):
+    """A union discriminator that picks the model by which of ``keys`` the mapping has."""
+
+    def pick(v: object) -> str | None:
+        if isinstance(v, BaseModel):
+            v = v.model_dump()
+        if isinstance(v, dict):
+            for k in keys:
+                if k in v:
+                    return k
+        return None
+
+    return pick
+
+
+Wall = Annotated[
+    Union[Annotated[BuiltinWall, Tag("builtin")], Annotated[FileWall, Tag("file")], Annotated[UsdWall, Tag("usd")]],
+    Discriminator(_kind_by_key("builtin", "file", "usd"),
+                  custom_error_type="wall_kind",
+                  custom_error_message="a wall needs one of the keys 'builtin', 'file' or 'usd'"),
+]
+
+
+# -- fluid -------------------------------------------------------------------------------------
+class Emitter(Model):
+    velocity: Vec3 = Field((0.0, 0.0, 0.0), description="initial velocity, scene units per second")
+
+
+class BoxEmitter(Emitter):
+    box: Domain = Field(description="fill this axis-aligned box with particles on a cubic lattice")
+
+
+class SphereEmitter(Emitter):
+    sphere: "SphereSpec"
+
+
+class SphereSpec(Model):
+    center: Vec3
+    radius: float = Field(gt=0, description="scene units")
+
+
+class MeshEmitter(Emitter, Placement):
+    mesh: str = Field(description="fill the interior of this closed mesh file (relative to the config)")
+
+
+SphereEmitter.model_rebuild()
+
+EmitterSpec = Annotated[
+    Union[Annotated[BoxEmitter, Tag("box")], Annotated[SphereEmitter, Tag("sphere")], Annotated[MeshEmitter, Tag("mesh")]],
+    Discriminator(_kind_by_key("box", "sphere", "mesh"),
+                  custom_error_type="emitter_kind",
+                  custom_error_message="an emitter needs one of the keys 'box', 'sphere' or 'mesh'"),
+]
+
+
+class Fluid(Model):
+    spacing: float = Field(gt=0, description="particle spacing l0, scene units")
+    density: float = Field(1000.0, gt=0, description="rest density rho0, kg/m^3")
+    emitters: list[EmitterSpec] = Field(
+        min_length=1, description="where the fluid starts: box, sphere or mesh volumes")
+
+
+# -- effects (issue 8: only the declared ones are compiled in and computed) --------------------
+class Gravity(Model):
+    g: float = Field(9.81, ge=0, description="magnitude, m/s^2, pointing against the up axis")
+
+
+class Viscosity(Model):
+    mu: float = Field(0.001, ge=0, description="dynamic viscosity, Pa s (water 0.001)")
+    wall: bool = Field(True, description="also the no-slip wall term of the seed method (eq. 13-15)")
+
+
+class SurfaceTension(Model):
+    gamma: float = Field(0.0728, ge=0, description="surface tension coefficient, N/m (Akinci et al. 2013)")
+
+
+class WallAdhesion(Model):
+    beta: float = Field(0.5, ge=0, description="adhesion strength (Akinci et al. 2013), dimensionless")
+
+
+class WallFriction(Model):
+    coefficient: float = Field(0.2, ge=0, le=1, description="fraction of tangential velocity removed at wall contact")
+
+
+class Wind(Model):
+    velocity: Vec3 = Field(description="air velocity, scene units/s")
+    drag: float = Field(1.0, ge=0, description="relaxation rate towards the air velocity, 1/s")
+
+
+class Attractor(Model):
+    point: Vec3 = Field(description="attraction centre, scene units")
+    strength: float = Field(description="acceleration at unit distance, m/s^2 (negative repels)")
+
+
+class Effects(Model):
+    gravity: Gravity | None = None
+    viscosity: Viscosity | None = None
+    surface_tension: SurfaceTension | None = None
+    wall_adhesion: WallAdhesion | None = None
+    wall_friction: WallFriction | None = None
+    wind: Wind | None = None
+    attractor: Attractor | None = None
+
+    def enabled(self) -> tuple[str, ...]:
+        return tuple(name for name in type(self).model_fields if getattr(self, name) is not None)
+
+
+class SceneConfig(Model):
+    """The scene part of a config (everything but ``stages``, ``outputs`` and ``config_version``)."""
+
+    scene: Scene
+    walls: list[Wall] = Field(default_factory=list, description="the wall models; the fluid region is where every wall allows it")
+    fluid: Fluid | None = None
+    effects: Effects = Field(default_factory=Effects)

@@ -1,0 +1,127 @@
+"""Artifact file formats shared between stages (internal; studio-facing output is OpenUSD).
+
+simulate  -> ``particles`` artifact folder:
+    meta.json                 ParticleMeta (spacing, mass, rho0, fps, frame count, units, solver stats)
+    frames/00000.npz ...      one file per output frame: x (N,3) f32, v (N,3) f32, rho (N,) f32,
+                              p (N,) f32, id (N,) i32   (N may change between frames)
+    particles.usdc            the same frames as time-sampled UsdGeom.Points (studio-facing)
+surface_extract / wall_snap -> per-frame artifact folders, each with
+    surface_00012.npz         vertices (V,3) f32, faces (F,3) i32, normals (V,3) f32
+mesh_import -> ``walls`` artifact folder:
+    walls.npz                 vertices (V,3) f64 world space, scene units; faces (F,3) i32;
+                              wall_id (F,) i32 (index into walls.json)
+    walls.json                [{"name", "fluid": "inside"|"outside", "source", "report": {...}}, ...]
+    walls.usdc                the wall meshes as UsdGeom.Mesh prims (studio-facing)
+sdf_bake -> ``sdf`` artifact folder: sdf.npz (see stages/common/sdf.py)
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+META_FILE = "meta.json"
+FRAMES_DIR = "frames"
+
+
+@dataclass
+class ParticleMeta:
+    spacing: float  # particle spacing l0, scene units
+    mass: float  # particle mass, kg
+    density: float  # rest density rho0, kg/m^3
+    support: float  # kernel support radius h, scene units
+    fps: float
+    frame_count: int
+    up_axis: str
+    meters_per_unit: float
+    solver: str
+    stats: dict[str, Any] = field(default_factory=dict)
+
+    def save(self, folder: Path) -> None:
+        (Path(folder) / META_FILE).write_text(json.dumps(asdict(self), indent=2, sort_keys=True))
+
+    @classmethod
+    def load(cls, folder: Path) -> "ParticleMeta":
+        return cls(**json.loads((Path(folder) / META_FILE).read_text()))
+
+
+@dataclass
+class ParticleFrame:
+    x: np.ndarray
+    v: np.ndarray
+    rho: np.ndarray
+    p: np.ndarray
+    id: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.x)
+
+
+def frame_path(folder: Path, frame: int) -> Path:
+    return Path(folder) / FRAMES_DIR / f"{frame:05d}.npz"
+
+
+def save_particle_frame(folder: Path, frame: int, f: ParticleFrame) -> Path:
+    path = frame_path(folder, frame)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(path, x=f.x.astype(np.float32), v=f.v.astype(np.float32), rho=f.rho.astype(np.float32),
+             p=f.p.astype(np.float32), id=f.id.astype(np.int32))
+    return path
+
+
+def load_particle_frame(folder: Path, frame: int) -> ParticleFrame:
+    with np.load(frame_path(folder, frame)) as z:
+        return ParticleFrame(x=z["x"], v=z["v"], rho=z["rho"], p=z["p"], id=z["id"])
+
+
+@dataclass
+class SurfaceMesh:
+    vertices: np.ndarray  # (V, 3) float32
+    faces: np.ndarray  # (F, 3) int32, counter-clockwise seen from the air side
+    normals: np.ndarray  # (V, 3) float32, pointing out of the fluid
+
+    @classmethod
+    def empty(cls) -> "SurfaceMesh":
+        return cls(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), np.zeros((0, 3), np.float32))
+
+
+def surface_file(frame: int) -> str:
+    return f"surface_{frame:05d}.npz"
+
+
+def save_surface(folder: Path, frame: int, m: SurfaceMesh) -> Path:
+    path = Path(folder) / surface_file(frame)
+    np.savez(path, vertices=m.vertices.astype(np.float32), faces=m.faces.astype(np.int32),
+             normals=m.normals.astype(np.float32))
+    return path
+
+
+def load_surface(folder: Path, frame: int) -> SurfaceMesh:
+    with np.load(Path(folder) / surface_file(frame)) as z:
+        return SurfaceMesh(vertices=z["vertices"], faces=z["faces"], normals=z["normals"])
+
+
+WALLS_FILE = "walls.npz"
+WALLS_INFO = "walls.json"
+
+
+@dataclass
+class WallMesh:
+    vertices: np.ndarray  # (V, 3) float64, world space, scene units
+    faces: np.ndarray  # (F, 3) int32
+    wall_id: np.ndarray  # (F,) int32
+    walls: list[dict[str, Any]]  # per wall: name, fluid ("inside"/"outside"), source, report
+
+    def save(self, folder: Path) -> None:
+        np.savez(Path(folder) / WALLS_FILE, vertices=self.vertices.astype(np.float64),
+                 faces=self.faces.astype(np.int32), wall_id=self.wall_id.astype(np.int32))
+        (Path(folder) / WALLS_INFO).write_text(json.dumps(self.walls, indent=2, sort_keys=True))
+
+    @classmethod
+    def load(cls, folder: Path) -> "WallMesh":
+        with np.load(Path(folder) / WALLS_FILE) as z:
+            v, f, w = z["vertices"], z["faces"], z["wall_id"]
+        return cls(v, f, w, json.loads((Path(folder) / WALLS_INFO).read_text()))
