@@ -82,6 +82,8 @@ class Context:
     log: logging.Logger
     make_progress: Callable[[str, float], Progress] = lambda description, total: Progress()
     threads: int | None = None
+    # a folder that survives an interrupted run of this stage key (checkpoints); None when not cached
+    checkpoint_dir: Path | None = None
 
     def progress(self, description: str, total: float) -> Progress:
         return self.make_progress(description, total)

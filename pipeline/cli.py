@@ -1,0 +1,149 @@
+"""The ``pipeline`` command: a thin click layer over the library; user mistakes exit 2 with one line."""
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+
+import click
+
+from . import runner
+from .errors import PipelineError
+from .registry import Registry
+from .stage import STAGE_KINDS
+
+KINDS = click.Choice(STAGE_KINDS)
+
+
+def _setup_logging(verbose: int, quiet: bool) -> None:
+    from rich.logging import RichHandler
+
+    level = logging.WARNING if quiet else (logging.DEBUG if verbose else logging.INFO)
+    logging.basicConfig(level=level, format="%(message)s", datefmt="[%X]",
+                        handlers=[RichHandler(show_path=False, rich_tracebacks=False, markup=False)], force=True)
+
+
+def _guard(fn):
+    """Map pipeline errors to a one-line message and their exit code (2 for user mistakes)."""
+
+    def wrapper(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except PipelineError as e:
+            click.echo(f"error: {e}", err=True)
+            sys.exit(e.exit_code)
+        except KeyboardInterrupt:
+            click.echo("interrupted; the cache holds only finished entries", err=True)
+            sys.exit(130)
+
+    wrapper.__name__ = fn.__name__
+    wrapper.__doc__ = fn.__doc__
+    return wrapper
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(package_name="fluid-pipeline")
+def main() -> None:
+    """Polygon/USD walls -> SDF -> SPH/MPS fluid -> surface -> wall snap -> frames, movie, OpenUSD."""
+
+
+config_arg = click.argument("config", type=click.Path(path_type=Path))
+set_opt = click.option("--set", "overrides", multiple=True, metavar="PATH=VALUE",
+                       help="Override a config value, e.g. --set simulate.cfl=0.3 (repeatable).")
+cache_opt = click.option("--cache", "cache_dir", type=click.Path(path_type=Path),
+                         help="Cache folder (default: .pipeline/ beside the config).")
+frames_opt = click.option("--frames", help="Frames for per-frame stages: START:END (end exclusive), N or N,M.")
+
+
+@main.command()
+@config_arg
+@set_opt
+@cache_opt
+@frames_opt
+@click.option("--out", "out_dir", type=click.Path(path_type=Path), help="Output folder (default: out/<scene>/ beside the config).")
+@click.option("--only", type=KINDS, help="Run only this stage; its inputs must be cached.")
+@click.option("--from", "from_", type=KINDS, help="Run this stage and what follows; upstream from cache.")
+@click.option("--until", type=KINDS, help="Run up to and including this stage.")
+@click.option("--force", multiple=True, type=click.Choice(STAGE_KINDS + ("all",)), help="Recompute this stage even if cached.")
+@click.option("--workers", type=click.IntRange(1, 256), default=1, show_default=True, help="Local worker processes for per-frame stages.")
+@click.option("--executor", type=click.Choice(["auto", "inline", "processes", "dask"]), default="auto", show_default=True)
+@click.option("--scheduler", help="Dask scheduler address for --executor dask, e.g. tcp://host:8786.")
+@click.option("-v", "--verbose", count=True, help="More logging.")
+@click.option("-q", "--quiet", is_flag=True, help="Only warnings and errors; no progress bars.")
+@_guard
+def run(config, overrides, cache_dir, frames, out_dir, only, from_, until, force, workers, executor, scheduler, verbose, quiet):
+    """Run every stage the config's outputs need (cached stages are not run again)."""
+    from .executors import make_executor
+
+    _setup_logging(verbose, quiet)
+    ex = make_executor(executor, workers, scheduler)
+    try:
+        report = runner.run(config, overrides=tuple(overrides), cache_dir=cache_dir, out_dir=out_dir, only=only,
+                            from_=from_, until=until, force=tuple(force), frames=runner.parse_frames(frames),
+                            executor=ex, progress=not quiet and sys.stderr.isatty())
+    finally:
+        ex.close()
+    if not quiet:
+        for s in report.stages:
+            extra = f"  {s.frames_ran}/{s.frames_total} frames computed" if s.frames_total else ""
+            click.echo(f"  {s.kind:<16} {s.implementation:<15} {s.key[:12]}  {s.status:<7} {s.seconds:8.2f} s{extra}")
+        for name, path in report.outputs.items():
+            click.echo(f"  -> {name}: {path}")
+        click.echo(f"done in {report.seconds:.2f} s; report: {Path(report.out) / 'run.json'}")
+
+
+@main.command()
+@config_arg
+@set_opt
+@cache_opt
+@frames_opt
+@_guard
+def status(config, overrides, cache_dir, frames):
+    """Which stages are cached, stale (and why) or missing."""
+    from rich.console import Console
+    from rich.table import Table
+
+    rows = runner.status(config, overrides=tuple(overrides), cache_dir=cache_dir, frames=runner.parse_frames(frames))
+    table = Table("stage", "implementation", "key", "state", "reason", "last (s)")
+    colour = {"cached": "green", "stale": "yellow", "missing": "red", "partial": "yellow"}
+    for r in rows:
+        table.add_row(r.kind, r.implementation, r.key[:12], f"[{colour[r.state]}]{r.state}[/]", r.reason,
+                      "" if r.seconds is None else f"{r.seconds:.2f}")
+    Console().print(table)
+
+
+@main.command()
+@_guard
+def stages():
+    """Every installed stage implementation, its version and parameters."""
+    from rich.console import Console
+    from rich.table import Table
+
+    reg = Registry.from_entry_points()
+    table = Table("stage", "implementation", "version", "per frame", "parameters (default)")
+    for kind, name, source in reg.entries():
+        try:
+            cls = reg.get(kind, name)
+        except PipelineError as e:
+            table.add_row(kind, name, "-", "-", f"[red]cannot load: {e}[/]")
+            continue
+        params = ", ".join(f"{n}={f.default!r}" if not f.is_required() else f"{n} (required)"
+                           for n, f in cls.Params.model_fields.items())
+        table.add_row(kind, name + (" *" if cls.default else ""), cls.version, "yes" if cls.per_frame else "no", params or "-")
+    Console(width=200).print(table)
+    click.echo("* = default implementation of its kind")
+
+
+@main.command()
+@config_arg
+@cache_opt
+@click.option("--stage", type=KINDS, help="Only this stage's entries.")
+@_guard
+def clean(config, cache_dir, stage):
+    """Remove the config's cache entries (or one stage's)."""
+    n = runner.clean(config, stage=stage, cache_dir=cache_dir)
+    click.echo(f"removed {n} cache entr{'y' if n == 1 else 'ies'}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,255 @@
+"""Load a YAML config into typed models; every error names the file, the line and the field.
+
+The YAML is parsed safely (no tags that construct objects), the node tree gives each value's line,
+``--set a.b=value`` overrides are applied to the parsed data (values typed by YAML's rules), and the
+result is validated: the scene sections by pipeline.scene, each stage's parameters by the ``Params``
+model of the implementation the config picks with ``use:`` (looked up only among registered entry
+points, so no config value can import or run arbitrary code).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+from pydantic import BaseModel, ValidationError
+
+from .errors import ConfigError, RegistryError
+from .registry import Registry
+from .scene import SceneConfig
+from .stage import STAGE_KINDS, Params, Stage
+
+CONFIG_VERSION = 1
+TOP_LEVEL = ("config_version", "scene", "walls", "fluid", "effects", "stages", "outputs")
+OUTPUT_NAMES = ("walls", "sdf", "particles", "raw_surface", "surface", "frames", "movie", "usd")
+
+
+@dataclass
+class StageChoice:
+    kind: str
+    cls: type[Stage]
+    params: Params
+
+
+@dataclass
+class Config:
+    path: Path
+    scene: SceneConfig
+    stages: dict[str, StageChoice]  # every kind the config names or that has a default
+    outputs: tuple[str, ...]
+    raw: dict[str, Any] = field(repr=False, default_factory=dict)
+
+    @property
+    def name(self) -> str:
+        return self.scene.scene.name
+
+    @property
+    def dir(self) -> Path:
+        return self.path.parent
+
+    def sections(self) -> dict[str, Any]:
+        return {"scene": self.scene.scene, "walls": self.scene.walls, "fluid": self.scene.fluid,
+                "effects": self.scene.effects}
+
+
+# -- YAML with line numbers ----------------------------------------------------------------------
+class _Lines:
+    """Maps a path of keys/indexes to the 1-based line of the YAML node there."""
+
+    def __init__(self, file: str) -> None:
+        self.file = file
+        self.lines: dict[tuple, int] = {}
+        self.overrides: dict[tuple, str] = {}
+
+    def where(self, path: tuple) -> str:
+        for n in range(len(path), -1, -1):
+            if path[:n] in self.overrides:
+                return f"{self.file}: {self.overrides[path[:n]]}"
+            if path[:n] in self.lines:
+                return f"{self.file}:{self.lines[path[:n]]}"
+        return self.file
+
+
+def _walk(node: yaml.Node, path: tuple, lines: _Lines) -> None:
+    lines.lines[path] = node.start_mark.line + 1
+    if isinstance(node, yaml.MappingNode):
+        seen: set = set()
+        for k, v in node.value:
+            if not isinstance(k, yaml.ScalarNode):
+                raise ConfigError(f"{lines.file}:{k.start_mark.line + 1}: {_dotted(path) or 'top level'}: keys must be plain names")
+            if k.value in seen:
+                raise ConfigError(f"{lines.file}:{k.start_mark.line + 1}: {_dotted(path + (k.value,))}: duplicate key")
+            seen.add(k.value)
+            _walk(v, path + (k.value,), lines)
+    elif isinstance(node, yaml.SequenceNode):
+        for i, v in enumerate(node.value):
+            _walk(v, path + (i,), lines)
+
+
+def _dotted(path: tuple) -> str:
+    return ".".join(str(p) for p in path)
+
+
+def _parse_yaml(text: str, file: str) -> tuple[dict, _Lines]:
+    lines = _Lines(file)
+    try:
+        node = yaml.compose(text, Loader=yaml.SafeLoader)
+        data = yaml.safe_load(text)
+    except yaml.MarkedYAMLError as e:
+        mark = e.problem_mark or e.context_mark
+        line = f":{mark.line + 1}" if mark is not None else ""
+        raise ConfigError(f"{file}{line}: not valid YAML: {e.problem or e.context}") from None
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{file}: not valid YAML: {str(e).splitlines()[0]}") from None
+    if node is None or data is None:
+        raise ConfigError(f"{file}: the config is empty; expected a mapping with 'scene', 'fluid', 'outputs'...")
+    if not isinstance(data, dict):
+        raise ConfigError(f"{file}:1: top level: expected a mapping of sections, got {type(data).__name__}")
+    _walk(node, (), lines)
+    return data, lines
+
+
+# -- overrides -------------------------------------------------------------------------------------
+def apply_override(data: dict, assignment: str, lines: _Lines) -> None:
+    """Apply ``a.b.c=value`` to ``data``; a first component naming a stage kind means stages.<kind>."""
+    if "=" not in assignment:
+        raise ConfigError(f"--set {assignment}: expected path.to.field=value")
+    key, _, text = assignment.partition("=")
+    parts: list[Any] = [p for p in key.strip().split(".")]
+    if not key.strip() or any(not p for p in parts):
+        raise ConfigError(f"--set {assignment}: expected path.to.field=value")
+    if parts[0] in STAGE_KINDS:
+        parts = ["stages"] + parts
+    if parts[0] not in TOP_LEVEL:
+        raise ConfigError(f"--set {key}: unknown section {parts[0]!r}; expected one of {', '.join(TOP_LEVEL)} or a stage kind")
+    try:
+        value = yaml.safe_load(text) if text.strip() else None
+    except yaml.YAMLError:
+        value = text
+    node: Any = data
+    path: tuple = ()
+    for i, part in enumerate(parts):
+        last = i == len(parts) - 1
+        if isinstance(node, list):
+            if not part.isdigit() or int(part) >= len(node):
+                raise ConfigError(f"--set {key}: {_dotted(path)} is a list of {len(node)}; {part!r} is not an index in it")
+            part = int(part)
+        elif not isinstance(node, dict):
+            raise ConfigError(f"--set {key}: {_dotted(path)} is not a mapping")
+        path = path + (part,)
+        if last:
+            node[part] = value
+        else:
+            if isinstance(node, dict) and node.get(part) is None:
+                node[part] = {}
+            node = node[part]
+    lines.overrides[tuple(parts)] = f"--set {key}"
+
+
+# -- validation ------------------------------------------------------------------------------------
+def _first_error(err: ValidationError, prefix: tuple, lines: _Lines) -> ConfigError:
+    e = err.errors(include_url=False)[0]
+    loc = prefix + tuple(e["loc"])
+    # pydantic puts the union tag into loc (walls.0.builtin.size): drop tags that are not keys
+    clean: list = []
+    for i, p in enumerate(loc):
+        if isinstance(p, str) and i > 0 and isinstance(loc[i - 1], int) and p in {"builtin", "file", "usd", "box", "sphere", "mesh"}:
+            continue
+        clean.append(p)
+    loc = tuple(clean)
+    msg = e["msg"]
+    if e["type"] == "extra_forbidden":
+        msg = "unknown key"
+    elif e["type"] == "missing":
+        msg = "required field is missing"
+    got = e.get("input")
+    suffix = ""
+    if e["type"] not in ("extra_forbidden", "missing") and not isinstance(got, (dict, list)) and got is not None:
+        suffix = f" (got {got!r})"
+    return ConfigError(f"{lines.where(loc)}: {_dotted(loc) or 'top level'}: {msg}{suffix}")
+
+
+def _stage_params(kind: str, raw: Any, registry: Registry, lines: _Lines) -> StageChoice:
+    path = ("stages", kind)
+    if raw is None:
+        raw = {}
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{lines.where(path)}: {_dotted(path)}: expected a mapping like {{use: NAME, ...}}")
+    raw = dict(raw)
+    use = raw.pop("use", None)
+    try:
+        if use is None:
+            cls = registry.default(kind)
+        else:
+            if not isinstance(use, str):
+                raise ConfigError(f"{lines.where(path + ('use',))}: {_dotted(path + ('use',))}: expected an implementation name")
+            cls = registry.get(kind, use)
+    except RegistryError as e:
+        raise ConfigError(f"{lines.where(path + ('use',))}: {_dotted(path + ('use',))}: {e}") from None
+    try:
+        params = cls.Params.model_validate(raw)
+    except ValidationError as e:
+        raise _first_error(e, path, lines) from None
+    return StageChoice(kind=kind, cls=cls, params=params)
+
+
+def load_config(path: str | Path, registry: Registry, overrides: list[str] | tuple[str, ...] = ()) -> Config:
+    path = Path(path)
+    file = str(path)
+    if not path.is_file():
+        raise ConfigError(f"{file}: config file not found")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as e:
+        raise ConfigError(f"{file}: cannot read the config: {e}") from None
+    data, lines = _parse_yaml(text, file)
+    for assignment in overrides:
+        apply_override(data, assignment, lines)
+
+    unknown = [k for k in data if k not in TOP_LEVEL]
+    if unknown:
+        k = unknown[0]
+        raise ConfigError(f"{lines.where((k,))}: {k}: unknown section; expected one of {', '.join(TOP_LEVEL)}")
+    version = data.get("config_version")
+    if version != CONFIG_VERSION:
+        raise ConfigError(f"{lines.where(('config_version',))}: config_version: expected {CONFIG_VERSION}, got {version!r}")
+    try:
+        scene = SceneConfig.model_validate({k: data[k] for k in ("scene", "walls", "fluid", "effects") if k in data})
+    except ValidationError as e:
+        raise _first_error(e, (), lines) from None
+
+    outputs = data.get("outputs", ["usd", "frames", "movie"])
+    if not isinstance(outputs, list) or not outputs or not all(isinstance(o, str) for o in outputs):
+        raise ConfigError(f"{lines.where(('outputs',))}: outputs: expected a list of names from {', '.join(OUTPUT_NAMES)}")
+    for i, o in enumerate(outputs):
+        if o not in OUTPUT_NAMES:
+            raise ConfigError(f"{lines.where(('outputs', i))}: outputs.{i}: unknown output {o!r}; expected one of {', '.join(OUTPUT_NAMES)}")
+
+    stages_raw = data.get("stages") or {}
+    if not isinstance(stages_raw, dict):
+        raise ConfigError(f"{lines.where(('stages',))}: stages: expected a mapping of stage kind to settings")
+    for kind in stages_raw:
+        if kind not in STAGE_KINDS:
+            raise ConfigError(f"{lines.where(('stages', kind))}: stages.{kind}: unknown stage kind; expected one of {', '.join(STAGE_KINDS)}")
+    stages: dict[str, StageChoice] = {}
+    for kind in STAGE_KINDS:
+        if kind in stages_raw:
+            stages[kind] = _stage_params(kind, stages_raw[kind], registry, lines)
+        elif registry.implementations(kind):
+            try:
+                stages[kind] = _stage_params(kind, {}, registry, lines)
+            except ConfigError:
+                continue  # a default that cannot load only matters if the graph needs it
+    return Config(path=path.resolve(), scene=scene, stages=stages, outputs=tuple(dict.fromkeys(outputs)), raw=data)
+
+
+def dump_model(value: Any) -> Any:
+    """JSON-ready canonical form of validated models (defaults included), for keys and manifests."""
+    if isinstance(value, BaseModel):
+        return value.model_dump(mode="json")
+    if isinstance(value, (list, tuple)):
+        return [dump_model(v) for v in value]
+    if isinstance(value, dict):
+        return {k: dump_model(v) for k, v in value.items()}
+    return value

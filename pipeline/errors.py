@@ -1,0 +1,28 @@
+"""Errors the engine shows to users as one line, with the exit code the CLI maps them to."""
+from __future__ import annotations
+
+
+class PipelineError(Exception):
+    """Base of errors shown as one line without a traceback."""
+
+    exit_code = 2
+
+
+class ConfigError(PipelineError):
+    """The config (or a --set override) is malformed: the message names the file, line and field."""
+
+
+class RegistryError(PipelineError):
+    """A stage implementation is unknown, fails to import or breaks the stage contract."""
+
+
+class CacheMissError(PipelineError):
+    """A partial run (--only/--from) needs an upstream artifact that is not in the cache."""
+
+
+class StageFailed(PipelineError):
+    """A stage raised; the message names the stage, its key and the config."""
+
+    def __init__(self, message: str, *, user_error: bool) -> None:
+        super().__init__(message)
+        self.exit_code = 2 if user_error else 1
