@@ -82,6 +82,7 @@ def _walk(node: yaml.Node, path: tuple, lines: _Lines) -> None:
                 raise ConfigError(f"{lines.file}:{k.start_mark.line + 1}: {_dotted(path + (k.value,))}: duplicate key")
             seen.add(k.value)
             _walk(v, path + (k.value,), lines)
+            lines.lines[path + (k.value,)] = k.start_mark.line + 1  # the key's line reads best
     elif isinstance(node, yaml.SequenceNode):
         for i, v in enumerate(node.value):
             _walk(v, path + (i,), lines)

@@ -100,7 +100,7 @@ def build_graph(config: Config) -> Graph:
             continue
         needed.add(kind)
         choice = config.stages[kind]
-        for name in choice.cls.input_names(choice.params):
+        for name in choice.cls().input_names(choice.params):
             if name not in producers:
                 raise ConfigError(f"{config.path}: stage {kind}.{choice.cls.name} needs artifact {name!r}, which no configured stage produces")
             stack.append(producers[name])
@@ -110,7 +110,7 @@ def build_graph(config: Config) -> Graph:
         if kind not in needed:
             continue
         choice = config.stages[kind]
-        wired = [(n, producers[n]) for n in choice.cls.input_names(choice.params)]
+        wired = [(n, producers[n]) for n in choice.cls().input_names(choice.params)]
         wired += [(n, producers[n]) for n in choice.cls.optional_inputs
                   if n in producers and producers[n] in needed and (n, producers[n]) not in wired]
         for _, producer in wired:

@@ -229,7 +229,7 @@ def execute(p: Plan, *, out_dir: Path, force: frozenset[str] = frozenset(), exec
             state[kind] = {"key": key, "components": p.components[kind], "seconds": sr.seconds,
                            "status": sr.status, "time": time.time()}
             cache.write_state(config.path, state)
-            log.info("%-16s %-16s %s  %s%s", kind, node.cls.name, key[:12], sr.status,
+            log.debug("%-16s %-16s %s  %s%s", kind, node.cls.name, key[:12], sr.status,
                      f" ({sr.frames_ran}/{sr.frames_total} frames)" if node.per_frame else "")
     report.outputs = publish(graph, artifacts, out_dir, p.frames)
     report.seconds = time.perf_counter() - t_start

@@ -1,0 +1,64 @@
+from __future__ import annotations
+
+import textwrap
+from pathlib import Path
+
+import pytest
+
+TESTS = Path(__file__).parent
+REPO = TESTS.parent
+
+TOY_CONFIG = """\
+config_version: 1
+scene:
+  name: toy
+  frames: {fps: 10, count: 4}
+fluid:
+  spacing: 0.1
+  emitters:
+    - box: {min: [0, 0, 0], max: [1, 1, 1]}
+stages:
+  mesh_import: {use: toy}
+  sdf_bake: {use: toy}
+  simulate: {use: toy}
+  surface_extract: {use: toy}
+  render: {use: toy}
+outputs: [frames]
+"""
+
+
+def write_toy_plugin(root: Path) -> Path:
+    """A fake installed distribution whose entry points register the toy stages (the real mechanism)."""
+    dist = root / "toy_plugin-0.1.dist-info"
+    dist.mkdir(parents=True, exist_ok=True)
+    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: toy-plugin\nVersion: 0.1\n")
+    (dist / "entry_points.txt").write_text(textwrap.dedent("""\
+        [pipeline.stages]
+        mesh_import.toy = toy_stages:ToyImport
+        sdf_bake.toy = toy_stages:ToyBake
+        simulate.toy = toy_stages:ToySimulate
+        surface_extract.toy = toy_stages:ToySurface
+        render.toy = toy_stages:ToyRender
+        """))
+    return root
+
+
+@pytest.fixture
+def toy_plugin(tmp_path_factory, monkeypatch):
+    root = write_toy_plugin(tmp_path_factory.mktemp("plugin"))
+    monkeypatch.syspath_prepend(str(root))
+    monkeypatch.syspath_prepend(str(TESTS))
+    return root
+
+
+@pytest.fixture
+def toy_config(tmp_path, toy_plugin):
+    path = tmp_path / "toy.yaml"
+    path.write_text(TOY_CONFIG)
+    return path
+
+
+def ran(config: Path, stage: str) -> int:
+    """How many times a toy stage really ran for this config."""
+    f = config.parent / f"ran_{stage}.log"
+    return len(f.read_text().split()) if f.exists() else 0

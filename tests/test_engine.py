@@ -1,0 +1,233 @@
+"""The engine against small toy stages: cache hits and invalidation, partial runs, overrides,
+killed and concurrent runs, damaged entries, plugin discovery."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+import pipeline
+from pipeline import CacheMissError, ConfigError, Registry, StageFailed
+from pipeline.cache import Cache
+
+from conftest import REPO, TESTS, ran
+
+
+def run(config, **kw):
+    return pipeline.run(config, registry=Registry.from_entry_points(), **kw)
+
+
+def statuses(report):
+    return {s.kind: s.status for s in report.stages}
+
+
+def test_plugin_discovered_through_entry_point(toy_plugin):
+    reg = Registry.from_entry_points()
+    assert "toy" in reg.implementations("simulate")
+    cls = reg.get("simulate", "toy")
+    assert cls.__name__ == "ToySimulate"
+
+
+def test_first_run_runs_everything_second_run_nothing(toy_config):
+    r1 = run(toy_config)
+    assert set(statuses(r1).values()) == {"ran"}
+    out = Path(r1.out)
+    frames = sorted(p.name for p in (out / "frames").iterdir())
+    assert frames == [f"frame_{i:05d}.txt" for i in range(4)]
+    assert "surface 2" in (out / "frames" / "frame_00002.txt").read_text()
+    t0 = time.perf_counter()
+    r2 = run(toy_config)
+    elapsed = time.perf_counter() - t0
+    assert set(statuses(r2).values()) == {"cached"}
+    assert ran(toy_config, "simulate") == 1 and ran(toy_config, "render") == 4
+    assert elapsed < 10  # generous: the promise is ~1 s; this only catches re-running stages
+    manifest = json.loads((out / "run.json").read_text())
+    assert [s["status"] for s in manifest["stages"]] == ["cached"] * 5
+
+
+def test_param_change_reruns_stage_and_downstream_only(toy_config):
+    run(toy_config)
+    r = run(toy_config, overrides=("surface_extract.iso=0.7",))
+    assert statuses(r) == {"mesh_import": "cached", "sdf_bake": "cached", "simulate": "cached",
+                           "surface_extract": "ran", "render": "ran"}
+    assert "iso 0.7" in (Path(r.out) / "frames" / "frame_00000.txt").read_text()
+    r = run(toy_config, overrides=("render.width=32",))
+    assert statuses(r)["surface_extract"] == "cached" and statuses(r)["render"] == "ran"
+
+
+def test_scene_change_invalidates_stages_that_read_it(toy_config):
+    run(toy_config)
+    r = run(toy_config, overrides=("fluid.spacing=0.05",))
+    # only simulate reads 'fluid'; sdf_bake does not
+    assert statuses(r)["sdf_bake"] == "cached" and statuses(r)["simulate"] == "ran"
+
+
+def test_code_version_change_invalidates(toy_config, monkeypatch):
+    run(toy_config)
+    import toy_stages
+
+    monkeypatch.setattr(toy_stages.ToySimulate, "version", "2")
+    r = run(toy_config)
+    assert statuses(r)["simulate"] == "ran" and statuses(r)["sdf_bake"] == "cached"
+    assert statuses(r)["render"] == "ran"  # upstream key changed
+
+
+def test_external_file_content_is_hashed(toy_config):
+    src = toy_config.parent / "model.txt"
+    src.write_text("v1")
+    run(toy_config, overrides=("mesh_import.source=model.txt",))
+    src.write_text("v2")
+    rows = {s.kind: s for s in pipeline.status(toy_config, registry=Registry.from_entry_points(),
+                                               overrides=("mesh_import.source=model.txt",))}
+    assert rows["mesh_import"].state == "stale" and "model.txt" in rows["mesh_import"].reason
+    r = run(toy_config, overrides=("mesh_import.source=model.txt",))
+    assert statuses(r)["mesh_import"] == "ran"
+    assert "v2" in (Path(r.out) / "frames" / "frame_00000.txt").read_text()
+
+
+def test_only_needs_cached_inputs(toy_config):
+    with pytest.raises(CacheMissError, match="mesh_import.toy is not cached"):
+        run(toy_config, only="simulate")
+    run(toy_config)
+    r = run(toy_config, only="render", force=("render",))
+    assert statuses(r) == {"mesh_import": "cached", "sdf_bake": "cached", "simulate": "cached",
+                           "surface_extract": "cached", "render": "forced"}
+    assert ran(toy_config, "render") == 8 and ran(toy_config, "simulate") == 1
+
+
+def test_until_stops_and_from_reads_upstream_from_cache(toy_config):
+    r = run(toy_config, until="simulate")
+    assert [s.kind for s in r.stages] == ["mesh_import", "sdf_bake", "simulate"]
+    assert ran(toy_config, "render") == 0
+    r = run(toy_config, from_="surface_extract")
+    assert statuses(r)["simulate"] == "cached" and statuses(r)["render"] == "ran"
+    # --from a stage whose upstream is stale: the stale upstream is not run, that is an error
+    with pytest.raises(CacheMissError):
+        run(toy_config, from_="render", overrides=("simulate.steps=5",))
+
+
+def test_force_recomputes_one_stage(toy_config):
+    run(toy_config)
+    r = run(toy_config, force=("sdf_bake",))
+    assert statuses(r)["sdf_bake"] == "forced" and statuses(r)["simulate"] == "cached"
+    assert ran(toy_config, "sdf_bake") == 2
+
+
+def test_per_frame_stages_cache_per_frame(toy_config):
+    run(toy_config, frames=(0, 1))
+    assert ran(toy_config, "render") == 2
+    r = run(toy_config)
+    assert r.stage("render").frames_ran == 2 and ran(toy_config, "render") == 4
+
+
+def test_status_reports_missing_cached_stale_with_cause(toy_config):
+    reg = Registry.from_entry_points()
+    assert {r.state for r in pipeline.status(toy_config, registry=reg)} == {"missing"}
+    run(toy_config)
+    assert {r.state for r in pipeline.status(toy_config, registry=reg)} == {"cached"}
+    rows = {r.kind: r for r in pipeline.status(toy_config, registry=reg, overrides=("sdf_bake.cell=0.25",))}
+    assert rows["mesh_import"].state == "cached"
+    assert rows["sdf_bake"].state == "stale" and "cell" in rows["sdf_bake"].reason and "0.25" in rows["sdf_bake"].reason
+    assert rows["simulate"].state == "stale" and "upstream sdf" in rows["simulate"].reason
+
+
+def test_damaged_entry_is_rebuilt(toy_config):
+    run(toy_config)
+    cache = Cache(toy_config.parent / ".pipeline")
+    entry = next((cache.root / "simulate").glob("*/*/particles.txt"))
+    entry.write_text("garbage")  # same entry, different content
+    rows = {r.kind: r for r in pipeline.status(toy_config, registry=Registry.from_entry_points())}
+    assert rows["simulate"].state == "stale" and "damaged" in rows["simulate"].reason
+    r = run(toy_config)
+    assert statuses(r)["simulate"] == "ran"
+    assert "garbage" not in entry.read_text()
+
+
+def test_stage_errors_name_the_stage(toy_config):
+    with pytest.raises(StageFailed, match=r"stage simulate.toy: the emitter box is empty") as e:
+        run(toy_config, overrides=("simulate.fail=user",))
+    assert e.value.exit_code == 2
+    with pytest.raises(StageFailed, match=r"simulate.toy failed .*RuntimeError: boom") as e:
+        run(toy_config, overrides=("simulate.fail=bug",))
+    assert e.value.exit_code == 1
+    cache = Cache(toy_config.parent / ".pipeline")
+    assert not list((cache.root / "simulate").glob("*/*/manifest.json"))
+    assert not list((cache.root / "tmp").iterdir())
+
+
+def test_clean_removes_entries(toy_config):
+    run(toy_config)
+    n = pipeline.clean(toy_config, registry=Registry.from_entry_points(), stage="render")
+    assert n == 4
+    r = run(toy_config)
+    assert statuses(r)["render"] == "ran" and statuses(r)["surface_extract"] == "cached"
+
+
+def _cli_env(toy_plugin) -> dict:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(toy_plugin), str(TESTS), str(REPO), env.get("PYTHONPATH", "")])
+    return env
+
+
+def _cli(*args) -> list[str]:
+    return [sys.executable, "-m", "pipeline.cli", *args]
+
+
+def test_killed_run_leaves_consistent_cache(toy_config, toy_plugin):
+    proc = subprocess.Popen(_cli("run", str(toy_config), "-q", "--set", "simulate.sleep=30", "--set", "simulate.steps=30"),
+                            env=_cli_env(toy_plugin), stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    cache = Cache(toy_config.parent / ".pipeline")
+    deadline = time.time() + 60
+    while time.time() < deadline and not list((cache.root / "tmp").glob("*/particles.txt")):
+        time.sleep(0.1)
+    assert list((cache.root / "tmp").glob("*/particles.txt")), "the stage never started writing"
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    # nothing that looks finished
+    assert not list((cache.root / "simulate").glob("*/*/manifest.json"))
+    rows = {r.kind: r.state for r in pipeline.status(toy_config, registry=Registry.from_entry_points(),
+                                                      overrides=("simulate.sleep=30", "simulate.steps=30"))}
+    assert rows["sdf_bake"] == "cached" and rows["simulate"] in ("missing", "stale")
+    r = run(toy_config, overrides=("simulate.sleep=0", "simulate.steps=30"))
+    assert statuses(r)["simulate"] == "ran"
+    assert not list((cache.root / "tmp").iterdir()), "leftovers of the killed run were not swept"
+
+
+def test_concurrent_runs_share_one_cache(toy_config, toy_plugin):
+    cmd = _cli("run", str(toy_config), "-q", "--set", "simulate.sleep=2")
+    procs = [subprocess.Popen(cmd, env=_cli_env(toy_plugin), stdout=subprocess.PIPE, stderr=subprocess.PIPE) for _ in range(2)]
+    outs = [p.communicate(timeout=120) for p in procs]
+    assert all(p.returncode == 0 for p in procs), outs
+    assert ran(toy_config, "simulate") == 1  # the second run waited on the lock, then hit the cache
+    assert ran(toy_config, "render") == 4
+    r = run(toy_config, overrides=("simulate.sleep=2",))
+    assert set(statuses(r).values()) == {"cached"}
+
+
+def test_process_pool_gives_same_result(toy_config):
+    from pipeline.executors import ProcessExecutor
+
+    r1 = run(toy_config)
+    a = {p.name: p.read_text() for p in (Path(r1.out) / "frames").iterdir()}
+    pipeline.clean(toy_config, registry=Registry.from_entry_points(), stage="render")
+    ex = ProcessExecutor(2)
+    try:
+        r2 = run(toy_config, executor=ex)
+    finally:
+        ex.close()
+    assert r2.stage("render").frames_ran == 4
+    b = {p.name: p.read_text() for p in (Path(r2.out) / "frames").iterdir()}
+    assert a == b
+
+
+def test_unknown_force_and_frames_are_errors(toy_config):
+    with pytest.raises(ConfigError, match="--frames: frame 9"):
+        run(toy_config, frames=(9,))
+    with pytest.raises(ConfigError, match="--only export"):
+        run(toy_config, only="export")

@@ -1,0 +1,114 @@
+"""Small stage implementations for the engine tests (registered as the 'toy' plugin in tests)."""
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+from pydantic import Field
+
+from pipeline.stage import Params, Stage, StageError
+
+
+def _bump(ctx, name: str) -> None:
+    """Append to a counter file beside the config, so tests can count how often a stage really ran."""
+    with open(ctx.config_dir / f"ran_{name}.log", "a") as fh:
+        fh.write(f"{os.getpid()}\n")
+
+
+class ToyImport(Stage):
+    kind, name, version = "mesh_import", "toy", "1"
+    outputs = ("walls",)
+    reads = ("scene", "walls")
+
+    class Params(Params):
+        value: int = Field(1, description="written into the artifact")
+        source: str | None = Field(None, description="an external file whose content is hashed")
+
+    def external_files(self, ctx, params):
+        return [ctx.resolve(params.source)] if params.source else []
+
+    def run(self, ctx, inputs, params):
+        _bump(ctx, "mesh_import")
+        text = f"walls {params.value}"
+        if params.source:
+            text += " " + ctx.resolve(params.source).read_text()
+        (ctx.out_dir / "walls.txt").write_text(text)
+
+
+class ToyBake(Stage):
+    kind, name, version = "sdf_bake", "toy", "1"
+    inputs = ("walls",)
+    outputs = ("sdf",)
+
+    class Params(Params):
+        cell: float = 0.5
+
+    def run(self, ctx, inputs, params):
+        _bump(ctx, "sdf_bake")
+        walls = (inputs["walls"].path / "walls.txt").read_text()
+        (ctx.out_dir / "sdf.txt").write_text(f"{walls} | sdf {params.cell}")
+
+
+class ToySimulate(Stage):
+    kind, name, version = "simulate", "toy", os.environ.get("TOY_SIM_VERSION", "1")
+    inputs = ("sdf",)
+    outputs = ("particles",)
+    reads = ("scene", "fluid")
+
+    class Params(Params):
+        steps: int = Field(3, ge=1)
+        sleep: float = Field(0.0, ge=0, description="seconds to sleep mid-write (kill tests)")
+        fail: str | None = Field(None, description="'user' raises StageError, 'bug' raises RuntimeError")
+
+    def run(self, ctx, inputs, params):
+        _bump(ctx, "simulate")
+        if params.fail == "user":
+            raise StageError("the emitter box is empty")
+        if params.fail == "bug":
+            raise RuntimeError("boom")
+        sdf = (inputs["sdf"].path / "sdf.txt").read_text()
+        part = ctx.out_dir / "particles.txt"
+        with open(part, "w") as fh:
+            fh.write(sdf + " | sim")
+            fh.flush()
+            progress = ctx.progress("simulate", params.steps)
+            for _ in range(params.steps):
+                time.sleep(params.sleep / params.steps)
+                fh.write(".")
+                fh.flush()
+                progress.advance()
+        (ctx.out_dir / "done.txt").write_text("ok")
+
+
+class ToySurface(Stage):
+    kind, name, version = "surface_extract", "toy", "1"
+    inputs = ("particles",)
+    outputs = ("raw_surface",)
+    per_frame = True
+
+    class Params(Params):
+        iso: float = 0.5
+
+    def run_frame(self, ctx, inputs, params, frame):
+        _bump(ctx, "surface_extract")
+        src = (inputs["particles"].frame(frame) / "particles.txt").read_text()
+        (ctx.out_dir / f"surface_{frame:05d}.txt").write_text(f"{src} | surface {frame} iso {params.iso}")
+
+
+class ToyRender(Stage):
+    kind, name, version = "render", "toy", "1"
+    inputs = ("raw_surface",)
+    outputs = ("frames",)
+    per_frame = True
+
+    class Params(Params):
+        width: int = Field(64, ge=1)
+
+    def run_frame(self, ctx, inputs, params, frame):
+        _bump(ctx, "render")
+        src = (inputs["raw_surface"].frame(frame) / f"surface_{frame:05d}.txt").read_text()
+        (ctx.out_dir / f"frame_{frame:05d}.txt").write_text(f"{src} | render {params.width}")
+
+
+TOY_STAGES = (ToyImport, ToyBake, ToySimulate, ToySurface, ToyRender)
