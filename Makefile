@@ -1,0 +1,39 @@
+# Two commands do all set-up on a fresh machine:  make demo   and   make test
+PY ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+# shared libraries the wheels need: open3d wants libusb; VTK offscreen rendering wants OSMesa/EGL
+SYSLIBS := libusb-1.0.so.0 libOSMesa.so.8 libEGL.so.1 libGL.so.1 libgomp.so.1
+APT_PKGS := libusb-1.0-0 libosmesa6 libegl1 libgl1 libgomp1
+
+.PHONY: setup demo test bench clean-cache sys-deps
+
+sys-deps:
+	@missing=""; for lib in $(SYSLIBS); do ldconfig -p | grep -q "$$lib" || missing="$$missing $$lib"; done; \
+	if [ -n "$$missing" ]; then \
+	  echo "installing system libraries for:$$missing"; \
+	  SUDO=""; [ "$$(id -u)" = 0 ] || SUDO=sudo; \
+	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq $(APT_PKGS) >/dev/null; \
+	fi
+
+$(STAMP): pyproject.toml
+	$(MAKE) sys-deps
+	test -x $(BIN)/python || $(PY) -m venv $(VENV)
+	$(BIN)/pip install -q --upgrade pip
+	$(BIN)/pip install -q -e ".[test]"
+	touch $(STAMP)
+
+setup: $(STAMP)
+
+demo: setup
+	$(BIN)/pipeline run configs/dam_break.yaml
+
+test: setup
+	$(BIN)/python -m pytest -q
+
+bench: setup
+	$(BIN)/python benchmarks/run_all.py
+
+clean-cache:
+	rm -rf configs/.pipeline configs/out
