@@ -9,16 +9,17 @@ from __future__ import annotations
 
 import logging
 import os
+import threading
 import shutil
 import time
 import traceback
 import uuid
-from contextlib import nullcontext
+from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-from .cache import Cache, Entry, file_sha256, hash_key
+from .cache import Cache, file_sha256, hash_key
 from .config import Config, dump_model, load_config
 from .errors import CacheMissError, ConfigError, PipelineError, StageFailed
 from .executors import Executor, make_executor
@@ -200,41 +201,88 @@ def _fail(node: Node, key: str, config: Config, exc: BaseException, cache: Cache
 
 def execute(p: Plan, *, out_dir: Path, force: frozenset[str] = frozenset(), executor: Executor | None = None,
             progress: bool = False) -> RunReport:
+    """Run the plan. Inline, stages go one by one in dependency order; with a pool executor, independent
+    branches (e.g. render frames and export) are driven concurrently by threads of this process while
+    their per-frame jobs run in the pool's worker processes."""
     config, graph, cache = p.config, p.graph, p.cache
     t_start = time.perf_counter()
     cache.root.mkdir(parents=True, exist_ok=True)
     cache.sweep_tmp()
     report = RunReport(config=str(config.path), scene=config.name, cache=str(cache.root), out=str(out_dir))
     artifacts: dict[str, Artifact] = {}
+    reports: dict[str, StageReport] = {}
     state = cache.read_state(config.path)
     executor = executor or make_executor("inline")
-    with _Progress(progress) as bars:
-        for kind in graph.order():
-            node = graph.nodes[kind]
-            key = p.keys[kind]
-            runnable = kind in graph.runnable
-            forced = kind in force or "all" in force
+    guard = threading.Lock()
+
+    def run_node(kind: str, bars: _Progress) -> tuple[StageReport, dict[str, Artifact]]:
+        node = graph.nodes[kind]
+        key = p.keys[kind]
+        runnable = kind in graph.runnable
+        forced = kind in force or "all" in force
+        with guard:
             inputs = {name: artifacts[name] for name, _ in node.inputs}
-            t0 = time.perf_counter()
-            if node.per_frame:
-                sr, frames = _run_per_frame(p, node, key, inputs, runnable, forced, executor, bars)
-                for out in node.cls.outputs:
-                    artifacts[out] = Artifact(name=out, key=key, frames=frames)
-            else:
-                sr, path = _run_whole(p, node, key, inputs, runnable, forced, bars)
-                for out in node.cls.outputs:
-                    artifacts[out] = Artifact(name=out, key=key, path=path)
-            sr.seconds = sr.seconds if sr.status == "cached" else time.perf_counter() - t0
-            report.stages.append(sr)
-            state[kind] = {"key": key, "components": p.components[kind], "seconds": sr.seconds,
+        t0 = time.perf_counter()
+        if node.per_frame:
+            sr, frames = _run_per_frame(p, node, key, inputs, runnable, forced, executor, bars)
+            made = {out: Artifact(name=out, key=key, frames=frames) for out in node.cls.outputs}
+        else:
+            sr, path = _run_whole(p, node, key, inputs, runnable, forced, bars)
+            made = {out: Artifact(name=out, key=key, path=path) for out in node.cls.outputs}
+        if sr.status != "cached":
+            sr.seconds = time.perf_counter() - t0
+        return sr, made
+
+    def finish(kind: str, result: tuple[StageReport, dict[str, Artifact]]) -> None:
+        sr, made = result
+        with guard:
+            artifacts.update(made)
+            reports[kind] = sr
+            state[kind] = {"key": sr.key, "components": p.components[kind], "seconds": sr.seconds,
                            "status": sr.status, "time": time.time()}
             cache.write_state(config.path, state)
-            log.debug("%-16s %-16s %s  %s%s", kind, node.cls.name, key[:12], sr.status,
-                     f" ({sr.frames_ran}/{sr.frames_total} frames)" if node.per_frame else "")
+        log.debug("%-16s %-16s %s  %s", kind, sr.implementation, sr.key[:12], sr.status)
+
+    order = graph.order()
+    with _Progress(progress) as bars:
+        if executor.name == "inline" or len(order) < 2:
+            for kind in order:
+                finish(kind, run_node(kind, bars))
+        else:
+            _run_branches(graph, order, lambda k: run_node(k, bars), finish)
+    report.stages = [reports[k] for k in order]
     report.outputs = publish(graph, artifacts, out_dir, p.frames)
     report.seconds = time.perf_counter() - t_start
     write_run_json(report, out_dir)
     return report
+
+
+def _run_branches(graph: Graph, order: list[str], run_node: Callable, finish: Callable) -> None:
+    """Start every stage as soon as its producers are done; the first failure is raised after the
+    stages already running have finished (their entries stay valid)."""
+    done: set[str] = set()
+    remaining = list(order)
+    error: BaseException | None = None
+    with ThreadPoolExecutor(max_workers=len(order)) as threads:
+        running: dict[Any, str] = {}
+        while remaining or running:
+            if error is None:
+                for kind in list(remaining):
+                    if all(producer in done for _, producer in graph.nodes[kind].inputs):
+                        running[threads.submit(run_node, kind)] = kind
+                        remaining.remove(kind)
+            if not running:
+                break
+            finished, _ = wait(running, return_when=FIRST_COMPLETED)
+            for fut in finished:
+                kind = running.pop(fut)
+                try:
+                    finish(kind, fut.result())
+                    done.add(kind)
+                except BaseException as exc:  # noqa: BLE001 - re-raised below
+                    error = error or exc
+    if error is not None:
+        raise error
 
 
 def _run_whole(p: Plan, node: Node, key: str, inputs: dict[str, Artifact], runnable: bool, forced: bool,

@@ -23,6 +23,7 @@ stages:
   simulate: {use: toy}
   surface_extract: {use: toy}
   render: {use: toy}
+  export: {use: toy}
 outputs: [frames]
 """
 
@@ -39,6 +40,7 @@ def write_toy_plugin(root: Path) -> Path:
         simulate.toy = toy_stages:ToySimulate
         surface_extract.toy = toy_stages:ToySurface
         render.toy = toy_stages:ToyRender
+        export.toy = toy_stages:ToyExport
         """))
     return root
 
@@ -62,3 +64,8 @@ def ran(config: Path, stage: str) -> int:
     """How many times a toy stage really ran for this config."""
     f = config.parent / f"ran_{stage}.log"
     return len(f.read_text().split()) if f.exists() else 0
+
+
+def spans(config: Path, stage: str) -> list[tuple[float, float]]:
+    f = config.parent / f"span_{stage}.log"
+    return [tuple(map(float, line.split())) for line in f.read_text().splitlines()] if f.exists() else []

@@ -16,7 +16,7 @@ import pipeline
 from pipeline import CacheMissError, ConfigError, Registry, StageFailed
 from pipeline.cache import Cache
 
-from conftest import REPO, TESTS, ran
+from conftest import REPO, TESTS, ran, spans
 
 
 def run(config, **kw):
@@ -231,3 +231,21 @@ def test_unknown_force_and_frames_are_errors(toy_config):
         run(toy_config, frames=(9,))
     with pytest.raises(ConfigError, match="--only export"):
         run(toy_config, only="export")
+
+
+def test_independent_branches_run_concurrently_with_a_pool(toy_config):
+    """render (per-frame, in worker processes) and export (whole-run) only share upstream: with a pool
+    they overlap in time; inline they run one after the other. Same outputs either way."""
+    from pipeline.executors import ProcessExecutor
+
+    sets = ("outputs=[frames, usd]", "render.sleep=0.6", "export.sleep=1.5")
+    ex = ProcessExecutor(2)
+    try:
+        r = run(toy_config, overrides=sets, executor=ex)
+    finally:
+        ex.close()
+    assert statuses(r)["export"] == "ran" and r.stage("render").frames_ran == 4
+    (e0, e1), = spans(toy_config, "export")
+    render = spans(toy_config, "render")
+    assert any(a < e1 and b > e0 for a, b in render), (render, (e0, e1))
+    assert (Path(r.out) / "usd" / "scene.txt").read_text().endswith("...")

@@ -104,11 +104,35 @@ class ToyRender(Stage):
 
     class Params(Params):
         width: int = Field(64, ge=1)
+        sleep: float = Field(0.0, ge=0)
 
     def run_frame(self, ctx, inputs, params, frame):
         _bump(ctx, "render")
+        _span(ctx, "render", params.sleep)
         src = (inputs["raw_surface"].frame(frame) / f"surface_{frame:05d}.txt").read_text()
         (ctx.out_dir / f"frame_{frame:05d}.txt").write_text(f"{src} | render {params.width}")
 
 
-TOY_STAGES = (ToyImport, ToyBake, ToySimulate, ToySurface, ToyRender)
+def _span(ctx, name: str, seconds: float) -> None:
+    """Sleep and record the (start, end) interval, so tests can see whether branches overlapped."""
+    t0 = time.time()
+    time.sleep(seconds)
+    with open(ctx.config_dir / f"span_{name}.log", "a") as fh:
+        fh.write(f"{t0} {time.time()}\n")
+
+
+class ToyExport(Stage):
+    kind, name, version = "export", "toy", "1"
+    inputs = ("particles",)
+    outputs = ("usd",)
+
+    class Params(Params):
+        sleep: float = Field(0.0, ge=0)
+
+    def run(self, ctx, inputs, params):
+        _bump(ctx, "export")
+        _span(ctx, "export", params.sleep)
+        (ctx.out_dir / "scene.txt").write_text((inputs["particles"].path / "particles.txt").read_text())
+
+
+TOY_STAGES = (ToyImport, ToyBake, ToySimulate, ToySurface, ToyRender, ToyExport)
