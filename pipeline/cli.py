@@ -146,5 +146,23 @@ def clean(config, cache_dir, stage):
     click.echo(f"removed {n} cache entr{'y' if n == 1 else 'ies'}")
 
 
+@main.command()
+@click.argument("study", type=click.Path(path_type=Path))
+@cache_opt
+@click.option("--out", "out_dir", type=click.Path(path_type=Path), help="Report folder (default: out/<study>/ beside it).")
+@click.option("--workers", type=click.IntRange(1, 64), default=1, show_default=True, help="Variants run in parallel processes.")
+@click.option("-q", "--quiet", is_flag=True)
+@_guard
+def study(study, cache_dir, out_dir, workers, quiet):
+    """Run the variants of a study and report accuracy against time (table + plots)."""
+    from .study import run_study
+
+    _setup_logging(0, quiet)
+    results, out = run_study(study, cache_dir=cache_dir, out_dir=out_dir, workers=workers)
+    if not quiet:
+        click.echo((out / "study.md").read_text())
+    click.echo(f"report: {out / 'study.md'}; plots: {', '.join(p.name for p in sorted(out.glob('*_vs_time.png')))}")
+
+
 if __name__ == "__main__":
     main()

@@ -79,6 +79,8 @@ class ToySimulate(Stage):
                 fh.flush()
                 progress.advance()
         (ctx.out_dir / "done.txt").write_text("ok")
+        # a made-up accuracy figure that improves with steps, for the study tests
+        (ctx.out_dir / "stats.json").write_text(f'{{"stats": {{"error": {1.0 / params.steps}}}}}')
 
 
 class ToySurface(Stage):

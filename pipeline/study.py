@@ -1,0 +1,202 @@
+"""Studies: what accuracy costs in time. A study runs variants of a base config (``--set`` style
+overrides, swept as a product or zipped), reads each variant's stage times and the metrics its stages
+recorded (a JSON file in an artifact, e.g. the simulate stage's ``meta.json`` ``stats``), and writes a
+table (CSV, JSON, Markdown) and accuracy-against-time plots.
+
+```yaml
+study_version: 1
+name: dam_break_resolution
+base: ../dam_break.yaml
+mode: product                      # or zip
+sweep:
+  fluid.spacing: [0.04, 0.03, 0.02]
+  simulate.use: [sph, mps]
+time: simulate                     # whose wall time is the cost axis
+metrics:
+  - {name: surge_front_error, file: particles/meta.json, key: stats.surge_front_rms_error, label: "surge front RMS error (Z/a)"}
+```
+Variants run through the normal cache, so re-running a study only computes new variants.
+"""
+from __future__ import annotations
+
+import csv
+import itertools
+import json
+import os
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from .config import OUTPUT_NAMES
+from .errors import ConfigError
+from .stage import STAGE_KINDS
+
+
+class Metric(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    name: str = Field(pattern=r"^[A-Za-z0-9_]+$")
+    file: str = Field(description="output/relative path of a JSON file, e.g. particles/meta.json")
+    key: str = Field(description="dotted path inside that JSON, e.g. stats.density_error")
+    label: str | None = None
+    lower_is_better: bool = True
+
+
+class StudyConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    study_version: Literal[1]
+    name: str = Field(pattern=r"^[A-Za-z0-9_.-]{1,64}$")
+    base: str = Field(description="the scene config the variants start from, relative to this file")
+    mode: Literal["product", "zip"] = "product"
+    sweep: dict[str, list[Any]] = Field(min_length=1, description="override path -> values")
+    set: list[str] = Field(default_factory=list, description="overrides applied to every variant")
+    outputs: list[str] = Field(default_factory=lambda: ["particles"], description="outputs each variant needs")
+    time: str = Field("simulate", description="stage whose wall time is the cost axis")
+    metrics: list[Metric] = Field(min_length=1)
+
+    @model_validator(mode="after")
+    def _check(self) -> "StudyConfig":
+        if self.mode == "zip" and len({len(v) for v in self.sweep.values()}) > 1:
+            raise ValueError("mode zip needs every sweep list to have the same length")
+        if any(not v for v in self.sweep.values()):
+            raise ValueError("every sweep entry needs at least one value")
+        if self.time not in STAGE_KINDS:
+            raise ValueError(f"time: expected a stage kind ({', '.join(STAGE_KINDS)})")
+        for o in self.outputs:
+            if o not in OUTPUT_NAMES:
+                raise ValueError(f"outputs: unknown output {o!r}")
+        return self
+
+
+@dataclass
+class VariantResult:
+    overrides: dict[str, Any]
+    seconds: float
+    metrics: dict[str, float | None]
+    out: str
+
+
+def load_study(path: Path) -> StudyConfig:
+    if not path.is_file():
+        raise ConfigError(f"{path}: study file not found")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{path}: not valid YAML: {str(e).splitlines()[0]}") from None
+    try:
+        return StudyConfig.model_validate(data)
+    except ValidationError as e:
+        err = e.errors(include_url=False)[0]
+        loc = ".".join(str(p) for p in err["loc"]) or "top level"
+        msg = {"extra_forbidden": "unknown key", "missing": "required field is missing"}.get(err["type"], err["msg"])
+        raise ConfigError(f"{path}: {loc}: {msg}") from None
+
+
+def variants(study: StudyConfig) -> list[dict[str, Any]]:
+    keys = list(study.sweep)
+    rows = itertools.product(*study.sweep.values()) if study.mode == "product" else zip(*study.sweep.values())
+    return [dict(zip(keys, row)) for row in rows]
+
+
+def _lookup(data: Any, dotted: str) -> Any:
+    for part in dotted.split("."):
+        if isinstance(data, dict) and part in data:
+            data = data[part]
+        else:
+            return None
+    return data
+
+
+def _run_variant(args: tuple) -> VariantResult:
+    study_dict, base, overrides, cache_dir, out_root = args
+    from . import runner
+
+    study = StudyConfig.model_validate(study_dict)
+    name = "_".join(f"{k.split('.')[-1]}-{v}" for k, v in overrides.items()).replace("/", "-")
+    out = Path(out_root) / "variants" / name
+    sets = tuple(study.set) + tuple(f"{k}={json.dumps(v)}" for k, v in overrides.items()) \
+        + (f"outputs={json.dumps(study.outputs)}",)
+    report = runner.run(base, overrides=sets, cache_dir=cache_dir, out_dir=out)
+    stage = next((s for s in report.stages if s.kind == study.time), None)
+    metrics: dict[str, float | None] = {}
+    for m in study.metrics:
+        f = out / m.file
+        value = _lookup(json.loads(f.read_text()), m.key) if f.is_file() else None
+        metrics[m.name] = float(value) if isinstance(value, (int, float)) else None
+    return VariantResult(overrides=overrides, seconds=stage.seconds if stage else 0.0, metrics=metrics, out=str(out))
+
+
+def run_study(path: str | Path, *, cache_dir: Path | None = None, out_dir: Path | None = None,
+              workers: int = 1) -> tuple[list[VariantResult], Path]:
+    path = Path(path).resolve()
+    study = load_study(path)
+    base = (path.parent / study.base).resolve()
+    if not base.is_file():
+        raise ConfigError(f"{path}: base: config not found: {base}")
+    out_root = Path(out_dir) if out_dir else path.parent / "out" / study.name
+    cache = Path(cache_dir) if cache_dir else base.parent / ".pipeline"
+    jobs = [(study.model_dump(), str(base), v, str(cache), str(out_root)) for v in variants(study)]
+    results: list[VariantResult] = []
+    if workers > 1:
+        with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
+            futs = [pool.submit(_run_variant, j) for j in jobs]
+            results = [f.result() for f in as_completed(futs)]
+        order = {json.dumps(j[2], sort_keys=True): i for i, j in enumerate(jobs)}
+        results.sort(key=lambda r: order[json.dumps(r.overrides, sort_keys=True)])
+    else:
+        results = [_run_variant(j) for j in jobs]
+    write_report(study, results, out_root)
+    return results, out_root
+
+
+def write_report(study: StudyConfig, results: list[VariantResult], out_root: Path) -> None:
+    out_root.mkdir(parents=True, exist_ok=True)
+    keys = list(study.sweep)
+    header = keys + [f"{study.time}_seconds"] + [m.name for m in study.metrics]
+    rows = [[r.overrides[k] for k in keys] + [round(r.seconds, 3)] + [r.metrics[m.name] for m in study.metrics]
+            for r in results]
+    with open(out_root / "study.csv", "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(header)
+        w.writerows(rows)
+    (out_root / "study.json").write_text(json.dumps(
+        {"study": study.model_dump(), "results": [r.__dict__ for r in results]}, indent=1))
+    md = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    md += ["| " + " | ".join("" if v is None else (f"{v:.4g}" if isinstance(v, float) else str(v)) for v in row) + " |"
+           for row in rows]
+    (out_root / "study.md").write_text(f"# Study {study.name}\n\n" + "\n".join(md) + "\n")
+    _plot(study, results, out_root)
+
+
+def _plot(study: StudyConfig, results: list[VariantResult], out_root: Path) -> None:
+    os.environ.setdefault("MPLBACKEND", "Agg")
+    import matplotlib.pyplot as plt
+
+    keys = list(study.sweep)
+    series_key = keys[-1] if len(keys) > 1 else None  # one line per value of the last swept key
+    for m in study.metrics:
+        fig, ax = plt.subplots(figsize=(6, 4), dpi=120)
+        groups: dict[Any, list[VariantResult]] = {}
+        for r in results:
+            groups.setdefault(r.overrides[series_key] if series_key else m.name, []).append(r)
+        for label, rs in groups.items():
+            pts = [(r.seconds, r.metrics[m.name], r) for r in rs if r.metrics[m.name] is not None]
+            if not pts:
+                continue
+            ax.plot([p[0] for p in pts], [p[1] for p in pts], "o-", label=str(label))
+            for s, v, r in pts:
+                tag = ", ".join(f"{k.split('.')[-1]}={r.overrides[k]}" for k in keys if k != series_key)
+                ax.annotate(tag, (s, v), textcoords="offset points", xytext=(4, 4), fontsize=7)
+        ax.set_xlabel(f"{study.time} wall time (s)")
+        ax.set_ylabel(m.label or m.name)
+        ax.set_title(f"{study.name}: accuracy against time")
+        ax.grid(True, alpha=0.3)
+        if series_key:
+            ax.legend(title=series_key.split(".")[-1])
+        fig.tight_layout()
+        fig.savefig(out_root / f"{m.name}_vs_time.png")
+        plt.close(fig)

@@ -1,0 +1,48 @@
+"""Studies: variants through the cache, metrics from artifacts, report and plots."""
+from __future__ import annotations
+
+import csv
+
+import pytest
+from click.testing import CliRunner
+
+from pipeline import ConfigError
+from pipeline.cli import main
+from pipeline.study import run_study
+
+from conftest import ran
+
+STUDY = """\
+study_version: 1
+name: toy_study
+base: toy.yaml
+sweep:
+  simulate.steps: [1, 2, 4]
+outputs: [particles]
+time: simulate
+metrics:
+  - {name: error, file: particles/stats.json, key: stats.error, label: made-up error}
+"""
+
+
+def test_study_runs_variants_and_reports(toy_config):
+    path = toy_config.parent / "study.yaml"
+    path.write_text(STUDY)
+    results, out = run_study(path)
+    assert [r.overrides["simulate.steps"] for r in results] == [1, 2, 4]
+    assert [r.metrics["error"] for r in results] == [1.0, 0.5, 0.25]
+    rows = list(csv.reader(open(out / "study.csv")))
+    assert rows[0] == ["simulate.steps", "simulate_seconds", "error"] and len(rows) == 4
+    assert (out / "error_vs_time.png").stat().st_size > 1000
+    assert ran(toy_config, "simulate") == 3
+    run_study(path)  # cached: nothing recomputed
+    assert ran(toy_config, "simulate") == 3 and ran(toy_config, "render") == 0
+
+
+def test_study_errors(toy_config):
+    path = toy_config.parent / "study.yaml"
+    path.write_text(STUDY.replace("mode", "x").replace("sweep:", "sweeps:"))
+    with pytest.raises(ConfigError, match="sweep: required field is missing"):
+        run_study(path)
+    result = CliRunner().invoke(main, ["study", str(toy_config.parent / "missing.yaml")])
+    assert result.exit_code == 2 and "study file not found" in result.stderr
