@@ -1,0 +1,95 @@
+"""An H.264 MP4 of the rendered frames (imageio-ffmpeg's own ffmpeg binary) and a contact sheet PNG."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+from pydantic import Field
+
+from pipeline.stage import Artifact, Context, Params, Stage, StageError
+
+
+class MovieParams(Params):
+    crf: int = Field(20, ge=0, le=51, description="x264 constant rate factor (lower = better, bigger)")
+    sheet_frames: int = Field(9, ge=1, le=64, description="frames on the contact sheet, evenly spaced")
+    sheet_columns: int = Field(3, ge=1, le=8, description="columns of the contact sheet")
+    sheet_width: int = Field(1800, ge=200, description="contact sheet width, pixels")
+
+
+def frame_png(folder: Path, frame: int) -> Path:
+    return Path(folder) / f"frame_{frame:05d}.png"
+
+
+def evenly_spaced(items: list[int], count: int) -> list[int]:
+    if len(items) <= count:
+        return list(items)
+    picks = np.linspace(0, len(items) - 1, count).round().astype(int)
+    return [items[i] for i in sorted(set(picks.tolist()))]
+
+
+class FfmpegMovie(Stage):
+    kind = "movie"
+    name = "ffmpeg"
+    version = "1"
+    Params = MovieParams
+    inputs = ("frames",)
+    outputs = ("movie",)
+    reads = ("scene",)
+    default = True
+    description = "movie.mp4 at the scene's fps and contact_sheet.png from the rendered frames"
+
+    def run(self, ctx: Context, inputs: Mapping[str, Artifact], params: MovieParams) -> None:
+        import imageio.v3 as iio
+        import imageio_ffmpeg
+
+        frames = sorted(ctx.frames)
+        paths = [frame_png(inputs["frames"].frame(f), f) for f in frames]
+        missing = [str(p) for p in paths if not p.is_file()]
+        if not paths or missing:
+            raise StageError(f"movie.ffmpeg: rendered frame missing: {missing[0] if missing else 'no frames'}")
+        first = iio.imread(paths[0])[..., :3]
+        h, w = first.shape[:2]
+        # yuv420p needs even sizes: pad by one pixel rather than rescale
+        H, W = h + h % 2, w + w % 2
+        writer = imageio_ffmpeg.write_frames(
+            str(Path(ctx.out_dir) / "movie.mp4"), (W, H), fps=float(ctx.scene["scene"].frames.fps),
+            codec="libx264", pix_fmt_out="yuv420p", macro_block_size=1, quality=None,
+            output_params=["-crf", str(params.crf), "-movflags", "+faststart"])
+        writer.send(None)
+        progress = ctx.progress("encoding movie", len(paths))
+        try:
+            for p in paths:
+                img = iio.imread(p)[..., :3]
+                if img.shape[:2] != (h, w):
+                    raise StageError(f"movie.ffmpeg: {p} is {img.shape[1]}x{img.shape[0]}, expected {w}x{h}")
+                if (H, W) != (h, w):
+                    img = np.pad(img, ((0, H - h), (0, W - w), (0, 0)), mode="edge")
+                writer.send(np.ascontiguousarray(img, np.uint8))
+                progress.advance()
+        finally:
+            writer.close()
+        self._contact_sheet(ctx, inputs, params, frames)
+
+    @staticmethod
+    def _contact_sheet(ctx: Context, inputs: Mapping[str, Artifact], params: MovieParams, frames: list[int]) -> None:
+        from PIL import Image, ImageDraw
+
+        picks = evenly_spaced(frames, params.sheet_frames)
+        cols = min(params.sheet_columns, len(picks))
+        rows = math.ceil(len(picks) / cols)
+        tiles = [Image.open(frame_png(inputs["frames"].frame(f), f)).convert("RGB") for f in picks]
+        tw = params.sheet_width // cols
+        th = round(tiles[0].height * tw / tiles[0].width)
+        pad = 4
+        sheet = Image.new("RGB", (cols * (tw + pad) + pad, rows * (th + pad) + pad), (12, 12, 14))
+        draw = ImageDraw.Draw(sheet)
+        fps = ctx.scene["scene"].frames.fps
+        for k, (f, tile) in enumerate(zip(picks, tiles)):
+            x, y = pad + (k % cols) * (tw + pad), pad + (k // cols) * (th + pad)
+            sheet.paste(tile.resize((tw, th), Image.LANCZOS), (x, y))
+            label = f"frame {f}  t={f / fps:.2f}s"
+            draw.rectangle((x, y, x + 8 + 7 * len(label), y + 16), fill=(0, 0, 0))
+            draw.text((x + 4, y + 3), label, fill=(255, 255, 255))
+        sheet.save(Path(ctx.out_dir) / "contact_sheet.png")

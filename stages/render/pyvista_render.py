@@ -1,0 +1,193 @@
+"""Offscreen frames with PyVista/VTK: the walls and the snapped fluid surface (or the particles).
+
+Headless: with no X display we ask VTK for its EGL window (Mesa's llvmpipe software renderer through
+libEGL, no GPU and no X server needed; Debian packages libegl1 libegl-mesa0 libgl1-mesa-dri libgbm1),
+falling back to OSMesa (libosmesa6) when libEGL cannot be loaded. Without this VTK first tries X and
+spends seconds timing out on a missing display.
+"""
+from __future__ import annotations
+
+import ctypes.util
+import math
+import os
+from pathlib import Path
+from typing import Literal, Mapping
+
+import numpy as np
+from pydantic import Field
+
+from pipeline.stage import Artifact, Context, Params, Stage, StageError
+from stages.common.formats import ParticleMeta, WallMesh, load_particle_frame, load_surface
+
+Vec3 = tuple[float, float, float]
+
+WATER_RGB = (0.45, 0.70, 0.95)
+WALL_RGB = (0.62, 0.62, 0.60)
+
+
+def choose_offscreen_backend() -> str | None:
+    """Pick VTK's headless window class before pyvista is imported; respects a user's choice."""
+    if os.environ.get("DISPLAY") or os.environ.get("VTK_DEFAULT_OPENGL_WINDOW"):
+        return os.environ.get("VTK_DEFAULT_OPENGL_WINDOW")
+    backend = "vtkEGLRenderWindow" if ctypes.util.find_library("EGL") else "vtkOSOpenGLRenderWindow"
+    os.environ["VTK_DEFAULT_OPENGL_WINDOW"] = backend
+    return backend
+
+
+class Camera(Params):
+    position: Vec3 | None = Field(None, description="eye position, scene units; default: framed on the walls")
+    focal_point: Vec3 | None = Field(None, description="point looked at, scene units; default: the walls' centre")
+    up: Vec3 | None = Field(None, description="view up vector; default: the scene's up axis")
+    view_angle: float = Field(30.0, gt=1, lt=170, description="vertical field of view, degrees")
+
+
+class RenderParams(Params):
+    resolution: tuple[int, int] = Field((1280, 720), description="image width and height, pixels")
+    show: Literal["surface", "particles"] = Field("surface", description="the fluid as its surface or as particles")
+    color_by: Literal["speed", "pressure"] = Field("speed", description="particle colour (show: particles)")
+    point_size: float = Field(6.0, gt=0, description="particle sphere size on screen, pixels (show: particles)")
+    camera: Camera = Field(default_factory=Camera)
+    background: str = Field("#20242c", description="background colour (name or #rrggbb)")
+    wall_opacity: float = Field(1.0, ge=0, le=1, description="opacity of the walls' far (visible) faces")
+    water_opacity: float = Field(0.85, ge=0, le=1, description="opacity of the fluid surface")
+
+
+def auto_camera(lo: np.ndarray, hi: np.ndarray, up_axis: str, view_angle: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A 3/4 view from the front-right and somewhat above that fits the box [lo, hi] in the frame."""
+    centre = 0.5 * (lo + hi)
+    radius = 0.5 * float(np.linalg.norm(hi - lo)) or 1.0
+    if up_axis == "Z":
+        direction, up = np.array([0.55, -1.0, 0.6]), np.array([0.0, 0.0, 1.0])
+    else:  # Y-up: the same view with (x, y, z)_Z-up -> (x, z, -y)
+        direction, up = np.array([0.55, 0.6, 1.0]), np.array([0.0, 1.0, 0.0])
+    direction /= np.linalg.norm(direction)
+    distance = 1.05 * radius / math.sin(math.radians(view_angle) / 2)
+    return centre + distance * direction, centre, up
+
+
+def outward_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Faces wound so that a closed wall's normals point out of its enclosed volume (signed volume > 0),
+    which lets front-face culling hide exactly the near side of a container."""
+    if len(faces) == 0:
+        return faces
+    a, b, c = (vertices[faces[:, k]] for k in range(3))
+    volume = np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0
+    return faces[:, ::-1].copy() if volume < 0 else faces
+
+
+def polydata(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray | None = None):
+    import pyvista as pv
+
+    cells = np.hstack([np.full((len(faces), 1), 3, np.int64), faces.astype(np.int64)]).ravel()
+    mesh = pv.PolyData(np.asarray(vertices, np.float64), cells)
+    if normals is not None and len(normals) == len(vertices):
+        mesh.point_data["Normals"] = np.asarray(normals, np.float32)
+        mesh.point_data.active_normals_name = "Normals"
+    return mesh
+
+
+class PyvistaRender(Stage):
+    kind = "render"
+    name = "pyvista"
+    version = "1"
+    Params = RenderParams
+    inputs = ("walls",)
+    optional_inputs = ("surface", "particles")
+    outputs = ("frames",)
+    reads = ("scene",)
+    per_frame = True
+    default = True
+    description = "offscreen PNG frames of the walls and fluid surface (or particles) with PyVista/VTK"
+
+    def input_names(self, params: RenderParams) -> tuple[str, ...]:
+        if params.show == "surface":
+            return ("walls", "surface", "particles")
+        return ("walls", "particles")
+
+    def run_frame(self, ctx: Context, inputs: Mapping[str, Artifact], params: RenderParams, frame: int) -> None:
+        choose_offscreen_backend()
+        import pyvista as pv
+
+        scene = ctx.scene["scene"]
+        walls = WallMesh.load(inputs["walls"].path)
+        w, h = params.resolution
+        plotter = pv.Plotter(off_screen=True, window_size=(int(w), int(h)), lighting="three lights")
+        try:
+            plotter.set_background(params.background)
+            self._add_walls(plotter, walls, params)
+            if params.show == "surface":
+                self._add_surface(plotter, inputs, frame, params)
+            else:
+                self._add_particles(plotter, inputs, frame, params)
+            self._set_camera(plotter, walls, scene.units.up_axis, params)
+            fps = scene.frames.fps
+            plotter.add_text(f"frame {frame}   t = {frame / fps:.2f} s", position="lower_left", font_size=9,
+                             color="white")
+            plotter.screenshot(str(Path(ctx.out_dir) / f"frame_{frame:05d}.png"))
+        finally:
+            plotter.close()
+
+    # -- pieces of the picture -------------------------------------------------------------------
+    @staticmethod
+    def _add_walls(plotter, walls: WallMesh, params: RenderParams) -> None:
+        for index, info in enumerate(walls.walls):
+            faces = walls.faces[walls.wall_id == index]
+            if len(faces) == 0:
+                continue
+            container = info.get("fluid", "outside") == "inside"
+            faces = outward_faces(walls.vertices, faces)
+            # a container is seen from outside: hide its near faces so the fluid inside shows
+            plotter.add_mesh(polydata(walls.vertices, faces), color=WALL_RGB, opacity=params.wall_opacity,
+                             culling="front" if container else None, ambient=0.25, diffuse=0.75, specular=0.0,
+                             smooth_shading=False)
+
+    @staticmethod
+    def _add_surface(plotter, inputs: Mapping[str, Artifact], frame: int, params: RenderParams) -> None:
+        if "surface" not in inputs:
+            raise StageError("render.pyvista: show: surface needs the 'surface' artifact (wall_snap stage)")
+        folder = inputs["surface"].frame(frame)
+        try:
+            mesh = load_surface(folder, frame)
+        except FileNotFoundError:
+            raise StageError(f"render.pyvista: {folder} has no surface for frame {frame}") from None
+        if len(mesh.faces) == 0:
+            return
+        plotter.add_mesh(polydata(mesh.vertices, mesh.faces, mesh.normals), color=WATER_RGB,
+                         opacity=params.water_opacity, smooth_shading=True, ambient=0.15, diffuse=0.7,
+                         specular=0.7, specular_power=60.0)
+
+    @staticmethod
+    def _add_particles(plotter, inputs: Mapping[str, Artifact], frame: int, params: RenderParams) -> None:
+        import pyvista as pv
+
+        folder = inputs["particles"].path
+        if folder is None:
+            raise StageError("render.pyvista: the 'particles' artifact must be a whole-run folder")
+        p = load_particle_frame(folder, frame)
+        if len(p) == 0:
+            return
+        cloud = pv.PolyData(np.asarray(p.x, np.float64))
+        if params.color_by == "speed":
+            cloud["speed (units/s)"] = np.linalg.norm(p.v, axis=1)
+        else:
+            cloud["pressure (Pa)"] = np.asarray(p.p)
+        plotter.add_mesh(cloud, render_points_as_spheres=True, point_size=params.point_size, cmap="viridis",
+                         scalar_bar_args={"color": "white", "vertical": True})
+
+    @staticmethod
+    def _set_camera(plotter, walls: WallMesh, up_axis: str, params: RenderParams) -> None:
+        cam = params.camera
+        if len(walls.vertices):
+            lo, hi = walls.vertices.min(axis=0), walls.vertices.max(axis=0)
+        else:
+            lo, hi = np.full(3, -1.0), np.full(3, 1.0)
+        eye, centre, up = auto_camera(lo, hi, up_axis, cam.view_angle)
+        if cam.focal_point is not None:
+            centre = np.asarray(cam.focal_point, float)
+        if cam.position is not None:
+            eye = np.asarray(cam.position, float)
+        if cam.up is not None:
+            up = np.asarray(cam.up, float)
+        plotter.camera_position = [tuple(eye), tuple(centre), tuple(up)]
+        plotter.camera.view_angle = cam.view_angle
+        plotter.reset_camera_clipping_range()

@@ -1,0 +1,136 @@
+"""render.pyvista and movie.ffmpeg on synthetic walls, surfaces and particles (no upstream stages)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import trimesh
+
+from pipeline.stage import StageError
+from pipeline.testing import run_stage
+from stages.common.formats import (ParticleFrame, ParticleMeta, SurfaceMesh, WallMesh, save_particle_frame,
+                                   save_surface)
+from stages.movie.ffmpeg_movie import FfmpegMovie
+from stages.render.pyvista_render import PyvistaRender
+
+FRAMES = 3
+SCENE = {"scene": {"name": "t", "frames": {"fps": 10, "count": FRAMES}}}
+SPHERE_CENTRE = np.array([-0.6, 0.0, 0.5])
+SPHERE_RADIUS = 0.3
+
+
+def make_walls(folder):
+    """A closed 2 x 1 x 1 tank (fluid inside), floor at z = 0."""
+    box = trimesh.creation.box(extents=(2.0, 1.0, 1.0))
+    box.apply_translation((0, 0, 0.5))
+    WallMesh(box.vertices, box.faces, np.zeros(len(box.faces), np.int32),
+             [{"name": "tank", "fluid": "inside", "source": "builtin:box_tank"}]).save(folder)
+    return folder
+
+
+def make_surfaces(folder, frames=FRAMES):
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=SPHERE_RADIUS)
+    ball.apply_translation(SPHERE_CENTRE)
+    for f in range(frames):
+        save_surface(folder, f, SurfaceMesh(ball.vertices, ball.faces, ball.vertex_normals))
+    return folder
+
+
+def make_particles(folder, frames=FRAMES):
+    rng = np.random.default_rng(1)
+    ParticleMeta(spacing=0.05, mass=0.125, density=1000.0, support=0.1, fps=10, frame_count=frames,
+                 up_axis="Z", meters_per_unit=1.0, solver="synthetic").save(folder)
+    for f in range(frames):
+        n = 500 + 10 * f  # the count may change between frames
+        x = SPHERE_CENTRE + rng.uniform(-0.25, 0.25, (n, 3))
+        save_particle_frame(folder, f, ParticleFrame(x, rng.normal(size=(n, 3)), np.full(n, 1000.0),
+                                                     rng.uniform(0, 5000, n), np.arange(n)))
+    return folder
+
+
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory):
+    root = tmp_path_factory.mktemp("render_inputs")
+    walls, surf, parts = (root / n for n in ("walls", "surface", "particles"))
+    for d in (walls, surf, parts):
+        d.mkdir()
+    return {"walls": make_walls(walls), "surface": make_surfaces(surf), "particles": make_particles(parts)}
+
+
+def water_mask(img: np.ndarray) -> np.ndarray:
+    """Pixels of the light-blue water material (walls are grey, the background dark grey)."""
+    r, g, b = (img[..., k].astype(int) for k in range(3))
+    return (b - r > 40) & (b > 110)
+
+
+def test_input_names_follow_show():
+    assert PyvistaRender().input_names(PyvistaRender.Params(show="surface")) == ("walls", "surface", "particles")
+    assert PyvistaRender().input_names(PyvistaRender.Params(show="particles")) == ("walls", "particles")
+
+
+def test_surface_frame_shows_water_where_the_sphere_is(tmp_path, inputs):
+    import imageio.v3 as iio
+
+    w, h, fov = 320, 240, 30.0
+    eye = np.array([0.0, -5.0, 0.5])
+    params = {"resolution": [w, h], "camera": {"position": eye.tolist(), "focal_point": [0, 0, 0.5],
+                                                "up": [0, 0, 1], "view_angle": fov}}
+    out = run_stage(PyvistaRender, tmp_path, scene=SCENE, params=params, inputs=inputs, frames=(1,))
+    img = iio.imread(out / "frame_00001.png")[..., :3]
+    assert img.shape == (h, w, 3)
+    mask = water_mask(img)
+    # where the sphere should be: perspective projection of its centre and radius
+    focal = (h / 2) / math.tan(math.radians(fov) / 2)
+    depth = SPHERE_CENTRE[1] - eye[1]
+    u = w / 2 + focal * SPHERE_CENTRE[0] / depth
+    v = h / 2 - focal * (SPHERE_CENTRE[2] - eye[2]) / depth
+    r_px = focal * SPHERE_RADIUS / math.sqrt(depth**2 - SPHERE_RADIUS**2)
+    ys, xs = np.nonzero(mask)
+    assert len(xs) > 0.6 * math.pi * r_px**2, "too few water pixels: the fluid inside the tank is hidden"
+    assert len(xs) < 1.3 * math.pi * r_px**2
+    assert abs(xs.mean() - u) < 0.15 * r_px and abs(ys.mean() - v) < 0.15 * r_px
+    # the far wall of the tank is drawn (grey, brighter than the background) around the sphere
+    grey = (np.abs(img[..., 0].astype(int) - img[..., 2]) < 12) & (img[..., 0] > 70)
+    assert grey.mean() > 0.2
+
+
+def test_auto_camera_and_particles_are_not_blank(tmp_path, inputs):
+    import imageio.v3 as iio
+
+    out = run_stage(PyvistaRender, tmp_path / "s", scene=SCENE, params={"resolution": [200, 120]},
+                    inputs=inputs, frames=(0,))
+    img = iio.imread(out / "frame_00000.png")[..., :3]
+    assert water_mask(img).sum() > 100 and img.std() > 10
+    out = run_stage(PyvistaRender, tmp_path / "p", scene=SCENE, inputs=inputs, frames=(2,),
+                    params={"resolution": [200, 120], "show": "particles", "color_by": "pressure"})
+    img = iio.imread(out / "frame_00002.png")[..., :3]
+    assert img.std() > 10
+    assert (np.abs(img.astype(int) - img[0, 0]).sum(axis=2) > 60).sum() > 200  # particles drawn
+
+
+def test_missing_surface_frame_is_a_stage_error(tmp_path, inputs):
+    with pytest.raises(StageError, match="frame 7"):
+        run_stage(PyvistaRender, tmp_path, scene={"scene": {"name": "t", "frames": {"count": 8}}},
+                  params={"resolution": [64, 48]}, inputs=inputs, frames=(7,))
+
+
+def test_movie_has_every_frame_and_a_contact_sheet(tmp_path):
+    import imageio.v3 as iio
+    import imageio_ffmpeg
+
+    frames_dir = tmp_path / "frames"
+    frames_dir.mkdir()
+    count = 7
+    for f in range(count):  # odd size: the encoder pads to even
+        img = np.zeros((61, 81, 3), np.uint8)
+        img[:, : 10 * (f + 1)] = (40, 160, 250)
+        iio.imwrite(frames_dir / f"frame_{f:05d}.png", img)
+    scene = {"scene": {"name": "t", "frames": {"fps": 12, "count": count}}}
+    out = run_stage(FfmpegMovie, tmp_path / "movie", scene=scene, params={"sheet_frames": 4},
+                    inputs={"frames": frames_dir})
+    n, secs = imageio_ffmpeg.count_frames_and_secs(str(out / "movie.mp4"))
+    assert n == count
+    assert secs == pytest.approx(count / 12, abs=0.1)
+    sheet = iio.imread(out / "contact_sheet.png")
+    assert sheet.shape[1] > 1000 and sheet.std() > 10
