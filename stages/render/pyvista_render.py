@@ -168,11 +168,11 @@ class PyvistaRender(Stage):
             return
         cloud = pv.PolyData(np.asarray(p.x, np.float64))
         if params.color_by == "speed":
-            cloud["speed (units/s)"] = np.linalg.norm(p.v, axis=1)
+            cloud["speed"] = np.linalg.norm(p.v, axis=1)
         else:
-            cloud["pressure (Pa)"] = np.asarray(p.p)
+            cloud["pressure"] = np.asarray(p.p)
         plotter.add_mesh(cloud, render_points_as_spheres=True, point_size=params.point_size, cmap="viridis",
-                         scalar_bar_args={"color": "white", "vertical": True})
+                         scalar_bar_args={"color": "white", "vertical": True, "position_x": 0.86, "width": 0.06})
 
     @staticmethod
     def _set_camera(plotter, walls: WallMesh, up_axis: str, params: RenderParams) -> None:

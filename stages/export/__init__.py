@@ -1,0 +1,1 @@
+"""export stage: a composed OpenUSD scene (usd-core)."""

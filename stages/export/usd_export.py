@@ -1,0 +1,306 @@
+"""Export a composed OpenUSD scene: a small scene.usda root that sublayers one layer per department.
+
+    usd/scene.usda            root: stage metrics, default prim /World, the camera; sublayers the rest
+    usd/fluid_surface.usdc    time-sampled UsdGeom.Mesh /World/Fluid/Surface + its water material
+    usd/particles.usdc        time-sampled UsdGeom.Points (the particles artifact's layer when it is
+                              in the export's frame, else written here)
+    usd/walls.usdc            wall meshes that did not come from a USD asset
+    usd/assets/...            copies of studio USD assets the walls came from (with their local
+                              dependencies): sublayered so their prim paths stay as they are
+    usd/scene.usdz            optional package of all of the above
+
+Every path inside is relative, so the folder works wherever the engine publishes it. With a studio
+asset, ``fluid_units: asset`` (the default when there is one) writes every layer in the asset's units
+and up axis, with the placement of the asset in the scene undone, so the fluid layer lines up with the
+asset and can be sublayered straight into the shot.
+"""
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+from typing import Literal, Mapping
+
+import numpy as np
+from pydantic import Field
+
+from pipeline.stage import Artifact, Context, Params, Stage, StageError
+from stages.common.formats import ParticleMeta, WallMesh, load_particle_frame, load_surface
+
+from . import usd_layers as ul
+
+Vec3 = tuple[float, float, float]
+
+
+class ExportCamera(Params):
+    position: Vec3 | None = Field(None, description="eye position, scene units; default: framed on the walls")
+    focal_point: Vec3 | None = Field(None, description="point looked at, scene units; default: the walls' centre")
+    up: Vec3 | None = Field(None, description="view up vector; default: the scene's up axis")
+    view_angle: float = Field(30.0, gt=1, lt=170, description="vertical field of view, degrees")
+    aspect: float = Field(16 / 9, gt=0, description="image width / height")
+
+
+class UsdParams(Params):
+    surface: bool = Field(True, description="export the fluid surface (needs the wall_snap stage)")
+    particles: bool = Field(True, description="export the particles as time-sampled UsdGeom.Points")
+    fluid_units: Literal["auto", "scene", "asset"] = Field(
+        "auto", description="frame of the written layers: the scene's units/up axis, or the studio asset's "
+        "(auto: the asset's when a wall came from a USD asset)")
+    fluid_layer_path: str | None = Field(
+        None, description="also write the fluid layer alone to this path (relative to the config file)")
+    usdz: bool = Field(False, description="also package everything as scene.usdz")
+    camera: ExportCamera = Field(default_factory=ExportCamera)
+
+
+def _auto_camera(lo: np.ndarray, hi: np.ndarray, up_axis: str, view_angle: float):
+    """The render stage's automatic 3/4 view (kept in step with stages/render/pyvista_render.py)."""
+    centre = 0.5 * (lo + hi)
+    radius = 0.5 * float(np.linalg.norm(hi - lo)) or 1.0
+    if up_axis == "Z":
+        direction, up = np.array([0.55, -1.0, 0.6]), np.array([0.0, 0.0, 1.0])
+    else:
+        direction, up = np.array([0.55, 0.6, 1.0]), np.array([0.0, 1.0, 0.0])
+    direction /= np.linalg.norm(direction)
+    distance = 1.05 * radius / np.sin(np.radians(view_angle) / 2)
+    return centre + distance * direction, centre, up
+
+
+def _safe_name(name: str, used: set[str]) -> str:
+    from pxr import Tf
+
+    base = Tf.MakeValidIdentifier(str(name) or "wall")
+    out, k = base, 1
+    while out in used:
+        k += 1
+        out = f"{base}_{k}"
+    used.add(out)
+    return out
+
+
+class UsdExport(Stage):
+    kind = "export"
+    name = "usd"
+    version = "1"
+    Params = UsdParams
+    inputs = ("walls", "particles")
+    optional_inputs = ("surface",)
+    outputs = ("usd",)
+    reads = ("scene", "walls")
+    default = True
+    description = "scene.usda composing walls, particles, fluid surface and camera layers (usd-core)"
+
+    def input_names(self, params: UsdParams) -> tuple[str, ...]:
+        return ("walls", "particles", "surface") if params.surface else ("walls", "particles")
+
+    def external_files(self, ctx: Context, params: UsdParams) -> list[Path]:
+        return [ctx.resolve(w.usd) for w in ctx.scene.get("walls", []) if hasattr(w, "usd")]
+
+    # -- the studio asset's frame -------------------------------------------------------------------
+    def _asset_path(self, ctx: Context, info: dict) -> Path:
+        path = ctx.resolve(info["usd"])
+        if not path.is_file():
+            raise StageError(f"export.usd: wall {info.get('name')!r}: USD asset {path} not found")
+        return path
+
+    def _asset_to_scene(self, ctx: Context, info: dict, asset: Path) -> np.ndarray:
+        """4x4 matrix from the asset's coordinates to the scene's: unit and up-axis change, then the
+        wall's placement (scale, rotate X->Y->Z, translate) as mesh_import applies it. mesh_import may
+        record the exact matrix in walls.json as ``asset_to_scene`` (row-major, column vectors)."""
+        if "asset_to_scene" in info:
+            return np.asarray(info["asset_to_scene"], float).reshape(4, 4)
+        from pxr import Usd, UsdGeom
+        from scipy.spatial.transform import Rotation
+
+        scene = ctx.scene["scene"]
+        stage = Usd.Stage.Open(str(asset), Usd.Stage.LoadNone)
+        a_up, a_mpu = str(UsdGeom.GetStageUpAxis(stage)), UsdGeom.GetStageMetersPerUnit(stage)
+        units = ul.affine(ul.axis_change(a_up, scene.units.up_axis) * (a_mpu / scene.units.meters_per_unit))
+        wall = next((w for w in ctx.scene.get("walls", []) if hasattr(w, "usd")
+                     and ctx.resolve(w.usd).resolve() == asset.resolve()), None)
+        if wall is None:
+            return units
+        if wall.fit is not None:
+            raise StageError(f"export.usd: wall {info.get('name')!r} uses 'fit'; the asset frame needs the "
+                             "fitted transform recorded by mesh_import (walls.json asset_to_scene)")
+        scale = np.diag(np.broadcast_to(np.asarray(wall.scale, float), (3,)))
+        rotate = Rotation.from_euler("xyz", wall.rotate, degrees=True).as_matrix()
+        return ul.affine(rotate @ scale, wall.translate) @ units
+
+    # -- run -----------------------------------------------------------------------------------------
+    def run(self, ctx: Context, inputs: Mapping[str, Artifact], params: UsdParams) -> None:
+        from pxr import Sdf, Usd, UsdGeom, UsdUtils
+
+        out = Path(ctx.out_dir)
+        scene = ctx.scene["scene"]
+        fps, count = scene.frames.fps, scene.frames.count
+        frames = sorted(ctx.frames)
+        walls = WallMesh.load(inputs["walls"].path)
+
+        # studio assets the walls came from, and the frame every layer is written in
+        usd_walls = {i: info for i, info in enumerate(walls.walls) if info.get("usd")}
+        assets: dict[Path, np.ndarray] = {}
+        for info in usd_walls.values():
+            path = self._asset_path(ctx, info)
+            assets.setdefault(path, self._asset_to_scene(ctx, info, path))
+        mode = params.fluid_units if params.fluid_units != "auto" else ("asset" if assets else "scene")
+        if mode == "asset" and not assets:
+            raise StageError("export.usd: fluid_units: asset needs a wall from a USD asset (walls: - usd: ...)")
+        if mode == "asset":
+            if len(assets) > 1 and any(not np.allclose(m, next(iter(assets.values()))) for m in assets.values()):
+                raise StageError("export.usd: fluid_units: asset with several USD assets placed differently; "
+                                 "use fluid_units: scene")
+            asset = next(iter(assets))
+            stage = Usd.Stage.Open(str(asset), Usd.Stage.LoadNone)
+            up, mpu = str(UsdGeom.GetStageUpAxis(stage)), UsdGeom.GetStageMetersPerUnit(stage)
+            to_target = np.linalg.inv(assets[asset])
+        else:
+            up, mpu, to_target = scene.units.up_axis, scene.units.meters_per_unit, np.eye(4)
+        metrics = dict(up_axis=up, meters_per_unit=mpu, fps=fps, count=count)
+
+        sublayers: list[str] = []
+        progress = ctx.progress("writing USD layers", len(frames) * (params.surface + params.particles) + 2)
+
+        if params.surface:
+            self._write_surface(out / "fluid_surface.usdc", inputs["surface"], frames, to_target, metrics, progress)
+            sublayers.append("./fluid_surface.usdc")
+        if params.particles:
+            sublayers.append(self._write_particles(out, inputs["particles"], frames, to_target, metrics, progress))
+        if self._write_walls(out / "walls.usdc", walls, set(usd_walls), to_target, metrics):
+            sublayers.append("./walls.usdc")
+        references: list[tuple[str, np.ndarray]] = []
+        for asset, asset_to_scene in assets.items():
+            rel = self._copy_asset(asset, out / "assets")
+            asset_to_target = to_target @ asset_to_scene
+            if np.allclose(asset_to_target, np.eye(4), atol=1e-9):
+                sublayers.append(f"./{rel}")  # prim paths kept exactly
+            else:
+                references.append((f"./{rel}", asset_to_target))
+        progress.advance()
+
+        # the root: metrics, camera, sublayers (strongest first), assets that need a transform
+        root = ul.new_stage(out / "scene.usda", **metrics)
+        root.GetRootLayer().subLayerPaths = sublayers
+        for k, (rel, m) in enumerate(references):
+            xf = UsdGeom.Xform.Define(root, f"/World/Asset_{k}")
+            xf.AddTransformOp().Set(ul.to_gf_matrix(m))
+            xf.GetPrim().GetReferences().AddReference(rel)
+        self._write_camera(root, walls, scene.units.up_axis, to_target, params.camera)
+        root.GetRootLayer().Save()
+        progress.advance()
+
+        if params.fluid_layer_path and params.surface:
+            target = ctx.resolve(params.fluid_layer_path)
+            target.parent.mkdir(parents=True, exist_ok=True)
+            Sdf.Layer.FindOrOpen(str(out / "fluid_surface.usdc")).Export(str(target))
+            ctx.log.info("fluid layer written to %s", target)
+        if params.usdz:
+            if not UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(str(out / "scene.usda")), str(out / "scene.usdz")):
+                raise StageError(f"export.usd: could not package {out / 'scene.usdz'}")
+
+    # -- layers ----------------------------------------------------------------------------------------
+    @staticmethod
+    def _write_surface(path: Path, surface: Artifact, frames: list[int], m: np.ndarray, metrics: dict, progress) -> None:
+        from pxr import UsdGeom
+
+        stage = ul.new_stage(path, **metrics)
+        UsdGeom.Scope.Define(stage, "/World/Fluid/Looks")
+        material = ul.water_material(stage, "/World/Fluid/Looks/Water")
+        UsdGeom.Xform.Define(stage, "/World/Fluid")
+        mesh = ul.define_mesh(stage, "/World/Fluid/Surface")
+        flip = np.linalg.det(m[:3, :3]) < 0  # a mirroring placement reverses the winding
+        for f in frames:
+            folder = surface.frame(f)
+            try:
+                s = load_surface(folder, f)
+            except FileNotFoundError:
+                raise StageError(f"export.usd: {folder} has no surface for frame {f}") from None
+            faces = s.faces[:, ::-1] if flip else s.faces
+            ul.set_mesh(mesh, ul.apply(m, s.vertices), faces, ul.apply_normals(m, s.normals) if len(s.normals) else s.normals, f)
+            progress.advance()
+        ul.bind(mesh.GetPrim(), material)
+        stage.GetRootLayer().Save()
+
+    @staticmethod
+    def _write_particles(out: Path, particles: Artifact, frames: list[int], m: np.ndarray, metrics: dict,
+                         progress) -> str:
+        folder = particles.path
+        if folder is None:
+            raise StageError("export.usd: the 'particles' artifact must be a whole-run folder")
+        ready = Path(folder) / "particles.usdc"
+        if ready.is_file() and np.allclose(m, np.eye(4)):
+            shutil.copyfile(ready, out / "particles.usdc")  # simulate's own layer, already in this frame
+            progress.advance(len(frames))
+            return "./particles.usdc"
+        try:
+            meta = ParticleMeta.load(folder)
+        except FileNotFoundError:
+            raise StageError(f"export.usd: {folder} has no meta.json (not a particles artifact)") from None
+        stage = ul.new_stage(out / "particles.usdc", **metrics)
+        width = meta.spacing * ul.uniform_scale(m)
+
+        def samples():
+            for f in frames:
+                try:
+                    p = load_particle_frame(folder, f)
+                except FileNotFoundError:
+                    raise StageError(f"export.usd: {folder} has no particle frame {f}") from None
+                yield f, {"x": ul.apply(m, p.x), "v": ul.apply_linear(m, p.v), "width": width, "id": p.id,
+                          "rho": p.rho, "p": p.p}
+                progress.advance()
+
+        ul.write_points(stage, "/World/Particles", samples())
+        stage.GetRootLayer().Save()
+        return "./particles.usdc"
+
+    @staticmethod
+    def _write_walls(path: Path, walls: WallMesh, skip: set[int], m: np.ndarray, metrics: dict) -> bool:
+        from pxr import UsdGeom
+
+        keep = [i for i in range(len(walls.walls)) if i not in skip and np.any(walls.wall_id == i)]
+        if not keep:
+            return False
+        stage = ul.new_stage(path, **metrics)
+        UsdGeom.Scope.Define(stage, "/World/Walls")
+        used: set[str] = set()
+        for i in keep:
+            faces = walls.faces[walls.wall_id == i]
+            idx, inverse = np.unique(faces.ravel(), return_inverse=True)
+            mesh = ul.define_mesh(stage, f"/World/Walls/{_safe_name(walls.walls[i].get('name', 'wall'), used)}")
+            local = inverse.reshape(-1, 3)
+            if np.linalg.det(m[:3, :3]) < 0:
+                local = local[:, ::-1]
+            ul.set_mesh(mesh, ul.apply(m, walls.vertices[idx]), local, None)
+            mesh.GetPrim().SetCustomDataByKey("source", str(walls.walls[i].get("source", "")))
+        stage.GetRootLayer().Save()
+        return True
+
+    @staticmethod
+    def _copy_asset(asset: Path, dest: Path) -> str:
+        """Copy an asset and the local files it depends on, keeping their relative layout."""
+        from pxr import Sdf, UsdUtils
+
+        base = asset.parent.resolve()
+        layers, files, _unresolved = UsdUtils.ComputeAllDependencies(Sdf.AssetPath(str(asset)))
+        paths = {asset.resolve()} | {Path(layer.realPath).resolve() for layer in layers if layer.realPath}
+        paths |= {Path(f).resolve() for f in files}
+        for p in paths:
+            try:
+                rel = p.relative_to(base)
+            except ValueError:
+                continue  # outside the asset's folder: stays an absolute dependency
+            target = dest / rel
+            target.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(p, target)
+        return f"assets/{asset.resolve().relative_to(base)}"
+
+    @staticmethod
+    def _write_camera(root, walls: WallMesh, up_axis: str, m: np.ndarray, cam: ExportCamera) -> None:
+        if len(walls.vertices):
+            lo, hi = walls.vertices.min(axis=0), walls.vertices.max(axis=0)
+        else:
+            lo, hi = np.full(3, -1.0), np.full(3, 1.0)
+        eye, target, up = _auto_camera(lo, hi, up_axis, cam.view_angle)
+        eye = np.asarray(cam.position, float) if cam.position is not None else eye
+        target = np.asarray(cam.focal_point, float) if cam.focal_point is not None else target
+        up = np.asarray(cam.up, float) if cam.up is not None else up
+        ul.define_camera(root, "/World/Camera", ul.apply(m, eye[None])[0], ul.apply(m, target[None])[0],
+                         ul.apply_linear(m, up[None])[0], cam.view_angle, cam.aspect)

@@ -1,0 +1,198 @@
+"""export.usd on synthetic walls, particles and surfaces: round trip, compliance, studio assets."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+from pxr import Gf, Usd, UsdGeom
+
+from pipeline.testing import run_stage
+from stages.common.formats import (ParticleFrame, ParticleMeta, SurfaceMesh, WallMesh, save_particle_frame,
+                                   save_surface)
+from stages.export.usd_export import UsdExport
+from stages.export.usd_layers import compliance_problems
+
+FRAMES = 4
+FPS = 24.0
+
+
+def surfaces(folder, centre, frames=FRAMES):
+    """A sphere whose tessellation (so its topology) changes every frame."""
+    made = []
+    for f in range(frames):
+        ball = trimesh.creation.icosphere(subdivisions=1 + f % 3, radius=0.2 + 0.02 * f)
+        ball.apply_translation(centre)
+        m = SurfaceMesh(ball.vertices.astype(np.float32), ball.faces.astype(np.int32),
+                        ball.vertex_normals.astype(np.float32))
+        save_surface(folder, f, m)
+        made.append(m)
+    return made
+
+
+def particles(folder, centre, frames=FRAMES, spacing=0.05):
+    rng = np.random.default_rng(3)
+    ParticleMeta(spacing=spacing, mass=0.125, density=1000.0, support=2 * spacing, fps=FPS, frame_count=frames,
+                 up_axis="Z", meters_per_unit=1.0, solver="synthetic").save(folder)
+    made = []
+    for f in range(frames):
+        n = 100 + 7 * f
+        p = ParticleFrame(np.asarray(centre) + rng.uniform(-0.2, 0.2, (n, 3)), rng.normal(size=(n, 3)),
+                          rng.uniform(990, 1010, n), rng.uniform(0, 3000, n), np.arange(n) + 5)
+        save_particle_frame(folder, f, p)
+        made.append(p)
+    return made
+
+
+def tank_walls(folder, translate=(0.0, 0.0, 0.0), extra=None):
+    box = trimesh.creation.box(extents=(2.0, 1.0, 1.0))
+    box.apply_translation(np.array([0.0, 0.0, 0.5]) + translate)
+    WallMesh(box.vertices, box.faces, np.zeros(len(box.faces), np.int32),
+             [dict({"name": "tank", "fluid": "inside", "source": "builtin:box_tank"}, **(extra or {}))]).save(folder)
+    return box
+
+
+def folders(tmp_path):
+    out = {}
+    for name in ("walls", "surface", "particles"):
+        out[name] = tmp_path / name
+        out[name].mkdir()
+    return out
+
+
+def scene(up="Z", mpu=1.0, walls=()):
+    return {"scene": {"name": "t", "units": {"up_axis": up, "meters_per_unit": mpu},
+                      "frames": {"fps": FPS, "count": FRAMES}}, "walls": list(walls)}
+
+
+def test_round_trip_points_topology_time_and_metrics(tmp_path):
+    inputs = folders(tmp_path)
+    tank_walls(inputs["walls"])
+    surf = surfaces(inputs["surface"], (-0.5, 0.0, 0.4))
+    parts = particles(inputs["particles"], (-0.5, 0.0, 0.4))
+    out = run_stage(UsdExport, tmp_path / "usd", scene=scene(mpu=0.5), params={"usdz": True}, inputs=inputs)
+
+    for name in ("scene.usda", "scene.usdz"):
+        errors, _ = compliance_problems(out / name)
+        assert errors == [], name
+    stage = Usd.Stage.Open(str(out / "scene.usda"))
+    assert UsdGeom.GetStageUpAxis(stage) == "Z" and UsdGeom.GetStageMetersPerUnit(stage) == 0.5
+    assert stage.GetTimeCodesPerSecond() == FPS
+    assert (stage.GetStartTimeCode(), stage.GetEndTimeCode()) == (0, FRAMES - 1)
+    assert stage.GetDefaultPrim().GetPath() == "/World"
+
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/World/Fluid/Surface"))
+    assert mesh.GetPointsAttr().GetTimeSamples() == list(range(FRAMES))
+    for f, m in enumerate(surf):
+        np.testing.assert_allclose(np.array(mesh.GetPointsAttr().Get(f)), m.vertices, atol=1e-6)
+        np.testing.assert_array_equal(np.array(mesh.GetFaceVertexIndicesAttr().Get(f)), m.faces.ravel())
+        np.testing.assert_array_equal(np.array(mesh.GetFaceVertexCountsAttr().Get(f)), 3)
+        np.testing.assert_allclose(np.array(mesh.GetNormalsAttr().Get(f)), m.normals, atol=1e-5)
+        ext = np.array(mesh.GetExtentAttr().Get(f))
+        np.testing.assert_allclose(ext, [m.vertices.min(0), m.vertices.max(0)], atol=1e-6)
+    from pxr import UsdShade
+
+    material, _ = UsdShade.MaterialBindingAPI(mesh.GetPrim()).ComputeBoundMaterial()
+    shader = UsdShade.Shader(stage.GetPrimAtPath(material.GetPath().AppendChild("PreviewSurface")))
+    assert shader.GetInput("ior").Get() == pytest.approx(1.33) and shader.GetInput("opacity").Get() < 1
+
+    points = UsdGeom.Points(stage.GetPrimAtPath("/World/Particles"))
+    for f, p in enumerate(parts):
+        np.testing.assert_allclose(np.array(points.GetPointsAttr().Get(f)), p.x, atol=1e-6)
+        np.testing.assert_allclose(np.array(points.GetVelocitiesAttr().Get(f)), p.v, atol=1e-6)
+        np.testing.assert_array_equal(np.array(points.GetIdsAttr().Get(f)), p.id)
+        np.testing.assert_allclose(np.array(points.GetWidthsAttr().Get(f)), 0.05, rtol=1e-6)  # diameters
+    walls = UsdGeom.Mesh(stage.GetPrimAtPath("/World/Walls/tank"))
+    assert len(walls.GetFaceVertexCountsAttr().Get()) == 12
+    assert UsdGeom.Camera(stage.GetPrimAtPath("/World/Camera"))
+
+    # the published folder is self-contained: moved elsewhere, every sample still reads
+    moved = tmp_path / "published" / "usd"
+    moved.parent.mkdir()
+    (out).rename(moved)
+    stage = Usd.Stage.Open(str(moved / "scene.usda"))
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/World/Fluid/Surface"))
+    assert len(mesh.GetPointsAttr().Get(FRAMES - 1)) == len(surf[-1].vertices)
+
+
+def write_cm_y_up_asset(path):
+    """A studio set: Y-up, centimetres, tank 200 x 100 (height) x 100 cm under a transformed parent."""
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+    root = UsdGeom.Xform.Define(stage, "/Set")
+    stage.SetDefaultPrim(root.GetPrim())
+    props = UsdGeom.Xform.Define(stage, "/Set/Props")
+    props.AddTranslateOp().Set(Gf.Vec3d(0, 50, 0))
+    box = trimesh.creation.box(extents=(200.0, 100.0, 100.0))  # centred: y in [-50, 50] -> [0, 100]
+    tank = UsdGeom.Mesh.Define(stage, "/Set/Props/Tank")
+    tank.GetPointsAttr().Set([Gf.Vec3f(*map(float, v)) for v in box.vertices])
+    tank.GetFaceVertexCountsAttr().Set([3] * len(box.faces))
+    tank.GetFaceVertexIndicesAttr().Set([int(i) for i in box.faces.ravel()])
+    stage.GetRootLayer().Save()
+
+
+def world_bounds(stage, path):
+    cache = UsdGeom.BBoxCache(Usd.TimeCode.Default(), [UsdGeom.Tokens.default_])
+    r = cache.ComputeWorldBound(stage.GetPrimAtPath(path)).ComputeAlignedRange()
+    return np.array(r.GetMin()), np.array(r.GetMax())
+
+
+@pytest.fixture
+def studio(tmp_path):
+    """The asset placed in a Z-up metre scene moved 1 m along x, as mesh_import would deliver it."""
+    write_cm_y_up_asset(tmp_path / "set.usda")
+    inputs = folders(tmp_path)
+    translate = (1.0, 0.0, 0.0)
+    tank_walls(inputs["walls"], translate, {"source": "set.usda", "usd": "set.usda", "prims": ["/Set/Props/Tank"]})
+    centre = np.array([0.4, 0.1, 0.3])  # scene metres: inside the moved tank
+    surf = surfaces(inputs["surface"], centre)
+    particles(inputs["particles"], centre)
+    sc = scene(walls=[{"usd": "set.usda", "prims": ["/Set/Props/Tank"], "fluid": "inside", "translate": translate}])
+    return tmp_path, inputs, sc, surf
+
+
+def scene_to_asset(p_scene):
+    """The expected inverse of the placement: undo translate, metres -> cm, Z-up -> Y-up."""
+    q = (np.asarray(p_scene, float) - [1.0, 0.0, 0.0]) * 100.0
+    return np.stack([q[:, 0], q[:, 2], -q[:, 1]], axis=1)
+
+
+def test_y_up_cm_asset_gives_a_y_up_cm_fluid_layer_that_lines_up(studio):
+    tmp_path, inputs, sc, surf = studio
+    out = run_stage(UsdExport, tmp_path / "usd", scene=sc, inputs=inputs, config_dir=tmp_path,
+                    params={"fluid_layer_path": "shot/fluid.usdc"})
+    stage = Usd.Stage.Open(str(out / "scene.usda"))
+    assert compliance_problems(out / "scene.usda")[0] == []
+    assert UsdGeom.GetStageUpAxis(stage) == "Y" and UsdGeom.GetStageMetersPerUnit(stage) == 0.01
+    # the original asset is composed in with its prim paths, not a copy of the wall mesh
+    assert stage.GetPrimAtPath("/Set/Props/Tank").IsA(UsdGeom.Mesh)
+    assert not stage.GetPrimAtPath("/World/Walls")
+    lo, hi = world_bounds(stage, "/Set/Props/Tank")
+    np.testing.assert_allclose(lo, [-100, 0, -50], atol=1e-4)
+    np.testing.assert_allclose(hi, [100, 100, 50], atol=1e-4)
+
+    fluid = Usd.Stage.Open(str(tmp_path / "shot" / "fluid.usdc"))  # the fluid layer alone
+    assert UsdGeom.GetStageUpAxis(fluid) == "Y" and UsdGeom.GetStageMetersPerUnit(fluid) == 0.01
+    for s in (stage, fluid):
+        mesh = UsdGeom.Mesh(s.GetPrimAtPath("/World/Fluid/Surface"))
+        for f, m in enumerate(surf):
+            pts = np.array(mesh.GetPointsAttr().Get(f))
+            np.testing.assert_allclose(pts, scene_to_asset(m.vertices), atol=1e-3)
+            assert (pts.min(0) > lo).all() and (pts.max(0) < hi).all()  # inside the asset's tank
+    points = UsdGeom.Points(stage.GetPrimAtPath("/World/Particles"))
+    np.testing.assert_allclose(np.array(points.GetWidthsAttr().Get(0)), 5.0, rtol=1e-6)  # 0.05 m in cm
+
+
+def test_asset_in_scene_units_is_referenced_under_its_placement(studio):
+    tmp_path, inputs, sc, surf = studio
+    out = run_stage(UsdExport, tmp_path / "usd", scene=sc, inputs=inputs, config_dir=tmp_path,
+                    params={"fluid_units": "scene", "particles": False})
+    stage = Usd.Stage.Open(str(out / "scene.usda"))
+    assert compliance_problems(out / "scene.usda")[0] == []
+    assert UsdGeom.GetStageUpAxis(stage) == "Z" and UsdGeom.GetStageMetersPerUnit(stage) == 1.0
+    lo, hi = world_bounds(stage, "/World/Asset_0")
+    walls = WallMesh.load(inputs["walls"])
+    np.testing.assert_allclose(lo, walls.vertices.min(0), atol=1e-6)
+    np.testing.assert_allclose(hi, walls.vertices.max(0), atol=1e-6)
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/World/Fluid/Surface"))
+    np.testing.assert_allclose(np.array(mesh.GetPointsAttr().Get(2)), surf[2].vertices, atol=1e-6)
