@@ -1,0 +1,51 @@
+"""Mesh clean-up with a report: weld, drop degenerate and duplicate faces, count defects, fix winding."""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import trimesh
+
+
+def clean_mesh(mesh: trimesh.Trimesh, weld_tolerance: float) -> tuple[trimesh.Trimesh, dict[str, Any]]:
+    """Return the cleaned mesh and a report (counts of what was found and changed).
+
+    ``weld_tolerance`` (scene units) is the distance under which vertices count as duplicates.
+    Winding is made consistent per connected piece where the piece is orientable (trimesh), and a
+    closed piece is turned outward (positive volume); the caller flips containers afterwards.
+    """
+    report: dict[str, Any] = {"vertices_in": int(len(mesh.vertices)), "faces_in": int(len(mesh.faces))}
+    m = trimesh.Trimesh(np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64), process=False)
+    n_v = len(m.vertices)
+    m.merge_vertices(merge_tex=True, merge_norm=True, digits_vertex=_digits(weld_tolerance))
+    m.remove_unreferenced_vertices()
+    report["welded_vertices"] = int(n_v - len(m.vertices))
+
+    areas = m.area_faces
+    keep = (areas > (weld_tolerance ** 2) * 1e-6) & m.nondegenerate_faces()
+    report["degenerate_faces_removed"] = int((~keep).sum())
+    m.update_faces(keep)
+    n_f = len(m.faces)
+    m.update_faces(m.unique_faces())
+    report["duplicate_faces_removed"] = int(n_f - len(m.faces))
+    m.remove_unreferenced_vertices()
+
+    edges = np.sort(m.edges, axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    report["boundary_edges"] = int((counts == 1).sum())
+    report["non_manifold_edges"] = int((counts > 2).sum())
+    report["winding_consistent_in"] = bool(m.is_winding_consistent)
+    if len(m.faces):
+        trimesh.repair.fix_winding(m)
+        if m.is_watertight and m.volume < 0:
+            m.invert()
+    report["winding_consistent"] = bool(m.is_winding_consistent)
+    report["watertight"] = bool(m.is_watertight)
+    report["components"] = int(len(trimesh.graph.connected_components(m.face_adjacency, nodes=np.arange(len(m.faces)))))
+    report["vertices"] = int(len(m.vertices))
+    report["faces"] = int(len(m.faces))
+    return m, report
+
+
+def _digits(tolerance: float) -> int:
+    return int(max(0, np.floor(-np.log10(max(tolerance, 1e-15)))))

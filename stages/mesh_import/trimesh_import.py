@@ -1,0 +1,183 @@
+"""mesh_import.trimesh: every wall of the config (built-in shapes, mesh files, USD prims) to one cleaned
+world-space WallMesh (walls.npz + walls.json) and walls.usdc.
+
+Per wall: read (built-in / trimesh for OBJ, PLY, STL, OFF, GLB, GLTF / usd_import for USD), convert
+file units (``meters_per_unit``) to scene units, place (scale, rotate, fit, translate), clean (weld,
+drop zero-area and duplicate faces, count boundary and non-manifold edges, fix winding) and orient so
+that normals point into the fluid (see the package docstring). The clean-up report is stored per wall
+in walls.json.
+"""
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+import trimesh
+from pydantic import Field
+
+from pipeline.scene import BuiltinWall, FileWall, UsdWall
+from pipeline.stage import Artifact, Context, Params, Stage, StageError
+from stages.common.formats import WallMesh
+
+from .builtin import builtin_mesh
+from .cleanup import clean_mesh
+from .placement import apply_placement
+
+MESH_SUFFIXES = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
+USD_FILE = "walls.usdc"
+
+
+class ImportParams(Params):
+    weld_tolerance: float = Field(1e-7, gt=0, le=1e-2,
+                                  description="vertices closer than this fraction of the wall's bounding-box diagonal are welded")
+    open_box_thickness: float = Field(0.05, gt=0, lt=0.5,
+                                      description="wall thickness of the builtin open_box, fraction of its smallest horizontal size")
+
+
+def _read_mesh_file(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    if not path.is_file():
+        raise StageError(f"{path}: file not found")
+    suffix = path.suffix.lower()
+    if suffix not in MESH_SUFFIXES:
+        raise StageError(f"{path}: unsupported mesh format {suffix or '(none)'!r}; expected one of {', '.join(MESH_SUFFIXES)} or .usd*")
+    try:
+        loaded = trimesh.load(str(path), force="mesh", process=False, maintain_order=True)
+    except (IndexError, ValueError) as e:
+        raise StageError(f"{path}: cannot read as {suffix[1:].upper()} ({type(e).__name__}: {str(e)[:120]})") from None
+    except Exception as e:
+        raise StageError(f"{path}: cannot read as {suffix[1:].upper()} ({type(e).__name__}: {str(e)[:120]})") from None
+    v = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), np.float64).reshape(-1, 3)
+    f = np.asarray(getattr(loaded, "faces", np.zeros((0, 3))), np.int64).reshape(-1, 3)
+    if suffix == ".obj":
+        _check_obj_indices(path, len(v), len(f))
+    return v, f
+
+
+def _check_obj_indices(path: Path, n_vertices: int, n_faces: int) -> None:
+    """trimesh silently drops OBJ faces whose index is out of range; find them ourselves."""
+    n_v, max_ref = 0, 0
+    with open(path, "rb") as fh:
+        for line in fh:
+            if line.startswith(b"v "):
+                n_v += 1
+            elif line.startswith(b"f "):
+                for tok in line.split()[1:]:
+                    i = int(tok.split(b"/")[0])
+                    if i > n_v if i > 0 else -i > n_v:
+                        raise StageError(f"{path}: face index {i} out of range (only {n_v} vertices defined before it)")
+                    max_ref = max(max_ref, i)
+
+
+def _wall_name(i: int, label: str) -> str:
+    return f"wall{i}_" + re.sub(r"[^A-Za-z0-9_]", "_", label)[:40]
+
+
+class TrimeshImport(Stage):
+    """Wall meshes from built-in shapes, mesh files (trimesh) and USD prims."""
+
+    kind = "mesh_import"
+    name = "trimesh"
+    version = "1"
+    Params = ImportParams
+    outputs = ("walls",)
+    reads = ("scene", "walls")
+    default = True
+    description = "walls from builtin shapes, OBJ/PLY/STL/OFF/GLB/GLTF (trimesh) and USD, cleaned, in world space"
+
+    def external_files(self, ctx: Context, params: Params) -> list[Path]:
+        from .usd_import import usd_dependencies
+
+        files: list[Path] = []
+        for w in ctx.scene["walls"]:
+            if isinstance(w, FileWall):
+                files.append(ctx.resolve(w.file))
+            elif isinstance(w, UsdWall):
+                files += usd_dependencies(ctx.resolve(w.usd))
+        return files
+
+    def run(self, ctx: Context, inputs: Mapping[str, Artifact], params: Params) -> None:
+        scene = ctx.scene["scene"]
+        walls = ctx.scene["walls"]
+        verts, faces, ids, info = [], [], [], []
+        offset = 0
+        bar = ctx.progress("importing walls", len(walls))
+        for i, w in enumerate(walls):
+            v, f, fluid, source, extra = self._read(ctx, w, params)
+            where = source
+            if len(v) == 0 or len(f) == 0:
+                raise StageError(f"{where}: empty mesh (no vertices or faces)")
+            if not np.isfinite(v).all():
+                raise StageError(f"{where}: vertex coordinates contain NaN or Inf")
+            if f.min() < 0 or f.max() >= len(v):
+                raise StageError(f"{where}: face index {int(f.max())} out of range (mesh has {len(v)} vertices)")
+            v = apply_placement(v, w)
+            diag = float(np.linalg.norm(v.max(axis=0) - v.min(axis=0))) or 1.0
+            mesh, report = clean_mesh(trimesh.Trimesh(v, f, process=False), params.weld_tolerance * diag)
+            if len(mesh.faces) == 0:
+                raise StageError(f"{where}: empty mesh after removing degenerate faces")
+            if fluid == "inside":
+                mesh.invert()  # container: normals into the fluid, i.e. inwards
+            report.update(extra)
+            if not report["watertight"]:
+                ctx.log.warning("%s: not watertight (%d boundary edges, %d non-manifold); the SDF sign uses ray voting",
+                                where, report["boundary_edges"], report["non_manifold_edges"])
+            label = Path(source).stem if not isinstance(w, BuiltinWall) else w.builtin
+            info.append({"name": _wall_name(i, label), "fluid": fluid, "source": source, "report": report})
+            verts.append(np.asarray(mesh.vertices, np.float64))
+            faces.append(np.asarray(mesh.faces, np.int64) + offset)
+            ids.append(np.full(len(mesh.faces), i, np.int32))
+            offset += len(mesh.vertices)
+            bar.advance()
+        if verts:
+            wm = WallMesh(np.concatenate(verts), np.concatenate(faces).astype(np.int32), np.concatenate(ids), info)
+        else:
+            wm = WallMesh(np.zeros((0, 3)), np.zeros((0, 3), np.int32), np.zeros(0, np.int32), info)
+        wm.save(ctx.out_dir)
+        write_walls_usd(ctx.out_dir / USD_FILE, wm, scene.units.meters_per_unit, scene.units.up_axis)
+        ctx.log.info("%d walls, %d triangles", len(info), len(wm.faces))
+
+    def _read(self, ctx: Context, w: Any, params: ImportParams) -> tuple[np.ndarray, np.ndarray, str, str, dict]:
+        units = ctx.scene["scene"].units
+        if isinstance(w, BuiltinWall):
+            mesh, fluid = builtin_mesh(w, units.up_axis, params.open_box_thickness)
+            return np.asarray(mesh.vertices), np.asarray(mesh.faces), fluid, f"builtin:{w.builtin}", {}
+        if isinstance(w, UsdWall):
+            from .usd_import import read_usd_wall
+
+            path = ctx.resolve(w.usd)
+            if path.suffix.lower() not in (".usd", ".usda", ".usdc", ".usdz"):
+                raise StageError(f"{path}: unsupported USD format {path.suffix!r}; expected .usd, .usda, .usdc or .usdz")
+            v, f, prims = read_usd_wall(path, w, units.meters_per_unit, units.up_axis)
+            return v, f, w.fluid, str(path), {"prims": prims}
+        path = ctx.resolve(w.file)
+        v, f = _read_mesh_file(path)
+        if len(v) and w.meters_per_unit is not None:
+            v = v * (w.meters_per_unit / units.meters_per_unit)
+        return v, f, w.fluid, str(path), {}
+
+
+def write_walls_usd(path: Path, wm: WallMesh, meters_per_unit: float, up_axis: str) -> None:
+    """One UsdGeom.Mesh per wall under /Walls, with the stage metrics authored."""
+    from pxr import Gf, Sdf, Usd, UsdGeom, Vt
+
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z if up_axis == "Z" else UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, meters_per_unit)
+    root = UsdGeom.Xform.Define(stage, "/Walls")
+    stage.SetDefaultPrim(root.GetPrim())
+    for i, w in enumerate(wm.walls):
+        sel = wm.wall_id == i
+        f = wm.faces[sel]
+        used, local = np.unique(f, return_inverse=True)
+        pts = wm.vertices[used]
+        mesh = UsdGeom.Mesh.Define(stage, Sdf.Path("/Walls").AppendChild(w["name"]))
+        mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(pts.astype(np.float32)))
+        mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(f), 3, np.int32)))
+        mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(local.reshape(-1).astype(np.int32)))
+        mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+        mesh.CreateDoubleSidedAttr(True)
+        mesh.CreateExtentAttr([Gf.Vec3f(*pts.min(axis=0).tolist()), Gf.Vec3f(*pts.max(axis=0).tolist())])
+        mesh.GetPrim().SetCustomDataByKey("fluid", w["fluid"])
+    stage.GetRootLayer().Save()

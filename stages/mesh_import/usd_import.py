@@ -1,0 +1,131 @@
+"""mesh_import.usd: wall meshes from OpenUSD (.usda/.usdc/.usdz) read with usd-core.
+
+Selects ``UsdGeom.Mesh`` prims by path or glob pattern (``fnmatch``: ``*`` also crosses ``/``, so
+``/World/*`` is every descendant of /World), skips prims whose computed visibility is invisible unless
+the wall sets ``include_invisible``, and never uses non-mesh prims (Xform, Scope, gprims such as
+Cube: tessellate them in the DCC). Each mesh goes to world space through ``UsdGeom.XformCache``
+(nested xformOps, resetXformStack), n-gons are fan-triangulated from faceVertexCounts, faces listed in
+``holeIndices`` are dropped, left-handed meshes are re-wound, and the points are converted to the
+scene's units and up axis from the stage's metersPerUnit (USD's fallback: centimetres) and upAxis.
+
+The implementation reads every wall kind (built-ins and mesh files too, like ``trimesh``), so a
+scene mixing kinds works with either; it exists so a config can name the USD reader explicitly.
+"""
+from __future__ import annotations
+
+import fnmatch
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.scene import UsdWall
+from pipeline.stage import StageError
+
+from .placement import up_axis_matrix
+from .trimesh_import import TrimeshImport
+
+USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
+
+
+def usd_dependencies(path: Path) -> list[Path]:
+    """Every layer and asset the stage at ``path`` composes (sublayers, references, payloads, textures)."""
+    from pxr import UsdUtils
+
+    if not path.is_file():
+        return [path]
+    layers, assets, _unresolved = UsdUtils.ComputeAllDependencies(str(path))
+    files = {Path(layer.realPath) for layer in layers if layer.realPath}
+    files |= {Path(a) for a in assets}
+    files.add(path)
+    return sorted(f for f in files if f.is_file())
+
+
+def _triangulate(counts: np.ndarray, indices: np.ndarray, holes: np.ndarray, where: str) -> np.ndarray:
+    """Fan-triangulate polygons; faces in ``holes`` are skipped. Returns (F, 3) int64."""
+    if (counts < 3).any():
+        raise StageError(f"{where}: faceVertexCounts has a face with fewer than 3 vertices")
+    if counts.sum() != len(indices):
+        raise StageError(f"{where}: faceVertexCounts sums to {counts.sum()} but there are {len(indices)} faceVertexIndices")
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    keep = np.ones(len(counts), bool)
+    if len(holes):
+        keep[holes[(holes >= 0) & (holes < len(counts))]] = False
+    n_tri = counts - 2
+    face_of_tri = np.repeat(np.arange(len(counts)), n_tri)
+    k = np.arange(len(face_of_tri)) - np.repeat(np.cumsum(n_tri) - n_tri, n_tri)  # fan index within a face
+    s = starts[face_of_tri]
+    tris = np.stack([indices[s], indices[s + k + 1], indices[s + k + 2]], axis=1)
+    return tris[keep[face_of_tri]]
+
+
+def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """World-space vertices (scene units, scene up axis), triangles, and the prim paths used."""
+    from pxr import Usd, UsdGeom
+
+    if not path.is_file():
+        raise StageError(f"{path}: USD file not found")
+    try:
+        stage = Usd.Stage.Open(str(path))
+    except Exception as e:  # pxr raises Tf.ErrorException with a multi-line message
+        raise StageError(f"{path}: cannot open as USD ({str(e).strip().splitlines()[-1][:200]})") from None
+    if stage is None:
+        raise StageError(f"{path}: cannot open as USD")
+    mpu = float(UsdGeom.GetStageMetersPerUnit(stage))
+    to_scene = up_axis_matrix(str(UsdGeom.GetStageUpAxis(stage)), scene_up)[:3, :3] * (mpu / scene_mpu)
+
+    cache = UsdGeom.XformCache(Usd.TimeCode.Default())
+    prims = [p for p in stage.Traverse(Usd.TraverseInstanceProxies())]
+    chosen = []
+    for pattern in wall.prims:
+        if not any(ch in pattern for ch in "*?["):
+            prim = stage.GetPrimAtPath(pattern)
+            if not prim or not prim.IsValid():
+                raise StageError(f"{path}: prim path {pattern} not found")
+            # an explicit path selects the prim and the meshes under it
+            matched = [p for p in prims if str(p.GetPath()) == pattern or str(p.GetPath()).startswith(pattern.rstrip("/") + "/")]
+        else:
+            matched = [p for p in prims if fnmatch.fnmatchcase(str(p.GetPath()), pattern)]
+        chosen += [p for p in matched if p not in chosen]
+
+    verts, faces, used, offset = [], [], [], 0
+    for prim in chosen:
+        if not prim.IsA(UsdGeom.Mesh):
+            continue
+        img = UsdGeom.Imageable(prim)
+        if not wall.include_invisible and img.ComputeVisibility(Usd.TimeCode.Default()) == UsdGeom.Tokens.invisible:
+            continue
+        mesh = UsdGeom.Mesh(prim)
+        where = f"{path}:{prim.GetPath()}"
+        pts = np.asarray(mesh.GetPointsAttr().Get() or [], np.float64).reshape(-1, 3)
+        counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get() or [], np.int64)
+        idx = np.asarray(mesh.GetFaceVertexIndicesAttr().Get() or [], np.int64)
+        holes = np.asarray(mesh.GetHoleIndicesAttr().Get() or [], np.int64)
+        if len(pts) == 0 or len(counts) == 0:
+            continue
+        if not np.isfinite(pts).all():
+            raise StageError(f"{where}: points contain NaN or Inf")
+        if len(idx) and (idx.min() < 0 or idx.max() >= len(pts)):
+            raise StageError(f"{where}: face vertex index {int(idx.max())} out of range (mesh has {len(pts)} points)")
+        tris = _triangulate(counts, idx, holes, where)
+        if mesh.GetOrientationAttr().Get() == UsdGeom.Tokens.leftHanded:
+            tris = tris[:, ::-1]
+        world = np.asarray(cache.GetLocalToWorldTransform(prim), np.float64)  # row-vector convention
+        p = pts @ world[:3, :3] + world[3, :3]
+        if np.linalg.det(world[:3, :3]) < 0:  # a mirroring transform flips the winding
+            tris = tris[:, ::-1]
+        verts.append(p @ to_scene.T)
+        faces.append(tris + offset)
+        offset += len(p)
+        used.append(str(prim.GetPath()))
+    if not used:
+        raise StageError(f"{path}: no visible UsdGeom.Mesh prim with faces matches {wall.prims}")
+    return np.concatenate(verts), np.concatenate(faces), used
+
+
+class UsdImport(TrimeshImport):
+    """Wall meshes from OpenUSD stages (and built-ins / mesh files, as ``trimesh`` does)."""
+
+    name = "usd"
+    version = "1"
+    default = False
+    description = "walls from OpenUSD UsdGeom.Mesh prims (world transforms, units, up axis)"
