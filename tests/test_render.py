@@ -69,15 +69,12 @@ def test_input_names_follow_show():
     assert PyvistaRender().input_names(PyvistaRender.Params(show="particles")) == ("walls", "particles")
 
 
-def test_surface_frame_shows_water_where_the_sphere_is(tmp_path, inputs):
-    import imageio.v3 as iio
+EYE = np.array([0.0, -5.0, 0.5])
 
-    w, h, fov = 320, 240, 30.0
-    eye = np.array([0.0, -5.0, 0.5])
-    params = {"resolution": [w, h], "camera": {"position": eye.tolist(), "focal_point": [0, 0, 0.5],
-                                                "up": [0, 0, 1], "view_angle": fov}}
-    out = run_stage(PyvistaRender, tmp_path, scene=SCENE, params=params, inputs=inputs, frames=(1,))
-    img = iio.imread(out / "frame_00001.png")[..., :3]
+
+def assert_sphere_seen_from_eye(img, fov=30.0, eye=EYE):
+    """Water pixels where the perspective projection of the sphere seen from ``eye`` (looking +y) falls."""
+    h, w = img.shape[:2]
     assert img.shape == (h, w, 3)
     mask = water_mask(img)
     # where the sphere should be: perspective projection of its centre and radius
@@ -93,6 +90,42 @@ def test_surface_frame_shows_water_where_the_sphere_is(tmp_path, inputs):
     # the far wall of the tank is drawn (grey, brighter than the background) around the sphere
     grey = (np.abs(img[..., 0].astype(int) - img[..., 2]) < 12) & (img[..., 0] > 70)
     assert grey.mean() > 0.2
+
+
+def test_surface_frame_shows_water_where_the_sphere_is(tmp_path, inputs):
+    import imageio.v3 as iio
+
+    params = {"resolution": [320, 240], "camera": {"position": EYE.tolist(), "focal_point": [0, 0, 0.5],
+                                                    "up": [0, 0, 1], "view_angle": 30.0}}
+    out = run_stage(PyvistaRender, tmp_path, scene=SCENE, params=params, inputs=inputs, frames=(1,))
+    img = iio.imread(out / "frame_00001.png")[..., :3]
+    assert img.shape == (240, 320, 3)
+    assert_sphere_seen_from_eye(img)
+
+
+def test_camera_from_a_y_up_centimetre_usd_file(tmp_path, inputs):
+    """The same view as above, authored as a studio camera prim: Y-up, centimetres."""
+    import imageio.v3 as iio
+    from pxr import Gf, Usd, UsdGeom
+
+    stage = Usd.Stage.CreateNew(str(tmp_path / "shot_cam.usda"))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+    cam = UsdGeom.Camera.Define(stage, "/Shot/Cam")
+    # scene (x, y, z) Z-up metres -> (x, z, -y) Y-up centimetres
+    view = Gf.Matrix4d().SetLookAt(Gf.Vec3d(0, 50, 500), Gf.Vec3d(0, 50, 0), Gf.Vec3d(0, 1, 0))
+    cam.AddTransformOp().Set(view.GetInverse())
+    cam.CreateVerticalApertureAttr(20.25)
+    cam.CreateHorizontalApertureAttr(36.0)
+    cam.CreateFocalLengthAttr(20.25 / (2 * math.tan(math.radians(15))))
+    stage.GetRootLayer().Save()
+    params = {"resolution": [320, 240], "camera": {"usd": "shot_cam.usda", "prim": "/Shot/Cam"}}
+    out = run_stage(PyvistaRender, tmp_path / "out", scene=SCENE, params=params, inputs=inputs, frames=(0,),
+                    config_dir=tmp_path)
+    assert_sphere_seen_from_eye(iio.imread(out / "frame_00000.png")[..., :3])
+    with pytest.raises(StageError, match="/Shot/Nope"):
+        run_stage(PyvistaRender, tmp_path / "bad", scene=SCENE, inputs=inputs, frames=(0,), config_dir=tmp_path,
+                  params={"resolution": [64, 48], "camera": {"usd": "shot_cam.usda", "prim": "/Shot/Nope"}})
 
 
 def test_auto_camera_and_particles_are_not_blank(tmp_path, inputs):
@@ -134,3 +167,16 @@ def test_movie_has_every_frame_and_a_contact_sheet(tmp_path):
     assert secs == pytest.approx(count / 12, abs=0.1)
     sheet = iio.imread(out / "contact_sheet.png")
     assert sheet.shape[1] > 1000 and sheet.std() > 10
+
+
+def test_closed_and_open_walls_are_told_apart():
+    from stages.render.pyvista_render import is_closed, outward_faces
+
+    box = trimesh.creation.box(extents=(1, 2, 3))
+    assert is_closed(box.vertices, box.faces)
+    assert not is_closed(box.vertices, box.faces[2:])  # lid removed: an open tank
+    # unwelded corners (one vertex per face corner) still make a closed box
+    soup = box.vertices[box.faces].reshape(-1, 3)
+    assert is_closed(soup, np.arange(len(soup)).reshape(-1, 3))
+    inward = box.faces[:, ::-1]
+    np.testing.assert_array_equal(outward_faces(box.vertices, inward), box.faces)

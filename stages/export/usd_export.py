@@ -187,6 +187,10 @@ class UsdExport(Stage):
         root.GetRootLayer().Save()
         progress.advance()
 
+        errors, _ = ul.compliance_problems(out / "scene.usda")
+        for line in errors:  # the tests hold this at zero; a user's asset may still bring its own
+            ctx.log.warning("export.usd: USD compliance: %s", line)
+
         if params.fluid_layer_path and params.surface:
             target = ctx.resolve(params.fluid_layer_path)
             target.parent.mkdir(parents=True, exist_ok=True)

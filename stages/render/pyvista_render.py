@@ -2,7 +2,8 @@
 
 Headless: with no X display we ask VTK for its EGL window (Mesa's llvmpipe software renderer through
 libEGL, no GPU and no X server needed; Debian packages libegl1 libegl-mesa0 libgl1-mesa-dri libgbm1),
-falling back to OSMesa (libosmesa6) when libEGL cannot be loaded. Without this VTK first tries X and
+falling back to OSMesa (libosmesa6) when Mesa's EGL is not installed. Both pass the render tests; EGL
+starts faster. VTK_DEFAULT_OPENGL_WINDOW set by the user wins. Without this VTK first tries X and
 spends seconds timing out on a missing display.
 """
 from __future__ import annotations
@@ -29,12 +30,16 @@ def choose_offscreen_backend() -> str | None:
     """Pick VTK's headless window class before pyvista is imported; respects a user's choice."""
     if os.environ.get("DISPLAY") or os.environ.get("VTK_DEFAULT_OPENGL_WINDOW"):
         return os.environ.get("VTK_DEFAULT_OPENGL_WINDOW")
-    backend = "vtkEGLRenderWindow" if ctypes.util.find_library("EGL") else "vtkOSOpenGLRenderWindow"
+    # libEGL (glvnd) alone has no driver; Mesa's EGL vendor library is what renders without a GPU
+    egl = ctypes.util.find_library("EGL") and ctypes.util.find_library("EGL_mesa")
+    backend = "vtkEGLRenderWindow" if egl else "vtkOSOpenGLRenderWindow"
     os.environ["VTK_DEFAULT_OPENGL_WINDOW"] = backend
     return backend
 
 
 class Camera(Params):
+    usd: str | None = Field(None, description="take the camera from this USD file (relative to the config file)")
+    prim: str | None = Field(None, description="the UsdGeom.Camera prim in `usd`; default: the first camera found")
     position: Vec3 | None = Field(None, description="eye position, scene units; default: framed on the walls")
     focal_point: Vec3 | None = Field(None, description="point looked at, scene units; default: the walls' centre")
     up: Vec3 | None = Field(None, description="view up vector; default: the scene's up axis")
@@ -63,6 +68,50 @@ def auto_camera(lo: np.ndarray, hi: np.ndarray, up_axis: str, view_angle: float)
     direction /= np.linalg.norm(direction)
     distance = 1.05 * radius / math.sin(math.radians(view_angle) / 2)
     return centre + distance * direction, centre, up
+
+
+def is_closed(vertices: np.ndarray, faces: np.ndarray) -> bool:
+    """Every edge shared by exactly two triangles (a watertight wall such as a closed tank); vertices
+    are welded by position first, so unwelded corners do not make a closed box look open."""
+    if len(faces) == 0:
+        return False
+    _, welded = np.unique(np.round(vertices[faces.ravel()], 9), axis=0, return_inverse=True)
+    faces = welded.reshape(-1, 3)
+    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    return bool(np.all(counts == 2))
+
+
+def usd_camera(path: Path, prim: str | None, up_axis: str, meters_per_unit: float):
+    """(eye, focal point, up, vertical view angle) of a UsdGeom.Camera, in the scene's units and up axis."""
+    from pxr import Usd, UsdGeom
+
+    if not path.is_file():
+        raise StageError(f"render.pyvista: camera.usd: {path} not found")
+    stage = Usd.Stage.Open(str(path))
+    if prim:
+        cam_prim = stage.GetPrimAtPath(prim)
+        if not cam_prim or not cam_prim.IsA(UsdGeom.Camera):
+            raise StageError(f"render.pyvista: camera.prim: {prim} is not a UsdGeom.Camera in {path}")
+    else:
+        cam_prim = next((p for p in stage.Traverse() if p.IsA(UsdGeom.Camera)), None)
+        if cam_prim is None:
+            raise StageError(f"render.pyvista: camera.usd: {path} has no UsdGeom.Camera prim")
+    cam = UsdGeom.Camera(cam_prim).GetCamera(Usd.TimeCode.Default())
+    frustum = cam.frustum
+    eye = np.array(frustum.GetPosition())
+    look = np.array(frustum.ComputeViewDirection())
+    up = np.array(frustum.ComputeUpVector())
+    view_angle = float(cam.GetFieldOfView(cam.FOVVertical))
+    # the file's units and up axis -> the scene's (Y-up -> Z-up is +90 degrees about X)
+    scale = UsdGeom.GetStageMetersPerUnit(stage) / meters_per_unit
+    file_up = str(UsdGeom.GetStageUpAxis(stage))
+    rot = np.eye(3)
+    if file_up != up_axis:
+        rot = np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0]], float)
+        rot = rot if (file_up, up_axis) == ("Y", "Z") else rot.T
+    eye = rot @ eye * scale
+    return eye, eye + rot @ look, rot @ up, view_angle
 
 
 def outward_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -104,6 +153,9 @@ class PyvistaRender(Stage):
             return ("walls", "surface", "particles")
         return ("walls", "particles")
 
+    def external_files(self, ctx: Context, params: RenderParams) -> list[Path]:
+        return [ctx.resolve(params.camera.usd)] if params.camera.usd else []
+
     def run_frame(self, ctx: Context, inputs: Mapping[str, Artifact], params: RenderParams, frame: int) -> None:
         choose_offscreen_backend()
         import pyvista as pv
@@ -119,7 +171,7 @@ class PyvistaRender(Stage):
                 self._add_surface(plotter, inputs, frame, params)
             else:
                 self._add_particles(plotter, inputs, frame, params)
-            self._set_camera(plotter, walls, scene.units.up_axis, params)
+            self._set_camera(plotter, walls, scene.units, params, ctx)
             fps = scene.frames.fps
             plotter.add_text(f"frame {frame}   t = {frame / fps:.2f} s", position="lower_left", font_size=9,
                              color="white")
@@ -135,11 +187,18 @@ class PyvistaRender(Stage):
             if len(faces) == 0:
                 continue
             container = info.get("fluid", "outside") == "inside"
-            faces = outward_faces(walls.vertices, faces)
-            # a container is seen from outside: hide its near faces so the fluid inside shows
-            plotter.add_mesh(polydata(walls.vertices, faces), color=WALL_RGB, opacity=params.wall_opacity,
-                             culling="front" if container else None, ambient=0.25, diffuse=0.75, specular=0.0,
-                             smooth_shading=False)
+            closed = is_closed(walls.vertices, faces)
+            opacity = params.wall_opacity
+            if container and closed:
+                # a closed tank is seen from outside: hide its near faces so the fluid inside shows
+                faces, culling = outward_faces(walls.vertices, faces), "front"
+            else:
+                # obstacles are drawn whole; an open container (no lid) cannot be culled by
+                # orientation, so it is drawn see-through instead
+                culling = None
+                opacity = min(opacity, 0.35) if container else opacity
+            plotter.add_mesh(polydata(walls.vertices, faces), color=WALL_RGB, opacity=opacity, culling=culling,
+                             ambient=0.25, diffuse=0.75, specular=0.0, smooth_shading=False)
 
     @staticmethod
     def _add_surface(plotter, inputs: Mapping[str, Artifact], frame: int, params: RenderParams) -> None:
@@ -175,13 +234,18 @@ class PyvistaRender(Stage):
                          scalar_bar_args={"color": "white", "vertical": True, "position_x": 0.86, "width": 0.06})
 
     @staticmethod
-    def _set_camera(plotter, walls: WallMesh, up_axis: str, params: RenderParams) -> None:
+    def _set_camera(plotter, walls: WallMesh, units, params: RenderParams, ctx: Context) -> None:
         cam = params.camera
-        if len(walls.vertices):
-            lo, hi = walls.vertices.min(axis=0), walls.vertices.max(axis=0)
+        view_angle = cam.view_angle
+        if cam.usd is not None:
+            eye, centre, up, view_angle = usd_camera(ctx.resolve(cam.usd), cam.prim, units.up_axis,
+                                                     units.meters_per_unit)
         else:
-            lo, hi = np.full(3, -1.0), np.full(3, 1.0)
-        eye, centre, up = auto_camera(lo, hi, up_axis, cam.view_angle)
+            if len(walls.vertices):
+                lo, hi = walls.vertices.min(axis=0), walls.vertices.max(axis=0)
+            else:
+                lo, hi = np.full(3, -1.0), np.full(3, 1.0)
+            eye, centre, up = auto_camera(lo, hi, units.up_axis, view_angle)
         if cam.focal_point is not None:
             centre = np.asarray(cam.focal_point, float)
         if cam.position is not None:
@@ -189,5 +253,5 @@ class PyvistaRender(Stage):
         if cam.up is not None:
             up = np.asarray(cam.up, float)
         plotter.camera_position = [tuple(eye), tuple(centre), tuple(up)]
-        plotter.camera.view_angle = cam.view_angle
+        plotter.camera.view_angle = view_angle
         plotter.reset_camera_clipping_range()
