@@ -180,3 +180,20 @@ def test_closed_and_open_walls_are_told_apart():
     assert is_closed(soup, np.arange(len(soup)).reshape(-1, 3))
     inward = box.faces[:, ::-1]
     np.testing.assert_array_equal(outward_faces(box.vertices, inward), box.faces)
+
+
+def test_render_every_second_frame_and_the_movie_keeps_time(tmp_path, inputs):
+    import imageio_ffmpeg
+
+    scene = {"scene": {"name": "t", "frames": {"fps": 10, "count": 4}}}
+    make_surfaces(inputs["surface"], frames=4)
+    frames = run_stage(PyvistaRender, tmp_path / "f", scene=scene, inputs=inputs,
+                       params={"resolution": [64, 48], "every": 2})
+    assert sorted(p.name for p in frames.iterdir()) == ["frame_00000.png", "frame_00001.skipped",
+                                                         "frame_00002.png", "frame_00003.skipped"]
+    out = run_stage(FfmpegMovie, tmp_path / "m", scene=scene, inputs={"frames": frames})
+    n, secs = imageio_ffmpeg.count_frames_and_secs(str(out / "movie.mp4"))
+    assert n == 2 and secs == pytest.approx(0.4, abs=0.05)
+    (frames / "frame_00003.skipped").unlink()  # a lost frame is an error, not a skip
+    with pytest.raises(StageError, match="frame_00003.png"):
+        run_stage(FfmpegMovie, tmp_path / "m2", scene=scene, inputs={"frames": frames})

@@ -44,17 +44,25 @@ class FfmpegMovie(Stage):
         import imageio.v3 as iio
         import imageio_ffmpeg
 
-        frames = sorted(ctx.frames)
+        every = sorted(ctx.frames)
+        frames = []
+        for f in every:
+            folder = inputs["frames"].frame(f)
+            if frame_png(folder, f).is_file():
+                frames.append(f)
+            elif not (Path(folder) / f"frame_{f:05d}.skipped").is_file():  # render's every: n
+                raise StageError(f"movie.ffmpeg: rendered frame missing: {frame_png(folder, f)}")
+        if not frames:
+            raise StageError("movie.ffmpeg: no rendered frames")
         paths = [frame_png(inputs["frames"].frame(f), f) for f in frames]
-        missing = [str(p) for p in paths if not p.is_file()]
-        if not paths or missing:
-            raise StageError(f"movie.ffmpeg: rendered frame missing: {missing[0] if missing else 'no frames'}")
+        # frames skipped by the render stage slow the movie down so it keeps the simulated time
+        fps = float(ctx.scene["scene"].frames.fps) * len(frames) / len(every)
         first = iio.imread(paths[0])[..., :3]
         h, w = first.shape[:2]
         # yuv420p needs even sizes: pad by one pixel rather than rescale
         H, W = h + h % 2, w + w % 2
         writer = imageio_ffmpeg.write_frames(
-            str(Path(ctx.out_dir) / "movie.mp4"), (W, H), fps=float(ctx.scene["scene"].frames.fps),
+            str(Path(ctx.out_dir) / "movie.mp4"), (W, H), fps=fps,
             codec="libx264", pix_fmt_out="yuv420p", macro_block_size=1, quality=None,
             output_params=["-crf", str(params.crf), "-movflags", "+faststart"])
         writer.send(None)

@@ -51,6 +51,8 @@ class RenderParams(Params):
     show: Literal["surface", "particles"] = Field("surface", description="the fluid as its surface or as particles")
     color_by: Literal["speed", "pressure"] = Field("speed", description="particle colour (show: particles)")
     point_size: float = Field(6.0, gt=0, description="particle sphere size on screen, pixels (show: particles)")
+    every: int = Field(1, ge=1, description="render every n-th frame; the others are marked skipped and the "
+                       "movie plays the rendered ones at fps / n")
     camera: Camera = Field(default_factory=Camera)
     background: str = Field("#20242c", description="background colour (name or #rrggbb)")
     wall_opacity: float = Field(1.0, ge=0, le=1, description="opacity of the walls' far (visible) faces")
@@ -157,6 +159,10 @@ class PyvistaRender(Stage):
         return [ctx.resolve(params.camera.usd)] if params.camera.usd else []
 
     def run_frame(self, ctx: Context, inputs: Mapping[str, Artifact], params: RenderParams, frame: int) -> None:
+        if frame % params.every:
+            # a marker, not a missing file: the movie tells a skipped frame from a lost one
+            (Path(ctx.out_dir) / f"frame_{frame:05d}.skipped").write_text("")
+            return
         choose_offscreen_backend()
         import pyvista as pv
 
