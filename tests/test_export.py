@@ -196,3 +196,34 @@ def test_asset_in_scene_units_is_referenced_under_its_placement(studio):
     np.testing.assert_allclose(hi, walls.vertices.max(0), atol=1e-6)
     mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/World/Fluid/Surface"))
     np.testing.assert_allclose(np.array(mesh.GetPointsAttr().Get(2)), surf[2].vertices, atol=1e-6)
+
+
+def test_asset_placed_by_the_real_mesh_import_lines_up(tmp_path):
+    """End to end with mesh_import.trimesh: a Y-up cm asset rotated and moved into a Z-up metre scene;
+    the export's inverse placement must put the asset back exactly where mesh_import's walls are."""
+    trimesh_import = pytest.importorskip("stages.mesh_import.trimesh_import")
+    write_cm_y_up_asset(tmp_path / "set.usda")
+    inputs = folders(tmp_path)
+    wall = {"usd": "set.usda", "prims": ["/Set/Props/Tank"], "fluid": "inside", "rotate": [0, 0, 90],
+            "translate": [0.5, -0.25, 0.0], "scale": 2.0}
+    sc = scene(walls=[wall])
+    run_stage(trimesh_import.TrimeshImport, inputs["walls"], scene=sc, config_dir=tmp_path)
+    walls = WallMesh.load(inputs["walls"])
+    lo_w, hi_w = walls.vertices.min(0), walls.vertices.max(0)
+    surf = surfaces(inputs["surface"], 0.5 * (lo_w + hi_w))
+    particles(inputs["particles"], 0.5 * (lo_w + hi_w))
+
+    out = run_stage(UsdExport, tmp_path / "scene_units", scene=sc, inputs=inputs, config_dir=tmp_path,
+                    params={"fluid_units": "scene"})
+    lo, hi = world_bounds(Usd.Stage.Open(str(out / "scene.usda")), "/World/Asset_0")
+    np.testing.assert_allclose(lo, lo_w, atol=1e-6)
+    np.testing.assert_allclose(hi, hi_w, atol=1e-6)
+
+    out = run_stage(UsdExport, tmp_path / "asset_units", scene=sc, inputs=inputs, config_dir=tmp_path)
+    stage = Usd.Stage.Open(str(out / "scene.usda"))
+    assert UsdGeom.GetStageUpAxis(stage) == "Y" and UsdGeom.GetStageMetersPerUnit(stage) == 0.01
+    lo, hi = world_bounds(stage, "/Set/Props/Tank")
+    pts = np.array(UsdGeom.Mesh(stage.GetPrimAtPath("/World/Fluid/Surface")).GetPointsAttr().Get(0))
+    # the fluid sits at the tank's centre in the asset's own frame, scaled with it (r = 0.2 m / 2 = 10 cm)
+    np.testing.assert_allclose(0.5 * (pts.min(0) + pts.max(0)), 0.5 * (lo + hi), atol=1e-3)
+    np.testing.assert_allclose(pts.max(0) - pts.min(0), 2 * 0.2 * 100 / 2.0, rtol=0.02)

@@ -64,6 +64,18 @@ def _auto_camera(lo: np.ndarray, hi: np.ndarray, up_axis: str, view_angle: float
     return centre + distance * direction, centre, up
 
 
+USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
+
+
+def _usd_source(info: dict) -> str | None:
+    """The USD asset a walls.json entry came from: its "usd" key, or a "source" that is a USD file
+    (mesh_import.trimesh records the resolved file path as source, the prims under report)."""
+    if info.get("usd"):
+        return str(info["usd"])
+    source = str(info.get("source", ""))
+    return source if source.lower().endswith(USD_SUFFIXES) else None
+
+
 def _safe_name(name: str, used: set[str]) -> str:
     from pxr import Tf
 
@@ -96,7 +108,7 @@ class UsdExport(Stage):
 
     # -- the studio asset's frame -------------------------------------------------------------------
     def _asset_path(self, ctx: Context, info: dict) -> Path:
-        path = ctx.resolve(info["usd"])
+        path = ctx.resolve(_usd_source(info))
         if not path.is_file():
             raise StageError(f"export.usd: wall {info.get('name')!r}: USD asset {path} not found")
         return path
@@ -136,7 +148,7 @@ class UsdExport(Stage):
         walls = WallMesh.load(inputs["walls"].path)
 
         # studio assets the walls came from, and the frame every layer is written in
-        usd_walls = {i: info for i, info in enumerate(walls.walls) if info.get("usd")}
+        usd_walls = {i: info for i, info in enumerate(walls.walls) if _usd_source(info)}
         assets: dict[Path, np.ndarray] = {}
         for info in usd_walls.values():
             path = self._asset_path(ctx, info)
