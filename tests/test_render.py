@@ -169,17 +169,15 @@ def test_movie_has_every_frame_and_a_contact_sheet(tmp_path):
     assert sheet.shape[1] > 1000 and sheet.std() > 10
 
 
-def test_closed_and_open_walls_are_told_apart():
-    from stages.render.pyvista_render import is_closed, outward_faces
+def test_near_side_of_a_tank_is_the_side_facing_the_camera():
+    from stages.render.pyvista_render import near_faces
 
-    box = trimesh.creation.box(extents=(1, 2, 3))
-    assert is_closed(box.vertices, box.faces)
-    assert not is_closed(box.vertices, box.faces[2:])  # lid removed: an open tank
-    # unwelded corners (one vertex per face corner) still make a closed box
-    soup = box.vertices[box.faces].reshape(-1, 3)
-    assert is_closed(soup, np.arange(len(soup)).reshape(-1, 3))
-    inward = box.faces[:, ::-1]
-    np.testing.assert_array_equal(outward_faces(box.vertices, inward), box.faces)
+    box = trimesh.creation.box(extents=(2, 2, 2))
+    eye = np.array([0.0, -10.0, 0.0])
+    for faces in (box.faces, box.faces[:, ::-1]):  # either winding
+        near = near_faces(box.vertices, faces, eye, np.zeros(3))
+        normals = trimesh.Trimesh(box.vertices, box.faces).face_normals
+        np.testing.assert_array_equal(near, normals[:, 1] < -0.5)  # exactly the front wall
 
 
 def test_render_every_second_frame_and_the_movie_keeps_time(tmp_path, inputs):

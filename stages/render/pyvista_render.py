@@ -55,7 +55,9 @@ class RenderParams(Params):
                        "movie plays the rendered ones at fps / n")
     camera: Camera = Field(default_factory=Camera)
     background: str = Field("#20242c", description="background colour (name or #rrggbb)")
-    wall_opacity: float = Field(1.0, ge=0, le=1, description="opacity of the walls' far (visible) faces")
+    wall_opacity: float = Field(1.0, ge=0, le=1, description="opacity of the walls (a container's far side)")
+    near_wall_opacity: float = Field(0.12, ge=0, le=1, description="opacity of a container's near side, "
+                                     "between the camera and the fluid (0 hides it)")
     water_opacity: float = Field(0.85, ge=0, le=1, description="opacity of the fluid surface")
 
 
@@ -70,18 +72,6 @@ def auto_camera(lo: np.ndarray, hi: np.ndarray, up_axis: str, view_angle: float)
     direction /= np.linalg.norm(direction)
     distance = 1.05 * radius / math.sin(math.radians(view_angle) / 2)
     return centre + distance * direction, centre, up
-
-
-def is_closed(vertices: np.ndarray, faces: np.ndarray) -> bool:
-    """Every edge shared by exactly two triangles (a watertight wall such as a closed tank); vertices
-    are welded by position first, so unwelded corners do not make a closed box look open."""
-    if len(faces) == 0:
-        return False
-    _, welded = np.unique(np.round(vertices[faces.ravel()], 9), axis=0, return_inverse=True)
-    faces = welded.reshape(-1, 3)
-    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
-    _, counts = np.unique(edges, axis=0, return_counts=True)
-    return bool(np.all(counts == 2))
 
 
 def usd_camera(path: Path, prim: str | None, up_axis: str, meters_per_unit: float):
@@ -116,14 +106,13 @@ def usd_camera(path: Path, prim: str | None, up_axis: str, meters_per_unit: floa
     return eye, eye + rot @ look, rot @ up, view_angle
 
 
-def outward_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Faces wound so that a closed wall's normals point out of its enclosed volume (signed volume > 0),
-    which lets front-face culling hide exactly the near side of a container."""
-    if len(faces) == 0:
-        return faces
+def near_faces(vertices: np.ndarray, faces: np.ndarray, eye: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """Faces whose plane separates the eye from the container's centre: the near side of a tank (its
+    front wall, lid, near side walls; both skins of a thick wall), whatever way the faces are wound
+    and whether or not the container has a lid."""
     a, b, c = (vertices[faces[:, k]] for k in range(3))
-    volume = np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0
-    return faces[:, ::-1].copy() if volume < 0 else faces
+    n = np.cross(b - a, c - a)
+    return np.einsum("ij,ij->i", n, eye - a) * np.einsum("ij,ij->i", n, centre - a) < 0
 
 
 def polydata(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray | None = None):
@@ -172,12 +161,15 @@ class PyvistaRender(Stage):
         plotter = pv.Plotter(off_screen=True, window_size=(int(w), int(h)), lighting="three lights")
         try:
             plotter.set_background(params.background)
-            self._add_walls(plotter, walls, params)
+            eye, centre, up, view_angle = self._camera(walls, scene.units, params, ctx)
+            self._add_walls(plotter, walls, eye, params)
             if params.show == "surface":
                 self._add_surface(plotter, inputs, frame, params)
             else:
                 self._add_particles(plotter, inputs, frame, params)
-            self._set_camera(plotter, walls, scene.units, params, ctx)
+            plotter.camera_position = [tuple(eye), tuple(centre), tuple(up)]
+            plotter.camera.view_angle = view_angle
+            plotter.reset_camera_clipping_range()
             fps = scene.frames.fps
             plotter.add_text(f"frame {frame}   t = {frame / fps:.2f} s", position="lower_left", font_size=9,
                              color="white")
@@ -187,24 +179,22 @@ class PyvistaRender(Stage):
 
     # -- pieces of the picture -------------------------------------------------------------------
     @staticmethod
-    def _add_walls(plotter, walls: WallMesh, params: RenderParams) -> None:
+    def _add_walls(plotter, walls: WallMesh, eye: np.ndarray, params: RenderParams) -> None:
+        style = dict(color=WALL_RGB, ambient=0.25, diffuse=0.75, specular=0.0, smooth_shading=False)
         for index, info in enumerate(walls.walls):
             faces = walls.faces[walls.wall_id == index]
             if len(faces) == 0:
                 continue
-            container = info.get("fluid", "outside") == "inside"
-            closed = is_closed(walls.vertices, faces)
-            opacity = params.wall_opacity
-            if container and closed:
-                # a closed tank is seen from outside: hide its near faces so the fluid inside shows
-                faces, culling = outward_faces(walls.vertices, faces), "front"
-            else:
-                # obstacles are drawn whole; an open container (no lid) cannot be culled by
-                # orientation, so it is drawn see-through instead
-                culling = None
-                opacity = min(opacity, 0.35) if container else opacity
-            plotter.add_mesh(polydata(walls.vertices, faces), color=WALL_RGB, opacity=opacity, culling=culling,
-                             ambient=0.25, diffuse=0.75, specular=0.0, smooth_shading=False)
+            near = np.zeros(len(faces), bool)
+            # mesh_import builds an open box as a thick solid the fluid is "outside" of; it holds fluid all the same
+            if info.get("fluid", "outside") == "inside" or info.get("source") == "builtin:open_box":
+                # a container is seen from outside: its near side would hide the fluid
+                used = walls.vertices[np.unique(faces)]
+                near = near_faces(walls.vertices, faces, eye, 0.5 * (used.min(axis=0) + used.max(axis=0)))
+            if (~near).any() and params.wall_opacity > 0:
+                plotter.add_mesh(polydata(walls.vertices, faces[~near]), opacity=params.wall_opacity, **style)
+            if near.any() and params.near_wall_opacity > 0:
+                plotter.add_mesh(polydata(walls.vertices, faces[near]), opacity=params.near_wall_opacity, **style)
 
     @staticmethod
     def _add_surface(plotter, inputs: Mapping[str, Artifact], frame: int, params: RenderParams) -> None:
@@ -240,7 +230,9 @@ class PyvistaRender(Stage):
                          scalar_bar_args={"color": "white", "vertical": True, "position_x": 0.86, "width": 0.06})
 
     @staticmethod
-    def _set_camera(plotter, walls: WallMesh, units, params: RenderParams, ctx: Context) -> None:
+    def _camera(walls: WallMesh, units, params: RenderParams, ctx: Context):
+        """(eye, focal point, up, vertical view angle): a USD camera prim, else automatic framing on the
+        walls, with any of position / focal_point / up given in the config taking precedence."""
         cam = params.camera
         view_angle = cam.view_angle
         if cam.usd is not None:
@@ -258,6 +250,4 @@ class PyvistaRender(Stage):
             eye = np.asarray(cam.position, float)
         if cam.up is not None:
             up = np.asarray(cam.up, float)
-        plotter.camera_position = [tuple(eye), tuple(centre), tuple(up)]
-        plotter.camera.view_angle = view_angle
-        plotter.reset_camera_clipping_range()
+        return np.asarray(eye, float), np.asarray(centre, float), np.asarray(up, float), view_angle
