@@ -44,9 +44,9 @@ def _read_mesh_file(path: Path) -> tuple[np.ndarray, np.ndarray]:
         raise StageError(f"{path}: unsupported mesh format {suffix or '(none)'!r}; expected one of {', '.join(MESH_SUFFIXES)} or .usd*")
     try:
         loaded = trimesh.load(str(path), force="mesh", process=False, maintain_order=True)
-    except (IndexError, ValueError) as e:
-        raise StageError(f"{path}: cannot read as {suffix[1:].upper()} ({type(e).__name__}: {str(e)[:120]})") from None
     except Exception as e:
+        if isinstance(e, IndexError) or "range" in str(e):
+            raise StageError(f"{path}: face index out of range ({str(e)[:120]})") from None
         raise StageError(f"{path}: cannot read as {suffix[1:].upper()} ({type(e).__name__}: {str(e)[:120]})") from None
     v = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), np.float64).reshape(-1, 3)
     f = np.asarray(getattr(loaded, "faces", np.zeros((0, 3))), np.int64).reshape(-1, 3)

@@ -1,0 +1,209 @@
+"""mesh_import: built-in walls, mesh files, USD (units, up axis, nested transforms), clean-up, bad input."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import trimesh
+
+from pipeline.stage import StageError
+from pipeline.testing import run_stage
+from stages.common.formats import WallMesh
+from stages.mesh_import.trimesh_import import TrimeshImport
+from stages.mesh_import.usd_import import UsdImport
+
+SCENE = {"name": "t"}
+
+
+def _import(tmp_path, walls, stage=TrimeshImport, scene=None, **params):
+    out = run_stage(stage, tmp_path / "out", scene={"scene": scene or SCENE, "walls": walls}, params=params,
+                    config_dir=tmp_path)
+    return WallMesh.load(out)
+
+
+def _signed_volume(v, f):
+    return float(np.einsum("ij,ij->i", v[f[:, 0]], np.cross(v[f[:, 1]], v[f[:, 2]])).sum() / 6.0)
+
+
+def test_box_tank_is_closed_faces_inward_and_sits_on_its_floor(tmp_path):
+    wm = _import(tmp_path, [{"builtin": "box_tank", "size": [2, 1, 0.5], "center": [1, 0, 0.25]}])
+    assert np.allclose(wm.vertices.min(axis=0), [0, -0.5, 0.25])
+    assert np.allclose(wm.vertices.max(axis=0), [2, 0.5, 0.75])
+    # normals into the fluid = inwards for a container: negative signed volume
+    assert _signed_volume(wm.vertices, wm.faces) == pytest.approx(-1.0)
+    assert wm.walls[0]["fluid"] == "inside" and wm.walls[0]["report"]["watertight"]
+
+
+def test_open_box_is_a_thick_solid_with_fluid_outside(tmp_path):
+    wm = _import(tmp_path, [{"builtin": "open_box", "size": [1, 1, 1]}], open_box_thickness=0.1)
+    assert wm.walls[0]["fluid"] == "outside" and wm.walls[0]["report"]["watertight"]
+    # outer cube minus the cavity 0.8 x 0.8 x 0.9
+    assert _signed_volume(wm.vertices, wm.faces) == pytest.approx(1 - 0.8 * 0.8 * 0.9)
+
+
+def test_placement_scale_rotate_translate_and_fit(tmp_path):
+    box = trimesh.creation.box(bounds=[[0, 0, 0], [1, 2, 3]])
+    box.export(tmp_path / "b.obj")
+    wm = _import(tmp_path, [{"file": "b.obj", "scale": 2, "rotate": [0, 0, 90], "translate": [10, 0, 0]}])
+    assert np.allclose(wm.vertices.min(axis=0), [6, 0, 0]) and np.allclose(wm.vertices.max(axis=0), [10, 2, 6])
+    wm = _import(tmp_path, [{"file": "b.obj", "fit": {"min": [0, 0, 0], "max": [1, 1, 1]}}])
+    assert np.allclose(wm.vertices.min(axis=0), [1 / 3, 1 / 6, 0]) and np.allclose(wm.vertices.max(axis=0), [2 / 3, 5 / 6, 1])
+
+
+def test_file_units_are_converted(tmp_path):
+    trimesh.creation.box(bounds=[[0, 0, 0], [100, 100, 100]]).export(tmp_path / "cm.stl")
+    wm = _import(tmp_path, [{"file": "cm.stl", "meters_per_unit": 0.01}])
+    assert np.allclose(wm.vertices.max(axis=0), [1, 1, 1])
+
+
+def test_cleanup_welds_and_drops_degenerate_and_duplicate_faces(tmp_path):
+    (tmp_path / "bad.obj").write_text(
+        "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nv 1 0 0\n"
+        "f 1 3 2\nf 1 2 4\nf 1 4 3\nf 5 3 4\n"  # tetrahedron; vertex 5 duplicates vertex 2
+        "f 1 3 2\n"  # duplicate face
+        "f 1 2 5\n"  # zero area once welded
+    )
+    wm = _import(tmp_path, [{"file": "bad.obj"}])
+    r = wm.walls[0]["report"]
+    assert r["welded_vertices"] == 1 and r["degenerate_faces_removed"] == 1 and r["duplicate_faces_removed"] == 1
+    assert r["faces"] == 4 and r["watertight"] and r["boundary_edges"] == 0
+    assert _signed_volume(wm.vertices, wm.faces) == pytest.approx(1 / 6)  # obstacle: outward
+
+
+def test_holes_and_inconsistent_winding_are_reported_and_fixed(tmp_path):
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    faces = sphere.faces.copy()
+    faces[::7] = faces[::7, ::-1]  # flip some faces
+    faces = faces[3:]  # and cut holes
+    trimesh.Trimesh(sphere.vertices, faces, process=False).export(tmp_path / "holey.ply")
+    wm = _import(tmp_path, [{"file": "holey.ply"}])
+    r = wm.walls[0]["report"]
+    assert not r["winding_consistent_in"] and r["winding_consistent"]
+    assert r["boundary_edges"] > 0 and not r["watertight"]
+
+
+def _usd_and_obj(tmp_path):
+    """The same geometry as a Y-up centimetre USD with nested transforms and as a Z-up metre OBJ."""
+    from pxr import Gf, Usd, UsdGeom
+
+    pts = np.array([[0, 0, 0], [2, 0, 0], [2, 1, 0], [0, 1, 0], [0, 0, 3], [2, 0, 3], [2, 1, 3], [0, 1, 3]], float)
+    counts = [4, 4, 4, 4, 4, 4]
+    idx = [0, 3, 2, 1, 4, 5, 6, 7, 0, 1, 5, 4, 1, 2, 6, 5, 2, 3, 7, 6, 3, 0, 4, 7]
+    stage = Usd.Stage.CreateNew(str(tmp_path / "asset.usda"))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+    outer = UsdGeom.Xform.Define(stage, "/World")
+    outer.AddTranslateOp().Set(Gf.Vec3d(100, 50, -20))
+    outer.AddRotateYOp().Set(30.0)
+    inner = UsdGeom.Xform.Define(stage, "/World/Group")
+    inner.AddScaleOp().Set(Gf.Vec3f(10, 10, 10))
+    inner.AddRotateXOp().Set(-15.0)
+    mesh = UsdGeom.Mesh.Define(stage, "/World/Group/Block")
+    mesh.CreatePointsAttr([Gf.Vec3f(*p) for p in pts])
+    mesh.CreateFaceVertexCountsAttr(counts)
+    mesh.CreateFaceVertexIndicesAttr(idx)
+    hidden = UsdGeom.Mesh.Define(stage, "/World/Hidden")
+    hidden.CreatePointsAttr([Gf.Vec3f(500, 0, 0), Gf.Vec3f(600, 0, 0), Gf.Vec3f(500, 100, 0)])
+    hidden.CreateFaceVertexCountsAttr([3])
+    hidden.CreateFaceVertexIndicesAttr([0, 1, 2])
+    hidden.MakeInvisible()
+    stage.GetRootLayer().Save()
+    # the same transform by hand: row vectors, p * M_inner * M_outer, then cm -> m and Y-up -> Z-up
+    world = np.asarray(UsdGeom.XformCache().GetLocalToWorldTransform(mesh.GetPrim()))
+    w = np.c_[pts, np.ones(8)] @ world
+    w = w[:, :3] * 0.01
+    z_up = np.c_[w[:, 0], -w[:, 2], w[:, 1]]
+    tris = []
+    for f in range(6):
+        q = idx[4 * f:4 * f + 4]
+        tris += [(q[0], q[1], q[2]), (q[0], q[2], q[3])]
+    trimesh.Trimesh(z_up, np.array(tris), process=False).export(tmp_path / "asset.obj")
+    return z_up
+
+
+@pytest.mark.parametrize("stage", [TrimeshImport, UsdImport])
+def test_usd_yup_centimetres_nested_transforms_match_the_obj_in_metres_zup(tmp_path, stage):
+    expected = _usd_and_obj(tmp_path)
+    usd = _import(tmp_path, [{"usd": "asset.usda", "prims": ["/World/Group"]}], stage=stage)
+    obj = _import(tmp_path, [{"file": "asset.obj"}])
+    assert usd.walls[0]["report"]["prims"] == ["/World/Group/Block"]
+    assert np.allclose(np.sort(usd.vertices, axis=0), np.sort(expected, axis=0), atol=1e-9)
+    assert np.allclose(np.sort(usd.vertices, axis=0), np.sort(obj.vertices, axis=0), atol=1e-9)
+    assert len(usd.faces) == 12 and usd.walls[0]["report"]["watertight"]
+    vol = _signed_volume(usd.vertices, usd.faces)
+    assert vol == pytest.approx(6 * 0.1 ** 3) and vol == pytest.approx(_signed_volume(obj.vertices, obj.faces))
+
+
+def test_usd_invisible_prims_skipped_unless_asked_and_holes_dropped(tmp_path):
+    from pxr import Usd, UsdGeom
+
+    _usd_and_obj(tmp_path)
+    wm = _import(tmp_path, [{"usd": "asset.usda"}])
+    assert wm.walls[0]["report"]["prims"] == ["/World/Group/Block"]
+    wm = _import(tmp_path, [{"usd": "asset.usda", "include_invisible": True}])
+    assert wm.walls[0]["report"]["prims"] == ["/World/Group/Block", "/World/Hidden"]
+    stage = Usd.Stage.Open(str(tmp_path / "asset.usda"))
+    UsdGeom.Mesh(stage.GetPrimAtPath("/World/Group/Block")).CreateHoleIndicesAttr([1])  # the top face is a hole
+    stage.GetRootLayer().Save()
+    wm = _import(tmp_path, [{"usd": "asset.usda", "prims": ["/World/*/Block"]}])
+    assert len(wm.faces) == 10 and wm.walls[0]["report"]["boundary_edges"] == 4
+
+
+def test_outputs_walls_usdc_with_stage_metrics(tmp_path):
+    from pxr import Usd, UsdGeom
+
+    run_stage(TrimeshImport, tmp_path, scene={"scene": {"name": "t", "units": {"meters_per_unit": 0.01, "up_axis": "Y"}},
+                                              "walls": [{"builtin": "cylinder", "size": [1, 1, 2]}]})
+    stage = Usd.Stage.Open(str(tmp_path / "walls.usdc"))
+    assert UsdGeom.GetStageUpAxis(stage) == "Y" and UsdGeom.GetStageMetersPerUnit(stage) == 0.01
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/Walls/wall0_cylinder"))
+    pts = np.asarray(mesh.GetPointsAttr().Get())
+    assert pts[:, 1].min() == pytest.approx(0) and pts[:, 1].max() == pytest.approx(2)
+    assert json.loads((tmp_path / "walls.json").read_text())[0]["fluid"] == "inside"
+
+
+def test_external_files_list_usd_sublayers(tmp_path):
+    from pxr import Sdf
+
+    _usd_and_obj(tmp_path)
+    root = Sdf.Layer.CreateNew(str(tmp_path / "root.usda"))
+    root.subLayerPaths.append("asset.usda")
+    root.Save()
+    from pipeline.testing import scene_sections
+    from pipeline.stage import Context
+    import logging
+
+    sections = scene_sections({"scene": SCENE, "walls": [{"usd": "root.usda"}, {"file": "asset.obj"}]})
+    ctx = Context(out_dir=tmp_path, scene=sections, config_dir=tmp_path, frames=(0,), log=logging.getLogger("t"))
+    files = {p.name for p in TrimeshImport().external_files(ctx, TrimeshImport.Params())}
+    assert files == {"root.usda", "asset.usda", "asset.obj"}
+
+
+def _write(tmp_path, name, text):
+    (tmp_path / name).write_text(text)
+    return name
+
+
+@pytest.mark.parametrize("wall, message", [
+    ({"file": "missing.obj"}, "file not found"),
+    ({"file": "model.xyz"}, "unsupported mesh format"),
+    ({"file": "empty.obj"}, "empty mesh"),
+    ({"file": "nan.obj"}, "NaN or Inf"),
+    ({"file": "range.obj"}, "out of range"),
+    ({"file": "range.off"}, "out of range"),
+    ({"usd": "asset.usda", "prims": ["/World/Nope"]}, "prim path /World/Nope not found"),
+    ({"usd": "missing.usda"}, "not found"),
+    ({"usd": "asset.usda", "prims": ["/Other*"]}, "no visible UsdGeom.Mesh"),
+])
+def test_bad_input_raises_stage_error_naming_the_file(tmp_path, wall, message):
+    _usd_and_obj(tmp_path)
+    _write(tmp_path, "model.xyz", "1 2 3\n")
+    _write(tmp_path, "empty.obj", "# nothing\n")
+    _write(tmp_path, "nan.obj", "v 0 0 0\nv 1 0 nan\nv 0 1 0\nf 1 2 3\n")
+    _write(tmp_path, "range.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 4\n")
+    _write(tmp_path, "range.off", "OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 7\n")
+    with pytest.raises(StageError, match=message) as err:
+        _import(tmp_path, [wall])
+    name = wall.get("file") or wall.get("usd")
+    assert name in str(err.value) and "\n" not in str(err.value)
