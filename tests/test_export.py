@@ -227,3 +227,20 @@ def test_asset_placed_by_the_real_mesh_import_lines_up(tmp_path):
     # the fluid sits at the tank's centre in the asset's own frame, scaled with it (r = 0.2 m / 2 = 10 cm)
     np.testing.assert_allclose(0.5 * (pts.min(0) + pts.max(0)), 0.5 * (lo + hi), atol=1e-3)
     np.testing.assert_allclose(pts.max(0) - pts.min(0), 2 * 0.2 * 100 / 2.0, rtol=0.02)
+
+
+def test_empty_frames_export_and_read_back_empty(tmp_path):
+    """No fluid yet (an emitter that starts later, or everything drained): empty samples, not errors."""
+    inputs = folders(tmp_path)
+    tank_walls(inputs["walls"])
+    ParticleMeta(spacing=0.05, mass=0.1, density=1000.0, support=0.1, fps=FPS, frame_count=FRAMES, up_axis="Z",
+                 meters_per_unit=1.0, solver="synthetic").save(inputs["particles"])
+    for f in range(FRAMES):
+        save_surface(inputs["surface"], f, SurfaceMesh.empty())
+        z = np.zeros((0, 3))
+        save_particle_frame(inputs["particles"], f, ParticleFrame(z, z, z[:, 0], z[:, 0], z[:, 0].astype(int)))
+    out = run_stage(UsdExport, tmp_path / "usd", scene=scene(), inputs=inputs)
+    assert compliance_problems(out / "scene.usda")[0] == []
+    stage = Usd.Stage.Open(str(out / "scene.usda"))
+    assert len(UsdGeom.Mesh(stage.GetPrimAtPath("/World/Fluid/Surface")).GetPointsAttr().Get(1)) == 0
+    assert len(UsdGeom.Points(stage.GetPrimAtPath("/World/Particles")).GetPointsAttr().Get(1)) == 0

@@ -9,6 +9,7 @@ spends seconds timing out on a missing display.
 from __future__ import annotations
 
 import ctypes.util
+import functools
 import math
 import os
 from pathlib import Path
@@ -50,6 +51,9 @@ class RenderParams(Params):
     resolution: tuple[int, int] = Field((1280, 720), description="image width and height, pixels")
     show: Literal["surface", "particles"] = Field("surface", description="the fluid as its surface or as particles")
     color_by: Literal["speed", "pressure"] = Field("speed", description="particle colour (show: particles)")
+    color_range: tuple[float, float] | None = Field(
+        None, description="colour map range (units/s or Pa); default: 0 to the largest value over all frames, "
+        "so colours mean the same in every frame")
     point_size: float = Field(6.0, gt=0, description="particle sphere size on screen, pixels (show: particles)")
     every: int = Field(1, ge=1, description="render every n-th frame; the others are marked skipped and the "
                        "movie plays the rendered ones at fps / n")
@@ -113,6 +117,25 @@ def near_faces(vertices: np.ndarray, faces: np.ndarray, eye: np.ndarray, centre:
     a, b, c = (vertices[faces[:, k]] for k in range(3))
     n = np.cross(b - a, c - a)
     return np.einsum("ij,ij->i", n, eye - a) * np.einsum("ij,ij->i", n, centre - a) < 0
+
+
+def particle_values(p, color_by: str) -> np.ndarray:
+    return np.linalg.norm(p.v, axis=1) if color_by == "speed" else np.asarray(p.p, np.float64)
+
+
+@functools.lru_cache(maxsize=8)
+def run_max(folder: Path, color_by: str) -> float:
+    """Largest speed / pressure over every frame of a particle run (once per worker process)."""
+    meta = ParticleMeta.load(folder)
+    top = 0.0
+    for f in range(meta.frame_count):
+        try:
+            values = particle_values(load_particle_frame(folder, f), color_by)
+        except FileNotFoundError:
+            continue
+        if len(values):
+            top = max(top, float(np.percentile(values, 99.5)))  # a few splash outliers do not wash it out
+    return top
 
 
 def polydata(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray | None = None):
@@ -222,11 +245,9 @@ class PyvistaRender(Stage):
         if len(p) == 0:
             return
         cloud = pv.PolyData(np.asarray(p.x, np.float64))
-        if params.color_by == "speed":
-            cloud["speed"] = np.linalg.norm(p.v, axis=1)
-        else:
-            cloud["pressure"] = np.asarray(p.p)
-        plotter.add_mesh(cloud, render_points_as_spheres=True, point_size=params.point_size, cmap="viridis",
+        cloud[params.color_by] = particle_values(p, params.color_by)
+        clim = params.color_range or (0.0, max(run_max(folder, params.color_by), 1e-9))
+        plotter.add_mesh(cloud, render_points_as_spheres=True, point_size=params.point_size, cmap="viridis", clim=clim,
                          scalar_bar_args={"color": "white", "vertical": True, "position_x": 0.86, "width": 0.06})
 
     @staticmethod
