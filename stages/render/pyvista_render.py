@@ -3,8 +3,11 @@
 Headless: with no X display we ask VTK for its EGL window (Mesa's llvmpipe software renderer through
 libEGL, no GPU and no X server needed; Debian packages libegl1 libegl-mesa0 libgl1-mesa-dri libgbm1),
 falling back to OSMesa (libosmesa6) when Mesa's EGL is not installed. Both pass the render tests; EGL
-starts faster. VTK_DEFAULT_OPENGL_WINDOW set by the user wins. Without this VTK first tries X and
-spends seconds timing out on a missing display.
+starts faster. Left to itself VTK first tries X and spends seconds timing out on the missing display;
+a VTK_DEFAULT_OPENGL_WINDOW set by the user wins.
+
+Containers (fluid "inside", and mesh_import's open box) are seen from outside, so the faces between
+the camera and the container's centre are drawn faint: the water inside shows.
 """
 from __future__ import annotations
 
