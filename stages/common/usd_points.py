@@ -1,0 +1,48 @@
+"""Write particle frames as a time-sampled UsdGeom.Points layer (positions, velocities per second,
+widths = particle spacing, ids, density and pressure primvars, extent per sample)."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Iterable
+
+import numpy as np
+from pxr import Gf, Sdf, Usd, UsdGeom, Vt
+
+
+def write_points_layer(path: Path, frames: Iterable[tuple[int, object]], *, spacing: float, up_axis: str,
+                       meters_per_unit: float, fps: float, count: int, prim: str = "/World/Particles") -> Path:
+    """``frames`` yields (time code, ParticleFrame). Stage metadata: upAxis, metersPerUnit,
+    timeCodesPerSecond, start/end time codes, defaultPrim /World."""
+    path = Path(path)
+    if path.exists():
+        path.unlink()
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y if up_axis == "Y" else UsdGeom.Tokens.z)
+    UsdGeom.SetStageMetersPerUnit(stage, float(meters_per_unit))
+    stage.SetTimeCodesPerSecond(float(fps))
+    stage.SetFramesPerSecond(float(fps))
+    stage.SetStartTimeCode(0)
+    stage.SetEndTimeCode(max(int(count) - 1, 0))
+    world = UsdGeom.Xform.Define(stage, "/World")
+    stage.SetDefaultPrim(world.GetPrim())
+    pts = UsdGeom.Points.Define(stage, prim)
+    api = UsdGeom.PrimvarsAPI(pts)
+    rho_pv = api.CreatePrimvar("density", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex)
+    p_pv = api.CreatePrimvar("pressure", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex)
+    for t, f in frames:
+        x = np.ascontiguousarray(f.x, np.float32).reshape(-1, 3)
+        tc = Usd.TimeCode(float(t))
+        pts.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(x), tc)
+        pts.GetVelocitiesAttr().Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(f.v, np.float32).reshape(-1, 3)), tc)
+        pts.GetWidthsAttr().Set(Vt.FloatArray.FromNumpy(np.full(len(x), spacing, np.float32)), tc)
+        pts.GetIdsAttr().Set(Vt.Int64Array.FromNumpy(np.asarray(f.id, np.int64)), tc)
+        rho_pv.Set(Vt.FloatArray.FromNumpy(np.asarray(f.rho, np.float32)), tc)
+        p_pv.Set(Vt.FloatArray.FromNumpy(np.asarray(f.p, np.float32)), tc)
+        if len(x):
+            lo = x.min(axis=0) - 0.5 * spacing
+            hi = x.max(axis=0) + 0.5 * spacing
+        else:
+            lo = hi = np.zeros(3, np.float32)
+        pts.GetExtentAttr().Set(Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]), tc)
+    stage.GetRootLayer().Save()
+    return path

@@ -1,0 +1,1 @@
+"""simulate stage implementations (SPH with distance-function walls; shared numerics for MPS)."""

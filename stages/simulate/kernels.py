@@ -1,0 +1,65 @@
+"""SPH smoothing kernels of PHYSICS.md (support radius h; all zero for r >= h).
+
+The inline numba helpers take precomputed coefficients (no globals) so a caller evaluates only
+the polynomial in its pair loop."""
+from __future__ import annotations
+
+import math
+
+import numba as nb
+
+
+def poly6_coef(h: float) -> float:
+    """Eq. 10: W(r) = 315 / (64 pi h^9) (h^2 - r^2)^3."""
+    return 315.0 / (64.0 * math.pi * h ** 9)
+
+
+def spiky_grad_coef(h: float) -> float:
+    """Eq. 8: grad W(r) = -45 / (pi h^6) (h - r)^2 r_hat; returns the positive 45 / (pi h^6)."""
+    return 45.0 / (math.pi * h ** 6)
+
+
+def visc_lap_coef(h: float) -> float:
+    """Eq. 9: lap W(r) = 45 / (pi h^6) (h - r)."""
+    return 45.0 / (math.pi * h ** 6)
+
+
+@nb.njit(cache=True, inline="always")
+def poly6(r2, h2, coef):
+    """Eq. 10 as a function of r^2."""
+    if r2 >= h2:
+        return 0.0
+    q = h2 - r2
+    return coef * q * q * q
+
+
+@nb.njit(cache=True, inline="always")
+def visc_lap(r, h, coef):
+    """Eq. 9."""
+    if r >= h:
+        return 0.0
+    return coef * (h - r)
+
+
+def poly6_np(r, h):
+    """Vectorised eq. 10 (tests, tables)."""
+    import numpy as np
+    r = np.asarray(r, float)
+    return np.where(r < h, poly6_coef(h) * np.clip(h * h - r * r, 0, None) ** 3, 0.0)
+
+
+def visc_lap_np(r, h):
+    """Vectorised eq. 9 (tables)."""
+    import numpy as np
+    r = np.asarray(r, float)
+    return np.where(r < h, visc_lap_coef(h) * np.clip(h - r, 0, None), 0.0)
+
+
+def lattice_mass(rho0: float, l0: float, h: float) -> float:
+    """Particle mass such that the eq. 4 kernel sum over a full cubic lattice gives exactly rho0."""
+    import numpy as np
+    k = int(math.ceil(h / l0)) + 1
+    g = np.arange(-k, k + 1) * l0
+    X, Y, Z = np.meshgrid(g, g, g, indexing="ij")
+    s = poly6_np(np.sqrt(X * X + Y * Y + Z * Z), h).sum()
+    return float(rho0 / s)

@@ -1,0 +1,279 @@
+"""simulate.sph: weakly compressible SPH with distance-function walls (Harada et al. 2007).
+
+``SPHSolver`` holds the state and steps it (used by the stage and the benchmark); ``SPHSimulate`` is
+the stage: emit, step frame by frame, write the particle cache, checkpoints and the USD layer."""
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+from typing import Literal, Mapping
+
+import numba as nb
+import numpy as np
+from pydantic import Field
+
+from pipeline.stage import Artifact, Context, Params, Stage, StageError
+from stages.common.formats import ParticleFrame, ParticleMeta
+from stages.common.sdf import SDFGrid
+from stages.common.usd_points import write_points_layer
+
+from . import sph_kernels as K
+from .emitters import drop_inside_walls, emit
+from .kernels import lattice_mass, poly6_coef, spiky_grad_coef, visc_lap_coef
+from .neighbours import CellGrid, reorder
+from .output import iter_frames, latest_checkpoint, restore_frames, save_checkpoint, write_frame
+from .timestep import stable_dt, step_to
+from .wall_tables import build_tables
+
+
+class SPHParams(Params):
+    support: float = Field(2.0, ge=1.5, le=4.0, description="kernel support radius h in units of the spacing l0")
+    eos: Literal["linear", "tait"] = Field("linear", description="eq. 5 p = k (rho - rho0), k = c^2; or Tait, B = rho0 c^2 / 7")
+    sound_speed: float | None = Field(None, gt=0, description="numerical speed of sound c, m/s; default 10 x the expected "
+                                      "top speed (sqrt(2 g H) of the fluid column, or the emitters' speed)")
+    cfl: float = Field(0.4, gt=0, le=1.0, description="advective limit dt <= cfl l0 / v_max")
+    r_rep: float = Field(0.5, gt=0, le=1.0, description="eq. 16 wall repulsion distance, in units of l0")
+    clamp_pressure: bool = Field(True, description="clamp negative pressure to 0 (avoids free-surface clumping)")
+    checkpoint_every: int = Field(10, ge=1, description="write a checkpoint every this many frames")
+    threads: int | None = Field(None, ge=1, description="numba threads (fixed count = reproducible results)")
+    table_samples: int = Field(256, ge=16, description="samples of the Z_rho / Z_vis wall tables over [0, h]")
+
+
+class SPHSolver:
+    """State (x, v, id in cell order) plus the per-step kernels; every buffer is reused."""
+
+    def __init__(self, x, v, ids, sdf: SDFGrid, *, spacing: float, rho0: float, params: SPHParams,
+                 gravity=(0.0, 0.0, 0.0), mu: float | None = None, wall_viscosity: bool = True,
+                 v_ref: float = 1.0, domain=None):
+        self.p = params
+        self.l0 = float(spacing)
+        self.h = params.support * self.l0
+        self.rho0 = float(rho0)
+        self.mass = lattice_mass(self.rho0, self.l0, self.h)
+        _, self.z_rho, z_vis, self.z_press = build_tables(self.l0, self.h, self.mass, self.rho0, params.table_samples)
+        self.z_vis = z_vis if wall_viscosity else np.zeros_like(z_vis)
+        self.inv_dr = (params.table_samples - 1) / self.h
+        self.c = float(params.sound_speed or 10.0 * max(v_ref, 1e-3))
+        self.stiffness = self.c ** 2 if params.eos == "linear" else self.rho0 * self.c ** 2 / 7.0
+        self.eos = K.EOS_LINEAR if params.eos == "linear" else K.EOS_TAIT
+        self.gravity = np.asarray(gravity, np.float64)
+        self.mu = float(mu) if mu is not None else 0.0
+        self._forces = K.forces_pressure_viscosity if mu is not None else K.forces_pressure
+        self.sdf = sdf
+        self.sdf_inv = 1.0 / sdf.spacing
+        lo, hi = (sdf.origin, sdf.upper) if domain is None else domain
+        self.domain = (np.asarray(lo, float), np.asarray(hi, float))
+        self.grid = CellGrid(sdf.origin, sdf.upper, self.h)
+        self.x = np.array(x, np.float64)  # own copies: the sort reuses buffers
+        self.v = np.array(v, np.float64)
+        self.id = np.array(ids, np.int32)
+        self.t = 0.0
+        self.steps = 0
+        self.left_domain = 0
+        self._scratch: dict = {}
+        self._alloc()
+
+    def _alloc(self) -> None:
+        n = len(self.x)
+        self.rho = np.zeros(n)
+        self.pr = np.zeros(n)
+        self.d = np.zeros(n)
+        self.nrm = np.zeros((n, 3))
+        self.acc = np.zeros((n, 3))
+
+    # -- one step -----------------------------------------------------------------------------
+    def sort_and_density(self) -> None:
+        order = self.grid.sort(self.x)
+        self.x, self.v, self.id = reorder([self.x, self.v, self.id], order, self._scratch)
+        g = self.grid
+        K.density_pressure(self.x, g.starts, g.lo, 1.0 / g.cell, g.dims, self.h, poly6_coef(self.h), self.mass,
+                           self.rho0, self.z_rho, self.inv_dr, self.sdf.dist, self.sdf.origin, self.sdf_inv,
+                           self.eos, self.stiffness, self.p.clamp_pressure, self.rho, self.pr, self.d, self.nrm)
+
+    def forces(self) -> None:
+        g = self.grid
+        self._forces(self.x, self.v, self.rho, self.pr, self.d, g.starts, g.lo, 1.0 / g.cell, g.dims, self.h,
+                     spiky_grad_coef(self.h), visc_lap_coef(self.h), self.mass, self.mu, self.z_vis, self.z_press, self.nrm, self.inv_dr,
+                     self.gravity, self.acc)
+
+    def stable_dt(self, dt_max: float) -> float:
+        v2, a2 = K.max_speed2_accel2(self.v, self.acc)
+        nu = self.mu / self.rho0 if self.mu > 0 else None
+        return stable_dt(l0=self.l0, h=self.h, v_max=math.sqrt(v2), a_max=math.sqrt(a2), cfl=self.p.cfl,
+                         sound_speed=self.c, nu=nu, dt_max=dt_max)
+
+    def step(self, t_end: float) -> float:
+        """One step towards t_end (never past it); returns dt."""
+        self.sort_and_density()
+        self.forces()
+        dt = step_to(self.t, t_end, self.stable_dt(t_end - self.t))
+        K.integrate(self.x, self.v, self.acc, dt, self.sdf.dist, self.sdf.origin, self.sdf_inv,
+                    self.p.r_rep * self.l0, 0.5 * self.l0)
+        self.t = t_end if dt >= t_end - self.t else self.t + dt
+        self.steps += 1
+        return dt
+
+    def advance_to(self, t_end: float) -> int:
+        n = 0
+        while self.t < t_end:
+            self.step(t_end)
+            n += 1
+        return n
+
+    def remove_escaped(self) -> int:
+        """Drop particles outside the domain (counted in ``left_domain``)."""
+        lo, hi = self.domain
+        keep = np.all((self.x >= lo) & (self.x <= hi) & np.isfinite(self.x), axis=1)
+        gone = int(len(keep) - keep.sum())
+        if gone:
+            self.x = np.ascontiguousarray(self.x[keep])
+            self.v = np.ascontiguousarray(self.v[keep])
+            self.id = np.ascontiguousarray(self.id[keep])
+            self._scratch.clear()
+            self._alloc()
+            self.left_domain += gone
+        return gone
+
+    def frame(self) -> ParticleFrame:
+        """The current state with fresh density and pressure (sorts the state, as a step would)."""
+        self.sort_and_density()
+        return ParticleFrame(x=self.x.copy(), v=self.v.copy(), rho=self.rho.copy(), p=self.pr.copy(), id=self.id.copy())
+
+    def state(self) -> dict:
+        return {"x": self.x, "v": self.v, "id": self.id, "t": np.float64(self.t), "steps": np.int64(self.steps),
+                "left_domain": np.int64(self.left_domain)}
+
+    def load_state(self, s: Mapping) -> None:
+        self.x = np.ascontiguousarray(s["x"], np.float64)
+        self.v = np.ascontiguousarray(s["v"], np.float64)
+        self.id = np.ascontiguousarray(s["id"], np.int32)
+        self.t = float(s["t"])
+        self.steps = int(s["steps"])
+        self.left_domain = int(s["left_domain"])
+        self._scratch.clear()
+        self._alloc()
+
+
+def up_vector(up_axis: str) -> np.ndarray:
+    return np.array([0.0, 1.0, 0.0]) if up_axis == "Y" else np.array([0.0, 0.0, 1.0])
+
+
+class SPHSimulate(Stage):
+    kind = "simulate"
+    name = "sph"
+    version = "1"
+    Params = SPHParams
+    inputs = ("sdf",)
+    reads = ("scene", "fluid", "effects")
+    outputs = ("particles",)
+    default = True
+    description = "weakly compressible SPH with distance-function walls (Harada et al. 2007), numba"
+
+    def frame_count(self, ctx: Context, params: Params, inputs: Mapping[str, Artifact]) -> int | None:
+        return ctx.scene["scene"].frames.count
+
+    def run(self, ctx: Context, inputs: Mapping[str, Artifact], params: SPHParams) -> None:
+        scene = ctx.scene["scene"]
+        fluid = ctx.scene["fluid"]
+        effects = ctx.scene["effects"]
+        if fluid is None:
+            raise StageError("simulate.sph: the scene has no 'fluid' section (spacing and emitters)")
+        threads = params.threads or getattr(ctx, "threads", None)
+        if threads:
+            nb.set_num_threads(min(int(threads), nb.config.NUMBA_NUM_THREADS))
+        sdf = SDFGrid.load(inputs["sdf"].path)
+        l0 = fluid.spacing
+        mpu = scene.units.meters_per_unit
+        up = up_vector(scene.units.up_axis)
+        x, v, dropped = None, None, 0
+        x, v = emit(fluid.emitters, l0, ctx.resolve)
+        x, v, dropped = drop_inside_walls(x, v, sdf, l0, ctx.log)
+        if len(x) == 0:
+            raise StageError("simulate.sph: the emitters produced no particles in the fluid region "
+                             "(fluid.emitters outside the walls or smaller than fluid.spacing?)")
+        gravity = np.zeros(3)
+        v_ref = float(np.linalg.norm(v, axis=1).max())
+        if effects.gravity is not None:
+            g = effects.gravity.g / mpu  # m/s^2 -> scene units/s^2
+            gravity = -g * up
+            height = float((x @ up).max() - (x @ up).min()) + l0
+            v_ref = max(v_ref, math.sqrt(2.0 * g * height))
+        visc = effects.viscosity
+        domain = None
+        if scene.domain is not None:
+            domain = (np.asarray(scene.domain.min), np.asarray(scene.domain.max))
+        solver = SPHSolver(x, v, np.arange(len(x), dtype=np.int32), sdf, spacing=l0, rho0=fluid.density,
+                           params=params, gravity=gravity, mu=visc.mu if visc is not None else None,
+                           wall_viscosity=bool(visc.wall) if visc is not None else False, v_ref=v_ref, domain=domain)
+        count = scene.frames.count
+        fps = scene.frames.fps
+        ckpt_dir = getattr(ctx, "checkpoint_dir", None)
+        ckpt_dir = Path(ckpt_dir) if ckpt_dir is not None else None
+        stats = {"emitted": int(len(x) + dropped), "dropped_in_wall": dropped, "density_error_mean": [],
+                 "density_error_max": [], "inside_wall": [], "wall_seconds": 0.0}
+        resumed = latest_checkpoint(ckpt_dir, count)
+        progress = ctx.progress("simulating (sph)", count)
+        if resumed is not None:
+            start, state = resumed
+            solver.load_state(state)
+            stats = _stats_from(state, stats)
+            restore_frames(ckpt_dir, ctx.out_dir, start)
+            ctx.log.info("resumed from the checkpoint at frame %d", start)
+            progress.advance(start + 1)
+        else:
+            start = 0
+            f0 = solver.frame()
+            write_frame(ctx.out_dir, 0, f0, ckpt_dir)
+            self._frame_stats(stats, f0, solver)
+            progress.advance()
+        t0 = time.perf_counter()
+        for f in range(start + 1, count):
+            solver.advance_to(f / fps)
+            gone = solver.remove_escaped()
+            if gone:
+                ctx.log.warning("frame %d: %d particles left the domain and were removed", f, gone)
+            fr = solver.frame()
+            write_frame(ctx.out_dir, f, fr, ckpt_dir)
+            self._frame_stats(stats, fr, solver)
+            if ckpt_dir is not None and (f % params.checkpoint_every == 0) and f < count - 1:
+                stats["wall_seconds"] += time.perf_counter() - t0
+                t0 = time.perf_counter()
+                save_checkpoint(ckpt_dir, f, {**solver.state(), **_stats_to(stats)})
+            progress.advance()
+        stats["wall_seconds"] += time.perf_counter() - t0
+        stats.update(steps=solver.steps, left_domain=solver.left_domain, sound_speed=solver.c,
+                     mean_dt=(count - 1) / fps / max(solver.steps, 1), particles=int(len(solver.x)))
+        meta = ParticleMeta(spacing=l0, mass=solver.mass, density=fluid.density, support=solver.h, fps=fps,
+                            frame_count=count, up_axis=scene.units.up_axis, meters_per_unit=mpu, solver="sph",
+                            stats=stats)
+        meta.save(ctx.out_dir)
+        write_points_layer(ctx.out_dir / "particles.usdc", iter_frames(ctx.out_dir, count), spacing=l0,
+                           up_axis=scene.units.up_axis, meters_per_unit=mpu, fps=fps, count=count)
+
+    @staticmethod
+    def _frame_stats(stats: dict, fr: ParticleFrame, solver: SPHSolver) -> None:
+        err = np.maximum(fr.rho / solver.rho0 - 1.0, 0.0)
+        stats["density_error_mean"].append(float(err.mean()) if len(err) else 0.0)
+        stats["density_error_max"].append(float(err.max()) if len(err) else 0.0)
+        stats["inside_wall"].append(int((solver.d < -0.01 * solver.l0).sum()))
+
+
+_LIST_STATS = ("density_error_mean", "density_error_max", "inside_wall")
+
+
+def _stats_to(stats: dict) -> dict:
+    out = {f"stat_{k}": np.asarray(stats[k]) for k in _LIST_STATS}
+    out.update(stat_dropped_in_wall=np.int64(stats["dropped_in_wall"]), stat_emitted=np.int64(stats["emitted"]),
+               stat_wall_seconds=np.float64(stats["wall_seconds"]))
+    return out
+
+
+def _stats_from(state: dict, stats: dict) -> dict:
+    stats = dict(stats)
+    for k in _LIST_STATS:
+        stats[k] = state[f"stat_{k}"].tolist()
+    stats["dropped_in_wall"] = int(state["stat_dropped_in_wall"])
+    stats["emitted"] = int(state["stat_emitted"])
+    stats["wall_seconds"] = float(state["stat_wall_seconds"])
+    return stats
