@@ -1,0 +1,111 @@
+"""sdf_bake: analytic shapes against exact distances, narrow band, sign on holes and real assets, accuracy."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from pipeline.stage import StageError
+from pipeline.testing import run_stage
+from stages.common.formats import WallMesh
+from stages.common.sdf import SDFGrid, box_interior_sdf
+from stages.mesh_import.trimesh_import import TrimeshImport
+from stages.sdf_bake.open3d_bake import Open3dBake, accuracy, wall_fields
+
+ASSETS = Path(__file__).resolve().parents[1] / "configs" / "assets"
+FLUID = {"spacing": 0.05, "emitters": [{"box": {"min": [0, 0, 0], "max": [0.1, 0.1, 0.1]}}]}
+
+
+def _bake(tmp_path, walls, domain=None, **params):
+    scene = {"scene": {"name": "t", **({"domain": domain} if domain else {})}, "walls": walls, "fluid": FLUID}
+    walls_dir = run_stage(TrimeshImport, tmp_path / "walls", scene=scene, config_dir=tmp_path)
+    sdf_dir = run_stage(Open3dBake, tmp_path / "sdf", scene=scene, params=params, inputs={"walls": walls_dir})
+    return SDFGrid.load(sdf_dir), WallMesh.load(walls_dir)
+
+
+def _nodes(g: SDFGrid) -> np.ndarray:
+    axes = [g.origin[a] + g.spacing * np.arange(g.shape[a]) for a in range(3)]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+
+
+def test_sphere_obstacle_matches_the_exact_distance_in_the_band(tmp_path):
+    trimesh.creation.icosphere(subdivisions=5, radius=0.5).export(tmp_path / "sphere.ply")
+    g, _ = _bake(tmp_path, [{"file": "sphere.ply"}])
+    exact = np.linalg.norm(_nodes(g), axis=1) - 0.5
+    d = g.dist.reshape(-1)
+    band = np.abs(exact) < g.band - 0.01
+    assert g.band == pytest.approx(0.2) and g.spacing == pytest.approx(0.025)
+    assert np.abs(d[band] - exact[band]).max() < 1e-3  # icosphere chord error ~ 4e-4
+    assert np.all(np.abs(d[~band]) >= g.band - 0.011) and np.abs(d).max() <= g.band + 1e-6
+    assert np.all(np.sign(d[np.abs(exact) > 0.01]) == np.sign(exact[np.abs(exact) > 0.01]))
+    # the sampler's normal points away from the sphere (into the fluid)
+    p = np.array([[0.6, 0.0, 0.0], [0.0, -0.45, 0.0]])
+    dd, n = g.sample(p)
+    assert dd == pytest.approx([0.1, -0.05], abs=2e-3)
+    assert n[0] == pytest.approx([1, 0, 0], abs=0.05) and n[1] == pytest.approx([0, -1, 0], abs=0.05)
+
+
+def test_box_tank_matches_the_analytic_interior_distance(tmp_path):
+    g, _ = _bake(tmp_path, [{"builtin": "box_tank", "size": [1, 0.8, 0.6]}], band=3.0)
+    exact = box_interior_sdf([-0.5, -0.4, 0], [0.5, 0.4, 0.6])(_nodes(g))
+    d = g.dist.reshape(-1)
+    band = np.abs(exact) < g.band - 1e-3
+    assert np.abs(d[band] - exact[band]).max() < 1e-5
+    assert np.allclose(d[~band], np.sign(exact[~band]) * g.band)
+
+
+def test_walls_combine_by_minimum(tmp_path):
+    trimesh.creation.icosphere(subdivisions=3, radius=0.2).apply_translation([0, 0, 0.5]).export(tmp_path / "ball.obj")
+    g, _ = _bake(tmp_path, [{"builtin": "box_tank", "size": [1, 1, 1]}, {"file": "ball.obj"}])
+    d, _ = g.sample(np.array([[0, 0, 0.5], [0, 0, 0.75], [0.45, 0.45, 0.5], [0, 0, 1.2]]))
+    assert d[0] < -0.1 and d[1] == pytest.approx(0.05, abs=3e-3) and d[2] == pytest.approx(0.05, abs=1e-4) and d[3] < 0
+
+
+def test_domain_sets_the_grid_and_far_field_is_clamped(tmp_path):
+    trimesh.creation.icosphere(subdivisions=2, radius=0.1).export(tmp_path / "s.obj")
+    g, _ = _bake(tmp_path, [{"file": "s.obj"}], domain={"min": [-2, -2, -2], "max": [2, 2, 2]}, margin=1.0)
+    assert np.allclose(g.origin, -2.05) and g.upper.min() >= 2.05 - 1e-9
+    assert g.dist[0, 0, 0] == pytest.approx(g.band) and g.dist.min() < 0
+
+
+def test_sphere_with_holes_keeps_a_robust_sign(tmp_path):
+    s = trimesh.creation.icosphere(subdivisions=4, radius=0.5)
+    keep = np.ones(len(s.faces), bool)
+    keep[np.random.default_rng(1).choice(len(s.faces), 40, replace=False)] = False  # 40 small holes
+    trimesh.Trimesh(s.vertices, s.faces[keep], process=False).export(tmp_path / "holey.obj")
+    g, wm = _bake(tmp_path, [{"file": "holey.obj"}])
+    assert not wm.walls[0]["report"]["watertight"]
+    exact = np.linalg.norm(_nodes(g), axis=1) - 0.5
+    d = g.dist.reshape(-1)
+    off = np.abs(exact) > 0.02
+    wrong = np.sign(d[off]) != np.sign(exact[off])
+    assert wrong.mean() < 1e-3
+
+
+def test_sampler_accuracy_in_the_band(tmp_path):
+    """Trilinear sampling of the baked grid vs the exact mesh distance, in units of the grid spacing."""
+    trimesh.creation.icosphere(subdivisions=4, radius=0.5).export(tmp_path / "sphere.obj")
+    for cell in (0.5, 1.0):
+        g, wm = _bake(tmp_path / str(cell), [{"file": str(tmp_path / "sphere.obj")}], cell=cell)
+        a = accuracy(g, wall_fields(wm, 7), wm, n_points=4000)
+        assert a["points"] > 3000
+        assert a["rms_error_cells"] < 0.02 and a["max_error_cells"] < 0.1 and a["sign_errors"] == 0, a
+
+
+def test_real_asset_bakes_with_a_plausible_sign(tmp_path):
+    g, wm = _bake(tmp_path, [{"file": str(ASSETS / "bunny_closed_6k.obj"), "scale": 0.5}])
+    lo, hi = wm.vertices.min(axis=0), wm.vertices.max(axis=0)
+    far, _ = g.sample(np.array([lo - 0.1, hi + 0.1, [lo[0] - 0.1, hi[1] + 0.1, lo[2]]]))
+    assert np.all(far > 0)
+    # the volume with d < 0 is the bunny's volume
+    mesh = trimesh.Trimesh(wm.vertices, wm.faces)
+    assert (g.dist < 0).sum() * g.spacing ** 3 == pytest.approx(mesh.volume, rel=0.05)
+
+
+def test_missing_fluid_section_is_a_stage_error(tmp_path):
+    scene = {"scene": {"name": "t"}, "walls": [{"builtin": "box_tank"}]}
+    walls_dir = run_stage(TrimeshImport, tmp_path / "w", scene=scene)
+    with pytest.raises(StageError, match="fluid"):
+        run_stage(Open3dBake, tmp_path / "s", scene=scene, inputs={"walls": walls_dir})
