@@ -75,7 +75,7 @@ def drop_inside_walls(x: np.ndarray, v: np.ndarray, sdf, l0: float, log: logging
         return x, v, 0
     d, _ = sdf.sample(x)
     in_grid = np.all((x >= sdf.origin) & (x <= sdf.upper), axis=1)
-    keep = (d >= min_distance * l0 - 1e-9 * l0) & in_grid
+    keep = (d >= (min_distance - 1e-3) * l0) & in_grid  # float32 SDF round-off
     dropped = int(len(x) - keep.sum())
     if dropped:
         log.warning("dropped %d of %d emitted particles inside or within %.2g l0 of a wall", dropped, len(x),
