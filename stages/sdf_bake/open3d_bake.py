@@ -3,11 +3,12 @@
 Grid: node spacing ``cell * l0`` (l0 = fluid.spacing) covering scene.domain padded by ``margin * l0``,
 or the walls' bounds padded by ``(band + margin) * l0`` when no domain is given.
 
-Distance: exact (``RaycastingScene.compute_distance``, closest point on the triangles) only at nodes in
-blocks of ``block``^3 nodes that may lie within the band: a block is skipped when the distance from its
-centre exceeds ``band`` plus the block's half diagonal, and then all its nodes get the clamped value
-+-band and the sign of the centre. The number of exact queries therefore grows with the wall area times
-the band width, not with the domain volume (plus one query per block).
+Distance: exact (``RaycastingScene.compute_distance``, closest point on the triangles) only at nodes
+that may lie within the band, found coarse to fine: blocks of ``block``^3 nodes, then 2^3 sub-blocks;
+a (sub-)block is skipped when the distance from its centre exceeds ``band`` plus its half diagonal,
+and then all its nodes get the clamped value +-band and the sign of the centre. The number of exact
+queries therefore grows with the wall area times the band width, not with the domain volume (plus
+one query per block).
 
 Sign (PHYSICS.md: d > 0 in the fluid, n = grad d into the fluid): per wall, "inside the mesh" is decided
 by the parity of ray intersections (open3d ``count_intersections``) along one fixed generic direction;
@@ -67,14 +68,19 @@ class WallField:
         self.scene = _raycasting_scene(vertices, faces)
         self.fluid_sign = 1.0 if fluid == "outside" else -1.0  # sign of d outside the mesh
         self.rays = 1 if watertight else sign_rays
+        self.seconds = {"distance": 0.0, "sign": 0.0}
 
     def distance(self, pts: np.ndarray) -> np.ndarray:
-        return self.scene.compute_distance(o3d.core.Tensor(np.ascontiguousarray(pts, np.float32))).numpy()
+        t0 = time.perf_counter()
+        d = self.scene.compute_distance(o3d.core.Tensor(np.ascontiguousarray(pts, np.float32))).numpy()
+        self.seconds["distance"] += time.perf_counter() - t0
+        return d
 
     def sign(self, pts: np.ndarray, rays: int | None = None) -> np.ndarray:
         """+-1 by ray parity, majority over ``rays`` fixed random directions (never axis-aligned, so rays
         of symmetric meshes do not run through vertices). open3d's own compute_occupancy(nsamples) was
         not used: it returned the same wrong vote for any nsamples next to holes."""
+        t0 = time.perf_counter()
         k = rays or self.rays
         dirs = np.random.default_rng(12345).normal(size=(k, 3))
         dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
@@ -83,6 +89,7 @@ class WallField:
         for d in dirs:  # one direction at a time keeps the ray buffer at (N, 6)
             rays6 = np.concatenate([pts32, np.broadcast_to(d.astype(np.float32), pts32.shape)], axis=1)
             inside += self.scene.count_intersections(o3d.core.Tensor(rays6)).numpy() % 2
+        self.seconds["sign"] += time.perf_counter() - t0
         return np.where(2 * inside > k, -self.fluid_sign, self.fluid_sign).astype(np.float32)
 
     def signed(self, pts: np.ndarray) -> np.ndarray:
@@ -106,35 +113,56 @@ def exact_signed_distance(fields: list[WallField], pts: np.ndarray) -> np.ndarra
     return d
 
 
+def _cube(k: int) -> np.ndarray:
+    return np.stack(np.meshgrid(*[np.arange(k)] * 3, indexing="ij"), -1).reshape(-1, 3)
+
+
+def _block_nodes(lo: np.ndarray, hi: np.ndarray, k: int) -> np.ndarray:
+    """All nodes of the blocks [lo, hi] (inclusive, at most k per edge), as (M, 3) indices."""
+    nodes = (lo[:, None, :] + _cube(k)[None, :, :]).reshape(-1, 3)
+    return nodes[(nodes <= np.repeat(hi, k ** 3, axis=0)).all(axis=1)]
+
+
 def bake_wall(w: WallField, origin: np.ndarray, h: float, shape: tuple[int, int, int], band: float, block: int,
               out: np.ndarray) -> int:
-    """Fold one wall's narrow-band signed distance into ``out`` (min). Returns the exact query count."""
+    """Fold one wall's narrow-band signed distance into ``out`` (min). Returns the exact query count.
+
+    Two culling levels: blocks of ``block``^3 nodes, then 2^3 sub-blocks inside the blocks that may
+    touch the band. A (sub-)block whose centre is farther than band + its half diagonal from the wall
+    holds no band node and no surface crossing, so all its nodes get +-band with the centre's sign
+    (evaluated at a jittered point: rays through vertices of symmetric meshes are avoided)."""
     n = np.asarray(shape)
+    rng = np.random.default_rng(0)
     nb = -(-n // block)
-    bidx = np.stack(np.meshgrid(*[np.arange(k) for k in nb], indexing="ij"), -1).reshape(-1, 3)
-    lo = bidx * block
+    lo = np.stack(np.meshgrid(*[np.arange(k) for k in nb], indexing="ij"), -1).reshape(-1, 3) * block
     hi = np.minimum(lo + block, n) - 1
     centres = origin + h * 0.5 * (lo + hi)
-    half_diag = h * 0.5 * np.linalg.norm(hi - lo, axis=1)
-    dc = w.distance(centres)
-    near = dc < band + half_diag
-    # far blocks: constant, the sign of their centre (no surface crosses a block with no node in the band)
-    # any point of a far block has its sign; a jittered one avoids rays through vertices of symmetric meshes
-    jitter = np.random.default_rng(0).uniform(-0.3 * h, 0.3 * h, (int((~near).sum()), 3))
-    far_val = (band * w.sign(centres[~near] + jitter, rays=max(w.rays * 3, 3))).astype(np.float32)
-    block_val = np.empty(len(bidx), np.float32)
-    block_val[~near] = far_val
-    block_val[near] = np.nan
+    near = w.distance(centres) < band + h * 0.5 * np.linalg.norm(hi - lo, axis=1)
+    far_pts = centres[~near] + rng.uniform(-0.3 * h, 0.3 * h, (int((~near).sum()), 3))
+    block_val = np.full(len(lo), np.nan, np.float32)
+    block_val[~near] = band * w.sign(far_pts, rays=max(w.rays * 3, 3))
     full = np.repeat(np.repeat(np.repeat(block_val.reshape(nb), block, 0), block, 1), block, 2)[:n[0], :n[1], :n[2]]
-    # near blocks: every node exactly
-    off = np.stack(np.meshgrid(*[np.arange(block)] * 3, indexing="ij"), -1).reshape(-1, 3)
-    nodes = (lo[near][:, None, :] + off[None, :, :]).reshape(-1, 3)
-    nodes = nodes[(nodes < n).all(axis=1)]
-    pts = origin + h * nodes
-    d = np.clip(w.signed(pts), -band, band).astype(np.float32)
+
+    # level 2: 2^3 sub-blocks of the near blocks
+    sub = 2
+    lo2 = (lo[near][:, None, :] + sub * _cube(-(-block // sub))[None, :, :]).reshape(-1, 3)
+    parent_hi = np.repeat(hi[near], (-(-block // sub)) ** 3, axis=0)
+    ok = (lo2 <= parent_hi).all(axis=1)
+    lo2, hi2 = lo2[ok], np.minimum(lo2[ok] + sub - 1, parent_hi[ok])
+    c2 = origin + h * 0.5 * (lo2 + hi2)
+    near2 = w.distance(c2) < band + h * 0.5 * np.linalg.norm(hi2 - lo2, axis=1)
+    far2 = ~near2
+    if far2.any():
+        s2 = band * w.sign(c2[far2] + rng.uniform(-0.2 * h, 0.2 * h, (int(far2.sum()), 3)), rays=max(w.rays * 3, 3))
+        nodes = _block_nodes(lo2[far2], hi2[far2], sub)
+        per = np.repeat(s2, sub ** 3)[(lo2[far2][:, None, :] + _cube(sub)[None]).reshape(-1, 3).__le__(
+            np.repeat(hi2[far2], sub ** 3, axis=0)).all(axis=1)]
+        full[nodes[:, 0], nodes[:, 1], nodes[:, 2]] = per
+    nodes = _block_nodes(lo2[near2], hi2[near2], sub)
+    d = np.clip(w.signed(origin + h * nodes), -band, band).astype(np.float32)
     full[nodes[:, 0], nodes[:, 1], nodes[:, 2]] = d
     np.minimum(out, full, out=out)
-    return len(nodes)
+    return len(nodes) + len(c2)
 
 
 def grid_box(wm: WallMesh, domain, l0: float, p: BakeParams) -> tuple[np.ndarray, np.ndarray]:
@@ -156,7 +184,8 @@ def bake(wm: WallMesh, lo: np.ndarray, hi: np.ndarray, h: float, band: float, bl
     fields = wall_fields(wm, sign_rays)
     dist = np.full(shape, band, np.float32)
     queries = sum(bake_wall(w, np.asarray(lo, np.float64), h, shape, band, block, dist) for w in fields)
-    stats = {"shape": list(shape), "exact_queries": int(queries), "nodes": int(np.prod(shape)), "seconds": time.perf_counter() - t0}
+    stats = {"shape": list(shape), "exact_queries": int(queries), "nodes": int(np.prod(shape)), "seconds": time.perf_counter() - t0,
+             "distance_seconds": sum(w.seconds["distance"] for w in fields), "sign_seconds": sum(w.seconds["sign"] for w in fields)}
     return SDFGrid(origin=np.asarray(lo, np.float64), spacing=float(h), dist=dist, band=float(band)), stats
 
 
