@@ -207,3 +207,9 @@ def test_bad_input_raises_stage_error_naming_the_file(tmp_path, wall, message):
         _import(tmp_path, [wall])
     name = wall.get("file") or wall.get("usd")
     assert name in str(err.value) and "\n" not in str(err.value)
+
+
+def test_damaged_usd_is_a_stage_error(tmp_path):
+    _write(tmp_path, "broken.usda", "#usda 1.0\ndef Mesh \"A\" {\n  point3f[] points = [(0, 0\n")
+    with pytest.raises(StageError, match="broken.usda"):
+        _import(tmp_path, [{"usd": "broken.usda"}])

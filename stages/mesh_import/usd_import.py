@@ -33,7 +33,10 @@ def usd_dependencies(path: Path) -> list[Path]:
 
     if not path.is_file():
         return [path]
-    layers, assets, _unresolved = UsdUtils.ComputeAllDependencies(str(path))
+    try:
+        layers, assets, _unresolved = UsdUtils.ComputeAllDependencies(str(path))
+    except Exception as e:  # a damaged layer: say so now rather than when hashing
+        raise StageError(f"{path}: cannot open as USD ({str(e).strip().splitlines()[-1][:200]})") from None
     files = {Path(layer.realPath) for layer in layers if layer.realPath}
     files |= {Path(a) for a in assets}
     files.add(path)

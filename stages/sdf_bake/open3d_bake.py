@@ -145,24 +145,37 @@ def bake_wall(w: WallField, origin: np.ndarray, h: float, shape: tuple[int, int,
 
     # level 2: 2^3 sub-blocks of the near blocks
     sub = 2
+    queries = 0
     lo2 = (lo[near][:, None, :] + sub * _cube(-(-block // sub))[None, :, :]).reshape(-1, 3)
     parent_hi = np.repeat(hi[near], (-(-block // sub)) ** 3, axis=0)
     ok = (lo2 <= parent_hi).all(axis=1)
     lo2, hi2 = lo2[ok], np.minimum(lo2[ok] + sub - 1, parent_hi[ok])
     c2 = origin + h * 0.5 * (lo2 + hi2)
-    near2 = w.distance(c2) < band + h * 0.5 * np.linalg.norm(hi2 - lo2, axis=1)
-    far2 = ~near2
-    if far2.any():
-        s2 = band * w.sign(c2[far2] + rng.uniform(-0.2 * h, 0.2 * h, (int(far2.sum()), 3)), rays=max(w.rays * 3, 3))
-        nodes = _block_nodes(lo2[far2], hi2[far2], sub)
-        per = np.repeat(s2, sub ** 3)[(lo2[far2][:, None, :] + _cube(sub)[None]).reshape(-1, 3).__le__(
-            np.repeat(hi2[far2], sub ** 3, axis=0)).all(axis=1)]
-        full[nodes[:, 0], nodes[:, 1], nodes[:, 2]] = per
-    nodes = _block_nodes(lo2[near2], hi2[near2], sub)
-    d = np.clip(w.signed(origin + h * nodes), -band, band).astype(np.float32)
-    full[nodes[:, 0], nodes[:, 1], nodes[:, 2]] = d
+    hd2 = h * 0.5 * np.linalg.norm(hi2 - lo2, axis=1)
+    dc2 = w.distance(c2)
+    # a sub-block whose centre is farther than its half diagonal is not crossed by the surface: one
+    # sign (at a jittered point inside it) serves all its nodes; only crossed ones vote per node
+    # (the ball of radius dc2 about the centre is wall-free and holds the nodes and the jittered point)
+    uncrossed = dc2 > np.maximum(hd2, 0.35 * h) + 1e-6 * h
+    s2 = np.zeros(len(c2), np.float32)
+    s2[uncrossed] = w.sign(c2[uncrossed] + rng.uniform(-0.2 * h, 0.2 * h, (int(uncrossed.sum()), 3)))
+    near2 = dc2 < band + hd2
+    for mask, exact in ((~near2, False), (near2 & uncrossed, True), (near2 & ~uncrossed, True)):
+        if not mask.any():
+            continue
+        inside = (lo2[mask][:, None, :] + _cube(sub)[None]).reshape(-1, 3) <= np.repeat(hi2[mask], sub ** 3, axis=0)
+        inside = inside.all(axis=1)
+        nodes = _block_nodes(lo2[mask], hi2[mask], sub)
+        sign = np.repeat(s2[mask], sub ** 3)[inside]
+        if not exact:
+            full[nodes[:, 0], nodes[:, 1], nodes[:, 2]] = band * sign
+        elif (s2[mask] != 0).all():
+            full[nodes[:, 0], nodes[:, 1], nodes[:, 2]] = np.minimum(w.distance(origin + h * nodes), band) * sign
+        else:
+            full[nodes[:, 0], nodes[:, 1], nodes[:, 2]] = np.clip(w.signed(origin + h * nodes), -band, band)
+        queries += len(nodes) * exact
     np.minimum(out, full, out=out)
-    return len(nodes) + len(c2)
+    return queries + len(c2)
 
 
 def grid_box(wm: WallMesh, domain, l0: float, p: BakeParams) -> tuple[np.ndarray, np.ndarray]:
