@@ -109,3 +109,19 @@ def test_missing_fluid_section_is_a_stage_error(tmp_path):
     walls_dir = run_stage(TrimeshImport, tmp_path / "w", scene=scene)
     with pytest.raises(StageError, match="fluid"):
         run_stage(Open3dBake, tmp_path / "s", scene=scene, inputs={"walls": walls_dir})
+
+
+def test_exact_queries_grow_with_wall_area_not_domain_volume():
+    from stages.sdf_bake.open3d_bake import bake
+
+    s = trimesh.creation.icosphere(subdivisions=3, radius=0.3)
+    wm = WallMesh(s.vertices, s.faces.astype(np.int32), np.zeros(len(s.faces), np.int32),
+                  [{"name": "s", "fluid": "outside", "report": {"watertight": True}}])
+    h, band = 0.02, 0.08
+    small, st_small = bake(wm, np.full(3, -0.5), np.full(3, 0.5), h, band, 8, 7)
+    big, st_big = bake(wm, np.full(3, -2.0), np.full(3, 2.0), h, band, 8, 7)
+    assert st_big["nodes"] > 50 * st_small["nodes"]
+    assert st_big["exact_queries"] < 1.3 * st_small["exact_queries"]
+    assert st_small["exact_queries"] < 0.3 * st_small["nodes"]
+    # and the far field is the clamped positive value everywhere outside the band
+    assert big.dist[0, 0, 0] == pytest.approx(band) and (big.dist < 0).sum() == (small.dist < 0).sum()
