@@ -61,13 +61,34 @@ def test_pair_forces_conserve_momentum_without_walls():
     m = lattice_mass(1000.0, l0, h)
     rho, p, d, nrm = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros((n, 3))
     zeros = np.zeros(8)
-    K.density_pressure(x, grid.starts, grid.lo, 1 / grid.cell, grid.dims, h, poly6_coef(h), m, 1000.0, zeros,
-                       7 / h, sdf.dist, sdf.origin, 1 / sdf.spacing, K.EOS_LINEAR, 100.0, False, rho, p, d, nrm)
+    no_walls = np.zeros((2, 2, 2, 5), np.float32)  # no wall terms: internal forces only
+    wo = np.zeros(3)
+    K.density_pressure(x, grid.starts, grid.lo, 1 / grid.cell, grid.dims, h, poly6_coef(h), m, 1000.0, no_walls, wo,
+                       1.0, zeros, 7 / h, sdf.dist, sdf.origin, 1 / sdf.spacing, K.EOS_LINEAR, 100.0, False, rho, p, d, nrm)
     for fn in (K.forces_pressure, K.forces_pressure_viscosity):
         acc = np.zeros((n, 3))
         fn(x, v, rho, p, d, grid.starts, grid.lo, 1 / grid.cell, grid.dims, h, spiky_grad_coef(h),
-           visc_lap_coef(h), m, 0.01, zeros, zeros, nrm, 7 / h, np.zeros(3), acc)
+           visc_lap_coef(h), m, 0.01, no_walls, wo, 1.0, zeros, zeros, 7 / h, np.zeros(3), acc)
         total = (m * acc).sum(axis=0)
         scale = (m * np.abs(acc)).sum()
         assert scale > 0
         assert np.abs(total).max() < 1e-10 * scale
+
+
+def test_wall_map_counts_every_wall_in_edges_and_corners():
+    from stages.simulate.wall_maps import WallMaps, map_sample
+    from stages.simulate.wall_tables import table_lookup
+    l0, h, rho0 = 0.01, 0.02, 1000.0
+    m = lattice_mass(rho0, l0, h)
+    sdf = grid_from_function(box_interior_sdf([0, 0, 0], [0.1, 0.1, 0.1]), [0, 0, 0], [0.1, 0.1, 0.1], l0 / 2)
+    wm = WallMaps(sdf, l0, h, m, rho0)
+    _, z_rho, _, _ = build_tables(l0, h, m, rho0)
+
+    def z(p):
+        d, _ = sdf.sample(np.array([p]))
+        return map_sample(wm.maps, *wm.origin, 1 / wm.spacing, *p, 0) * table_lookup(wm.fix_rho, d[0], wm.inv_dr)
+
+    flat = z((0.05, 0.05, 0.005))
+    assert abs(flat - table_lookup(z_rho, 0.005, wm.inv_dr)) < 0.005 * rho0  # a flat floor: the lattice table
+    edge, corner = z((0.005, 0.05, 0.005)), z((0.005, 0.005, 0.005))
+    assert 1.7 * flat < edge < 2.0 * flat and 2.4 * flat < corner < 3.0 * flat  # every wall counted once

@@ -63,3 +63,16 @@ def lattice_mass(rho0: float, l0: float, h: float) -> float:
     X, Y, Z = np.meshgrid(g, g, g, indexing="ij")
     s = poly6_np(np.sqrt(X * X + Y * Y + Z * Z), h).sum()
     return float(rho0 / s)
+
+
+def spiky_lattice_factor(rho0: float, l0: float, h: float, mass: float) -> float:
+    """sum_j (m / rho0) |grad W(r_j)| x_j^2 / r_j over the rest lattice (1 in the continuum, about 0.95
+    at h = 2 l0): dividing the eq. 8 gradient by it makes the discrete pressure force reproduce grad p
+    exactly on the rest lattice (a scalar kernel-gradient normalisation)."""
+    import numpy as np
+    k = int(math.ceil(h / l0)) + 1
+    g = np.arange(-k, k + 1) * l0
+    X, Y, Z = np.meshgrid(g, g, g, indexing="ij")
+    r = np.sqrt(X * X + Y * Y + Z * Z)
+    sel = (r > 0) & (r < h)
+    return float((mass / rho0 * spiky_grad_coef(h) * (h - r[sel]) ** 2 * Z[sel] ** 2 / r[sel]).sum())

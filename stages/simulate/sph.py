@@ -20,11 +20,11 @@ from stages.common.usd_points import write_points_layer
 
 from . import sph_kernels as K
 from .emitters import drop_inside_walls, emit
-from .kernels import lattice_mass, poly6_coef, spiky_grad_coef, visc_lap_coef
+from .kernels import lattice_mass, poly6_coef, spiky_grad_coef, spiky_lattice_factor, visc_lap_coef
 from .neighbours import CellGrid, reorder
 from .output import iter_frames, latest_checkpoint, restore_frames, save_checkpoint, write_frame
 from .timestep import stable_dt, step_to
-from .wall_tables import build_tables
+from .wall_maps import WallMaps
 
 
 class SPHParams(Params):
@@ -51,9 +51,11 @@ class SPHSolver:
         self.h = params.support * self.l0
         self.rho0 = float(rho0)
         self.mass = lattice_mass(self.rho0, self.l0, self.h)
-        _, self.z_rho, z_vis, self.z_press = build_tables(self.l0, self.h, self.mass, self.rho0, params.table_samples)
-        self.z_vis = z_vis if wall_viscosity else np.zeros_like(z_vis)
-        self.inv_dr = (params.table_samples - 1) / self.h
+        self.walls = WallMaps(sdf, self.l0, self.h, self.mass, self.rho0, params.table_samples)
+        self.fix_vis = self.walls.fix_vis if wall_viscosity else np.zeros_like(self.walls.fix_vis)
+        self.inv_dr = self.walls.inv_dr
+        self.grad_norm = spiky_lattice_factor(self.rho0, self.l0, self.h, self.mass)
+        self.fix_press = self.walls.fix_press / self.grad_norm
         self.c = float(params.sound_speed or 10.0 * max(v_ref, 1e-3))
         self.stiffness = self.c ** 2 if params.eos == "linear" else self.rho0 * self.c ** 2 / 7.0
         self.eos = K.EOS_LINEAR if params.eos == "linear" else K.EOS_TAIT
@@ -88,13 +90,15 @@ class SPHSolver:
         self.x, self.v, self.id = reorder([self.x, self.v, self.id], order, self._scratch)
         g = self.grid
         K.density_pressure(self.x, g.starts, g.lo, 1.0 / g.cell, g.dims, self.h, poly6_coef(self.h), self.mass,
-                           self.rho0, self.z_rho, self.inv_dr, self.sdf.dist, self.sdf.origin, self.sdf_inv,
+                           self.rho0, self.walls.maps, self.walls.origin, 1.0 / self.walls.spacing,
+                           self.walls.fix_rho, self.inv_dr, self.sdf.dist, self.sdf.origin, self.sdf_inv,
                            self.eos, self.stiffness, self.p.clamp_pressure, self.rho, self.pr, self.d, self.nrm)
 
     def forces(self) -> None:
         g = self.grid
         self._forces(self.x, self.v, self.rho, self.pr, self.d, g.starts, g.lo, 1.0 / g.cell, g.dims, self.h,
-                     spiky_grad_coef(self.h), visc_lap_coef(self.h), self.mass, self.mu, self.z_vis, self.z_press, self.nrm, self.inv_dr,
+                     spiky_grad_coef(self.h) / self.grad_norm, visc_lap_coef(self.h), self.mass, self.mu, self.walls.maps, self.walls.origin,
+                     1.0 / self.walls.spacing, self.fix_vis, self.fix_press, self.inv_dr,
                      self.gravity, self.acc)
 
     def stable_dt(self, dt_max: float) -> float:

@@ -14,6 +14,7 @@ import numpy as np
 
 from stages.common.sdf import sdf_sample
 
+from .wall_maps import map_sample
 from .wall_tables import table_lookup
 
 EOS_LINEAR = 0
@@ -21,10 +22,10 @@ EOS_TAIT = 1
 
 
 @nb.njit(cache=True, parallel=True)
-def density_pressure(x, starts, lo, inv_cell, dims, h, poly6_coef, mass, rho0, z_rho, inv_dr,
+def density_pressure(x, starts, lo, inv_cell, dims, h, poly6_coef, mass, rho0, wmap, wo, winv, fix_rho, inv_dr,
                      sdf, sdf_o, sdf_inv, eos, stiffness, clamp, rho, p, d, nrm):
-    """Eq. 11: rho_i = sum_j m W(r_ij) (eq. 4, 10, self included) + Z_rho(r_iw) (eq. 12) with
-    r_iw the SDF distance; eq. 5 pressure p = k (rho - rho0) (or Tait, B = stiffness), optionally
+    """Eq. 11: rho_i = sum_j m W(r_ij) (eq. 4, 10, self included) + Z_rho (eq. 12) from the 3D wall
+    map (wall_maps.py) times the flat-wall factor at the SDF distance r_iw; eq. 5 pressure p = k (rho - rho0) (or Tait, B = stiffness), optionally
     clamped at 0. Also stores the SDF distance ``d`` and wall normal ``nrm`` of each particle."""
     h2 = h * h
     nx, ny, nz = dims[0], dims[1], dims[2]
@@ -54,7 +55,8 @@ def density_pressure(x, starts, lo, inv_cell, dims, h, poly6_coef, mass, rho0, z
         nrm[i, 0] = gx
         nrm[i, 1] = gy
         nrm[i, 2] = gz
-        r = mass * poly6_coef * s + table_lookup(z_rho, dw, inv_dr)
+        zw = map_sample(wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 0) * table_lookup(fix_rho, dw, inv_dr)
+        r = mass * poly6_coef * s + zw
         rho[i] = r
         if eos == EOS_TAIT:
             ratio = r / rho0
@@ -70,7 +72,7 @@ def density_pressure(x, starts, lo, inv_cell, dims, h, poly6_coef, mass, rho0, z
 
 @nb.njit(cache=True, inline="always")
 def _forces_body(x, v, rho, p, d, starts, lo, inv_cell, dims, h, spiky_coef, lap_coef, mass, mu,
-                 z_vis, z_press, nrm, inv_dr, gravity, acc, with_viscosity):
+                 wmap, wo, winv, fix_vis, fix_press, inv_dr, gravity, acc, with_viscosity):
     h2 = h * h
     nx, ny, nz = dims[0], dims[1], dims[2]
     gx0 = gravity[0]
@@ -114,8 +116,11 @@ def _forces_body(x, v, rho, p, d, starts, lo, inv_cell, dims, h, spiky_coef, lap
                         r = math.sqrt(r2)
                         hr = h - r
                         inv_rhoj = 1.0 / rho[j]
-                        # eq. 6 with the Spiky gradient (eq. 8): -grad W = c (h - r)^2 (x_i - x_j) / r
-                        f = (pi + p[j]) * 0.5 * inv_rhoj * hr * hr / r
+                        # eq. 6 with the Spiky gradient (eq. 8): -grad W = c (h - r)^2 (x_i - x_j) / r.
+                        # Without eq. 6's factor 1/2 (Monaghan's symmetric form at rho ~ rho0): with
+                        # it, sum V (p_i + p_j) / 2 grad W gives only half of grad p on a lattice,
+                        # and the hydrostatic pressure came out twice rho g h
+                        f = (pi + p[j]) * inv_rhoj * hr * hr / r
                         ax += f * dx
                         ay += f * dy
                         az += f * dz
@@ -131,14 +136,15 @@ def _forces_body(x, v, rho, p, d, starts, lo, inv_cell, dims, h, spiky_coef, lap
         # (Poly6-weighted) average of the neighbours' pressure, at least p_i: a particle in an edge or
         # corner, whose density the one-plane table under-counts, is still pushed back
         pw = max(pi, sp / sw)
-        cw = pw * inv_rhoi * table_lookup(z_press, d[i], inv_dr)
-        ax = ax * c + gx0 + cw * nrm[i, 0]
-        ay = ay * c + gy0 + cw * nrm[i, 1]
-        az = az * c + gz0 + cw * nrm[i, 2]
+        cw = (pi + pw) * inv_rhoi * table_lookup(fix_press, d[i], inv_dr)
+        ax = ax * c + gx0 + cw * map_sample(wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 1)
+        ay = ay * c + gy0 + cw * map_sample(wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 2)
+        az = az * c + gz0 + cw * map_sample(wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 3)
         if with_viscosity:
             cv = mu * mass * lap_coef * inv_rhoi
             # eq. 13-14: the resting wall's viscous term -mu v_i Z_vis(r_iw)
-            zw = mu * table_lookup(z_vis, d[i], inv_dr) * inv_rhoi
+            zw = mu * inv_rhoi * table_lookup(fix_vis, d[i], inv_dr) * map_sample(
+                wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 4)
             ax += bx * cv - zw * vxi
             ay += by * cv - zw * vyi
             az += bz * cv - zw * vzi
@@ -149,18 +155,18 @@ def _forces_body(x, v, rho, p, d, starts, lo, inv_cell, dims, h, spiky_coef, lap
 
 @nb.njit(cache=True, parallel=True)
 def forces_pressure(x, v, rho, p, d, starts, lo, inv_cell, dims, h, spiky_coef, lap_coef, mass, mu,
-                    z_vis, z_press, nrm, inv_dr, gravity, acc):
+                    wmap, wo, winv, fix_vis, fix_press, inv_dr, gravity, acc):
     """Acceleration from pressure (eq. 6, 8) plus the constant ``gravity`` vector."""
     _forces_body(x, v, rho, p, d, starts, lo, inv_cell, dims, h, spiky_coef, lap_coef, mass, mu,
-                 z_vis, z_press, nrm, inv_dr, gravity, acc, False)
+                 wmap, wo, winv, fix_vis, fix_press, inv_dr, gravity, acc, False)
 
 
 @nb.njit(cache=True, parallel=True)
 def forces_pressure_viscosity(x, v, rho, p, d, starts, lo, inv_cell, dims, h, spiky_coef, lap_coef,
-                              mass, mu, z_vis, z_press, nrm, inv_dr, gravity, acc):
+                              mass, mu, wmap, wo, winv, fix_vis, fix_press, inv_dr, gravity, acc):
     """As ``forces_pressure`` plus fluid viscosity (eq. 7, 9) and wall viscosity (eq. 13-15)."""
     _forces_body(x, v, rho, p, d, starts, lo, inv_cell, dims, h, spiky_coef, lap_coef, mass, mu,
-                 z_vis, z_press, nrm, inv_dr, gravity, acc, True)
+                 wmap, wo, winv, fix_vis, fix_press, inv_dr, gravity, acc, True)
 
 
 @nb.njit(cache=True, parallel=True)

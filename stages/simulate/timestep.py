@@ -12,7 +12,7 @@ def stable_dt(*, l0: float, h: float, v_max: float, a_max: float, cfl: float, so
     if v_max > 0:
         dt = min(dt, cfl * l0 / v_max)
     if sound_speed:
-        dt = min(dt, 0.4 * h / (sound_speed + v_max))
+        dt = min(dt, 0.4 * l0 / (sound_speed + v_max))
     if nu:
         dt = min(dt, 0.125 * h * h / nu)
     if a_max > 0:
