@@ -55,7 +55,9 @@ def density_pressure(x, starts, lo, inv_cell, dims, h, poly6_coef, mass, rho0, w
         nrm[i, 0] = gx
         nrm[i, 1] = gy
         nrm[i, 2] = gz
-        zw = map_sample(wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 0) * table_lookup(fix_rho, dw, inv_dr)
+        zw = 0.0
+        if dw < h:  # only particles within h of a wall have wall terms
+            zw = map_sample(wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 0) * table_lookup(fix_rho, dw, inv_dr)
         r = mass * poly6_coef * s + zw
         rho[i] = r
         if eos == EOS_TAIT:
@@ -98,7 +100,8 @@ def _forces_body(x, v, rho, p, d, starts, lo, inv_cell, dims, h, spiky_coef, lap
         by = 0.0
         bz = 0.0
         sp = 0.0
-        sw = 0.0
+        sw = 1e-300
+        near_wall = d[i] < h  # loop-invariant: LLVM unswitches the Shepard sum out of other particles' loops
         for kz in range(max(cz - 1, 0), min(cz + 2, nz)):
             for ky in range(max(cy - 1, 0), min(cy + 2, ny)):
                 base = (kz * ny + ky) * nx
@@ -107,7 +110,7 @@ def _forces_body(x, v, rho, p, d, starts, lo, inv_cell, dims, h, spiky_coef, lap
                     dy = yi - x[j, 1]
                     dz = zi - x[j, 2]
                     r2 = dx * dx + dy * dy + dz * dz
-                    if r2 < h2:
+                    if near_wall and r2 < h2:
                         q = h2 - r2
                         q = q * q * q
                         sp += p[j] * q
@@ -132,22 +135,29 @@ def _forces_body(x, v, rho, p, d, starts, lo, inv_cell, dims, h, spiky_coef, lap
                             bz += (v[j, 2] - vzi) * w
         inv_rhoi = 1.0 / rho[i]
         c = mass * spiky_coef * inv_rhoi
-        # the wall's share of eq. 6 along the SDF normal, rho_wall = rho0 and p_wall the Shepard
-        # (Poly6-weighted) average of the neighbours' pressure, at least p_i: a particle in an edge or
-        # corner, whose density the one-plane table under-counts, is still pushed back
-        pw = max(pi, sp / sw)
-        cw = (pi + pw) * inv_rhoi * table_lookup(fix_press, d[i], inv_dr)
-        ax = ax * c + gx0 + cw * map_sample(wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 1)
-        ay = ay * c + gy0 + cw * map_sample(wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 2)
-        az = az * c + gz0 + cw * map_sample(wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 3)
+        ax = ax * c + gx0
+        ay = ay * c + gy0
+        az = az * c + gz0
+        if near_wall:  # only particles within h of a wall have wall terms
+            # the wall's share of eq. 6 along the wall map's gradient direction, rho_wall = rho0 and
+            # p_wall the Shepard (Poly6-weighted) average of the neighbours' pressure, at least p_i
+            pw = max(pi, sp / sw)
+            cw = (pi + pw) * inv_rhoi * table_lookup(fix_press, d[i], inv_dr)
+            ax += cw * map_sample(wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 1)
+            ay += cw * map_sample(wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 2)
+            az += cw * map_sample(wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 3)
+            if with_viscosity:
+                # eq. 13-14: the resting wall's viscous term -mu v_i Z_vis(r_iw)
+                zw = mu * inv_rhoi * table_lookup(fix_vis, d[i], inv_dr) * map_sample(
+                    wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 4)
+                ax -= zw * vxi
+                ay -= zw * vyi
+                az -= zw * vzi
         if with_viscosity:
             cv = mu * mass * lap_coef * inv_rhoi
-            # eq. 13-14: the resting wall's viscous term -mu v_i Z_vis(r_iw)
-            zw = mu * inv_rhoi * table_lookup(fix_vis, d[i], inv_dr) * map_sample(
-                wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 4)
-            ax += bx * cv - zw * vxi
-            ay += by * cv - zw * vyi
-            az += bz * cv - zw * vzi
+            ax += bx * cv
+            ay += by * cv
+            az += bz * cv
         acc[i, 0] = ax
         acc[i, 1] = ay
         acc[i, 2] = az
