@@ -190,7 +190,6 @@ class SPHSimulate(Stage):
         l0 = fluid.spacing
         mpu = scene.units.meters_per_unit
         up = up_vector(scene.units.up_axis)
-        x, v, dropped = None, None, 0
         x, v = emit(fluid.emitters, l0, ctx.resolve)
         x, v, dropped = drop_inside_walls(x, v, sdf, l0, ctx.log)
         if len(x) == 0:
