@@ -4,8 +4,8 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 # shared libraries the wheels need: open3d wants libusb; VTK offscreen rendering wants OSMesa/EGL
-SYSLIBS := libusb-1.0.so.0 libOSMesa.so.8 libEGL.so.1 libGL.so.1 libgomp.so.1
-APT_PKGS := libusb-1.0-0 libosmesa6 libegl1 libgl1 libgomp1
+SYSLIBS := libusb-1.0.so.0 libOSMesa.so.8 libEGL.so.1 libEGL_mesa.so.0 libgbm.so.1 libGL.so.1 libgomp.so.1
+APT_PKGS := libusb-1.0-0 libosmesa6 libegl1 libegl-mesa0 libgl1-mesa-dri libgbm1 libgl1 libgomp1
 
 .PHONY: setup demo test bench clean-cache sys-deps
 
