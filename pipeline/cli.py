@@ -128,7 +128,7 @@ def stages():
         except PipelineError as e:
             table.add_row(kind, name, "-", "-", f"[red]cannot load: {e}[/]")
             continue
-        params = ", ".join(f"{n}={f.default!r}" if not f.is_required() else f"{n} (required)"
+        params = ", ".join(f"{n}={f.get_default(call_default_factory=True)!r}" if not f.is_required() else f"{n} (required)"
                            for n, f in cls.Params.model_fields.items())
         table.add_row(kind, name + (" *" if cls.default else ""), cls.version, "yes" if cls.per_frame else "no", params or "-")
     Console(width=200).print(table)

@@ -68,7 +68,7 @@ def test_pair_forces_conserve_momentum_without_walls():
     for fn in (K.forces_pressure, K.forces_pressure_viscosity):
         acc = np.zeros((n, 3))
         fn(x, v, rho, p, d, grid.starts, grid.lo, 1 / grid.cell, grid.dims, h, spiky_grad_coef(h),
-           visc_lap_coef(h), m, 0.01, no_walls, wo, 1.0, zeros, zeros, 7 / h, np.zeros(3), acc)
+           visc_lap_coef(h), m, 0.01, no_walls, wo, 1.0, zeros, zeros, 7 / h, np.zeros(3), 0.5, acc)
         total = (m * acc).sum(axis=0)
         scale = (m * np.abs(acc)).sum()
         assert scale > 0

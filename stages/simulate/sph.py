@@ -37,6 +37,8 @@ class SPHParams(Params):
     clamp_pressure: bool = Field(True, description="clamp negative pressure to 0 (avoids free-surface clumping)")
     checkpoint_every: int = Field(10, ge=1, description="write a checkpoint every this many frames")
     threads: int | None = Field(None, ge=1, description="numba threads (fixed count = reproducible results)")
+    artificial_viscosity: float = Field(0.05, ge=0, le=1, description="Monaghan alpha (dimensionless): "
+                                        "dissipates WCSPH acoustic noise on approaching pairs, nu_art ~ alpha c h / 8")
     table_samples: int = Field(256, ge=16, description="samples of the Z_rho / Z_vis wall tables over [0, h]")
 
 
@@ -99,7 +101,7 @@ class SPHSolver:
         self._forces(self.x, self.v, self.rho, self.pr, self.d, g.starts, g.lo, 1.0 / g.cell, g.dims, self.h,
                      spiky_grad_coef(self.h) / self.grad_norm, visc_lap_coef(self.h), self.mass, self.mu, self.walls.maps, self.walls.origin,
                      1.0 / self.walls.spacing, self.fix_vis, self.fix_press, self.inv_dr,
-                     self.gravity, self.acc)
+                     self.gravity, self.p.artificial_viscosity * self.c * self.h, self.acc)
 
     def stable_dt(self, dt_max: float) -> float:
         v2, a2 = K.max_speed2_accel2(self.v, self.acc)
@@ -166,7 +168,7 @@ def up_vector(up_axis: str) -> np.ndarray:
 class SPHSimulate(Stage):
     kind = "simulate"
     name = "sph"
-    version = "1"
+    version = "2"
     Params = SPHParams
     inputs = ("sdf",)
     reads = ("scene", "fluid", "effects")

@@ -74,7 +74,7 @@ def density_pressure(x, starts, lo, inv_cell, dims, h, poly6_coef, mass, rho0, w
 
 @nb.njit(cache=True, inline="always")
 def _forces_body(x, v, rho, p, d, starts, lo, inv_cell, dims, h, spiky_coef, lap_coef, mass, mu,
-                 wmap, wo, winv, fix_vis, fix_press, inv_dr, gravity, acc, with_viscosity):
+                 wmap, wo, winv, fix_vis, fix_press, inv_dr, gravity, av, acc, with_viscosity):
     h2 = h * h
     nx, ny, nz = dims[0], dims[1], dims[2]
     gx0 = gravity[0]
@@ -88,11 +88,13 @@ def _forces_body(x, v, rho, p, d, starts, lo, inv_cell, dims, h, spiky_coef, lap
         vyi = v[i, 1]
         vzi = v[i, 2]
         pi = p[i]
+        rhoi = rho[i]
         cx = min(max(int(math.floor((xi - lo[0]) * inv_cell)), 0), nx - 1)
         cy = min(max(int(math.floor((yi - lo[1]) * inv_cell)), 0), ny - 1)
         cz = min(max(int(math.floor((zi - lo[2]) * inv_cell)), 0), nz - 1)
         x0 = max(cx - 1, 0)
         x1 = min(cx + 1, nx - 1)
+        eps = 0.01 * h2
         ax = 0.0
         ay = 0.0
         az = 0.0
@@ -123,7 +125,14 @@ def _forces_body(x, v, rho, p, d, starts, lo, inv_cell, dims, h, spiky_coef, lap
                         # Without eq. 6's factor 1/2 (Monaghan's symmetric form at rho ~ rho0): with
                         # it, sum V (p_i + p_j) / 2 grad W gives only half of grad p on a lattice,
                         # and the hydrostatic pressure came out twice rho g h
-                        f = (pi + p[j]) * inv_rhoj * hr * hr / r
+                        f = (pi + p[j]) * inv_rhoj
+                        # Monaghan's artificial viscosity on approaching pairs (av = alpha c h): it
+                        # dissipates the acoustic noise of the weakly compressible EOS; without it a
+                        # dam break never settles and sprays into a gas. Symmetric in i, j.
+                        vdx = (vxi - v[j, 0]) * dx + (vyi - v[j, 1]) * dy + (vzi - v[j, 2]) * dz
+                        if vdx < 0.0:
+                            f += av * (-vdx) / (r2 + eps) * 2.0 * rhoi / (rhoi + rho[j])
+                        f *= hr * hr / r
                         ax += f * dx
                         ay += f * dy
                         az += f * dz
@@ -165,18 +174,18 @@ def _forces_body(x, v, rho, p, d, starts, lo, inv_cell, dims, h, spiky_coef, lap
 
 @nb.njit(cache=True, parallel=True)
 def forces_pressure(x, v, rho, p, d, starts, lo, inv_cell, dims, h, spiky_coef, lap_coef, mass, mu,
-                    wmap, wo, winv, fix_vis, fix_press, inv_dr, gravity, acc):
-    """Acceleration from pressure (eq. 6, 8) plus the constant ``gravity`` vector."""
+                    wmap, wo, winv, fix_vis, fix_press, inv_dr, gravity, av, acc):
+    """Acceleration from pressure (eq. 6, 8, with artificial viscosity ``av``) plus ``gravity``."""
     _forces_body(x, v, rho, p, d, starts, lo, inv_cell, dims, h, spiky_coef, lap_coef, mass, mu,
-                 wmap, wo, winv, fix_vis, fix_press, inv_dr, gravity, acc, False)
+                 wmap, wo, winv, fix_vis, fix_press, inv_dr, gravity, av, acc, False)
 
 
 @nb.njit(cache=True, parallel=True)
 def forces_pressure_viscosity(x, v, rho, p, d, starts, lo, inv_cell, dims, h, spiky_coef, lap_coef,
-                              mass, mu, wmap, wo, winv, fix_vis, fix_press, inv_dr, gravity, acc):
+                              mass, mu, wmap, wo, winv, fix_vis, fix_press, inv_dr, gravity, av, acc):
     """As ``forces_pressure`` plus fluid viscosity (eq. 7, 9) and wall viscosity (eq. 13-15)."""
     _forces_body(x, v, rho, p, d, starts, lo, inv_cell, dims, h, spiky_coef, lap_coef, mass, mu,
-                 wmap, wo, winv, fix_vis, fix_press, inv_dr, gravity, acc, True)
+                 wmap, wo, winv, fix_vis, fix_press, inv_dr, gravity, av, acc, True)
 
 
 @nb.njit(cache=True, parallel=True)
