@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import logging
+import os
 import sys
 from pathlib import Path
 
@@ -13,6 +14,8 @@ from .registry import Registry
 from .stage import STAGE_KINDS
 
 KINDS = click.Choice(STAGE_KINDS)
+# numba probes TBB first and warns about the old TBB some distributions ship; OpenMP is always there
+os.environ.setdefault("NUMBA_THREADING_LAYER", "omp")
 
 
 def _setup_logging(verbose: int, quiet: bool) -> None:
