@@ -8,7 +8,7 @@ from stages.common.sdf import box_interior_sdf, grid_from_function
 from stages.simulate.emitters import lattice
 from stages.simulate.sph import SPHParams, SPHSolver
 
-REFERENCE = Path(__file__).resolve().parents[2] / "shared" / "reference" / "martin_moyce_1952.csv"
+REFERENCE = Path(__file__).resolve().parent / "data" / "martin_moyce_1952.csv"
 
 
 def _reference():
