@@ -1,0 +1,1 @@
+"""wall_snap implementations: move surface vertices near a wall onto it."""

@@ -1,0 +1,47 @@
+"""surface_extract.marching_cubes: closed surfaces of the right size and volume from particles."""
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.testing import run_stage
+from stages.common.formats import ParticleFrame, ParticleMeta, load_surface, save_particle_frame
+from stages.common.meshes import boundary_edge_count, signed_volume
+from stages.simulate.emitters import lattice
+from stages.simulate.kernels import lattice_mass
+from stages.surface_extract.marching_cubes import MarchingCubes
+
+L0 = 0.02
+SCENE = {"scene": {"name": "t", "frames": {"fps": 10, "count": 2}}}
+
+
+def particles(folder, frames: list[np.ndarray]):
+    m = lattice_mass(1000.0, L0, 2 * L0)
+    ParticleMeta(spacing=L0, mass=m, density=1000.0, support=2 * L0, fps=10, frame_count=len(frames),
+                 up_axis="Z", meters_per_unit=1.0, solver="test").save(folder)
+    for i, x in enumerate(frames):
+        n = len(x)
+        save_particle_frame(folder, i, ParticleFrame(x=x, v=np.zeros((n, 3)), rho=np.full(n, 1000.0),
+                                                     p=np.zeros(n), id=np.arange(n)))
+    return folder
+
+
+def test_sphere_of_particles_gives_closed_sphere_and_right_volume(tmp_path):
+    x = lattice([-0.2, -0.2, -0.2], [0.2, 0.2, 0.2], L0)
+    x = x[np.linalg.norm(x, axis=1) < 0.15]
+    (tmp_path / "p").mkdir()
+    src = particles(tmp_path / "p", [x, np.zeros((0, 3))])
+    out = run_stage(MarchingCubes, tmp_path / "s", scene=SCENE, inputs={"particles": src}, frames=(0, 1))
+    mesh = load_surface(out, 0)
+    v = mesh.vertices.astype(np.float64)
+    assert len(mesh.faces) > 1000 and boundary_edge_count(mesh.faces) == 0
+    r = np.linalg.norm(v, axis=1)
+    # the lattice points reach radius 0.15 - l0/2 on average: the surface sits within half a spacing of 0.15
+    assert abs(r.mean() - 0.15) < 0.5 * L0 and r.std() < 0.25 * L0
+    vol = signed_volume(v, mesh.faces)
+    assert vol > 0  # outward orientation
+    assert abs(vol / (len(x) * L0 ** 3) - 1) < 0.05
+    # normals point outwards
+    assert (np.einsum("ij,ij->i", mesh.normals, v / r[:, None]) > 0.9).mean() > 0.99
+    # an empty frame gives an empty mesh, not an error
+    empty = load_surface(out, 1)
+    assert len(empty.vertices) == 0 and len(empty.faces) == 0
