@@ -8,23 +8,15 @@ from typing import Iterable
 import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, Vt
 
+from .usd_stage import new_stage
+
 
 def write_points_layer(path: Path, frames: Iterable[tuple[int, object]], *, spacing: float, up_axis: str,
                        meters_per_unit: float, fps: float, count: int, prim: str = "/World/Particles") -> Path:
     """``frames`` yields (time code, ParticleFrame). Stage metadata: upAxis, metersPerUnit,
     timeCodesPerSecond, start/end time codes, defaultPrim /World."""
     path = Path(path)
-    if path.exists():
-        path.unlink()
-    stage = Usd.Stage.CreateNew(str(path))
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y if up_axis == "Y" else UsdGeom.Tokens.z)
-    UsdGeom.SetStageMetersPerUnit(stage, float(meters_per_unit))
-    stage.SetTimeCodesPerSecond(float(fps))
-    stage.SetFramesPerSecond(float(fps))
-    stage.SetStartTimeCode(0)
-    stage.SetEndTimeCode(max(int(count) - 1, 0))
-    world = UsdGeom.Xform.Define(stage, "/World")
-    stage.SetDefaultPrim(world.GetPrim())
+    stage = new_stage(path, up_axis=up_axis, meters_per_unit=meters_per_unit, fps=fps, count=count)
     pts = UsdGeom.Points.Define(stage, prim)
     api = UsdGeom.PrimvarsAPI(pts)
     rho_pv = api.CreatePrimvar("density", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex)

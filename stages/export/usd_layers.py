@@ -13,6 +13,8 @@ from typing import Iterable
 import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade, Vt
 
+from stages.common.usd_stage import new_stage  # noqa: F401  (re-exported for the export stage)
+
 # Y-up -> Z-up is +90 degrees about X: (x, y, z) -> (x, -z, y); its inverse takes Z-up to Y-up
 _Y_TO_Z = np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0]], float)
 
@@ -53,22 +55,6 @@ def to_gf_matrix(m: np.ndarray) -> Gf.Matrix4d:
 
 
 # -- layers ------------------------------------------------------------------------------------
-def new_stage(path: Path, *, up_axis: str, meters_per_unit: float, fps: float, count: int,
-              root: str = "World") -> Usd.Stage:
-    """A new layer with the stage metrics every layer of ours carries, and its default prim."""
-    path = Path(path)
-    if path.exists():
-        path.unlink()
-    stage = Usd.Stage.CreateNew(str(path))
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y if up_axis == "Y" else UsdGeom.Tokens.z)
-    UsdGeom.SetStageMetersPerUnit(stage, float(meters_per_unit))
-    stage.SetTimeCodesPerSecond(float(fps))
-    stage.SetFramesPerSecond(float(fps))
-    stage.SetStartTimeCode(0)
-    stage.SetEndTimeCode(max(int(count) - 1, 0))
-    world = UsdGeom.Xform.Define(stage, f"/{root}")
-    stage.SetDefaultPrim(world.GetPrim())
-    return stage
 
 
 def extent_of(points: np.ndarray) -> Vt.Vec3fArray:

@@ -23,7 +23,7 @@ from stages.common.formats import WallMesh
 
 from .builtin import builtin_mesh
 from .cleanup import clean_mesh
-from .placement import apply_placement
+from stages.common.placement import apply_placement
 
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
 USD_FILE = "walls.usdc"

@@ -21,7 +21,7 @@ import numpy as np
 from pipeline.scene import UsdWall
 from pipeline.stage import StageError
 
-from .placement import up_axis_matrix
+from stages.common.placement import up_axis_matrix
 from .trimesh_import import TrimeshImport
 
 USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")

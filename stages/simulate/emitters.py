@@ -28,7 +28,7 @@ def _mesh_points(em: MeshEmitter, l0: float, resolve: Callable[[str], Path]) -> 
     import open3d as o3d
     import trimesh
 
-    from stages.mesh_import.placement import apply_placement
+    from stages.common.placement import apply_placement
 
     path = resolve(em.mesh)
     try:
