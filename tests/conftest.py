@@ -1,9 +1,12 @@
 from __future__ import annotations
 
+import os
 import textwrap
 from pathlib import Path
 
 import pytest
+
+os.environ.setdefault("NUMBA_THREADING_LAYER", "omp")  # as the CLI does: no TBB version warning
 
 TESTS = Path(__file__).parent
 REPO = TESTS.parent
