@@ -1,8 +1,13 @@
-"""The particles' implicit function on a grid (PHYSICS.md eq. 17-18), numba.
+"""The particles' implicit function on a grid (PHYSICS.md eq. 17-18) and mesh helpers, numba.
 
-Phi(x) = sum_j (m / rho_j) W(|x - x_j|) with the Poly6 kernel of support R, so Phi is about 1 inside
-the fluid and 0 outside. Gathered per grid node (each node reads the particles of the 27 cells
-around it), so every node is written by one thread: deterministic, no atomics.
+Phi(x) = sum_j (m / rho_j) W(|x - x_j|) with the Poly6 kernel (eq. 10) of support R, so Phi is about
+1 inside the fluid and 0 outside. Scattered per particle over the grid nodes inside its kernel
+sphere only (about 4.2 R^3 / h^3 nodes, against 27 R^3 / h^3 for a gather over neighbour cells).
+The grid's z slabs are split into chunks, one chunk per parallel task, and every particle adds only
+into the slabs of the chunk at hand, so each node is written by one thread, in particle order:
+deterministic, no atomics.
+
+Grid layout: ``phi[k, j, i]`` (z, y, x) in C order, i.e. x fastest, which is VTK's point order.
 """
 from __future__ import annotations
 
@@ -11,45 +16,164 @@ import math
 import numba as nb
 import numpy as np
 
+from stages.common.sdf import sdf_sample
 
-def sort_into_cells(x: np.ndarray, lo: np.ndarray, cell: float, dims: np.ndarray):
-    """Counting sort of particles into cells of size ``cell``; returns (order, starts)."""
-    c = np.clip(np.floor((x - lo) / cell).astype(np.int64), 0, dims - 1)
-    cid = (c[:, 2] * dims[1] + c[:, 1]) * dims[0] + c[:, 0]
-    order = np.argsort(cid, kind="stable")
-    starts = np.searchsorted(cid[order], np.arange(int(np.prod(dims)) + 1))
-    return order, starts.astype(np.int64)
+
+@nb.njit(cache=True, parallel=True, fastmath=True)
+def scatter_implicit(x, vol, chunk_first, chunk_last, chunk_k0, grid_lo, inv_h, radius, phi):
+    """Add sum_j vol_j W(|node - x_j|) (eq. 17-18, Poly6 eq. 10 of support ``radius``) into ``phi``.
+
+    ``x`` (N, 3) in ``order_and_chunks`` order, ``vol`` (N,) = m / rho_j in the same order. Chunk c owns the z slabs
+    ``chunk_k0[c] <= k < chunk_k0[c + 1]`` and visits particles ``chunk_first[c] <= q < chunk_last[c]``
+    (those whose kernel sphere reaches its slabs). ``grid_lo`` is node (0, 0, 0); spacing 1/inv_h."""
+    nz, ny, nx = phi.shape
+    r2max = radius * radius
+    coef = 315.0 / (64.0 * math.pi * radius ** 9)
+    h = 1.0 / inv_h
+    h32 = np.float32(h)
+    for c in nb.prange(len(chunk_first)):
+        kc0 = chunk_k0[c]
+        kc1 = chunk_k0[c + 1]
+        for q in range(chunk_first[c], chunk_last[c]):
+            px = x[q, 0]
+            py = x[q, 1]
+            pz = x[q, 2]
+            cw = np.float32(coef * vol[q])
+            fz = (pz - grid_lo[2]) * inv_h
+            fy = (py - grid_lo[1]) * inv_h
+            fx = (px - grid_lo[0]) * inv_h
+            rn = radius * inv_h
+            gx0 = np.float32(grid_lo[0] - px)
+            k0 = max(int(math.ceil(fz - rn)), kc0)
+            k1 = min(int(math.floor(fz + rn)) + 1, kc1, nz)
+            j0 = max(int(math.ceil(fy - rn)), 0)
+            j1 = min(int(math.floor(fy + rn)) + 1, ny)
+            i0 = max(int(math.ceil(fx - rn)), 0)
+            i1 = min(int(math.floor(fx + rn)) + 1, nx)
+            for k in range(k0, k1):
+                dz = grid_lo[2] + k * h - pz
+                rz2 = r2max - dz * dz
+                if rz2 <= 0.0:
+                    continue
+                for j in range(j0, j1):
+                    dy = grid_lo[1] + j * h - py
+                    ryz2 = rz2 - dy * dy
+                    if ryz2 <= 0.0:
+                        continue
+                    row = phi[k, j]
+                    # float32 and branch-free so the row vectorises (w < 0 only by rounding)
+                    r32 = np.float32(ryz2)
+                    for i in range(i0, i1):
+                        dx = gx0 + np.float32(i) * h32
+                        w = max(r32 - dx * dx, np.float32(0.0))
+                        row[i] += cw * w * w * w
+
+
+def order_and_chunks(x: np.ndarray, grid_lo: np.ndarray, h: float, radius: float, shape: np.ndarray, slabs: int):
+    """Particle order and chunk plan for ``scatter_implicit``.
+
+    Chunks are ``slabs`` z slabs thick. Particles are sorted by the chunk their z falls in, then by
+    grid row (y) and column (x), so the writes of consecutive particles stay close in memory. Chunk c
+    visits the particles of the chunks whose z lies within ``radius`` of its slabs.
+    Returns (order, first, last, bounds)."""
+    nx, ny, nz = (int(s) for s in shape)
+    g = (x - grid_lo) / h
+    zc = np.clip((g[:, 2] // slabs).astype(np.int64), 0, None)
+    jy = np.clip(g[:, 1].astype(np.int64), 0, ny - 1)
+    ix = np.clip(g[:, 0].astype(np.int64), 0, nx - 1)
+    order = np.argsort((zc * ny + jy) * nx + ix, kind="stable")
+    zc_sorted = zc[order]
+    bounds = np.append(np.arange(0, nz, slabs, dtype=np.int64), nz)
+    reach = int(np.ceil(radius / (slabs * h)))
+    c = np.arange(len(bounds) - 1, dtype=np.int64)
+    first = np.searchsorted(zc_sorted, c - reach, side="left").astype(np.int64)
+    last = np.searchsorted(zc_sorted, c + reach, side="right").astype(np.int64)
+    return order, first, last, bounds
 
 
 @nb.njit(cache=True, parallel=True)
-def implicit_function(x, vol, starts, lo, cell, dims, grid_lo, spacing, shape, radius, out):
-    """Phi at every node of a regular grid (node (i, j, k) at grid_lo + spacing (i, j, k)).
+def ghost_particles(x, vol, dist, origin, inv_h_sdf, radius, out_x, out_vol, keep):
+    """Mirror images x_j - 2 d_j n_j of the particles within ``radius`` of a wall (d, n from the SDF
+    sampler): the wall's share of the density (PHYSICS.md (11)-(12), (17)-(18)) carried by the fluid
+    that is actually there, so Phi stays about 1 up to the wall instead of falling to 0.5 on it."""
+    for q in nb.prange(x.shape[0]):
+        d, nx, ny, nz = sdf_sample(dist, origin[0], origin[1], origin[2], inv_h_sdf, x[q, 0], x[q, 1], x[q, 2])
+        keep[q] = (d < radius) and (d > 0.0) and (nx * nx + ny * ny + nz * nz > 0.5)
+        out_x[q, 0] = x[q, 0] - 2.0 * d * nx
+        out_x[q, 1] = x[q, 1] - 2.0 * d * ny
+        out_x[q, 2] = x[q, 2] - 2.0 * d * nz
+        out_vol[q] = vol[q]
 
-    ``x`` (N, 3) and ``vol`` (N,) = m / rho_j in cell order; ``out`` has ``shape`` (nx, ny, nz)."""
-    r2max = radius * radius
-    coef = 315.0 / (64.0 * math.pi * radius ** 9)
-    cnx, cny, cnz = dims[0], dims[1], dims[2]
-    for k in nb.prange(shape[2]):
-        pz = grid_lo[2] + spacing * k
-        cz = min(max(int(math.floor((pz - lo[2]) / cell)), 0), cnz - 1)
-        for j in range(shape[1]):
-            py = grid_lo[1] + spacing * j
-            cy = min(max(int(math.floor((py - lo[1]) / cell)), 0), cny - 1)
-            for i in range(shape[0]):
-                px = grid_lo[0] + spacing * i
-                cx = min(max(int(math.floor((px - lo[0]) / cell)), 0), cnx - 1)
-                x0 = max(cx - 1, 0)
-                x1 = min(cx + 1, cnx - 1)
-                s = 0.0
-                for kz in range(max(cz - 1, 0), min(cz + 2, cnz)):
-                    for ky in range(max(cy - 1, 0), min(cy + 2, cny)):
-                        base = (kz * cny + ky) * cnx
-                        for q in range(starts[base + x0], starts[base + x1 + 1]):
-                            dx = px - x[q, 0]
-                            dy = py - x[q, 1]
-                            dz = pz - x[q, 2]
-                            r2 = dx * dx + dy * dy + dz * dz
-                            if r2 < r2max:
-                                w = r2max - r2
-                                s += vol[q] * w * w * w
-                out[i, j, k] = coef * s
+
+@nb.njit(cache=True, parallel=True)
+def cut_by_walls(phi, grid_lo, h, iso, radius, dist, origin, inv_h_sdf):
+    """Intersect the fluid with the wall-free region: Phi' = iso + min(Phi - iso, d / R).
+
+    The iso-surface of Phi' is the boundary of {Phi >= iso} and {d >= 0} (a CSG intersection of two
+    fields with the same slope scale, 1/R), so where the fluid (with its mirror images) touches a wall
+    the surface lies on d = 0 of the SDF. Nodes without fluid (Phi = 0) are outside anyway: skipped."""
+    nz, ny, nx = phi.shape
+    for k in nb.prange(nz):
+        z = grid_lo[2] + k * h
+        for j in range(ny):
+            y = grid_lo[1] + j * h
+            for i in range(nx):
+                p = phi[k, j, i]
+                if p == 0.0:
+                    continue
+                d = _sdf_distance(dist, origin, inv_h_sdf, grid_lo[0] + i * h, y, z)
+                wall = d / radius
+                if wall < p - iso:
+                    phi[k, j, i] = iso + wall
+
+
+@nb.njit(cache=True, inline="always")
+def _sdf_distance(dist, origin, inv_h, x, y, z):
+    d, _, _, _ = sdf_sample(dist, origin[0], origin[1], origin[2], inv_h, x, y, z)
+    return d
+
+
+@nb.njit(cache=True)
+def vertex_normals(v, f, out):
+    """Area-weighted unit vertex normals of the triangle mesh (v, f) into ``out`` (zeros first)."""
+    for a in range(out.shape[0]):
+        out[a, 0] = 0.0
+        out[a, 1] = 0.0
+        out[a, 2] = 0.0
+    for t in range(f.shape[0]):
+        a = f[t, 0]
+        b = f[t, 1]
+        c = f[t, 2]
+        ux = v[b, 0] - v[a, 0]
+        uy = v[b, 1] - v[a, 1]
+        uz = v[b, 2] - v[a, 2]
+        wx = v[c, 0] - v[a, 0]
+        wy = v[c, 1] - v[a, 1]
+        wz = v[c, 2] - v[a, 2]
+        nx = uy * wz - uz * wy
+        ny = uz * wx - ux * wz
+        nz = ux * wy - uy * wx
+        for p in (a, b, c):
+            out[p, 0] += nx
+            out[p, 1] += ny
+            out[p, 2] += nz
+    for a in range(out.shape[0]):
+        n = math.sqrt(out[a, 0] ** 2 + out[a, 1] ** 2 + out[a, 2] ** 2)
+        if n > 0.0:
+            out[a, 0] /= n
+            out[a, 1] /= n
+            out[a, 2] /= n
+
+
+@nb.njit(cache=True)
+def signed_volume(v, f):
+    """Volume enclosed by the closed mesh (v, f); positive when faces are oriented outwards."""
+    s = 0.0
+    for t in range(f.shape[0]):
+        a = f[t, 0]
+        b = f[t, 1]
+        c = f[t, 2]
+        s += (v[a, 0] * (v[b, 1] * v[c, 2] - v[b, 2] * v[c, 1])
+              + v[a, 1] * (v[b, 2] * v[c, 0] - v[b, 0] * v[c, 2])
+              + v[a, 2] * (v[b, 0] * v[c, 1] - v[b, 1] * v[c, 0]))
+    return s / 6.0
