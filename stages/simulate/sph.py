@@ -1,28 +1,23 @@
 """simulate.sph: weakly compressible SPH with distance-function walls (Harada et al. 2007).
 
 ``SPHSolver`` holds the state and steps it (used by the stage and the benchmark); ``SPHSimulate`` is
-the stage: emit, step frame by frame, write the particle cache, checkpoints and the USD layer."""
+the stage; the set-up and frame loop shared with the other solvers are in driver.py."""
 from __future__ import annotations
 
 import math
-import time
-from pathlib import Path
 from typing import Literal, Mapping
 
-import numba as nb
 import numpy as np
 from pydantic import Field
 
-from pipeline.stage import Artifact, Context, Params, Stage, StageError
-from stages.common.formats import ParticleFrame, ParticleMeta
+from pipeline.stage import Artifact, Context, Params, Stage
+from stages.common.formats import ParticleFrame
 from stages.common.sdf import SDFGrid
-from stages.common.usd_points import write_points_layer
 
 from . import sph_kernels as K
-from .emitters import drop_inside_walls, emit
+from .driver import drive, prepare, set_threads
 from .kernels import lattice_mass, poly6_coef, spiky_grad_coef, spiky_lattice_factor, visc_lap_coef
 from .neighbours import CellGrid, reorder
-from .output import iter_frames, latest_checkpoint, restore_frames, save_checkpoint, write_frame
 from .timestep import stable_dt, step_to
 from .wall_maps import WallMaps
 
@@ -161,10 +156,6 @@ class SPHSolver:
         self._alloc()
 
 
-def up_vector(up_axis: str) -> np.ndarray:
-    return np.array([0.0, 1.0, 0.0]) if up_axis == "Y" else np.array([0.0, 0.0, 1.0])
-
-
 class SPHSimulate(Stage):
     kind = "simulate"
     name = "sph"
@@ -180,105 +171,12 @@ class SPHSimulate(Stage):
         return ctx.scene["scene"].frames.count
 
     def run(self, ctx: Context, inputs: Mapping[str, Artifact], params: SPHParams) -> None:
-        scene = ctx.scene["scene"]
-        fluid = ctx.scene["fluid"]
-        effects = ctx.scene["effects"]
-        if fluid is None:
-            raise StageError("simulate.sph: the scene has no 'fluid' section (spacing and emitters)")
-        threads = params.threads or getattr(ctx, "threads", None)
-        if threads:
-            nb.set_num_threads(min(int(threads), nb.config.NUMBA_NUM_THREADS))
-        sdf = SDFGrid.load(inputs["sdf"].path)
-        l0 = fluid.spacing
-        mpu = scene.units.meters_per_unit
-        up = up_vector(scene.units.up_axis)
-        x, v = emit(fluid.emitters, l0, ctx.resolve)
-        x, v, dropped = drop_inside_walls(x, v, sdf, l0, ctx.log)
-        if len(x) == 0:
-            raise StageError("simulate.sph: the emitters produced no particles in the fluid region "
-                             "(fluid.emitters outside the walls or smaller than fluid.spacing?)")
-        gravity = np.zeros(3)
-        v_ref = float(np.linalg.norm(v, axis=1).max())
-        if effects.gravity is not None:
-            g = effects.gravity.g / mpu  # m/s^2 -> scene units/s^2
-            gravity = -g * up
-            height = float((x @ up).max() - (x @ up).min()) + l0
-            v_ref = max(v_ref, math.sqrt(2.0 * g * height))
-        visc = effects.viscosity
-        domain = None
-        if scene.domain is not None:
-            domain = (np.asarray(scene.domain.min), np.asarray(scene.domain.max))
-        solver = SPHSolver(x, v, np.arange(len(x), dtype=np.int32), sdf, spacing=l0, rho0=fluid.density,
-                           params=params, gravity=gravity, mu=visc.mu if visc is not None else None,
-                           wall_viscosity=bool(visc.wall) if visc is not None else False, v_ref=v_ref, domain=domain)
-        count = scene.frames.count
-        fps = scene.frames.fps
-        ckpt_dir = getattr(ctx, "checkpoint_dir", None)
-        ckpt_dir = Path(ckpt_dir) if ckpt_dir is not None else None
-        stats = {"emitted": int(len(x) + dropped), "dropped_in_wall": dropped, "density_error_mean": [],
-                 "density_error_max": [], "inside_wall": [], "wall_seconds": 0.0}
-        resumed = latest_checkpoint(ckpt_dir, count)
-        progress = ctx.progress("simulating (sph)", count)
-        if resumed is not None:
-            start, state = resumed
-            solver.load_state(state)
-            stats = _stats_from(state, stats)
-            restore_frames(ckpt_dir, ctx.out_dir, start)
-            ctx.log.info("resumed from the checkpoint at frame %d", start)
-            progress.advance(start + 1)
-        else:
-            start = 0
-            f0 = solver.frame()
-            write_frame(ctx.out_dir, 0, f0, ckpt_dir)
-            self._frame_stats(stats, f0, solver)
-            progress.advance()
-        t0 = time.perf_counter()
-        for f in range(start + 1, count):
-            solver.advance_to(f / fps)
-            gone = solver.remove_escaped()
-            if gone:
-                ctx.log.warning("frame %d: %d particles left the domain and were removed", f, gone)
-            fr = solver.frame()
-            write_frame(ctx.out_dir, f, fr, ckpt_dir)
-            self._frame_stats(stats, fr, solver)
-            if ckpt_dir is not None and (f % params.checkpoint_every == 0) and f < count - 1:
-                stats["wall_seconds"] += time.perf_counter() - t0
-                t0 = time.perf_counter()
-                save_checkpoint(ckpt_dir, f, {**solver.state(), **_stats_to(stats)})
-            progress.advance()
-        stats["wall_seconds"] += time.perf_counter() - t0
-        stats.update(steps=solver.steps, left_domain=solver.left_domain, sound_speed=solver.c,
-                     mean_dt=(count - 1) / fps / max(solver.steps, 1), particles=int(len(solver.x)))
-        meta = ParticleMeta(spacing=l0, mass=solver.mass, density=fluid.density, support=solver.h, fps=fps,
-                            frame_count=count, up_axis=scene.units.up_axis, meters_per_unit=mpu, solver="sph",
-                            stats=stats)
-        meta.save(ctx.out_dir)
-        write_points_layer(ctx.out_dir / "particles.usdc", iter_frames(ctx.out_dir, count), spacing=l0,
-                           up_axis=scene.units.up_axis, meters_per_unit=mpu, fps=fps, count=count)
-
-    @staticmethod
-    def _frame_stats(stats: dict, fr: ParticleFrame, solver: SPHSolver) -> None:
-        err = np.maximum(fr.rho / solver.rho0 - 1.0, 0.0)
-        stats["density_error_mean"].append(float(err.mean()) if len(err) else 0.0)
-        stats["density_error_max"].append(float(err.max()) if len(err) else 0.0)
-        stats["inside_wall"].append(int((solver.d < -0.01 * solver.l0).sum()))
-
-
-_LIST_STATS = ("density_error_mean", "density_error_max", "inside_wall")
-
-
-def _stats_to(stats: dict) -> dict:
-    out = {f"stat_{k}": np.asarray(stats[k]) for k in _LIST_STATS}
-    out.update(stat_dropped_in_wall=np.int64(stats["dropped_in_wall"]), stat_emitted=np.int64(stats["emitted"]),
-               stat_wall_seconds=np.float64(stats["wall_seconds"]))
-    return out
-
-
-def _stats_from(state: dict, stats: dict) -> dict:
-    stats = dict(stats)
-    for k in _LIST_STATS:
-        stats[k] = state[f"stat_{k}"].tolist()
-    stats["dropped_in_wall"] = int(state["stat_dropped_in_wall"])
-    stats["emitted"] = int(state["stat_emitted"])
-    stats["wall_seconds"] = float(state["stat_wall_seconds"])
-    return stats
+        set_threads(params.threads or getattr(ctx, "threads", None))
+        setup = prepare(ctx, inputs, "simulate.sph")
+        visc = setup.effects.viscosity
+        solver = SPHSolver(setup.x, setup.v, np.arange(len(setup.x), dtype=np.int32), setup.sdf, spacing=setup.spacing,
+                           rho0=setup.density, params=params, gravity=setup.gravity,
+                           mu=visc.mu if visc is not None else None,
+                           wall_viscosity=bool(visc.wall) if visc is not None else False, v_ref=setup.v_ref,
+                           domain=setup.domain)
+        drive(ctx, solver, setup, solver_name="sph", checkpoint_every=params.checkpoint_every)

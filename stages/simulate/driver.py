@@ -1,0 +1,187 @@
+"""What every simulate implementation shares around its solver: the scene set-up (emit, drop particles
+inside walls, gravity in scene units, reference speed) and the frame loop (advance, drop escaped
+particles, write frames, checkpoints, statistics, meta.json and the USD points layer).
+
+A solver is any object with the ``Solver`` members below; SPH, DFSPH and MPS plug in the same way, so
+their caches, checkpoints and statistics are identical in form."""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping, Protocol
+
+import numba as nb
+import numpy as np
+
+from pipeline.stage import Artifact, Context, StageError
+from stages.common.formats import ParticleFrame, ParticleMeta
+from stages.common.sdf import SDFGrid
+from stages.common.usd_points import write_points_layer
+
+from .emitters import drop_inside_walls, emit
+from .output import iter_frames, latest_checkpoint, restore_frames, save_checkpoint, write_frame
+
+
+class Solver(Protocol):
+    x: np.ndarray  # (N, 3) positions
+    d: np.ndarray  # (N,) SDF wall distance of each particle at the last frame()
+    l0: float
+    rho0: float
+    mass: float
+    h: float
+    c: float  # speed of sound (0 for incompressible solvers)
+    t: float
+    steps: int
+    left_domain: int
+
+    def advance_to(self, t_end: float) -> int: ...
+    def remove_escaped(self) -> int: ...
+    def frame(self) -> ParticleFrame: ...
+    def state(self) -> dict: ...
+    def load_state(self, s: Mapping) -> None: ...
+
+
+@dataclass
+class Setup:
+    """The scene as a solver needs it, in scene units."""
+    x: np.ndarray
+    v: np.ndarray
+    sdf: SDFGrid
+    spacing: float
+    density: float
+    gravity: np.ndarray  # acceleration vector, scene units / s^2 (zero without the gravity effect)
+    up: np.ndarray
+    v_ref: float  # expected top speed: sqrt(2 g H) of the fluid column, or the emitters' speed
+    domain: tuple[np.ndarray, np.ndarray] | None
+    effects: Any  # pipeline.scene.Effects
+    meters_per_unit: float
+    dropped: int = 0  # emitted particles dropped because they started inside a wall
+
+
+def up_vector(up_axis: str) -> np.ndarray:
+    return np.array([0.0, 1.0, 0.0]) if up_axis == "Y" else np.array([0.0, 0.0, 1.0])
+
+
+def set_threads(threads: int | None) -> None:
+    if threads:
+        nb.set_num_threads(min(int(threads), nb.config.NUMBA_NUM_THREADS))
+
+
+def prepare(ctx: Context, inputs: Mapping[str, Artifact], who: str) -> Setup:
+    """Emit the fluid, drop the particles inside walls and resolve gravity; ``who`` names the stage
+    in errors."""
+    scene = ctx.scene["scene"]
+    fluid = ctx.scene["fluid"]
+    effects = ctx.scene["effects"]
+    if fluid is None:
+        raise StageError(f"{who}: the scene has no 'fluid' section (spacing and emitters)")
+    sdf = SDFGrid.load(inputs["sdf"].path)
+    l0 = fluid.spacing
+    mpu = scene.units.meters_per_unit
+    up = up_vector(scene.units.up_axis)
+    x, v = emit(fluid.emitters, l0, ctx.resolve)
+    x, v, dropped = drop_inside_walls(x, v, sdf, l0, ctx.log)
+    if len(x) == 0:
+        raise StageError(f"{who}: the emitters produced no particles in the fluid region "
+                         "(fluid.emitters outside the walls or smaller than fluid.spacing?)")
+    gravity = np.zeros(3)
+    v_ref = float(np.linalg.norm(v, axis=1).max())
+    if effects.gravity is not None:
+        g = effects.gravity.g / mpu  # m/s^2 -> scene units/s^2
+        gravity = -g * up
+        height = float((x @ up).max() - (x @ up).min()) + l0
+        v_ref = max(v_ref, math.sqrt(2.0 * g * height))
+    domain = None
+    if scene.domain is not None:
+        domain = (np.asarray(scene.domain.min, float), np.asarray(scene.domain.max, float))
+    return Setup(x=x, v=v, sdf=sdf, spacing=l0, density=fluid.density, gravity=gravity, up=up, v_ref=v_ref,
+                 domain=domain, effects=effects, meters_per_unit=mpu, dropped=dropped)
+
+
+_LIST_STATS = ("density_error_mean", "density_error_max", "inside_wall")
+
+
+def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, checkpoint_every: int) -> dict:
+    """Run the frame loop of ``solver`` and write the particle cache; returns the statistics."""
+    scene = ctx.scene["scene"]
+    count = scene.frames.count
+    fps = scene.frames.fps
+    ckpt_dir = getattr(ctx, "checkpoint_dir", None)
+    ckpt_dir = Path(ckpt_dir) if ckpt_dir is not None else None
+    dropped = setup.dropped
+    stats: dict = {"emitted": int(len(setup.x) + dropped), "dropped_in_wall": dropped, "density_error_mean": [],
+                   "density_error_max": [], "inside_wall": [], "wall_seconds": 0.0}
+    resumed = latest_checkpoint(ckpt_dir, count)
+    progress = ctx.progress(f"simulating ({solver_name})", count)
+    if resumed is not None:
+        start, state = resumed
+        solver.load_state(state)
+        stats = _stats_from(state, stats)
+        restore_frames(ckpt_dir, ctx.out_dir, start)
+        ctx.log.info("resumed from the checkpoint at frame %d", start)
+        progress.advance(start + 1)
+    else:
+        start = 0
+        f0 = solver.frame()
+        write_frame(ctx.out_dir, 0, f0, ckpt_dir)
+        _frame_stats(stats, f0, solver)
+        progress.advance()
+    t0 = time.perf_counter()
+    for f in range(start + 1, count):
+        solver.advance_to(f / fps)
+        gone = solver.remove_escaped()
+        if gone:
+            ctx.log.warning("frame %d: %d particles left the domain and were removed", f, gone)
+        fr = solver.frame()
+        write_frame(ctx.out_dir, f, fr, ckpt_dir)
+        _frame_stats(stats, fr, solver)
+        if ckpt_dir is not None and (f % checkpoint_every == 0) and f < count - 1:
+            stats["wall_seconds"] += time.perf_counter() - t0
+            t0 = time.perf_counter()
+            save_checkpoint(ckpt_dir, f, {**solver.state(), **_stats_to(stats)})
+        progress.advance()
+    stats["wall_seconds"] += time.perf_counter() - t0
+    sim_seconds = (count - 1) / fps
+    stats.update(steps=solver.steps, left_domain=solver.left_domain, sound_speed=solver.c,
+                 mean_dt=sim_seconds / max(solver.steps, 1), particles=int(len(solver.x)))
+    # scalar summaries, so `pipeline study` can put accuracy against cost
+    stats["summary"] = {
+        "density_error_mean": float(np.mean(stats["density_error_mean"][1:] or [0.0])),
+        "density_error_max": float(np.max(stats["density_error_max"] or [0.0])),
+        "inside_wall_max": int(np.max(stats["inside_wall"] or [0])),
+        "wall_seconds_per_simulated_second": stats["wall_seconds"] / sim_seconds if sim_seconds > 0 else 0.0,
+        "ms_per_step": 1e3 * stats["wall_seconds"] / max(solver.steps, 1),
+    }
+    meta = ParticleMeta(spacing=setup.spacing, mass=solver.mass, density=setup.density, support=solver.h, fps=fps,
+                        frame_count=count, up_axis=scene.units.up_axis, meters_per_unit=setup.meters_per_unit,
+                        solver=solver_name, stats=stats)
+    meta.save(ctx.out_dir)
+    write_points_layer(ctx.out_dir / "particles.usdc", iter_frames(ctx.out_dir, count), spacing=setup.spacing,
+                       up_axis=scene.units.up_axis, meters_per_unit=setup.meters_per_unit, fps=fps, count=count)
+    return stats
+
+
+def _frame_stats(stats: dict, fr: ParticleFrame, solver: Solver) -> None:
+    err = np.maximum(fr.rho / solver.rho0 - 1.0, 0.0)
+    stats["density_error_mean"].append(float(err.mean()) if len(err) else 0.0)
+    stats["density_error_max"].append(float(err.max()) if len(err) else 0.0)
+    stats["inside_wall"].append(int((solver.d < -0.01 * solver.l0).sum()))
+
+
+def _stats_to(stats: dict) -> dict:
+    out = {f"stat_{k}": np.asarray(stats[k]) for k in _LIST_STATS}
+    out.update(stat_dropped_in_wall=np.int64(stats["dropped_in_wall"]), stat_emitted=np.int64(stats["emitted"]),
+               stat_wall_seconds=np.float64(stats["wall_seconds"]))
+    return out
+
+
+def _stats_from(state: dict, stats: dict) -> dict:
+    stats = dict(stats)
+    for k in _LIST_STATS:
+        stats[k] = state[f"stat_{k}"].tolist()
+    stats["dropped_in_wall"] = int(state["stat_dropped_in_wall"])
+    stats["emitted"] = int(state["stat_emitted"])
+    stats["wall_seconds"] = float(state["stat_wall_seconds"])
+    return stats
