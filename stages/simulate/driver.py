@@ -100,7 +100,7 @@ def prepare(ctx: Context, inputs: Mapping[str, Artifact], who: str) -> Setup:
                  domain=domain, effects=effects, meters_per_unit=mpu, dropped=dropped)
 
 
-_LIST_STATS = ("density_error_mean", "density_error_max", "inside_wall")
+_LIST_STATS = ("density_error_mean", "density_error_max", "inside_wall", "extent_min", "extent_max")
 
 
 def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, checkpoint_every: int) -> dict:
@@ -112,7 +112,8 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
     ckpt_dir = Path(ckpt_dir) if ckpt_dir is not None else None
     dropped = setup.dropped
     stats: dict = {"emitted": int(len(setup.x) + dropped), "dropped_in_wall": dropped, "density_error_mean": [],
-                   "density_error_max": [], "inside_wall": [], "wall_seconds": 0.0}
+                   "density_error_max": [], "inside_wall": [], "extent_min": [], "extent_max": [],
+                   "wall_seconds": 0.0}
     resumed = latest_checkpoint(ckpt_dir, count)
     progress = ctx.progress(f"simulating ({solver_name})", count)
     if resumed is not None:
@@ -168,6 +169,9 @@ def _frame_stats(stats: dict, fr: ParticleFrame, solver: Solver) -> None:
     stats["density_error_mean"].append(float(err.mean()) if len(err) else 0.0)
     stats["density_error_max"].append(float(err.max()) if len(err) else 0.0)
     stats["inside_wall"].append(int((solver.d < -0.01 * solver.l0).sum()))
+    # the fluid's bounding box per frame: a dam break's surge front is extent_max along the flow
+    stats["extent_min"].append(fr.x.min(axis=0).tolist() if len(fr.x) else [0.0, 0.0, 0.0])
+    stats["extent_max"].append(fr.x.max(axis=0).tolist() if len(fr.x) else [0.0, 0.0, 0.0])
 
 
 def _stats_to(stats: dict) -> dict:
