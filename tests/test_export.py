@@ -143,7 +143,10 @@ def studio(tmp_path):
     write_cm_y_up_asset(tmp_path / "set.usda")
     inputs = folders(tmp_path)
     translate = (1.0, 0.0, 0.0)
-    tank_walls(inputs["walls"], translate, {"source": "set.usda", "usd": "set.usda", "prims": ["/Set/Props/Tank"]})
+    # cm Y-up -> m Z-up ((x, y, z) -> (x, -z, y) / 100), then the translation
+    to_scene = [[0.01, 0, 0, 1.0], [0, 0, -0.01, 0], [0, 0.01, 0, 0], [0, 0, 0, 1]]
+    tank_walls(inputs["walls"], translate, {"source": "set.usda", "usd": "set.usda", "prims": ["/Set/Props/Tank"],
+                                            "asset_to_scene": np.ravel(to_scene).tolist()})
     centre = np.array([0.4, 0.1, 0.3])  # scene metres: inside the moved tank
     surf = surfaces(inputs["surface"], centre)
     particles(inputs["particles"], centre)
@@ -198,14 +201,19 @@ def test_asset_in_scene_units_is_referenced_under_its_placement(studio):
     np.testing.assert_allclose(np.array(mesh.GetPointsAttr().Get(2)), surf[2].vertices, atol=1e-6)
 
 
-def test_asset_placed_by_the_real_mesh_import_lines_up(tmp_path):
-    """End to end with mesh_import.trimesh: a Y-up cm asset rotated and moved into a Z-up metre scene;
-    the export's inverse placement must put the asset back exactly where mesh_import's walls are."""
-    trimesh_import = pytest.importorskip("stages.mesh_import.trimesh_import")
+@pytest.mark.parametrize("placement", [
+    {"rotate": [0, 0, 90], "translate": [0.5, -0.25, 0.0], "scale": 2.0},
+    {"rotate": [0, 0, 90], "fit": {"min": [-0.3, -0.5, 0.0], "max": [0.3, 0.5, 0.4]}, "translate": [0.1, 0, 0]},
+], ids=["scale_rotate_translate", "fit"])
+def test_asset_placed_by_the_real_mesh_import_lines_up(tmp_path, placement):
+    """End to end with mesh_import.trimesh: a Y-up cm asset rotated and moved (or fitted) into a Z-up
+    metre scene; the export's inverse placement must put the asset back exactly where mesh_import's
+    walls are."""
+    from stages.mesh_import import trimesh_import
+
     write_cm_y_up_asset(tmp_path / "set.usda")
     inputs = folders(tmp_path)
-    wall = {"usd": "set.usda", "prims": ["/Set/Props/Tank"], "fluid": "inside", "rotate": [0, 0, 90],
-            "translate": [0.5, -0.25, 0.0], "scale": 2.0}
+    wall = {"usd": "set.usda", "prims": ["/Set/Props/Tank"], "fluid": "inside", **placement}
     sc = scene(walls=[wall])
     run_stage(trimesh_import.TrimeshImport, inputs["walls"], scene=sc, config_dir=tmp_path)
     walls = WallMesh.load(inputs["walls"])
@@ -224,9 +232,10 @@ def test_asset_placed_by_the_real_mesh_import_lines_up(tmp_path):
     assert UsdGeom.GetStageUpAxis(stage) == "Y" and UsdGeom.GetStageMetersPerUnit(stage) == 0.01
     lo, hi = world_bounds(stage, "/Set/Props/Tank")
     pts = np.array(UsdGeom.Mesh(stage.GetPrimAtPath("/World/Fluid/Surface")).GetPointsAttr().Get(0))
-    # the fluid sits at the tank's centre in the asset's own frame, scaled with it (r = 0.2 m / 2 = 10 cm)
+    # the fluid sits at the tank's centre in the asset's own frame, scaled with it (r = 0.2 m / s)
+    scale = (hi_w - lo_w).max() / 2.0  # the tank is 2 m long in the asset (200 cm)
     np.testing.assert_allclose(0.5 * (pts.min(0) + pts.max(0)), 0.5 * (lo + hi), atol=1e-3)
-    np.testing.assert_allclose(pts.max(0) - pts.min(0), 2 * 0.2 * 100 / 2.0, rtol=0.02)
+    np.testing.assert_allclose(pts.max(0) - pts.min(0), 2 * 0.2 * 100 / scale, rtol=0.02)
 
 
 def test_empty_frames_export_and_read_back_empty(tmp_path):

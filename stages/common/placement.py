@@ -15,17 +15,30 @@ def up_axis_matrix(src: str, dst: str) -> np.ndarray:
     return trimesh.transformations.rotation_matrix(angle, [1.0, 0.0, 0.0])
 
 
-def apply_placement(vertices: np.ndarray, p: Placement) -> np.ndarray:
-    """Scale, then rotate about X, Y, Z (degrees), then fit into ``p.fit`` (uniform scale, centred),
-    then translate. All about the model's own origin."""
-    v = np.asarray(vertices, np.float64) * np.broadcast_to(np.asarray(p.scale, np.float64), (3,))
+def placement_matrix(vertices: np.ndarray, p: Placement) -> np.ndarray:
+    """4x4 matrix (column vectors) of the placement: scale, then rotate about X, Y, Z (degrees), then
+    fit into ``p.fit`` (uniform scale, centred on the box of ``vertices`` after rotation), then
+    translate. All about the model's own origin."""
+    m = np.eye(4)
     rx, ry, rz = np.radians(p.rotate)
-    r = trimesh.transformations.euler_matrix(rx, ry, rz, axes="sxyz")[:3, :3]
-    v = v @ r.T
+    m[:3, :3] = trimesh.transformations.euler_matrix(rx, ry, rz, axes="sxyz")[:3, :3] @ np.diag(
+        np.broadcast_to(np.asarray(p.scale, np.float64), (3,)))
+    v = np.asarray(vertices, np.float64)
     if p.fit is not None and len(v):
-        lo, hi = v.min(axis=0), v.max(axis=0)
-        flo, fhi = np.asarray(p.fit.min), np.asarray(p.fit.max)
+        w = v @ m[:3, :3].T
+        lo, hi = w.min(axis=0), w.max(axis=0)
+        flo, fhi = np.asarray(p.fit.min, np.float64), np.asarray(p.fit.max, np.float64)
         ext = np.where(hi - lo > 0, hi - lo, np.inf)
         s = float(np.min((fhi - flo) / ext))
-        v = (v - 0.5 * (lo + hi)) * s + 0.5 * (flo + fhi)
-    return v + np.asarray(p.translate, np.float64)
+        fit = np.eye(4)
+        fit[:3, :3] *= s
+        fit[:3, 3] = 0.5 * (flo + fhi) - s * 0.5 * (lo + hi)
+        m = fit @ m
+    m[:3, 3] += np.asarray(p.translate, np.float64)
+    return m
+
+
+def apply_placement(vertices: np.ndarray, p: Placement) -> np.ndarray:
+    """The vertices placed by ``placement_matrix``."""
+    m = placement_matrix(vertices, p)
+    return np.asarray(vertices, np.float64) @ m[:3, :3].T + m[:3, 3]

@@ -91,7 +91,7 @@ def _safe_name(name: str, used: set[str]) -> str:
 class UsdExport(Stage):
     kind = "export"
     name = "usd"
-    version = "1"
+    version = "2"
     Params = UsdParams
     inputs = ("walls", "particles")
     optional_inputs = ("surface",)
@@ -113,29 +113,14 @@ class UsdExport(Stage):
             raise StageError(f"export.usd: wall {info.get('name')!r}: USD asset {path} not found")
         return path
 
-    def _asset_to_scene(self, ctx: Context, info: dict, asset: Path) -> np.ndarray:
-        """4x4 matrix from the asset's coordinates to the scene's: unit and up-axis change, then the
-        wall's placement (scale, rotate X->Y->Z, translate) as mesh_import applies it. mesh_import may
-        record the exact matrix in walls.json as ``asset_to_scene`` (row-major, column vectors)."""
-        if "asset_to_scene" in info:
-            return np.asarray(info["asset_to_scene"], float).reshape(4, 4)
-        from pxr import Usd, UsdGeom
-        from scipy.spatial.transform import Rotation
-
-        scene = ctx.scene["scene"]
-        stage = Usd.Stage.Open(str(asset), Usd.Stage.LoadNone)
-        a_up, a_mpu = str(UsdGeom.GetStageUpAxis(stage)), UsdGeom.GetStageMetersPerUnit(stage)
-        units = ul.affine(ul.axis_change(a_up, scene.units.up_axis) * (a_mpu / scene.units.meters_per_unit))
-        wall = next((w for w in ctx.scene.get("walls", []) if hasattr(w, "usd")
-                     and ctx.resolve(w.usd).resolve() == asset.resolve()), None)
-        if wall is None:
-            return units
-        if wall.fit is not None:
-            raise StageError(f"export.usd: wall {info.get('name')!r} uses 'fit'; the asset frame needs the "
-                             "fitted transform recorded by mesh_import (walls.json asset_to_scene)")
-        scale = np.diag(np.broadcast_to(np.asarray(wall.scale, float), (3,)))
-        rotate = Rotation.from_euler("xyz", wall.rotate, degrees=True).as_matrix()
-        return ul.affine(rotate @ scale, wall.translate) @ units
+    @staticmethod
+    def _asset_to_scene(info: dict) -> np.ndarray:
+        """4x4 matrix (column vectors) from the asset's coordinates to the scene's, as mesh_import
+        recorded it in walls.json: unit and up-axis change, then the wall's placement (incl. fit)."""
+        if "asset_to_scene" not in info:
+            raise StageError(f"export.usd: wall {info.get('name')!r} has no asset_to_scene in walls.json; "
+                             "re-run mesh_import (pipeline run --from mesh_import)")
+        return np.asarray(info["asset_to_scene"], float).reshape(4, 4)
 
     # -- run -----------------------------------------------------------------------------------------
     def run(self, ctx: Context, inputs: Mapping[str, Artifact], params: UsdParams) -> None:
@@ -152,7 +137,7 @@ class UsdExport(Stage):
         assets: dict[Path, np.ndarray] = {}
         for info in usd_walls.values():
             path = self._asset_path(ctx, info)
-            assets.setdefault(path, self._asset_to_scene(ctx, info, path))
+            assets.setdefault(path, self._asset_to_scene(info))
         mode = params.fluid_units if params.fluid_units != "auto" else ("asset" if assets else "scene")
         if mode == "asset" and not assets:
             raise StageError("export.usd: fluid_units: asset needs a wall from a USD asset (walls: - usd: ...)")

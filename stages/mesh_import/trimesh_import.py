@@ -23,7 +23,7 @@ from stages.common.formats import WallMesh
 
 from .builtin import builtin_mesh
 from .cleanup import clean_mesh
-from stages.common.placement import apply_placement
+from stages.common.placement import apply_placement, placement_matrix
 
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
 USD_FILE = "walls.usdc"
@@ -79,7 +79,7 @@ class TrimeshImport(Stage):
 
     kind = "mesh_import"
     name = "trimesh"
-    version = "1"
+    version = "2"
     Params = ImportParams
     outputs = ("walls",)
     reads = ("scene", "walls")
@@ -119,12 +119,15 @@ class TrimeshImport(Stage):
                 raise StageError(f"{where}: empty mesh after removing degenerate faces")
             if fluid == "inside":
                 mesh.invert()  # container: normals into the fluid, i.e. inwards
+            asset_to_scene = extra.pop("asset_to_scene", None)
             report.update(extra)
             if not report["watertight"]:
                 ctx.log.warning("%s: not watertight (%d boundary edges, %d non-manifold); the SDF sign uses ray voting",
                                 where, report["boundary_edges"], report["non_manifold_edges"])
             label = Path(source).stem if not isinstance(w, BuiltinWall) else w.builtin
             info.append({"name": _wall_name(i, label), "fluid": fluid, "source": source, "report": report})
+            if asset_to_scene is not None:
+                info[-1]["asset_to_scene"] = asset_to_scene
             verts.append(np.asarray(mesh.vertices, np.float64))
             faces.append(np.asarray(mesh.faces, np.int64) + offset)
             ids.append(np.full(len(mesh.faces), i, np.int32))
@@ -149,8 +152,10 @@ class TrimeshImport(Stage):
             path = ctx.resolve(w.usd)
             if path.suffix.lower() not in (".usd", ".usda", ".usdc", ".usdz"):
                 raise StageError(f"{path}: unsupported USD format {path.suffix!r}; expected .usd, .usda, .usdc or .usdz")
-            v, f, prims = read_usd_wall(path, w, units.meters_per_unit, units.up_axis)
-            return v, f, w.fluid, str(path), {"prims": prims}
+            v, f, prims, to_units = read_usd_wall(path, w, units.meters_per_unit, units.up_axis)
+            # the asset's frame -> the scene's, so export can reference the asset in place
+            to_scene = placement_matrix(v, w) @ to_units
+            return v, f, w.fluid, str(path), {"prims": prims, "asset_to_scene": to_scene.ravel().tolist()}
         path = ctx.resolve(w.file)
         v, f = _read_mesh_file(path)
         if len(v) and w.meters_per_unit is not None:

@@ -61,8 +61,9 @@ def _triangulate(counts: np.ndarray, indices: np.ndarray, holes: np.ndarray, whe
     return tris[keep[face_of_tri]]
 
 
-def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str) -> tuple[np.ndarray, np.ndarray, list[str]]:
-    """World-space vertices (scene units, scene up axis), triangles, and the prim paths used."""
+def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str) -> tuple[np.ndarray, np.ndarray, list[str], np.ndarray]:
+    """World-space vertices (scene units, scene up axis), triangles, the prim paths used, and the 4x4
+    matrix (column vectors) from the stage's world frame to the scene's units and up axis."""
     from pxr import Usd, UsdGeom
 
     if not path.is_file():
@@ -122,13 +123,15 @@ def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str) ->
         used.append(str(prim.GetPath()))
     if not used:
         raise StageError(f"{path}: no visible UsdGeom.Mesh prim with faces matches {wall.prims}")
-    return np.concatenate(verts), np.concatenate(faces), used
+    units = np.eye(4)
+    units[:3, :3] = to_scene
+    return np.concatenate(verts), np.concatenate(faces), used, units
 
 
 class UsdImport(TrimeshImport):
     """Wall meshes from OpenUSD stages (and built-ins / mesh files, as ``trimesh`` does)."""
 
     name = "usd"
-    version = "1"
+    version = "2"
     default = False
     description = "walls from OpenUSD UsdGeom.Mesh prims (world transforms, units, up axis)"
