@@ -21,7 +21,7 @@ from .scene import SceneConfig
 from .stage import STAGE_KINDS, Params, Stage
 
 CONFIG_VERSION = 1
-TOP_LEVEL = ("config_version", "scene", "walls", "fluid", "effects", "stages", "outputs")
+TOP_LEVEL = ("config_version", "scene", "walls", "fluid", "effects", "camera", "stages", "outputs")
 OUTPUT_NAMES = ("walls", "sdf", "particles", "raw_surface", "surface", "frames", "movie", "usd")
 
 
@@ -50,7 +50,7 @@ class Config:
 
     def sections(self) -> dict[str, Any]:
         return {"scene": self.scene.scene, "walls": self.scene.walls, "fluid": self.scene.fluid,
-                "effects": self.scene.effects}
+                "effects": self.scene.effects, "camera": self.scene.camera}
 
 
 # -- YAML with line numbers ----------------------------------------------------------------------
@@ -216,7 +216,7 @@ def load_config(path: str | Path, registry: Registry, overrides: list[str] | tup
     if version != CONFIG_VERSION:
         raise ConfigError(f"{lines.where(('config_version',))}: config_version: expected {CONFIG_VERSION}, got {version!r}")
     try:
-        scene = SceneConfig.model_validate({k: data[k] for k in ("scene", "walls", "fluid", "effects") if k in data})
+        scene = SceneConfig.model_validate({k: data[k] for k in ("scene", "walls", "fluid", "effects", "camera") if k in data})
     except ValidationError as e:
         raise _first_error(e, (), lines) from None
 

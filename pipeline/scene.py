@@ -199,6 +199,17 @@ class Effects(Model):
         return tuple(name for name in type(self).model_fields if getattr(self, name) is not None)
 
 
+class Camera(Model):
+    """The shot's camera, used by render (the frames) and export (the USD camera prim)."""
+
+    usd: str | None = Field(None, description="take the camera from this USD file (relative to the config file)")
+    prim: str | None = Field(None, description="the UsdGeom.Camera prim in `usd`; default: the first camera found")
+    position: Vec3 | None = Field(None, description="eye position, scene units; default: framed on the walls")
+    focal_point: Vec3 | None = Field(None, description="point looked at, scene units; default: the walls' centre")
+    up: Vec3 | None = Field(None, description="view up vector; default: the scene's up axis")
+    view_angle: float = Field(30.0, gt=1, lt=170, description="vertical field of view, degrees (a USD camera's own wins)")
+
+
 class SceneConfig(Model):
     """The scene part of a config (everything but ``stages``, ``outputs`` and ``config_version``)."""
 
@@ -206,3 +217,4 @@ class SceneConfig(Model):
     walls: list[Wall] = Field(default_factory=list, description="the wall models; the fluid region is where every wall allows it")
     fluid: Fluid | None = None
     effects: Effects = Field(default_factory=Effects)
+    camera: Camera = Field(default_factory=Camera)

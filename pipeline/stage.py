@@ -23,7 +23,7 @@ STAGE_KINDS: tuple[str, ...] = (
 )
 
 # The scene sections a stage may declare in ``reads``.
-SCENE_SECTIONS: tuple[str, ...] = ("scene", "walls", "fluid", "effects")
+SCENE_SECTIONS: tuple[str, ...] = ("scene", "walls", "fluid", "effects", "camera")
 
 
 class Params(BaseModel):

@@ -10,9 +10,9 @@ from .stage import Artifact, Context, Stage
 
 
 def scene_sections(config: Mapping[str, Any] | SceneConfig) -> dict[str, Any]:
-    """Validated scene sections (scene, walls, fluid, effects) from a plain dict or a SceneConfig."""
+    """Validated scene sections (scene, walls, fluid, effects, camera) from a plain dict or a SceneConfig."""
     sc = config if isinstance(config, SceneConfig) else SceneConfig.model_validate(dict(config))
-    return {"scene": sc.scene, "walls": sc.walls, "fluid": sc.fluid, "effects": sc.effects}
+    return {"scene": sc.scene, "walls": sc.walls, "fluid": sc.fluid, "effects": sc.effects, "camera": sc.camera}
 
 
 def run_stage(stage_cls: type[Stage], out_dir: Path, *, scene: Mapping[str, Any] | SceneConfig,

@@ -95,9 +95,10 @@ def assert_sphere_seen_from_eye(img, fov=30.0, eye=EYE):
 def test_surface_frame_shows_water_where_the_sphere_is(tmp_path, inputs):
     import imageio.v3 as iio
 
-    params = {"resolution": [320, 240], "camera": {"position": EYE.tolist(), "focal_point": [0, 0, 0.5],
-                                                    "up": [0, 0, 1], "view_angle": 30.0}}
-    out = run_stage(PyvistaRender, tmp_path, scene=SCENE, params=params, inputs=inputs, frames=(1,))
+    scene = {**SCENE, "camera": {"position": EYE.tolist(), "focal_point": [0, 0, 0.5], "up": [0, 0, 1],
+                                 "view_angle": 30.0}}
+    out = run_stage(PyvistaRender, tmp_path, scene=scene, params={"resolution": [320, 240]}, inputs=inputs,
+                    frames=(1,))
     img = iio.imread(out / "frame_00001.png")[..., :3]
     assert img.shape == (240, 320, 3)
     assert_sphere_seen_from_eye(img)
@@ -119,13 +120,32 @@ def test_camera_from_a_y_up_centimetre_usd_file(tmp_path, inputs):
     cam.CreateHorizontalApertureAttr(36.0)
     cam.CreateFocalLengthAttr(20.25 / (2 * math.tan(math.radians(15))))
     stage.GetRootLayer().Save()
-    params = {"resolution": [320, 240], "camera": {"usd": "shot_cam.usda", "prim": "/Shot/Cam"}}
-    out = run_stage(PyvistaRender, tmp_path / "out", scene=SCENE, params=params, inputs=inputs, frames=(0,),
-                    config_dir=tmp_path)
+    scene = {**SCENE, "camera": {"usd": "shot_cam.usda", "prim": "/Shot/Cam"}}
+    out = run_stage(PyvistaRender, tmp_path / "out", scene=scene, params={"resolution": [320, 240]}, inputs=inputs,
+                    frames=(0,), config_dir=tmp_path)
     assert_sphere_seen_from_eye(iio.imread(out / "frame_00000.png")[..., :3])
     with pytest.raises(StageError, match="/Shot/Nope"):
-        run_stage(PyvistaRender, tmp_path / "bad", scene=SCENE, inputs=inputs, frames=(0,), config_dir=tmp_path,
-                  params={"resolution": [64, 48], "camera": {"usd": "shot_cam.usda", "prim": "/Shot/Nope"}})
+        run_stage(PyvistaRender, tmp_path / "bad", scene={**SCENE, "camera": {"usd": "shot_cam.usda", "prim": "/Shot/Nope"}},
+                  inputs=inputs, frames=(0,), config_dir=tmp_path, params={"resolution": [64, 48]})
+
+
+def test_exported_usd_camera_shows_what_the_frames_show(tmp_path, inputs):
+    """Render and export share the scene's camera: rendering through the exported /World/Camera gives
+    the frame the automatic camera gave."""
+    import imageio.v3 as iio
+
+    from stages.export.usd_export import UsdExport
+
+    res = {"resolution": [320, 180]}
+    auto = run_stage(PyvistaRender, tmp_path / "auto", scene=SCENE, params=res, inputs=inputs, frames=(1,))
+    usd = run_stage(UsdExport, tmp_path / "usd", scene=SCENE, inputs=inputs, config_dir=tmp_path,
+                    params={"particles": False, "camera_aspect": 320 / 180})
+    again = run_stage(PyvistaRender, tmp_path / "again", params=res, inputs=inputs, frames=(1,), config_dir=tmp_path,
+                      scene={**SCENE, "camera": {"usd": str(usd / "scene.usda"), "prim": "/World/Camera"}})
+    water_a = water_mask(iio.imread(auto / "frame_00001.png")[..., :3])
+    water_b = water_mask(iio.imread(again / "frame_00001.png")[..., :3])
+    assert water_a.sum() > 100
+    assert (water_a ^ water_b).sum() < 0.02 * water_a.sum()
 
 
 def test_auto_camera_and_particles_are_not_blank(tmp_path, inputs):

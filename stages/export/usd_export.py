@@ -24,19 +24,12 @@ import numpy as np
 from pydantic import Field
 
 from pipeline.stage import Artifact, Context, Params, Stage, StageError
+from stages.common.camera import shot_camera
 from stages.common.formats import ParticleMeta, WallMesh, load_particle_frame, load_surface
 
 from . import usd_layers as ul
 
-Vec3 = tuple[float, float, float]
 
-
-class ExportCamera(Params):
-    position: Vec3 | None = Field(None, description="eye position, scene units; default: framed on the walls")
-    focal_point: Vec3 | None = Field(None, description="point looked at, scene units; default: the walls' centre")
-    up: Vec3 | None = Field(None, description="view up vector; default: the scene's up axis")
-    view_angle: float = Field(30.0, gt=1, lt=170, description="vertical field of view, degrees")
-    aspect: float = Field(16 / 9, gt=0, description="image width / height")
 
 
 class UsdParams(Params):
@@ -48,20 +41,8 @@ class UsdParams(Params):
     fluid_layer_path: str | None = Field(
         None, description="also write the fluid layer alone to this path (relative to the config file)")
     usdz: bool = Field(False, description="also package everything as scene.usdz")
-    camera: ExportCamera = Field(default_factory=ExportCamera)
-
-
-def _auto_camera(lo: np.ndarray, hi: np.ndarray, up_axis: str, view_angle: float):
-    """The render stage's automatic 3/4 view (kept in step with stages/render/pyvista_render.py)."""
-    centre = 0.5 * (lo + hi)
-    radius = 0.5 * float(np.linalg.norm(hi - lo)) or 1.0
-    if up_axis == "Z":
-        direction, up = np.array([0.55, -1.0, 0.6]), np.array([0.0, 0.0, 1.0])
-    else:
-        direction, up = np.array([0.55, 0.6, 1.0]), np.array([0.0, 1.0, 0.0])
-    direction /= np.linalg.norm(direction)
-    distance = 1.05 * radius / np.sin(np.radians(view_angle) / 2)
-    return centre + distance * direction, centre, up
+    camera_aspect: float = Field(16 / 9, gt=0, description="the USD camera's image width / height "
+                                 "(the view itself is the scene's camera section)")
 
 
 USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
@@ -96,7 +77,7 @@ class UsdExport(Stage):
     inputs = ("walls", "particles")
     optional_inputs = ("surface",)
     outputs = ("usd",)
-    reads = ("scene", "walls")
+    reads = ("scene", "walls", "camera")
     default = True
     description = "scene.usda composing walls, particles, fluid surface and camera layers (usd-core)"
 
@@ -104,7 +85,9 @@ class UsdExport(Stage):
         return ("walls", "particles", "surface") if params.surface else ("walls", "particles")
 
     def external_files(self, ctx: Context, params: UsdParams) -> list[Path]:
-        return [ctx.resolve(w.usd) for w in ctx.scene.get("walls", []) if hasattr(w, "usd")]
+        cam = ctx.scene["camera"]
+        return [ctx.resolve(w.usd) for w in ctx.scene.get("walls", []) if hasattr(w, "usd")] + (
+            [ctx.resolve(cam.usd)] if cam.usd else [])
 
     # -- the studio asset's frame -------------------------------------------------------------------
     def _asset_path(self, ctx: Context, info: dict) -> Path:
@@ -180,7 +163,9 @@ class UsdExport(Stage):
             xf = UsdGeom.Xform.Define(root, f"/World/Asset_{k}")
             xf.AddTransformOp().Set(ul.to_gf_matrix(m))
             xf.GetPrim().GetReferences().AddReference(rel)
-        self._write_camera(root, walls, scene.units.up_axis, to_target, params.camera)
+        eye, target, up, view_angle = shot_camera(walls, scene.units, ctx.scene["camera"], ctx.resolve, "export.usd")
+        ul.define_camera(root, "/World/Camera", ul.apply(to_target, eye[None])[0], ul.apply(to_target, target[None])[0],
+                         ul.apply_linear(to_target, up[None])[0], view_angle, params.camera_aspect)
         root.GetRootLayer().Save()
         progress.advance()
 
@@ -292,16 +277,3 @@ class UsdExport(Stage):
             target.parent.mkdir(parents=True, exist_ok=True)
             shutil.copyfile(p, target)
         return f"assets/{asset.resolve().relative_to(base)}"
-
-    @staticmethod
-    def _write_camera(root, walls: WallMesh, up_axis: str, m: np.ndarray, cam: ExportCamera) -> None:
-        if len(walls.vertices):
-            lo, hi = walls.vertices.min(axis=0), walls.vertices.max(axis=0)
-        else:
-            lo, hi = np.full(3, -1.0), np.full(3, 1.0)
-        eye, target, up = _auto_camera(lo, hi, up_axis, cam.view_angle)
-        eye = np.asarray(cam.position, float) if cam.position is not None else eye
-        target = np.asarray(cam.focal_point, float) if cam.focal_point is not None else target
-        up = np.asarray(cam.up, float) if cam.up is not None else up
-        ul.define_camera(root, "/World/Camera", ul.apply(m, eye[None])[0], ul.apply(m, target[None])[0],
-                         ul.apply_linear(m, up[None])[0], cam.view_angle, cam.aspect)

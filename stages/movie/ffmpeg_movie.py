@@ -32,7 +32,7 @@ def evenly_spaced(items: list[int], count: int) -> list[int]:
 class FfmpegMovie(Stage):
     kind = "movie"
     name = "ffmpeg"
-    version = "1"
+    version = "2"
     Params = MovieParams
     inputs = ("frames",)
     outputs = ("movie",)
@@ -82,7 +82,7 @@ class FfmpegMovie(Stage):
 
     @staticmethod
     def _contact_sheet(ctx: Context, inputs: Mapping[str, Artifact], params: MovieParams, frames: list[int]) -> None:
-        from PIL import Image, ImageDraw
+        from PIL import Image
 
         picks = evenly_spaced(frames, params.sheet_frames)
         cols = min(params.sheet_columns, len(picks))
@@ -92,12 +92,7 @@ class FfmpegMovie(Stage):
         th = round(tiles[0].height * tw / tiles[0].width)
         pad = 4
         sheet = Image.new("RGB", (cols * (tw + pad) + pad, rows * (th + pad) + pad), (12, 12, 14))
-        draw = ImageDraw.Draw(sheet)
-        fps = ctx.scene["scene"].frames.fps
-        for k, (f, tile) in enumerate(zip(picks, tiles)):
+        for k, tile in enumerate(tiles):  # the frames carry their own time label (render's `label`)
             x, y = pad + (k % cols) * (tw + pad), pad + (k // cols) * (th + pad)
             sheet.paste(tile.resize((tw, th), Image.LANCZOS), (x, y))
-            label = f"frame {f}  t={f / fps:.2f}s"
-            draw.rectangle((x, y, x + 8 + 7 * len(label), y + 16), fill=(0, 0, 0))
-            draw.text((x + 4, y + 3), label, fill=(255, 255, 255))
         sheet.save(Path(ctx.out_dir) / "contact_sheet.png")

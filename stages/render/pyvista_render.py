@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import ctypes.util
 import functools
-import math
 import os
 from pathlib import Path
 from typing import Literal, Mapping
@@ -22,6 +21,7 @@ import numpy as np
 from pydantic import Field
 
 from pipeline.stage import Artifact, Context, Params, Stage, StageError
+from stages.common.camera import shot_camera
 from stages.common.formats import ParticleMeta, WallMesh, load_particle_frame, load_surface
 
 Vec3 = tuple[float, float, float]
@@ -41,15 +41,6 @@ def choose_offscreen_backend() -> str | None:
     return backend
 
 
-class Camera(Params):
-    usd: str | None = Field(None, description="take the camera from this USD file (relative to the config file)")
-    prim: str | None = Field(None, description="the UsdGeom.Camera prim in `usd`; default: the first camera found")
-    position: Vec3 | None = Field(None, description="eye position, scene units; default: framed on the walls")
-    focal_point: Vec3 | None = Field(None, description="point looked at, scene units; default: the walls' centre")
-    up: Vec3 | None = Field(None, description="view up vector; default: the scene's up axis")
-    view_angle: float = Field(30.0, gt=1, lt=170, description="vertical field of view, degrees")
-
-
 class RenderParams(Params):
     resolution: tuple[int, int] = Field((1280, 720), description="image width and height, pixels")
     show: Literal["surface", "particles"] = Field("surface", description="the fluid as its surface or as particles")
@@ -60,57 +51,12 @@ class RenderParams(Params):
     point_size: float = Field(6.0, gt=0, description="particle sphere size on screen, pixels (show: particles)")
     every: int = Field(1, ge=1, description="render every n-th frame; the others are marked skipped and the "
                        "movie plays the rendered ones at fps / n")
-    camera: Camera = Field(default_factory=Camera)
     background: str = Field("#20242c", description="background colour (name or #rrggbb)")
     wall_opacity: float = Field(1.0, ge=0, le=1, description="opacity of the walls (a container's far side)")
     near_wall_opacity: float = Field(0.12, ge=0, le=1, description="opacity of a container's near side, "
                                      "between the camera and the fluid (0 hides it)")
+    label: bool = Field(True, description="write the simulated time into the lower left corner")
     water_opacity: float = Field(0.85, ge=0, le=1, description="opacity of the fluid surface")
-
-
-def auto_camera(lo: np.ndarray, hi: np.ndarray, up_axis: str, view_angle: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A 3/4 view from the front-right and somewhat above that fits the box [lo, hi] in the frame."""
-    centre = 0.5 * (lo + hi)
-    radius = 0.5 * float(np.linalg.norm(hi - lo)) or 1.0
-    if up_axis == "Z":
-        direction, up = np.array([0.55, -1.0, 0.6]), np.array([0.0, 0.0, 1.0])
-    else:  # Y-up: the same view with (x, y, z)_Z-up -> (x, z, -y)
-        direction, up = np.array([0.55, 0.6, 1.0]), np.array([0.0, 1.0, 0.0])
-    direction /= np.linalg.norm(direction)
-    distance = 1.05 * radius / math.sin(math.radians(view_angle) / 2)
-    return centre + distance * direction, centre, up
-
-
-def usd_camera(path: Path, prim: str | None, up_axis: str, meters_per_unit: float):
-    """(eye, focal point, up, vertical view angle) of a UsdGeom.Camera, in the scene's units and up axis."""
-    from pxr import Usd, UsdGeom
-
-    if not path.is_file():
-        raise StageError(f"render.pyvista: camera.usd: {path} not found")
-    stage = Usd.Stage.Open(str(path))
-    if prim:
-        cam_prim = stage.GetPrimAtPath(prim)
-        if not cam_prim or not cam_prim.IsA(UsdGeom.Camera):
-            raise StageError(f"render.pyvista: camera.prim: {prim} is not a UsdGeom.Camera in {path}")
-    else:
-        cam_prim = next((p for p in stage.Traverse() if p.IsA(UsdGeom.Camera)), None)
-        if cam_prim is None:
-            raise StageError(f"render.pyvista: camera.usd: {path} has no UsdGeom.Camera prim")
-    cam = UsdGeom.Camera(cam_prim).GetCamera(Usd.TimeCode.Default())
-    frustum = cam.frustum
-    eye = np.array(frustum.GetPosition())
-    look = np.array(frustum.ComputeViewDirection())
-    up = np.array(frustum.ComputeUpVector())
-    view_angle = float(cam.GetFieldOfView(cam.FOVVertical))
-    # the file's units and up axis -> the scene's (Y-up -> Z-up is +90 degrees about X)
-    scale = UsdGeom.GetStageMetersPerUnit(stage) / meters_per_unit
-    file_up = str(UsdGeom.GetStageUpAxis(stage))
-    rot = np.eye(3)
-    if file_up != up_axis:
-        rot = np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0]], float)
-        rot = rot if (file_up, up_axis) == ("Y", "Z") else rot.T
-    eye = rot @ eye * scale
-    return eye, eye + rot @ look, rot @ up, view_angle
 
 
 def near_faces(vertices: np.ndarray, faces: np.ndarray, eye: np.ndarray, centre: np.ndarray) -> np.ndarray:
@@ -155,12 +101,12 @@ def polydata(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray | None
 class PyvistaRender(Stage):
     kind = "render"
     name = "pyvista"
-    version = "1"
+    version = "2"
     Params = RenderParams
     inputs = ("walls",)
     optional_inputs = ("surface", "particles")
     outputs = ("frames",)
-    reads = ("scene",)
+    reads = ("scene", "camera")
     per_frame = True
     default = True
     description = "offscreen PNG frames of the walls and fluid surface (or particles) with PyVista/VTK"
@@ -171,7 +117,8 @@ class PyvistaRender(Stage):
         return ("walls", "particles")
 
     def external_files(self, ctx: Context, params: RenderParams) -> list[Path]:
-        return [ctx.resolve(params.camera.usd)] if params.camera.usd else []
+        cam = ctx.scene["camera"]
+        return [ctx.resolve(cam.usd)] if cam.usd else []
 
     def run_frame(self, ctx: Context, inputs: Mapping[str, Artifact], params: RenderParams, frame: int) -> None:
         if frame % params.every:
@@ -187,7 +134,8 @@ class PyvistaRender(Stage):
         plotter = pv.Plotter(off_screen=True, window_size=(int(w), int(h)), lighting="three lights")
         try:
             plotter.set_background(params.background)
-            eye, centre, up, view_angle = self._camera(walls, scene.units, params, ctx)
+            eye, centre, up, view_angle = shot_camera(walls, scene.units, ctx.scene["camera"], ctx.resolve,
+                                                      "render.pyvista")
             self._add_walls(plotter, walls, eye, params)
             if params.show == "surface":
                 self._add_surface(plotter, inputs, frame, params)
@@ -196,9 +144,10 @@ class PyvistaRender(Stage):
             plotter.camera_position = [tuple(eye), tuple(centre), tuple(up)]
             plotter.camera.view_angle = view_angle
             plotter.reset_camera_clipping_range()
-            fps = scene.frames.fps
-            plotter.add_text(f"frame {frame}   t = {frame / fps:.2f} s", position="lower_left", font_size=9,
-                             color="white")
+            if params.label:
+                fps = scene.frames.fps
+                plotter.add_text(f"t = {frame / fps:.2f} s", position="lower_left",
+                                 font_size=max(9, round(params.resolution[1] / 40)), color="white")
             plotter.screenshot(str(Path(ctx.out_dir) / f"frame_{frame:05d}.png"))
         finally:
             plotter.close()
@@ -252,26 +201,3 @@ class PyvistaRender(Stage):
         clim = params.color_range or (0.0, max(run_max(folder, params.color_by), 1e-9))
         plotter.add_mesh(cloud, render_points_as_spheres=True, point_size=params.point_size, cmap="viridis", clim=clim,
                          scalar_bar_args={"color": "white", "vertical": True, "position_x": 0.86, "width": 0.06})
-
-    @staticmethod
-    def _camera(walls: WallMesh, units, params: RenderParams, ctx: Context):
-        """(eye, focal point, up, vertical view angle): a USD camera prim, else automatic framing on the
-        walls, with any of position / focal_point / up given in the config taking precedence."""
-        cam = params.camera
-        view_angle = cam.view_angle
-        if cam.usd is not None:
-            eye, centre, up, view_angle = usd_camera(ctx.resolve(cam.usd), cam.prim, units.up_axis,
-                                                     units.meters_per_unit)
-        else:
-            if len(walls.vertices):
-                lo, hi = walls.vertices.min(axis=0), walls.vertices.max(axis=0)
-            else:
-                lo, hi = np.full(3, -1.0), np.full(3, 1.0)
-            eye, centre, up = auto_camera(lo, hi, units.up_axis, view_angle)
-        if cam.focal_point is not None:
-            centre = np.asarray(cam.focal_point, float)
-        if cam.position is not None:
-            eye = np.asarray(cam.position, float)
-        if cam.up is not None:
-            up = np.asarray(cam.up, float)
-        return np.asarray(eye, float), np.asarray(centre, float), np.asarray(up, float), view_angle

@@ -1,0 +1,80 @@
+"""The shot's camera (the scene's ``camera`` section), shared by render and export so the frames and
+the USD camera prim show the same view: a UsdGeom.Camera from a file, or automatic framing on the
+walls, with position / focal_point / up from the config taking precedence."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from pipeline.stage import StageError
+
+from .formats import WallMesh
+
+
+def auto_camera(lo: np.ndarray, hi: np.ndarray, up_axis: str, view_angle: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A 3/4 view from the front-right and somewhat above that fits the box [lo, hi] in the frame."""
+    centre = 0.5 * (lo + hi)
+    radius = 0.5 * float(np.linalg.norm(hi - lo)) or 1.0
+    if up_axis == "Z":
+        direction, up = np.array([0.55, -1.0, 0.6]), np.array([0.0, 0.0, 1.0])
+    else:  # Y-up: the same view with (x, y, z)_Z-up -> (x, z, -y)
+        direction, up = np.array([0.55, 0.6, 1.0]), np.array([0.0, 1.0, 0.0])
+    direction /= np.linalg.norm(direction)
+    distance = 1.05 * radius / math.sin(math.radians(view_angle) / 2)
+    return centre + distance * direction, centre, up
+
+
+def usd_camera(path: Path, prim: str | None, up_axis: str, meters_per_unit: float, who: str = "camera"):
+    """(eye, focal point, up, vertical view angle) of a UsdGeom.Camera, in the scene's units and up axis."""
+    from pxr import Usd, UsdGeom
+
+    if not path.is_file():
+        raise StageError(f"{who}: camera.usd: {path} not found")
+    stage = Usd.Stage.Open(str(path))
+    if prim:
+        cam_prim = stage.GetPrimAtPath(prim)
+        if not cam_prim or not cam_prim.IsA(UsdGeom.Camera):
+            raise StageError(f"{who}: camera.prim: {prim} is not a UsdGeom.Camera in {path}")
+    else:
+        cam_prim = next((p for p in stage.Traverse() if p.IsA(UsdGeom.Camera)), None)
+        if cam_prim is None:
+            raise StageError(f"{who}: camera.usd: {path} has no UsdGeom.Camera prim")
+    cam = UsdGeom.Camera(cam_prim).GetCamera(Usd.TimeCode.Default())
+    frustum = cam.frustum
+    eye = np.array(frustum.GetPosition())
+    look = np.array(frustum.ComputeViewDirection())
+    up = np.array(frustum.ComputeUpVector())
+    view_angle = float(cam.GetFieldOfView(cam.FOVVertical))
+    # the file's units and up axis -> the scene's (Y-up -> Z-up is +90 degrees about X)
+    scale = UsdGeom.GetStageMetersPerUnit(stage) / meters_per_unit
+    file_up = str(UsdGeom.GetStageUpAxis(stage))
+    rot = np.eye(3)
+    if file_up != up_axis:
+        rot = np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0]], float)
+        rot = rot if (file_up, up_axis) == ("Y", "Z") else rot.T
+    eye = rot @ eye * scale
+    return eye, eye + rot @ look, rot @ up, view_angle
+
+
+def shot_camera(walls: WallMesh, units, cam, resolve: Callable[[str], Path], who: str):
+    """(eye, focal point, up, vertical view angle) in scene units for the scene's ``cam``
+    (pipeline.scene.Camera); ``who`` names the stage in errors."""
+    view_angle = cam.view_angle
+    if cam.usd is not None:
+        eye, centre, up, view_angle = usd_camera(resolve(cam.usd), cam.prim, units.up_axis, units.meters_per_unit, who)
+    else:
+        if len(walls.vertices):
+            lo, hi = walls.vertices.min(axis=0), walls.vertices.max(axis=0)
+        else:
+            lo, hi = np.full(3, -1.0), np.full(3, 1.0)
+        eye, centre, up = auto_camera(lo, hi, units.up_axis, view_angle)
+    if cam.focal_point is not None:
+        centre = np.asarray(cam.focal_point, float)
+    if cam.position is not None:
+        eye = np.asarray(cam.position, float)
+    if cam.up is not None:
+        up = np.asarray(cam.up, float)
+    return np.asarray(eye, float), np.asarray(centre, float), np.asarray(up, float), view_angle
