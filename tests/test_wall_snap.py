@@ -4,16 +4,28 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.testing import run_stage
-from stages.common.formats import load_surface
+from stages.common.formats import WallMesh, load_surface
 from stages.common.meshes import face_normals
-from stages.common.sdf import box_interior_sdf, grid_from_function
+from stages.common.sdf import SDFGrid, box_interior_sdf, grid_from_function
 from stages.simulate.emitters import lattice
 from stages.surface_extract.marching_cubes import MarchingCubes
-from stages.wall_snap.distance import DistanceSnap
+from stages.wall_snap.distance import DistanceSnap, DistanceSnapParams, snap_mesh
 
 from test_surface_extract import L0, SCENE, particles
 
 LO, HI = np.zeros(3), np.array([0.2, 0.2, 0.2])
+
+
+def tank_walls(folder):
+    """The tank as a wall mesh (the exact geometry the SDF was made from)."""
+    import trimesh
+
+    box = trimesh.creation.box(bounds=[LO, HI])
+    box.invert()  # a container: normals into the fluid
+    folder.mkdir()
+    WallMesh(np.asarray(box.vertices), np.asarray(box.faces, np.int32), np.zeros(len(box.faces), np.int32),
+             [{"name": "tank", "fluid": "inside"}]).save(folder)
+    return folder
 
 
 def test_box_in_tank_snaps_flat_onto_the_walls(tmp_path):
@@ -32,16 +44,25 @@ def test_box_in_tank_snaps_flat_onto_the_walls(tmp_path):
     d0, d1 = exact(v0), exact(v1)
     band = d0 < 0.9 * L0  # strictly inside the snap band (1 l0): its edge is a tie
     assert band.sum() > 500 and (np.abs(d0[band]) > 0.05 * L0).any()  # the raw surface floats off the wall
-    # away from the tank's edges (where the grid's trilinear field rounds the crease) every snapped
-    # vertex lies on the wall to 1e-3 l0. Known limitation: in the tank's concave edges the trilinear
-    # field of the grid rounds the crease and vertices there stay up to 0.4 l0 off (measured); snapping
-    # to the exact mesh's closest point would fix it
+    # away from the tank's edges every snapped vertex lies on the wall to 1e-3 l0 from the SDF alone;
+    # in the concave edges the grid's trilinear field rounds the crease (vertices up to 0.4 l0 off)
     walls_near = (np.minimum(v1 - LO, HI - v1) < L0).sum(axis=1)
     flat = band & (walls_near == 1)
     assert flat.sum() > 200
     assert np.abs(d1[flat]).max() < 1e-3 * L0
     assert np.abs(d1[band]).max() < 0.5 * L0
     assert d1.min() > -1e-3 * L0  # nothing inside the wall
+    # with the wall mesh, every vertex of the band (edges too) ends on the exact wall, except the few
+    # the flip guard held back (at the contact line in the tank's corners)
+    walls = WallMesh.load(tank_walls(tmp_path / "walls"))
+    on_mesh, report = snap_mesh(raw, SDFGrid.load(tmp_path / "sdf"), L0, DistanceSnapParams(), walls)
+    v2 = on_mesh.vertices.astype(np.float64)
+    d2 = exact(v2)
+    assert (np.abs(d1[band]) > 1e-2 * L0).sum() >= 5  # the SDF alone left the creases off the wall
+    off = band & (np.abs(d2) > 1e-3 * L0)
+    assert off.sum() <= report["damped"] and off.sum() < 0.01 * band.sum()
+    assert d2.min() > -1e-3 * L0
+    assert (np.einsum("ij,ij->i", face_normals(v0, raw.faces), face_normals(v2, raw.faces)) >= 0).all()
     # the floor is flat: every floor-band vertex at z = 0
     floor = band & (v0[:, 2] < L0)
     assert np.abs(v1[floor & (walls_near == 1), 2]).max() < 1e-3 * L0

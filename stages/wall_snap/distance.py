@@ -7,6 +7,10 @@ approach the nearest root from the vertex's side and never jump across a crease)
 step are below ``tolerance``. Vertices inside a wall (d < 0) are always projected out. A vertex whose move would flip
 one of its triangles is moved less (the move halved until no triangle flips), so the surface keeps
 its orientation.
+
+The SDF is a trilinear field on a grid: its zero level rounds concave creases and is off the true
+wall by up to about half a grid cell there. With the wall mesh at hand (``exact``), every projected
+vertex finishes on the mesh's exact closest point (open3d), so it lies on the wall itself.
 """
 from __future__ import annotations
 
@@ -17,7 +21,7 @@ import numpy as np
 from pydantic import Field
 
 from pipeline.stage import Artifact, Context, Params, Stage
-from stages.common.formats import ParticleMeta, SurfaceMesh, load_surface, save_surface
+from stages.common.formats import ParticleMeta, SurfaceMesh, WallMesh, load_surface, save_surface
 from stages.common.meshes import face_normals, vertex_normals
 from stages.common.sdf import SDFGrid, sdf_sample
 
@@ -28,6 +32,8 @@ class DistanceSnapParams(Params):
                                                   "normal facing the wall), not a free surface passing near it")
     tolerance: float = Field(1e-4, gt=0, le=0.1, description="stop when |d| of the SDF field and the last step are "
                                                                   "below this, in l0")
+    exact: bool = Field(True, description="finish each projected vertex on the wall mesh's exact closest point "
+                                          "(the SDF grid rounds creases by up to half a cell)")
     iterations: int = Field(40, ge=1, le=100, description="most steps of the projection per vertex (a flat wall "
                                                          "takes one; a vertex on a crease's bisector, a double "
                                                          "root, about 30)")
@@ -89,7 +95,19 @@ def undo_flips(before: np.ndarray, after: np.ndarray, faces: np.ndarray, halving
         k += 1
 
 
-def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapParams) -> tuple[SurfaceMesh, dict]:
+def closest_points_on(walls: WallMesh, points: np.ndarray) -> np.ndarray:
+    """The exact closest points of ``walls``' triangles to ``points`` (open3d RaycastingScene)."""
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(walls.vertices, np.float32)),
+                        o3d.core.Tensor(np.ascontiguousarray(walls.faces, np.uint32)))
+    q = o3d.core.Tensor(np.ascontiguousarray(points, np.float32))
+    return scene.compute_closest_points(q)["points"].numpy().astype(np.float64)
+
+
+def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapParams,
+              walls: WallMesh | None = None) -> tuple[SurfaceMesh, dict]:
     """The mesh with its near-wall vertices on the walls; and counts (snapped, damped)."""
     if len(mesh.vertices) == 0:
         return mesh, {"snapped": 0, "damped": 0}
@@ -98,6 +116,12 @@ def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapPa
     moved = np.zeros(len(v), np.bool_)
     snap(v, mesh.normals.astype(np.float64), sdf.dist, sdf.origin, 1.0 / sdf.spacing, params.band * l0,
          params.only_contact, params.tolerance * l0, params.iterations, out, moved)
+    if params.exact and walls is not None and len(walls.faces) and moved.any():
+        near = closest_points_on(walls, out[moved])
+        # only where the SDF step landed on this wall (not on a far one through a thin gap)
+        ok = np.linalg.norm(near - out[moved], axis=1) < 1.5 * sdf.spacing
+        idx = np.flatnonzero(moved)[ok]
+        out[idx] = near[ok]
     f = mesh.faces
     damped = undo_flips(v, out, f)
     snapped = SurfaceMesh(out.astype(np.float32), f, vertex_normals(out, f).astype(np.float32))
@@ -107,9 +131,10 @@ def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapPa
 class DistanceSnap(Stage):
     kind = "wall_snap"
     name = "distance"
-    version = "2"
+    version = "3"
     Params = DistanceSnapParams
     inputs = ("raw_surface", "sdf", "particles")  # particles: for l0 (band and tolerance are in l0)
+    optional_inputs = ("walls",)
     outputs = ("surface",)
     per_frame = True
     default = True
@@ -119,6 +144,7 @@ class DistanceSnap(Stage):
         l0 = ParticleMeta.load(inputs["particles"].frame(frame)).spacing
         sdf = SDFGrid.load(inputs["sdf"].frame(frame))
         mesh = load_surface(inputs["raw_surface"].frame(frame), frame)
-        snapped, report = snap_mesh(mesh, sdf, l0, params)
+        walls = WallMesh.load(inputs["walls"].path) if params.exact and inputs.get("walls") is not None else None
+        snapped, report = snap_mesh(mesh, sdf, l0, params, walls)
         ctx.log.debug("frame %d: %d vertices snapped, %d damped", frame, report["snapped"], report["damped"])
         save_surface(ctx.out_dir, frame, snapped)
