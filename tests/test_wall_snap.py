@@ -45,7 +45,7 @@ def test_box_in_tank_snaps_flat_onto_the_walls(tmp_path):
     band = d0 < 0.9 * L0  # strictly inside the snap band (1 l0): its edge is a tie
     assert band.sum() > 500 and (np.abs(d0[band]) > 0.05 * L0).any()  # the raw surface floats off the wall
     # away from the tank's edges every snapped vertex lies on the wall to 1e-3 l0 from the SDF alone;
-    # in the concave edges the grid's trilinear field rounds the crease (vertices up to 0.4 l0 off)
+    # in the concave edges the flip guard may hold a few back
     walls_near = (np.minimum(v1 - LO, HI - v1) < L0).sum(axis=1)
     flat = band & (walls_near == 1)
     assert flat.sum() > 200
@@ -58,7 +58,6 @@ def test_box_in_tank_snaps_flat_onto_the_walls(tmp_path):
     on_mesh, report = snap_mesh(raw, SDFGrid.load(tmp_path / "sdf"), L0, DistanceSnapParams(), walls)
     v2 = on_mesh.vertices.astype(np.float64)
     d2 = exact(v2)
-    assert (np.abs(d1[band]) > 1e-2 * L0).sum() >= 5  # the SDF alone left the creases off the wall
     off = band & (np.abs(d2) > 1e-3 * L0)
     assert off.sum() <= report["damped"] and off.sum() < 0.01 * band.sum()
     assert d2.min() > -1e-3 * L0
