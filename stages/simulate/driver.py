@@ -3,7 +3,11 @@ inside walls, gravity in scene units, reference speed) and the frame loop (advan
 particles, write frames, checkpoints, statistics, meta.json and the USD points layer).
 
 A solver is any object with the ``Solver`` members below; SPH, DFSPH and MPS plug in the same way, so
-their caches, checkpoints and statistics are identical in form."""
+their caches, checkpoints and statistics are identical in form.
+
+Solvers work in SI units: the equations mix lengths with densities in kg/m^3, viscosities in Pa s and
+gravity in m/s^2, so a scene in centimetres (meters_per_unit 0.01) is converted to metres here
+(positions, velocities, the SDF, the spacing) and the frames back to scene units when written."""
 from __future__ import annotations
 
 import math
@@ -45,18 +49,18 @@ class Solver(Protocol):
 
 @dataclass
 class Setup:
-    """The scene as a solver needs it, in scene units."""
+    """The scene as a solver needs it, in SI units (metres, seconds, kg)."""
     x: np.ndarray
     v: np.ndarray
     sdf: SDFGrid
     spacing: float
     density: float
-    gravity: np.ndarray  # acceleration vector, scene units / s^2 (zero without the gravity effect)
+    gravity: np.ndarray  # acceleration vector, m/s^2 (zero without the gravity effect)
     up: np.ndarray
     v_ref: float  # expected top speed: sqrt(2 g H) of the fluid column, or the emitters' speed
     domain: tuple[np.ndarray, np.ndarray] | None
     effects: Any  # pipeline.scene.Effects
-    meters_per_unit: float
+    meters_per_unit: float  # of the scene: frames are written back in scene units
     dropped: int = 0  # emitted particles dropped because they started inside a wall
 
 
@@ -86,18 +90,29 @@ def prepare(ctx: Context, inputs: Mapping[str, Artifact], who: str) -> Setup:
     if len(x) == 0:
         raise StageError(f"{who}: the emitters produced no particles in the fluid region "
                          "(fluid.emitters outside the walls or smaller than fluid.spacing?)")
+    if mpu != 1.0:  # scene units -> metres
+        x, v, l0 = x * mpu, v * mpu, l0 * mpu
+        sdf = SDFGrid(origin=sdf.origin * mpu, spacing=sdf.spacing * mpu, dist=sdf.dist * np.float32(mpu),
+                      band=sdf.band * mpu)
     gravity = np.zeros(3)
     v_ref = float(np.linalg.norm(v, axis=1).max())
     if effects.gravity is not None:
-        g = effects.gravity.g / mpu  # m/s^2 -> scene units/s^2
+        g = effects.gravity.g
         gravity = -g * up
         height = float((x @ up).max() - (x @ up).min()) + l0
         v_ref = max(v_ref, math.sqrt(2.0 * g * height))
     domain = None
     if scene.domain is not None:
-        domain = (np.asarray(scene.domain.min, float), np.asarray(scene.domain.max, float))
+        domain = (np.asarray(scene.domain.min, float) * mpu, np.asarray(scene.domain.max, float) * mpu)
     return Setup(x=x, v=v, sdf=sdf, spacing=l0, density=fluid.density, gravity=gravity, up=up, v_ref=v_ref,
                  domain=domain, effects=effects, meters_per_unit=mpu, dropped=dropped)
+
+
+def to_scene_units(fr: ParticleFrame, mpu: float) -> ParticleFrame:
+    """A solver's frame (SI) in the scene's length unit; density and pressure stay SI."""
+    if mpu == 1.0:
+        return fr
+    return ParticleFrame(x=fr.x / mpu, v=fr.v / mpu, rho=fr.rho, p=fr.p, id=fr.id)
 
 
 _LIST_STATS = ("density_error_mean", "density_error_max", "inside_wall", "extent_min", "extent_max")
@@ -125,7 +140,7 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
         progress.advance(start + 1)
     else:
         start = 0
-        f0 = solver.frame()
+        f0 = to_scene_units(solver.frame(), setup.meters_per_unit)
         write_frame(ctx.out_dir, 0, f0, ckpt_dir)
         _frame_stats(stats, f0, solver)
         progress.advance()
@@ -135,7 +150,7 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
         gone = solver.remove_escaped()
         if gone:
             ctx.log.warning("frame %d: %d particles left the domain and were removed", f, gone)
-        fr = solver.frame()
+        fr = to_scene_units(solver.frame(), setup.meters_per_unit)
         write_frame(ctx.out_dir, f, fr, ckpt_dir)
         _frame_stats(stats, fr, solver)
         if ckpt_dir is not None and (f % checkpoint_every == 0) and f < count - 1:
@@ -155,11 +170,12 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
         "wall_seconds_per_simulated_second": stats["wall_seconds"] / sim_seconds if sim_seconds > 0 else 0.0,
         "ms_per_step": 1e3 * stats["wall_seconds"] / max(solver.steps, 1),
     }
-    meta = ParticleMeta(spacing=setup.spacing, mass=solver.mass, density=setup.density, support=solver.h, fps=fps,
+    mpu = setup.meters_per_unit
+    meta = ParticleMeta(spacing=setup.spacing / mpu, mass=solver.mass, density=setup.density, support=solver.h / mpu, fps=fps,
                         frame_count=count, up_axis=scene.units.up_axis, meters_per_unit=setup.meters_per_unit,
                         solver=solver_name, stats=stats)
     meta.save(ctx.out_dir)
-    write_points_layer(ctx.out_dir / "particles.usdc", iter_frames(ctx.out_dir, count), spacing=setup.spacing,
+    write_points_layer(ctx.out_dir / "particles.usdc", iter_frames(ctx.out_dir, count), spacing=setup.spacing / mpu,
                        up_axis=scene.units.up_axis, meters_per_unit=setup.meters_per_unit, fps=fps, count=count)
     return stats
 
