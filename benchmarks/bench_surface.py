@@ -32,9 +32,8 @@ os.environ.setdefault("NUMBA_THREADING_LAYER", "omp")
 import numpy as np  # noqa: E402
 
 from stages.common.formats import WallMesh  # noqa: E402
-from stages.common.meshes import boundary_edge_count  # noqa: E402
+from stages.common.meshes import boundary_edge_count, signed_volume  # noqa: E402
 from stages.common.sdf import box_interior_sdf, grid_from_function  # noqa: E402
-from stages.surface_extract.implicit import signed_volume  # noqa: E402
 from stages.surface_extract.marching_cubes import MarchingCubesParams, extract  # noqa: E402
 from stages.wall_snap.distance import DistanceSnapParams, snap_mesh  # noqa: E402
 

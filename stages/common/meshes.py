@@ -1,13 +1,15 @@
-"""Small triangle-mesh helpers shared by surface_extract and wall_snap."""
+"""Small triangle-mesh helpers shared by surface_extract and wall_snap (numba where it runs per frame)."""
 from __future__ import annotations
 
+import math
+
+import numba as nb
 import numpy as np
 
 
 def signed_volume(v: np.ndarray, f: np.ndarray) -> float:
     """Volume enclosed by a closed mesh; positive when the faces are oriented outwards."""
-    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
-    return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
+    return float(_signed_volume(np.ascontiguousarray(v, np.float64), np.ascontiguousarray(f)))
 
 
 def face_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
@@ -17,12 +19,10 @@ def face_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
 
 def vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
     """Area-weighted unit vertex normals (zero for isolated vertices)."""
-    fn = face_normals(v, f)
-    n = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(n, f[:, k], fn)
-    norm = np.linalg.norm(n, axis=1, keepdims=True)
-    return np.divide(n, norm, out=np.zeros_like(n), where=norm > 0)
+    v = np.ascontiguousarray(v, np.float64)
+    out = np.empty_like(v)
+    _vertex_normals(v, np.ascontiguousarray(f), out)
+    return out
 
 
 def boundary_edge_count(f: np.ndarray) -> int:
@@ -30,3 +30,49 @@ def boundary_edge_count(f: np.ndarray) -> int:
     e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
     _, counts = np.unique(e, axis=0, return_counts=True)
     return int((counts == 1).sum())
+
+
+@nb.njit(cache=True)
+def _vertex_normals(v, f, out):
+    """Area-weighted unit vertex normals of the triangle mesh (v, f) into ``out`` (zeros first)."""
+    for a in range(out.shape[0]):
+        out[a, 0] = 0.0
+        out[a, 1] = 0.0
+        out[a, 2] = 0.0
+    for t in range(f.shape[0]):
+        a = f[t, 0]
+        b = f[t, 1]
+        c = f[t, 2]
+        ux = v[b, 0] - v[a, 0]
+        uy = v[b, 1] - v[a, 1]
+        uz = v[b, 2] - v[a, 2]
+        wx = v[c, 0] - v[a, 0]
+        wy = v[c, 1] - v[a, 1]
+        wz = v[c, 2] - v[a, 2]
+        nx = uy * wz - uz * wy
+        ny = uz * wx - ux * wz
+        nz = ux * wy - uy * wx
+        for p in (a, b, c):
+            out[p, 0] += nx
+            out[p, 1] += ny
+            out[p, 2] += nz
+    for a in range(out.shape[0]):
+        n = math.sqrt(out[a, 0] ** 2 + out[a, 1] ** 2 + out[a, 2] ** 2)
+        if n > 0.0:
+            out[a, 0] /= n
+            out[a, 1] /= n
+            out[a, 2] /= n
+
+
+@nb.njit(cache=True)
+def _signed_volume(v, f):
+    """Volume enclosed by the closed mesh (v, f); positive when faces are oriented outwards."""
+    s = 0.0
+    for t in range(f.shape[0]):
+        a = f[t, 0]
+        b = f[t, 1]
+        c = f[t, 2]
+        s += (v[a, 0] * (v[b, 1] * v[c, 2] - v[b, 2] * v[c, 1])
+              + v[a, 1] * (v[b, 2] * v[c, 0] - v[b, 0] * v[c, 2])
+              + v[a, 2] * (v[b, 0] * v[c, 1] - v[b, 1] * v[c, 0]))
+    return s / 6.0

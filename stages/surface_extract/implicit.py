@@ -1,4 +1,4 @@
-"""The particles' implicit function on a grid (PHYSICS.md eq. 17-18) and mesh helpers, numba.
+"""The particles' implicit function on a grid (PHYSICS.md eq. 17-18), numba.
 
 Phi(x) = sum_j (m / rho_j) W(|x - x_j|) with the Poly6 kernel (eq. 10) of support R, so Phi is about
 1 inside the fluid and 0 outside. Scattered per particle over the grid nodes inside its kernel
@@ -131,49 +131,3 @@ def cut_by_walls(phi, grid_lo, h, iso, radius, dist, origin, inv_h_sdf):
 def _sdf_distance(dist, origin, inv_h, x, y, z):
     d, _, _, _ = sdf_sample(dist, origin[0], origin[1], origin[2], inv_h, x, y, z)
     return d
-
-
-@nb.njit(cache=True)
-def vertex_normals(v, f, out):
-    """Area-weighted unit vertex normals of the triangle mesh (v, f) into ``out`` (zeros first)."""
-    for a in range(out.shape[0]):
-        out[a, 0] = 0.0
-        out[a, 1] = 0.0
-        out[a, 2] = 0.0
-    for t in range(f.shape[0]):
-        a = f[t, 0]
-        b = f[t, 1]
-        c = f[t, 2]
-        ux = v[b, 0] - v[a, 0]
-        uy = v[b, 1] - v[a, 1]
-        uz = v[b, 2] - v[a, 2]
-        wx = v[c, 0] - v[a, 0]
-        wy = v[c, 1] - v[a, 1]
-        wz = v[c, 2] - v[a, 2]
-        nx = uy * wz - uz * wy
-        ny = uz * wx - ux * wz
-        nz = ux * wy - uy * wx
-        for p in (a, b, c):
-            out[p, 0] += nx
-            out[p, 1] += ny
-            out[p, 2] += nz
-    for a in range(out.shape[0]):
-        n = math.sqrt(out[a, 0] ** 2 + out[a, 1] ** 2 + out[a, 2] ** 2)
-        if n > 0.0:
-            out[a, 0] /= n
-            out[a, 1] /= n
-            out[a, 2] /= n
-
-
-@nb.njit(cache=True)
-def signed_volume(v, f):
-    """Volume enclosed by the closed mesh (v, f); positive when faces are oriented outwards."""
-    s = 0.0
-    for t in range(f.shape[0]):
-        a = f[t, 0]
-        b = f[t, 1]
-        c = f[t, 2]
-        s += (v[a, 0] * (v[b, 1] * v[c, 2] - v[b, 2] * v[c, 1])
-              + v[a, 1] * (v[b, 2] * v[c, 0] - v[b, 0] * v[c, 2])
-              + v[a, 2] * (v[b, 0] * v[c, 1] - v[b, 1] * v[c, 0]))
-    return s / 6.0

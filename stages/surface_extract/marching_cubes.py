@@ -22,9 +22,10 @@ from pydantic import Field
 
 from pipeline.stage import Artifact, Context, Params, Stage
 from stages.common.formats import ParticleMeta, SurfaceMesh, load_particle_frame, save_surface
+from stages.common.meshes import signed_volume, vertex_normals
 from stages.common.sdf import SDFGrid
 
-from .implicit import cut_by_walls, ghost_particles, order_and_chunks, scatter_implicit, signed_volume, vertex_normals
+from .implicit import cut_by_walls, ghost_particles, order_and_chunks, scatter_implicit
 
 SLABS_PER_CHUNK = 4  # z slabs per parallel task: many tasks for balance, each particle in ~ 2R / (4 h) of them
 
@@ -88,8 +89,7 @@ def extract(x: np.ndarray, vol: np.ndarray, l0: float, params: MarchingCubesPara
     faces = np.asarray(surf.faces).reshape(-1, 4)[:, 1:].astype(np.int32)
     if signed_volume(verts, faces) < 0:  # orient outwards (Phi falls off outside the fluid)
         faces = np.ascontiguousarray(faces[:, ::-1])
-    normals = np.empty_like(verts)
-    vertex_normals(verts, faces, normals)
+    normals = vertex_normals(verts, faces)
     t3 = time.perf_counter()
     if timings is not None:
         timings.update({"phi": t1 - t0, "contour": t2 - t1, "finish": t3 - t2})
