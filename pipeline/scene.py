@@ -156,37 +156,73 @@ class Fluid(Model):
 
 # -- effects (issue 8: only the declared ones are compiled in and computed) --------------------
 class Gravity(Model):
+    """Uniform gravity along the scene's down axis."""
+
     g: float = Field(9.81, ge=0, description="magnitude, m/s^2, pointing against the up axis")
 
 
 class Viscosity(Model):
+    """Fluid-fluid viscosity (PHYSICS.md eq. 7, 9) and the resting wall's no-slip term (eq. 13-15)."""
+
     mu: float = Field(0.001, ge=0, description="dynamic viscosity, Pa s (water 0.001)")
     wall: bool = Field(True, description="also the no-slip wall term of the seed method (eq. 13-15)")
 
 
 class SurfaceTension(Model):
-    gamma: float = Field(0.0728, ge=0, description="surface tension coefficient, N/m (Akinci et al. 2013)")
+    """Akinci et al. 2013: cohesion (spline C(r)) + curvature (particle normals), both scaled by the
+    symmetric correction K_ij = 2 rho0 / (rho_i + rho_j). ``gamma`` is converted to the model's
+    constant with the Kirkwood-Buff integral of the cohesion pair force over a uniform fluid."""
+
+    gamma: float = Field(0.0728, ge=0, description="surface tension coefficient, N/m (water 0.0728)")
 
 
 class WallAdhesion(Model):
-    beta: float = Field(0.5, ge=0, description="adhesion strength (Akinci et al. 2013), dimensionless")
+    """Akinci et al. 2013 adhesion towards the walls: the adhesion kernel A(r) integrated over the wall
+    half-space at the particle's SDF distance, pulling along the SDF normal towards the wall."""
+
+    beta: float = Field(0.5, ge=0, description="adhesion strength, dimensionless: 1 pulls like the fluid's own "
+                        "cohesion (surface_tension.gamma, or water's 0.0728 N/m when surface_tension is absent)")
 
 
 class WallFriction(Model):
-    coefficient: float = Field(0.2, ge=0, le=1, description="fraction of tangential velocity removed at wall contact")
+    """Tangential velocity of particles in wall contact (SDF distance < spacing, fading out at the support
+    radius) decays as exp(-rate t); a rate, so the result does not depend on the time step."""
+
+    rate: float = Field(5.0, ge=0, description="decay rate of the tangential velocity at wall contact, 1/s")
 
 
 class Wind(Model):
+    """Drag towards the air velocity on free-surface particles (density below 0.97 rho0, ramping to full
+    drag at 0.77 rho0)."""
+
     velocity: Vec3 = Field(description="air velocity, scene units/s")
     drag: float = Field(1.0, ge=0, description="relaxation rate towards the air velocity, 1/s")
 
+    _fin_velocity = field_validator("velocity")(_finite)
+
 
 class Attractor(Model):
+    """Point attraction a = strength (u / r)^2 towards ``point`` (u = one scene unit), softened as
+    strength u^2 r / (r^2 + s^2)^(3/2) within the softening radius s."""
+
     point: Vec3 = Field(description="attraction centre, scene units")
-    strength: float = Field(description="acceleration at unit distance, m/s^2 (negative repels)")
+    strength: float = Field(description="acceleration at one scene unit of distance, m/s^2 (negative repels)")
+    softening: float | None = Field(None, gt=0, description="softening radius s, scene units; default 2 fluid spacings")
+
+    _finite_point = field_validator("point")(_finite)
+
+    @field_validator("strength")
+    @classmethod
+    def _finite_strength(cls, v: float) -> float:
+        if not math.isfinite(v):
+            raise ValueError("expected a finite number")
+        return v
 
 
 class Effects(Model):
+    """The forces a scene declares; only these are compiled into the solver's kernels (pressure is
+    always on). Solvers work in SI: scene lengths are converted with units.meters_per_unit."""
+
     gravity: Gravity | None = None
     viscosity: Viscosity | None = None
     surface_tension: SurfaceTension | None = None

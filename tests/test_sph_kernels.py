@@ -5,6 +5,7 @@ import numpy as np
 
 from stages.common.sdf import box_interior_sdf, grid_from_function
 from stages.simulate import sph_kernels as K
+from stages.simulate.effects import cohesion_coef
 from stages.simulate.kernels import lattice_mass, poly6_coef, poly6_np, spiky_grad_coef, visc_lap_coef
 from stages.simulate.neighbours import CellGrid
 from stages.simulate.wall_tables import build_tables, half_space_density
@@ -65,10 +66,16 @@ def test_pair_forces_conserve_momentum_without_walls():
     wo = np.zeros(3)
     K.density_pressure(x, grid.starts, grid.lo, 1 / grid.cell, grid.dims, h, poly6_coef(h), m, 1000.0, no_walls, wo,
                        1.0, zeros, 7 / h, sdf.dist, sdf.origin, 1 / sdf.spacing, K.EOS_LINEAR, 100.0, False, rho, p, d, nrm)
-    for fn in (K.forces_pressure, K.forces_pressure_viscosity):
+    normals = np.zeros((n, 3))
+    K.surface_normals(x, rho, grid.starts, grid.lo, 1 / grid.cell, grid.dims, h, spiky_grad_coef(h), m, normals)
+    pressure = (p, spiky_grad_coef(h), zeros, 0.5)
+    viscosity = (0.01, visc_lap_coef(h), zeros)
+    tension = (0.05, normals, cohesion_coef(h))
+    for pr, vis, ten in ((pressure, None, None), (pressure, viscosity, None), (None, None, tension),
+                         (pressure, viscosity, tension)):
         acc = np.zeros((n, 3))
-        fn(x, v, rho, p, d, grid.starts, grid.lo, 1 / grid.cell, grid.dims, h, spiky_grad_coef(h),
-           visc_lap_coef(h), m, 0.01, no_walls, wo, 1.0, zeros, zeros, 7 / h, np.zeros(3), 0.5, acc)
+        K.forces(x, v, rho, d, nrm, grid.starts, grid.lo, 1 / grid.cell, grid.dims, h, m, 1000.0, no_walls, wo, 1.0,
+                 7 / h, np.zeros(3), acc, pr, vis, ten, None, None, None, None)
         total = (m * acc).sum(axis=0)
         scale = (m * np.abs(acc)).sum()
         assert scale > 0

@@ -16,6 +16,7 @@ from stages.common.sdf import SDFGrid
 
 from . import sph_kernels as K
 from .driver import drive, prepare, set_threads
+from .effects import EffectConstants, compile_effects, cohesion_coef
 from .kernels import lattice_mass, poly6_coef, spiky_grad_coef, spiky_lattice_factor, visc_lap_coef
 from .neighbours import CellGrid, reorder
 from .timestep import stable_dt, step_to
@@ -42,7 +43,13 @@ class SPHSolver:
 
     def __init__(self, x, v, ids, sdf: SDFGrid, *, spacing: float, rho0: float, params: SPHParams,
                  gravity=(0.0, 0.0, 0.0), mu: float | None = None, wall_viscosity: bool = True,
-                 v_ref: float = 1.0, domain=None):
+                 v_ref: float = 1.0, domain=None, effects: EffectConstants | None = None):
+        """``effects`` (effects.compile_effects) selects the compiled force kernel; without it, ``mu``
+        and ``wall_viscosity`` give the pressure(+viscosity) solver of issue 4."""
+        if effects is None:
+            effects = EffectConstants(mu=mu, wall_viscosity=wall_viscosity)
+        self.effects = effects
+        mu, wall_viscosity = effects.mu, effects.wall_viscosity
         self.p = params
         self.l0 = float(spacing)
         self.h = params.support * self.l0
@@ -58,7 +65,6 @@ class SPHSolver:
         self.eos = K.EOS_LINEAR if params.eos == "linear" else K.EOS_TAIT
         self.gravity = np.asarray(gravity, np.float64)
         self.mu = float(mu) if mu is not None else 0.0
-        self._forces = K.forces_pressure_viscosity if mu is not None else K.forces_pressure
         self.sdf = sdf
         self.sdf_inv = 1.0 / sdf.spacing
         lo, hi = (sdf.origin, sdf.upper) if domain is None else domain
@@ -80,6 +86,7 @@ class SPHSolver:
         self.d = np.zeros(n)
         self.nrm = np.zeros((n, 3))
         self.acc = np.zeros((n, 3))
+        self.normals = np.zeros((n, 3)) if self.effects.tension_k is not None else None
 
     # -- one step -----------------------------------------------------------------------------
     def sort_and_density(self) -> None:
@@ -91,18 +98,33 @@ class SPHSolver:
                            self.walls.fix_rho, self.inv_dr, self.sdf.dist, self.sdf.origin, self.sdf_inv,
                            self.eos, self.stiffness, self.p.clamp_pressure, self.rho, self.pr, self.d, self.nrm)
 
+    def effect_args(self) -> tuple:
+        """(viscosity, tension, adhesion, friction, wind, attractor) for K.forces: None when absent."""
+        e = self.effects
+        vis = (self.mu, visc_lap_coef(self.h), self.fix_vis) if e.mu is not None else None
+        ten = (e.tension_k, self.normals, cohesion_coef(self.h)) if e.tension_k is not None else None
+        adh = (e.adhesion_accel,) if e.adhesion_accel is not None else None
+        fri = (e.friction_rate,) if e.friction_rate is not None else None
+        wind = (e.wind_velocity, e.wind_drag) if e.wind_velocity is not None else None
+        att = (e.attractor_point, e.attractor_k, e.attractor_soft) if e.attractor_point is not None else None
+        return vis, ten, adh, fri, wind, att
+
     def forces(self) -> None:
         g = self.grid
-        self._forces(self.x, self.v, self.rho, self.pr, self.d, g.starts, g.lo, 1.0 / g.cell, g.dims, self.h,
-                     spiky_grad_coef(self.h) / self.grad_norm, visc_lap_coef(self.h), self.mass, self.mu, self.walls.maps, self.walls.origin,
-                     1.0 / self.walls.spacing, self.fix_vis, self.fix_press, self.inv_dr,
-                     self.gravity, self.p.artificial_viscosity * self.c * self.h, self.acc)
+        grad_coef = spiky_grad_coef(self.h) / self.grad_norm
+        if self.normals is not None:  # Akinci normals: a pass after the density, only with tension
+            K.surface_normals(self.x, self.rho, g.starts, g.lo, 1.0 / g.cell, g.dims, self.h, grad_coef, self.mass,
+                              self.normals)
+        pressure = (self.pr, grad_coef, self.fix_press, self.p.artificial_viscosity * self.c * self.h)
+        K.forces(self.x, self.v, self.rho, self.d, self.nrm, g.starts, g.lo, 1.0 / g.cell, g.dims, self.h, self.mass,
+                 self.rho0, self.walls.maps, self.walls.origin, 1.0 / self.walls.spacing, self.inv_dr, self.gravity,
+                 self.acc, pressure, *self.effect_args())
 
     def stable_dt(self, dt_max: float) -> float:
         v2, a2 = K.max_speed2_accel2(self.v, self.acc)
         nu = self.mu / self.rho0 if self.mu > 0 else None
         return stable_dt(l0=self.l0, h=self.h, v_max=math.sqrt(v2), a_max=math.sqrt(a2), cfl=self.p.cfl,
-                         sound_speed=self.c, nu=nu, dt_max=dt_max)
+                         sound_speed=self.c, nu=nu, dt_max=min(dt_max, self.effects.dt_limit))
 
     def step(self, t_end: float) -> float:
         """One step towards t_end (never past it); returns dt."""
@@ -159,7 +181,7 @@ class SPHSolver:
 class SPHSimulate(Stage):
     kind = "simulate"
     name = "sph"
-    version = "2"
+    version = "3"
     Params = SPHParams
     inputs = ("sdf",)
     reads = ("scene", "fluid", "effects")
@@ -173,10 +195,10 @@ class SPHSimulate(Stage):
     def run(self, ctx: Context, inputs: Mapping[str, Artifact], params: SPHParams) -> None:
         set_threads(params.threads or getattr(ctx, "threads", None))
         setup = prepare(ctx, inputs, "simulate.sph")
-        visc = setup.effects.viscosity
+        h = params.support * setup.spacing
+        effects = compile_effects(setup.effects, meters_per_unit=setup.meters_per_unit, rho0=setup.density,
+                                  l0=setup.spacing, h=h, table_samples=params.table_samples)
         solver = SPHSolver(setup.x, setup.v, np.arange(len(setup.x), dtype=np.int32), setup.sdf, spacing=setup.spacing,
-                           rho0=setup.density, params=params, gravity=setup.gravity,
-                           mu=visc.mu if visc is not None else None,
-                           wall_viscosity=bool(visc.wall) if visc is not None else False, v_ref=setup.v_ref,
-                           domain=setup.domain)
+                           rho0=setup.density, params=params, gravity=setup.gravity, v_ref=setup.v_ref,
+                           domain=setup.domain, effects=effects)
         drive(ctx, solver, setup, solver_name="sph", checkpoint_every=params.checkpoint_every)

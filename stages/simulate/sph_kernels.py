@@ -2,9 +2,34 @@
 
 Every particle loop is a prange over i that writes only particle i (no scatter, no atomics), so the
 result is bitwise deterministic whatever the thread count. Arrays are in cell order (see
-neighbours.py). Effects are compile-time: ``forces_pressure`` and ``forces_pressure_viscosity`` are
-two kernels built from one inlined body with a literal flag, so the pressure-only build contains no
-viscosity code at all (issue 8 adds more flags the same way)."""
+neighbours.py). All lengths SI (metres), see driver.py.
+
+Effects are compile-time (issue 8). ``forces`` is ONE fused neighbour-loop kernel; each effect is an
+optional argument that is either a tuple of its constants or None. Numba types None as NoneType and
+prunes every ``if arg is not None:`` branch before lowering (dead-branch pruning), and cache=True keeps
+one machine-code build per effect set on disk, so an absent effect costs nothing per pair.
+
+    forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0,
+           wmap, wo, winv, inv_dr, gravity, acc,
+           pressure, viscosity, tension, adhesion, friction, wind, attractor)
+
+    common   x, v (N,3) positions m, velocities m/s; rho (N,) density kg/m^3; d (N,) SDF distance m and
+             nrm (N,3) SDF normal (into the fluid), both from density_pressure; starts/lo/inv_cell/dims
+             the cell grid (neighbours.py); h support m; mass kg; rho0 kg/m^3; wmap/wo/winv the wall
+             maps (wall_maps.py) and inv_dr their tables' 1/dr; gravity (3,) m/s^2 (always added;
+             zeros without the effect); acc (N,3) output, m/s^2 (overwritten).
+    pressure   (p, grad_coef, fix_press, av): p (N,) Pa; grad_coef the Spiky gradient coefficient
+               (eq. 8, divided by the lattice factor); fix_press the wall-pressure table; av = alpha c h,
+               Monaghan's artificial viscosity (part of the WCSPH pressure term). None: no pressure
+               at all (DFSPH calls it this way for the non-pressure accelerations).
+    viscosity  (mu, lap_coef, fix_vis): Pa s, eq. 9 coefficient, the Z_vis table (zeros = no wall term).
+    tension    (k, normals, coh_coef): Akinci 2013 constant k (effects.tension_constant), the (N,3)
+               particle normals from ``surface_normals``, 32 / (pi h^9).
+    adhesion   (accel,): table over [0, h] of the wall adhesion acceleration m/s^2 (effects.py).
+    friction   (rate,): tangential decay rate at wall contact, 1/s.
+    wind       (u, drag): air velocity (3,) m/s, drag 1/s; on free-surface particles only.
+    attractor  (point, k, soft): point (3,) m, a = k / r^2 (m^3/s^2), softening radius m.
+"""
 from __future__ import annotations
 
 import math
@@ -72,14 +97,71 @@ def density_pressure(x, starts, lo, inv_cell, dims, h, poly6_coef, mass, rho0, w
         p[i] = pi
 
 
-@nb.njit(cache=True, inline="always")
-def _forces_body(x, v, rho, p, d, starts, lo, inv_cell, dims, h, spiky_coef, lap_coef, mass, mu,
-                 wmap, wo, winv, fix_vis, fix_press, inv_dr, gravity, av, acc, with_viscosity):
+@nb.njit(cache=True, parallel=True)
+def surface_normals(x, rho, starts, lo, inv_cell, dims, h, grad_coef, mass, out):
+    """Akinci et al. 2013 particle normals n_i = -h sum_j m/rho_j grad W_ij (Spiky gradient, eq. 8),
+    pointing out of the fluid, |n| ~ 1 at the free surface and ~ 0 inside. A pass after the density."""
+    h2 = h * h
+    nx, ny, nz = dims[0], dims[1], dims[2]
+    for i in nb.prange(x.shape[0]):
+        xi = x[i, 0]
+        yi = x[i, 1]
+        zi = x[i, 2]
+        cx = min(max(int(math.floor((xi - lo[0]) * inv_cell)), 0), nx - 1)
+        cy = min(max(int(math.floor((yi - lo[1]) * inv_cell)), 0), ny - 1)
+        cz = min(max(int(math.floor((zi - lo[2]) * inv_cell)), 0), nz - 1)
+        x0 = max(cx - 1, 0)
+        x1 = min(cx + 1, nx - 1)
+        sx = 0.0
+        sy = 0.0
+        sz = 0.0
+        for kz in range(max(cz - 1, 0), min(cz + 2, nz)):
+            for ky in range(max(cy - 1, 0), min(cy + 2, ny)):
+                base = (kz * ny + ky) * nx
+                for j in range(starts[base + x0], starts[base + x1 + 1]):
+                    dx = xi - x[j, 0]
+                    dy = yi - x[j, 1]
+                    dz = zi - x[j, 2]
+                    r2 = dx * dx + dy * dy + dz * dz
+                    if r2 < h2 and r2 > 1e-24:
+                        r = math.sqrt(r2)
+                        f = (h - r) * (h - r) / (r * rho[j])
+                        sx += f * dx
+                        sy += f * dy
+                        sz += f * dz
+        c = h * mass * grad_coef
+        out[i, 0] = c * sx
+        out[i, 1] = c * sy
+        out[i, 2] = c * sz
+
+
+@nb.njit(cache=True, parallel=True)
+def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, wmap, wo, winv, inv_dr, gravity, acc,
+           pressure, viscosity, tension, adhesion, friction, wind, attractor):
+    """Acceleration of every particle: gravity plus the declared effects (module docstring). Pressure
+    eq. 6, 8 (+ Monaghan av) and the wall pressure along the wall map; viscosity eq. 7, 9 and the wall
+    term eq. 13-15; tension, adhesion, friction, wind, attractor as in PHYSICS.md "Effects"."""
     h2 = h * h
     nx, ny, nz = dims[0], dims[1], dims[2]
     gx0 = gravity[0]
     gy0 = gravity[1]
     gz0 = gravity[2]
+    if pressure is not None:
+        p, grad_coef, fix_press, av = pressure
+    if viscosity is not None:
+        mu, lap_coef, fix_vis = viscosity
+    if tension is not None:
+        k_ten, normals, coh_coef = tension
+        h6_64 = h2 * h2 * h2 / 64.0
+    if adhesion is not None:
+        adh_table = adhesion[0]
+    if friction is not None:
+        fr_rate = friction[0]
+    if wind is not None:
+        u_air, drag = wind
+    if attractor is not None:
+        a_pt, a_k, a_soft = attractor
+        soft2 = a_soft * a_soft
     for i in nb.prange(x.shape[0]):
         xi = x[i, 0]
         yi = x[i, 1]
@@ -87,7 +169,6 @@ def _forces_body(x, v, rho, p, d, starts, lo, inv_cell, dims, h, spiky_coef, lap
         vxi = v[i, 0]
         vyi = v[i, 1]
         vzi = v[i, 2]
-        pi = p[i]
         rhoi = rho[i]
         cx = min(max(int(math.floor((xi - lo[0]) * inv_cell)), 0), nx - 1)
         cy = min(max(int(math.floor((yi - lo[1]) * inv_cell)), 0), ny - 1)
@@ -101,8 +182,21 @@ def _forces_body(x, v, rho, p, d, starts, lo, inv_cell, dims, h, spiky_coef, lap
         bx = 0.0
         by = 0.0
         bz = 0.0
+        tx = 0.0
+        ty = 0.0
+        tz = 0.0
+        ux = 0.0
+        uy = 0.0
+        uz = 0.0
         sp = 0.0
         sw = 1e-300
+        pi = 0.0
+        if pressure is not None:
+            pi = p[i]
+        if tension is not None:
+            nxi = normals[i, 0]
+            nyi = normals[i, 1]
+            nzi = normals[i, 2]
         near_wall = d[i] < h  # loop-invariant: LLVM unswitches the Shepard sum out of other particles' loops
         for kz in range(max(cz - 1, 0), min(cz + 2, nz)):
             for ky in range(max(cy - 1, 0), min(cy + 2, ny)):
@@ -112,80 +206,121 @@ def _forces_body(x, v, rho, p, d, starts, lo, inv_cell, dims, h, spiky_coef, lap
                     dy = yi - x[j, 1]
                     dz = zi - x[j, 2]
                     r2 = dx * dx + dy * dy + dz * dz
-                    if near_wall and r2 < h2:
-                        q = h2 - r2
-                        q = q * q * q
-                        sp += p[j] * q
-                        sw += q
+                    if pressure is not None:
+                        if near_wall and r2 < h2:
+                            q = h2 - r2
+                            q = q * q * q
+                            sp += p[j] * q
+                            sw += q
                     if r2 < h2 and r2 > 1e-24:
                         r = math.sqrt(r2)
                         hr = h - r
                         inv_rhoj = 1.0 / rho[j]
-                        # eq. 6 with the Spiky gradient (eq. 8): -grad W = c (h - r)^2 (x_i - x_j) / r.
-                        # Without eq. 6's factor 1/2 (Monaghan's symmetric form at rho ~ rho0): with
-                        # it, sum V (p_i + p_j) / 2 grad W gives only half of grad p on a lattice,
-                        # and the hydrostatic pressure came out twice rho g h
-                        f = (pi + p[j]) * inv_rhoj
-                        # Monaghan's artificial viscosity on approaching pairs (av = alpha c h): it
-                        # dissipates the acoustic noise of the weakly compressible EOS; without it a
-                        # dam break never settles and sprays into a gas. Symmetric in i, j.
-                        vdx = (vxi - v[j, 0]) * dx + (vyi - v[j, 1]) * dy + (vzi - v[j, 2]) * dz
-                        if vdx < 0.0:
-                            f += av * (-vdx) / (r2 + eps) * 2.0 * rhoi / (rhoi + rho[j])
-                        f *= hr * hr / r
-                        ax += f * dx
-                        ay += f * dy
-                        az += f * dz
-                        if with_viscosity:
+                        if pressure is not None:
+                            # eq. 6 with the Spiky gradient (eq. 8): -grad W = c (h - r)^2 (x_i - x_j) / r.
+                            # Without eq. 6's factor 1/2 (Monaghan's symmetric form at rho ~ rho0): with
+                            # it, sum V (p_i + p_j) / 2 grad W gives only half of grad p on a lattice,
+                            # and the hydrostatic pressure came out twice rho g h
+                            f = (pi + p[j]) * inv_rhoj
+                            # Monaghan's artificial viscosity on approaching pairs (av = alpha c h): it
+                            # dissipates the acoustic noise of the weakly compressible EOS; without it a
+                            # dam break never settles and sprays into a gas. Symmetric in i, j.
+                            vdx = (vxi - v[j, 0]) * dx + (vyi - v[j, 1]) * dy + (vzi - v[j, 2]) * dz
+                            if vdx < 0.0:
+                                f += av * (-vdx) / (r2 + eps) * 2.0 * rhoi / (rhoi + rho[j])
+                            f *= hr * hr / r
+                            ax += f * dx
+                            ay += f * dy
+                            az += f * dz
+                        if viscosity is not None:
                             # eq. 7 with the viscosity Laplacian (eq. 9)
                             w = hr * inv_rhoj
                             bx += (v[j, 0] - vxi) * w
                             by += (v[j, 1] - vyi) * w
                             bz += (v[j, 2] - vzi) * w
+                        if tension is not None:
+                            # Akinci 2013: cohesion C(r) (eq. 2) and curvature, both times K_ij
+                            kij = 2.0 * rho0 / (rhoi + rho[j])
+                            c3 = hr * hr * hr * r2 * r
+                            if r > 0.5 * h:
+                                cr = c3
+                            else:
+                                cr = 2.0 * c3 - h6_64
+                            cc = kij * cr / r
+                            tx -= cc * dx
+                            ty -= cc * dy
+                            tz -= cc * dz
+                            ux -= kij * (nxi - normals[j, 0])
+                            uy -= kij * (nyi - normals[j, 1])
+                            uz -= kij * (nzi - normals[j, 2])
         inv_rhoi = 1.0 / rho[i]
-        c = mass * spiky_coef * inv_rhoi
-        ax = ax * c + gx0
-        ay = ay * c + gy0
-        az = az * c + gz0
-        if near_wall:  # only particles within h of a wall have wall terms
-            # the wall's share of eq. 6 along the wall map's gradient direction, rho_wall = rho0 and
-            # p_wall the Shepard (Poly6-weighted) average of the neighbours' pressure, at least p_i
-            pw = max(pi, sp / sw)
-            cw = (pi + pw) * inv_rhoi * table_lookup(fix_press, d[i], inv_dr)
-            ax += cw * map_sample(wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 1)
-            ay += cw * map_sample(wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 2)
-            az += cw * map_sample(wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 3)
-            if with_viscosity:
+        if pressure is not None:
+            c = mass * grad_coef * inv_rhoi
+            ax = ax * c + gx0
+            ay = ay * c + gy0
+            az = az * c + gz0
+            if near_wall:  # only particles within h of a wall have wall terms
+                # the wall's share of eq. 6 along the wall map's gradient direction, rho_wall = rho0 and
+                # p_wall the Shepard (Poly6-weighted) average of the neighbours' pressure, at least p_i
+                pw = max(pi, sp / sw)
+                cw = (pi + pw) * inv_rhoi * table_lookup(fix_press, d[i], inv_dr)
+                ax += cw * map_sample(wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 1)
+                ay += cw * map_sample(wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 2)
+                az += cw * map_sample(wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 3)
+        else:
+            ax = gx0
+            ay = gy0
+            az = gz0
+        if viscosity is not None:
+            if near_wall:
                 # eq. 13-14: the resting wall's viscous term -mu v_i Z_vis(r_iw)
                 zw = mu * inv_rhoi * table_lookup(fix_vis, d[i], inv_dr) * map_sample(
                     wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 4)
                 ax -= zw * vxi
                 ay -= zw * vyi
                 az -= zw * vzi
-        if with_viscosity:
             cv = mu * mass * lap_coef * inv_rhoi
             ax += bx * cv
             ay += by * cv
             az += bz * cv
+        if tension is not None:
+            # cohesion k m C, curvature k (m / h^3) (n_i - n_j): one constant, both accelerations
+            ct = k_ten * mass * coh_coef
+            cn = k_ten * mass / (h2 * h)
+            ax += ct * tx + cn * ux
+            ay += ct * ty + cn * uy
+            az += ct * tz + cn * uz
+        if adhesion is not None:
+            if near_wall:  # Akinci adhesion integrated over the wall half-space, towards the wall
+                aa = table_lookup(adh_table, d[i], inv_dr)
+                ax -= aa * nrm[i, 0]
+                ay -= aa * nrm[i, 1]
+                az -= aa * nrm[i, 2]
+        if friction is not None:
+            if near_wall:  # contact weight 1 up to d = h/2 (first layer), 0 at h
+                wc = min(2.0 - 2.0 * d[i] / h, 1.0) * fr_rate
+                vn = vxi * nrm[i, 0] + vyi * nrm[i, 1] + vzi * nrm[i, 2]
+                ax -= wc * (vxi - vn * nrm[i, 0])
+                ay -= wc * (vyi - vn * nrm[i, 1])
+                az -= wc * (vzi - vn * nrm[i, 2])
+        if wind is not None:
+            # free surface = density deficit: full drag below 0.77 rho0, none above 0.97 rho0
+            s = min(max((0.97 * rho0 - rhoi) / (0.2 * rho0), 0.0), 1.0) * drag
+            ax += s * (u_air[0] - vxi)
+            ay += s * (u_air[1] - vyi)
+            az += s * (u_air[2] - vzi)
+        if attractor is not None:
+            ex = a_pt[0] - xi
+            ey = a_pt[1] - yi
+            ez = a_pt[2] - zi
+            e2 = ex * ex + ey * ey + ez * ez + soft2
+            ca = a_k / (e2 * math.sqrt(e2))
+            ax += ca * ex
+            ay += ca * ey
+            az += ca * ez
         acc[i, 0] = ax
         acc[i, 1] = ay
         acc[i, 2] = az
-
-
-@nb.njit(cache=True, parallel=True)
-def forces_pressure(x, v, rho, p, d, starts, lo, inv_cell, dims, h, spiky_coef, lap_coef, mass, mu,
-                    wmap, wo, winv, fix_vis, fix_press, inv_dr, gravity, av, acc):
-    """Acceleration from pressure (eq. 6, 8, with artificial viscosity ``av``) plus ``gravity``."""
-    _forces_body(x, v, rho, p, d, starts, lo, inv_cell, dims, h, spiky_coef, lap_coef, mass, mu,
-                 wmap, wo, winv, fix_vis, fix_press, inv_dr, gravity, av, acc, False)
-
-
-@nb.njit(cache=True, parallel=True)
-def forces_pressure_viscosity(x, v, rho, p, d, starts, lo, inv_cell, dims, h, spiky_coef, lap_coef,
-                              mass, mu, wmap, wo, winv, fix_vis, fix_press, inv_dr, gravity, av, acc):
-    """As ``forces_pressure`` plus fluid viscosity (eq. 7, 9) and wall viscosity (eq. 13-15)."""
-    _forces_body(x, v, rho, p, d, starts, lo, inv_cell, dims, h, spiky_coef, lap_coef, mass, mu,
-                 wmap, wo, winv, fix_vis, fix_press, inv_dr, gravity, av, acc, True)
 
 
 @nb.njit(cache=True, parallel=True)
