@@ -24,7 +24,7 @@ one machine-code build per effect set on disk, so an absent effect costs nothing
                at all (DFSPH calls it this way for the non-pressure accelerations).
     viscosity  (mu, lap_coef, fix_vis): Pa s, eq. 9 coefficient, the Z_vis table (zeros = no wall term).
     tension    (k, normals, coh_coef): Akinci 2013 constant k (effects.tension_constant), the (N,3)
-               particle normals from ``surface_normals``, 32 / (pi h^9).
+               particle normals from ``surface_normals`` (pointing into the fluid), 32 / (pi h^9).
     adhesion   (accel,): table over [0, h] of the wall adhesion acceleration m/s^2 (effects.py).
     friction   (rate,): tangential decay rate at wall contact, 1/s.
     wind       (u, drag): air velocity (3,) m/s, drag 1/s; on free-surface particles only.
@@ -99,8 +99,11 @@ def density_pressure(x, starts, lo, inv_cell, dims, h, poly6_coef, mass, rho0, w
 
 @nb.njit(cache=True, parallel=True)
 def surface_normals(x, rho, starts, lo, inv_cell, dims, h, grad_coef, mass, out):
-    """Akinci et al. 2013 particle normals n_i = -h sum_j m/rho_j grad W_ij (Spiky gradient, eq. 8),
-    pointing out of the fluid, |n| ~ 1 at the free surface and ~ 0 inside. A pass after the density."""
+    """Akinci et al. 2013 particle normals n_i = h sum_j m/rho_j grad_i W_ij (Spiky gradient, eq. 8):
+    |n| ~ 1 at the free surface, ~ 0 inside, pointing INTO the fluid as in the paper (the curvature term
+    -k (n_i - n_j) then pushes a surface particle out and its inner neighbour in, which is what
+    counteracts the cohesion's clustering at the surface; with outward normals a drop turns into a
+    hollow shell). A pass after the density, run only when surface tension is declared."""
     h2 = h * h
     nx, ny, nz = dims[0], dims[1], dims[2]
     for i in nb.prange(x.shape[0]):
@@ -129,7 +132,7 @@ def surface_normals(x, rho, starts, lo, inv_cell, dims, h, grad_coef, mass, out)
                         sx += f * dx
                         sy += f * dy
                         sz += f * dz
-        c = h * mass * grad_coef
+        c = -h * mass * grad_coef  # grad_i W = -c (h - r)^2 (x_i - x_j) / r
         out[i, 0] = c * sx
         out[i, 1] = c * sy
         out[i, 2] = c * sz
@@ -284,9 +287,11 @@ def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, wmap, w
             ay += by * cv
             az += bz * cv
         if tension is not None:
-            # cohesion k m C, curvature k (m / h^3) (n_i - n_j): one constant, both accelerations
+            # cohesion k m C; curvature k m / (100 h^3) (n_i - n_j): Akinci's -k (n_i - n_j) made an
+            # acceleration with the weight SPlisHSPlasH's implementation has at its default resolution
+            # (h = 0.1 m, m ~ 0.1 kg, so m / h^3 = 100 there), i.e. scale-free
             ct = k_ten * mass * coh_coef
-            cn = k_ten * mass / (h2 * h)
+            cn = 0.01 * k_ten * mass / (h2 * h)
             ax += ct * tx + cn * ux
             ay += ct * ty + cn * uy
             az += ct * tz + cn * uz
