@@ -140,18 +140,23 @@ def dam_break(n_target: int, effects: dict | None):
 def asm_sizes(n: int) -> dict:
     """Bytes of assembly of the generic forces kernel per variant (an uncached build)."""
     from stages.simulate import sph_kernels as K
+    global reference_forces_pressure
     cached, uncached = K.forces, nb.njit(parallel=True)(K.forces.py_func)
+    cached_ref = reference_forces_pressure
+    uncached_ref = nb.njit(parallel=True)(reference_forces_pressure.py_func)
     out = {}
     try:
         K.forces = uncached
+        reference_forces_pressure = uncached_ref
         for name, eff in VARIANTS.items():
-            if eff is not None:
-                before = set(uncached.signatures)
-                dam_break(min(n, 2000), eff).step(10.0)
-                sig = (set(uncached.signatures) - before).pop()
-                out[name] = len(uncached.inspect_asm(sig))
+            fn = uncached_ref if eff is None else uncached
+            before = set(fn.signatures)
+            dam_break(min(n, 2000), eff).step(10.0)
+            sig = (set(fn.signatures) - before).pop()
+            out[name] = len(fn.inspect_asm(sig))
     finally:
         K.forces = cached
+        reference_forces_pressure = cached_ref
     return out
 
 
