@@ -185,8 +185,9 @@ class WallAdhesion(Model):
 
 
 class WallFriction(Model):
-    """Tangential velocity of particles in wall contact (SDF distance < spacing, fading out at the support
-    radius) decays as exp(-rate t); a rate, so the result does not depend on the time step."""
+    """Tangential velocity of particles in wall contact (SDF distance below h/2, one spacing at the default
+    support, fading to 0 at the support radius h) decays as exp(-rate t): an acceleration -rate v_t, so
+    the result does not depend on the time step (which is kept below 0.5 / rate)."""
 
     rate: float = Field(5.0, ge=0, description="decay rate of the tangential velocity at wall contact, 1/s")
 
