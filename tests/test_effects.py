@@ -144,6 +144,20 @@ def test_friction_slows_sliding_along_the_floor():
     assert mean_vx["friction"] < 0.85 * mean_vx["none"], mean_vx
 
 
+def test_friction_is_a_rate_independent_of_the_time_step():
+    """One layer sliding on the floor in zero gravity (no pressure: its density is below rho0 and the
+    pressure is clamped) keeps exp(-rate t) of its speed, whatever the step (two sound speeds)."""
+    l0 = 0.004
+    lo, hi = np.zeros(3), np.array([0.4, 0.02, 0.04])
+    layer = lattice([0.0, 0.0, 0.0], [0.1, 0.02, l0], l0)
+    v = np.zeros_like(layer)
+    v[:, 0] = 0.5
+    for c in (2.0, 20.0):  # dt 8e-4 and 8e-5 s
+        s = solver(layer, v, lo, hi, l0, {"wall_friction": {"rate": 10.0}}, sound_speed=c)
+        s.advance_to(0.1)
+        assert np.allclose(s.v[:, 0], 0.5 * math.exp(-1.0), rtol=0.01), (c, s.steps, s.v[:, 0].min(), s.v[:, 0].max())
+
+
 def test_wind_moves_the_free_surface_and_attractor_pulls():
     l0 = 0.004
     lo, hi = np.zeros(3), np.array([0.12, 0.02, 0.08])
