@@ -58,6 +58,8 @@ class SPHSolver:
         self.walls = WallMaps(sdf, self.l0, self.h, self.mass, self.rho0, params.table_samples)
         self.fix_vis = self.walls.fix_vis if wall_viscosity else np.zeros_like(self.walls.fix_vis)
         self.inv_dr = self.walls.inv_dr
+        if effects.adhesion_accel is not None and len(effects.adhesion_accel) != params.table_samples:
+            raise ValueError("effects.adhesion_accel must be sampled like the wall tables (table_samples)")
         self.grad_norm = spiky_lattice_factor(self.rho0, self.l0, self.h, self.mass)
         self.fix_press = self.walls.fix_press / self.grad_norm
         self.c = float(params.sound_speed or 10.0 * max(v_ref, 1e-3))
