@@ -13,13 +13,17 @@ sweep:
   simulate.use: [sph, mps]
 time: simulate                     # whose wall time is the cost axis
 metrics:
-  - {name: surge_front_error, file: particles/meta.json, key: stats.surge_front_rms_error, label: "surge front RMS error (Z/a)"}
+  - {name: density_error, file: particles/meta.json, key: stats.summary.density_error_mean}
+  - name: surge_front_error          # computed by a function from the variant's output folder
+    function: stages.simulate.validation:surge_front_error
+    args: {reference: martin_moyce_1952.csv, column_width: 0.25, back_wall: 0.0}
 ```
 Variants run through the normal cache, so re-running a study only computes new variants.
 """
 from __future__ import annotations
 
 import csv
+import importlib
 import itertools
 import json
 import os
@@ -38,12 +42,25 @@ from .stage import STAGE_KINDS
 
 
 class Metric(BaseModel):
+    """A number read from a variant's outputs: a JSON value (``file`` + ``key``), or computed by a
+    validation function (``function: "module:name"``, called as ``fn(out_dir, study_dir=..., **args)``,
+    e.g. a surge front compared with an experiment)."""
     model_config = ConfigDict(extra="forbid")
     name: str = Field(pattern=r"^[A-Za-z0-9_]+$")
-    file: str = Field(description="output/relative path of a JSON file, e.g. particles/meta.json")
-    key: str = Field(description="dotted path inside that JSON, e.g. stats.density_error")
+    file: str | None = Field(None, description="output/relative path of a JSON file, e.g. particles/meta.json")
+    key: str | None = Field(None, description="dotted path inside that JSON, e.g. stats.density_error")
+    function: str | None = Field(None, pattern=r"^[A-Za-z_][\w.]*:[A-Za-z_]\w*$",
+                                 description="module:function computing the metric from the variant's output folder")
+    args: dict[str, Any] = Field(default_factory=dict, description="keyword arguments of `function`")
     label: str | None = None
     lower_is_better: bool = True
+
+    @model_validator(mode="after")
+    def _one_source(self) -> "Metric":
+        from_file = self.file is not None or self.key is not None
+        if (self.function is not None) == from_file or (from_file and (self.file is None or self.key is None)):
+            raise ValueError("a metric needs either file and key, or function")
+        return self
 
 
 class StudyConfig(BaseModel):
@@ -102,6 +119,17 @@ def variants(study: StudyConfig) -> list[dict[str, Any]]:
     return [dict(zip(keys, row)) for row in rows]
 
 
+def _metric_function(spec: str, study_path: Path | None = None):
+    module, _, name = spec.partition(":")
+    try:
+        fn = getattr(importlib.import_module(module), name)
+    except (ImportError, AttributeError) as e:
+        raise ConfigError(f"{study_path or 'study'}: metrics: function {spec!r} not found ({e})") from None
+    if not callable(fn):
+        raise ConfigError(f"{study_path or 'study'}: metrics: {spec!r} is not a function")
+    return fn
+
+
 def _lookup(data: Any, dotted: str) -> Any:
     for part in dotted.split("."):
         if isinstance(data, dict) and part in data:
@@ -112,7 +140,7 @@ def _lookup(data: Any, dotted: str) -> Any:
 
 
 def _run_variant(args: tuple) -> VariantResult:
-    study_dict, base, overrides, cache_dir, out_root = args
+    study_dict, base, overrides, cache_dir, out_root, study_dir = args
     from . import runner
 
     study = StudyConfig.model_validate(study_dict)
@@ -124,8 +152,11 @@ def _run_variant(args: tuple) -> VariantResult:
     stage = next((s for s in report.stages if s.kind == study.time), None)
     metrics: dict[str, float | None] = {}
     for m in study.metrics:
-        f = out / m.file
-        value = _lookup(json.loads(f.read_text()), m.key) if f.is_file() else None
+        if m.function is not None:
+            value = _metric_function(m.function)(out, study_dir=Path(study_dir), **m.args)
+        else:
+            f = out / m.file
+            value = _lookup(json.loads(f.read_text()), m.key) if f.is_file() else None
         metrics[m.name] = float(value) if isinstance(value, (int, float)) else None
     return VariantResult(overrides=overrides, seconds=stage.seconds if stage else 0.0, metrics=metrics, out=str(out))
 
@@ -139,7 +170,10 @@ def run_study(path: str | Path, *, cache_dir: Path | None = None, out_dir: Path 
         raise ConfigError(f"{path}: base: config not found: {base}")
     out_root = Path(out_dir) if out_dir else path.parent / "out" / study.name
     cache = Path(cache_dir) if cache_dir else base.parent / ".pipeline"
-    jobs = [(study.model_dump(), str(base), v, str(cache), str(out_root)) for v in variants(study)]
+    for m in study.metrics:
+        if m.function is not None:
+            _metric_function(m.function, path)  # a typo is a config error before anything runs
+    jobs = [(study.model_dump(), str(base), v, str(cache), str(out_root), str(path.parent)) for v in variants(study)]
     results: list[VariantResult] = []
     if workers > 1:
         with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:

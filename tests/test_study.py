@@ -44,5 +44,19 @@ def test_study_errors(toy_config):
     path.write_text(STUDY.replace("mode", "x").replace("sweep:", "sweeps:"))
     with pytest.raises(ConfigError, match="sweep: required field is missing"):
         run_study(path)
+    path.write_text(STUDY.replace("file: particles/stats.json, key: stats.error", "function: toy_stages:nothing"))
+    with pytest.raises(ConfigError, match="function 'toy_stages:nothing' not found"):
+        run_study(path)
+    path.write_text(STUDY.replace("key: stats.error", "function: toy_stages:scaled_error"))
+    with pytest.raises(ConfigError, match="either file and key, or function"):
+        run_study(path)
     result = CliRunner().invoke(main, ["study", str(toy_config.parent / "missing.yaml")])
     assert result.exit_code == 2 and "study file not found" in result.stderr
+
+
+def test_study_metric_from_a_function(toy_config):
+    path = toy_config.parent / "study.yaml"
+    path.write_text(STUDY.replace("file: particles/stats.json, key: stats.error",
+                                  "function: 'toy_stages:scaled_error', args: {factor: 10}"))
+    results, _ = run_study(path)
+    assert [r.metrics["error"] for r in results] == [10.0, 5.0, 2.5]

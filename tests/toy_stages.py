@@ -138,3 +138,9 @@ class ToyExport(Stage):
 
 
 TOY_STAGES = (ToyImport, ToyBake, ToySimulate, ToySurface, ToyRender, ToyExport)
+
+
+def scaled_error(out_dir, *, study_dir, factor):
+    """A study metric computed by a function (pipeline.study Metric.function)."""
+    import json
+    return factor * json.loads((out_dir / "particles" / "stats.json").read_text())["stats"]["error"]
