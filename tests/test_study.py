@@ -10,7 +10,7 @@ from pipeline import ConfigError
 from pipeline.cli import main
 from pipeline.study import run_study
 
-from conftest import ran
+from conftest import REPO, ran
 
 STUDY = """\
 study_version: 1
@@ -60,3 +60,16 @@ def test_study_metric_from_a_function(toy_config):
                                   "function: 'toy_stages:scaled_error', args: {factor: 10}"))
     results, _ = run_study(path)
     assert [r.metrics["error"] for r in results] == [10.0, 5.0, 2.5]
+
+
+@pytest.mark.parametrize("path", sorted((REPO / "configs" / "studies").glob("*.yaml")), ids=lambda p: p.stem)
+def test_shipped_studies_are_valid(path):
+    from pipeline.study import _metric_function, load_study
+
+    study = load_study(path)
+    assert (path.parent / study.base).is_file()
+    for m in study.metrics:
+        if m.function is not None:
+            _metric_function(m.function, path)
+            ref = m.args.get("reference")
+            assert ref is None or (path.parent / ref).is_file()
