@@ -1,0 +1,308 @@
+"""simulate.mps: moving particle semi-implicit (Koshizuka and Oka 1996) with distance-function walls.
+
+``MPSSolver`` holds the state and steps it (used by the stage, the tests and the benchmark);
+``MPSSimulate`` is the stage; the set-up and the frame loop shared with SPH are in driver.py, so the
+particle cache, checkpoints, statistics and USD layer are identical in form.
+
+One step (PHYSICS.md "MPS"): u* = u + dt (nu <lap u> + g), x* = x + dt u*; collision of close pairs;
+n* at x* (fluid + wall maps); free surface n* < beta n0 -> p = 0; the pressure Poisson equation
+-<lap p> + (alpha rho / dt^2) p = gamma (rho / dt^2) (n* - n0) / n0 - (1 - gamma) (rho / dt) <div u*>
+by Jacobi-preconditioned CG (numba CSR, warm-started with the last pressure); p < 0 -> 0;
+u = u* - (dt / rho) <grad p> with the p_min form; x = x* + dt (u - u*); eq. 16 projection out of the walls.
+
+Source term: 'mixed' (default, Tanaka and Masunaga 2010, gamma 0.03) or the 1996 density-invariance
+source alone ('density', gamma 0.2); the density source alone left a tank at rest boiling (max speed
+0.3-0.5 m/s after 1 s, bottom pressure 2-3 x rho g h), the mixed one settles.
+
+Walls: MPSWallMaps (mps_walls.py), the wall sums of every wall within re on a grid, calibrated to
+the flat-wall lattice tables; no wall particles.
+
+Effects: gravity and viscosity (with its no-slip wall term) only; a scene declaring any other effect
+is rejected with a StageError that names them.
+
+The reported density is rho0 n_i / n0 (the number density ratio), the support h = 2 l0 and the mass
+the SPH lattice mass, so surface extraction treats MPS particles exactly like SPH particles."""
+from __future__ import annotations
+
+import math
+from typing import Literal, Mapping
+
+import numpy as np
+from pydantic import Field
+
+from pipeline.stage import Artifact, Context, Params, Stage, StageError
+from stages.common.formats import ParticleFrame
+from stages.common.sdf import SDFGrid
+
+from . import mps_kernels as K
+from .driver import drive, prepare, set_threads
+from .kernels import lattice_mass
+from .mps_walls import MPSWallMaps, build_tables, lattice_constants
+from .neighbours import CellGrid, reorder
+from .timestep import stable_dt, step_to
+
+DIM = 3
+
+
+class MPSParams(Params):
+    re_number_density: float = Field(2.1, ge=1.5, le=4.0, description="influence radius re of the number "
+                                     "density and the gradient, in units of l0")
+    re_laplacian: float = Field(3.1, ge=1.5, le=4.0, description="influence radius re of the Laplacian (viscosity "
+                                "and the pressure Poisson equation), in units of l0")
+    beta: float = Field(0.97, gt=0.5, lt=1.0, description="free surface where n* < beta n0 (p = 0 there)")
+    source: Literal["mixed", "density"] = Field("mixed", description="Poisson source: 'density' gamma (rho / dt^2) "
+                                                "(n* - n0) / n0 (the 1996 form); 'mixed' adds (1 - gamma) (rho / dt) "
+                                                "<div u*> (Tanaka and Masunaga 2010: much smoother pressure)")
+    relaxation: float | None = Field(None, gt=0, le=1.0, description="gamma, the weight of the number-density source; "
+                                     "default 0.2 for 'density', 0.03 for 'mixed'")
+    compressibility: float = Field(0.45e-9, ge=0, description="alpha, 1/Pa: (alpha rho / dt^2) p on the diagonal "
+                                   "(conditioning; keeps clusters with no free-surface particle solvable)")
+    collision_distance: float = Field(0.5, ge=0, le=1.0, description="pairs closer than this (in l0) collide")
+    restitution: float = Field(0.2, ge=0, le=1.0, description="restitution of the close-pair collision")
+    cfl: float = Field(0.2, gt=0, le=0.3, description="dt <= cfl l0 / max(v_max, v_ref)")
+    r_rep: float = Field(0.5, gt=0, le=1.0, description="eq. 16 wall projection distance, in units of l0")
+    cg_tolerance: float = Field(1e-6, gt=0, lt=1, description="CG stops at |r| <= tol |b|")
+    cg_max_iterations: int = Field(2000, ge=1, description="CG iteration cap per step")
+    skin: float = Field(0.5, ge=0.2, le=2.0, description="neighbour-list margin beyond the largest re, in l0 "
+                        "(must exceed the relative motion of a pair within one step, 2 cfl l0)")
+    checkpoint_every: int = Field(10, ge=1, description="write a checkpoint every this many frames")
+    threads: int | None = Field(None, ge=1, description="numba threads (fixed count = reproducible results)")
+    table_samples: int = Field(256, ge=16, description="samples of the wall tables over [0, max re]")
+
+
+class MPSSolver:
+    """State (x, v, id, p in cell order) plus the per-step kernels; buffers are reused and grow only
+    when the particle or pair count does."""
+
+    def __init__(self, x, v, ids, sdf: SDFGrid, *, spacing: float, rho0: float, params: MPSParams,
+                 gravity=(0.0, 0.0, 0.0), mu: float | None = None, wall_viscosity: bool = True,
+                 v_ref: float = 1.0, domain=None):
+        self.p = params
+        self.l0 = float(spacing)
+        self.rho0 = float(rho0)
+        self.h = 2.0 * self.l0  # reported support for the surface (see module docstring)
+        self.mass = lattice_mass(self.rho0, self.l0, self.h)
+        self.c = 0.0
+        self.re_n = params.re_number_density * self.l0
+        self.re_l = params.re_laplacian * self.l0
+        self.n0, _ = lattice_constants(self.l0, self.re_n)
+        self.n0_l, self.lam = lattice_constants(self.l0, self.re_l)
+        self.lap_coef = 2.0 * DIM / (self.lam * self.n0_l)
+        self.grad_coef = DIM / self.n0
+        self.tables = build_tables(self.l0, self.re_n, self.re_l, params.table_samples)
+        self.walls = MPSWallMaps(sdf, self.l0, self.re_n, self.re_l, self.tables)
+        w = self.walls
+        self.wall_args = (w.maps, w.origin, 1.0 / w.spacing, w.fix, w.inv_dr)
+        self.gravity = np.asarray(gravity, np.float64)
+        self.mu = float(mu) if mu is not None else None
+        self.wall_viscosity = bool(wall_viscosity)
+        self.v_ref = float(max(v_ref, 1e-3))
+        self.sdf = sdf
+        self.sdf_inv = 1.0 / sdf.spacing
+        lo, hi = (sdf.origin, sdf.upper) if domain is None else domain
+        self.domain = (np.asarray(lo, float), np.asarray(hi, float))
+        self.list_radius = max(self.re_n, self.re_l) + params.skin * self.l0
+        self.grid = CellGrid(sdf.origin, sdf.upper, self.list_radius)
+        self.x = np.array(x, np.float64)
+        self.v = np.array(v, np.float64)
+        self.id = np.array(ids, np.int32)
+        self.pr = np.zeros(len(self.x))
+        self.t = 0.0
+        self.steps = 0
+        self.left_domain = 0
+        self.cg_iterations = 0  # total over all steps
+        self.last_cg_iterations = 0
+        self._scratch: dict = {}
+        self._alloc()
+
+    def _alloc(self) -> None:
+        n = len(self.x)
+        self.d = np.zeros(n)
+        self.nrm = np.zeros((n, 3))
+        self.n = np.zeros(n)
+        self.div = np.zeros(n)
+        self.xs = np.zeros((n, 3))
+        self.vs = np.zeros((n, 3))
+        self.xb = np.zeros((n, 3))
+        self.vb = np.zeros((n, 3))
+        self.counts = np.zeros(n, np.int64)
+        self.offsets = np.zeros(n + 1, np.int64)
+        self.nbr = getattr(self, "nbr", np.zeros(0, np.int32))
+        self.dirichlet = np.zeros(n, np.bool_)
+        self.row_counts = np.zeros(n, np.int64)
+        self.row_off = np.zeros(n + 1, np.int64)
+        self.cols = getattr(self, "cols", np.zeros(0, np.int32))
+        self.vals = getattr(self, "vals", np.zeros(0))
+        self.diag = np.zeros(n)
+        self.b = np.zeros(n)
+        self.cg = [np.zeros(n) for _ in range(4)]  # r, z, search direction, A p
+        self.partial = np.zeros(K.CG_BLOCKS)
+        self.partial2 = np.zeros((K.CG_BLOCKS, 2))
+
+    # -- one step -----------------------------------------------------------------------------
+    def sort_and_neighbours(self) -> None:
+        """Put the state in cell order and build the neighbour list at the current positions."""
+        order = self.grid.sort(self.x)
+        self.x, self.v, self.id, self.pr = reorder([self.x, self.v, self.id, self.pr], order, self._scratch)
+        g = self.grid
+        args = (self.x, g.starts, g.lo, 1.0 / g.cell, g.dims, self.list_radius)
+        K.count_neighbours(*args, self.counts)
+        total = K.prefix_sum(self.counts, self.offsets)
+        if total > len(self.nbr):
+            self.nbr = np.zeros(int(total * 1.25) + 16, np.int32)
+        K.fill_neighbours(*args, self.offsets, self.nbr)
+
+    def _walls(self, x) -> None:
+        K.wall_distance(x, self.sdf.dist, self.sdf.origin, self.sdf_inv, self.d, self.nrm)
+
+    def number_density(self, x) -> None:
+        self._walls(x)
+        K.number_density(x, self.offsets, self.nbr, self.re_n, self.d, *self.wall_args, self.n)
+
+    def stable_dt(self, dt_max: float) -> float:
+        v = math.sqrt(K.max_speed2(self.v))
+        nu = self.mu / self.rho0 if self.mu else None
+        return stable_dt(l0=self.l0, h=self.l0, v_max=max(v, self.v_ref), a_max=0.0, cfl=self.p.cfl,
+                         sound_speed=None, nu=nu, dt_max=dt_max)
+
+    def solve_pressure(self, dt: float) -> int:
+        T = self.tables
+        rho = self.rho0
+        K.mark_free_surface(self.n, self.p.beta * self.n0, self.dirichlet)
+        mixed = self.p.source == "mixed"
+        gamma = self.p.relaxation or (0.03 if mixed else 0.2)
+        src = gamma * rho / dt ** 2
+        div_coef = -(1.0 - gamma) * rho / dt if mixed else 0.0
+        if mixed:
+            K.divergence(self.xs, self.vs, self.offsets, self.nbr, self.re_n, self.grad_coef, self.d, *self.wall_args,
+                         self.gravity * dt, self.div)
+        diag_extra = self.p.compressibility * rho / dt ** 2
+        while True:
+            nnz = K.build_poisson(self.xs, self.offsets, self.nbr, self.re_l, self.lap_coef, self.dirichlet, self.n,
+                                  self.n0, src, self.div, div_coef, diag_extra, self.d, *self.wall_args, self.gravity, rho,
+                                  self.row_counts, self.row_off, self.cols, self.vals, self.diag, self.b)
+            if nnz >= 0:
+                break
+            need = int(self.row_off[-1] * 1.25) + 16
+            self.cols = np.zeros(need, np.int32)
+            self.vals = np.zeros(need)
+        r, z, pd, q = self.cg
+        it = K.pcg(self.row_off, self.cols, self.vals, self.diag, self.b, self.pr, r, z, pd, q, self.partial,
+                   self.partial2, self.p.cg_tolerance, self.p.cg_max_iterations)
+        K.clamp_negative(self.pr)
+        return it
+
+    def step(self, t_end: float) -> float:
+        """One step towards t_end (never past it); returns dt."""
+        T = self.tables
+        self.sort_and_neighbours()
+        dt = step_to(self.t, t_end, self.stable_dt(t_end - self.t))
+        if self.mu is not None:
+            self._walls(self.x)
+            K.predict_viscosity(self.x, self.v, self.offsets, self.nbr, self.re_l, self.lap_coef, self.mu / self.rho0,
+                                self.d, *self.wall_args, self.wall_viscosity, self.gravity, dt, self.xs, self.vs)
+        else:
+            K.predict(self.x, self.v, self.gravity, dt, self.xs, self.vs)
+        if self.p.collision_distance > 0:
+            K.collide(self.xs, self.vs, self.offsets, self.nbr, self.p.collision_distance * self.l0,
+                      self.p.restitution, dt, self.xb, self.vb)
+            self.xs, self.xb = self.xb, self.xs
+            self.vs, self.vb = self.vb, self.vs
+        self.number_density(self.xs)
+        self.last_cg_iterations = self.solve_pressure(dt)
+        self.cg_iterations += self.last_cg_iterations
+        # the corrected state goes into the start-of-step buffers (x, v are no longer needed)
+        K.correct(self.xs, self.vs, self.pr, self.offsets, self.nbr, self.re_n, self.grad_coef, self.d, *self.wall_args,
+                  self.gravity, self.rho0, dt, self.x, self.v)
+        K.project_out_of_walls(self.x, self.v, self.sdf.dist, self.sdf.origin, self.sdf_inv, self.p.r_rep * self.l0,
+                               0.5 * self.l0)
+        self.t = t_end if dt >= t_end - self.t else self.t + dt
+        self.steps += 1
+        return dt
+
+    def advance_to(self, t_end: float) -> int:
+        n = 0
+        while self.t < t_end:
+            self.step(t_end)
+            n += 1
+        return n
+
+    def remove_escaped(self) -> int:
+        """Drop particles outside the domain (counted in ``left_domain``)."""
+        lo, hi = self.domain
+        keep = np.all((self.x >= lo) & (self.x <= hi) & np.isfinite(self.x), axis=1)
+        gone = int(len(keep) - keep.sum())
+        if gone:
+            self.x = np.ascontiguousarray(self.x[keep])
+            self.v = np.ascontiguousarray(self.v[keep])
+            self.id = np.ascontiguousarray(self.id[keep])
+            self.pr = np.ascontiguousarray(self.pr[keep])
+            self._scratch.clear()
+            self._alloc()
+            self.left_domain += gone
+        return gone
+
+    def frame(self) -> ParticleFrame:
+        """The current state; density rho0 n / n0 at the current positions, the last solved pressure
+        (sorts the state, as a step would)."""
+        self.sort_and_neighbours()
+        self.number_density(self.x)
+        rho = self.rho0 * self.n / self.n0
+        return ParticleFrame(x=self.x.copy(), v=self.v.copy(), rho=rho, p=self.pr.copy(), id=self.id.copy())
+
+    def state(self) -> dict:
+        return {"x": self.x, "v": self.v, "id": self.id, "p": self.pr, "t": np.float64(self.t),
+                "steps": np.int64(self.steps), "left_domain": np.int64(self.left_domain),
+                "cg_iterations": np.int64(self.cg_iterations)}
+
+    def load_state(self, s: Mapping) -> None:
+        self.x = np.ascontiguousarray(s["x"], np.float64)
+        self.v = np.ascontiguousarray(s["v"], np.float64)
+        self.id = np.ascontiguousarray(s["id"], np.int32)
+        self.pr = np.ascontiguousarray(s["p"], np.float64)
+        self.t = float(s["t"])
+        self.steps = int(s["steps"])
+        self.left_domain = int(s["left_domain"])
+        self.cg_iterations = int(s["cg_iterations"])
+        self._scratch.clear()
+        self._alloc()
+
+
+SUPPORTED_EFFECTS = ("gravity", "viscosity")
+
+
+def check_effects(effects) -> None:
+    """StageError naming the scene's effects that MPS does not implement."""
+    other = [e for e in effects.enabled() if e not in SUPPORTED_EFFECTS]
+    if other:
+        raise StageError(f"simulate.mps: effects {', '.join(other)} are not supported by MPS (it supports "
+                         f"{', '.join(SUPPORTED_EFFECTS)}); remove them from 'effects' or use simulate: {{use: sph}}")
+
+
+class MPSSimulate(Stage):
+    kind = "simulate"
+    name = "mps"
+    version = "1"
+    Params = MPSParams
+    inputs = ("sdf",)
+    reads = ("scene", "fluid", "effects")
+    outputs = ("particles",)
+    default = False
+    description = "moving particle semi-implicit (Koshizuka and Oka 1996) with distance-function walls, numba CG"
+
+    def frame_count(self, ctx: Context, params: Params, inputs: Mapping[str, Artifact]) -> int | None:
+        return ctx.scene["scene"].frames.count
+
+    def run(self, ctx: Context, inputs: Mapping[str, Artifact], params: MPSParams) -> None:
+        set_threads(params.threads or getattr(ctx, "threads", None))
+        check_effects(ctx.scene["effects"])
+        setup = prepare(ctx, inputs, "simulate.mps")
+        visc = setup.effects.viscosity
+        solver = MPSSolver(setup.x, setup.v, np.arange(len(setup.x), dtype=np.int32), setup.sdf, spacing=setup.spacing,
+                           rho0=setup.density, params=params, gravity=setup.gravity,
+                           mu=visc.mu if visc is not None else None,
+                           wall_viscosity=bool(visc.wall) if visc is not None else False, v_ref=setup.v_ref,
+                           domain=setup.domain)
+        drive(ctx, solver, setup, solver_name="mps", checkpoint_every=params.checkpoint_every)
+        ctx.log.info("mps: %d steps, %.1f CG iterations per step", solver.steps,
+                     solver.cg_iterations / max(solver.steps, 1))

@@ -1,0 +1,559 @@
+"""The numba kernels of one MPS step (Koshizuka and Oka 1996; PHYSICS.md "MPS") with distance-function
+walls (mps_walls.py).
+
+Neighbours: one list per step, built at the start-of-step positions with radius max(re) + skin, so
+it still holds every pair after the prediction moved particles by at most cfl l0; each kernel
+recomputes r from the current positions and keeps the pairs within its own radius.
+
+Determinism: every particle loop is a prange over i writing only i; the conjugate gradient's dot
+products are per-block partial sums over a fixed number of blocks, added in block order, so the
+result does not depend on the thread count."""
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+
+from stages.common.sdf import sdf_sample
+
+from .wall_maps import map_sample
+from .wall_tables import table_lookup
+
+CG_BLOCKS = 128
+# channels of mps_walls.MPSWallMaps and rows of its ``fix``
+ZN, G, T, ZL, M = 0, 1, 4, 10, 11
+FIX_N, FIX_G, FIX_T, FIX_L, FIX_M = 0, 1, 2, 3, 4
+
+
+@nb.njit(cache=True, inline="always")
+def wall_sum(maps, m_o, m_inv, fix, inv_dr, x, y, z, d, c, row):
+    """Channel ``c`` of the wall maps at (x, y, z) times its flat-wall correction ``fix[row]`` at the
+    wall distance d (mps_walls.MPSWallMaps)."""
+    return map_sample(maps, m_o[0], m_o[1], m_o[2], m_inv, x, y, z, c) * table_lookup(fix[row], d, inv_dr)
+
+
+@nb.njit(cache=True, inline="always")
+def weight(r, re):
+    """MPS weight w(r) = re / r - 1 for 0 < r < re (the caller ensures r < re and r > 0)."""
+    return re / r - 1.0
+
+
+# -- neighbour list ---------------------------------------------------------------------------------
+@nb.njit(cache=True, parallel=True)
+def count_neighbours(x, starts, lo, inv_cell, dims, radius, counts):
+    """counts[i] = number of j != i with |x_i - x_j| < radius (cell size >= radius)."""
+    r2max = radius * radius
+    nx, ny, nz = dims[0], dims[1], dims[2]
+    for i in nb.prange(x.shape[0]):
+        xi = x[i, 0]
+        yi = x[i, 1]
+        zi = x[i, 2]
+        cx = min(max(int(math.floor((xi - lo[0]) * inv_cell)), 0), nx - 1)
+        cy = min(max(int(math.floor((yi - lo[1]) * inv_cell)), 0), ny - 1)
+        cz = min(max(int(math.floor((zi - lo[2]) * inv_cell)), 0), nz - 1)
+        x0 = max(cx - 1, 0)
+        x1 = min(cx + 1, nx - 1)
+        c = 0
+        for kz in range(max(cz - 1, 0), min(cz + 2, nz)):
+            for ky in range(max(cy - 1, 0), min(cy + 2, ny)):
+                base = (kz * ny + ky) * nx
+                for j in range(starts[base + x0], starts[base + x1 + 1]):
+                    dx = xi - x[j, 0]
+                    dy = yi - x[j, 1]
+                    dz = zi - x[j, 2]
+                    if dx * dx + dy * dy + dz * dz < r2max and j != i:
+                        c += 1
+        counts[i] = c
+
+
+@nb.njit(cache=True, parallel=True)
+def fill_neighbours(x, starts, lo, inv_cell, dims, radius, offsets, nbr):
+    """nbr[offsets[i]:offsets[i + 1]] = the neighbours of i, in cell order (deterministic)."""
+    r2max = radius * radius
+    nx, ny, nz = dims[0], dims[1], dims[2]
+    for i in nb.prange(x.shape[0]):
+        xi = x[i, 0]
+        yi = x[i, 1]
+        zi = x[i, 2]
+        cx = min(max(int(math.floor((xi - lo[0]) * inv_cell)), 0), nx - 1)
+        cy = min(max(int(math.floor((yi - lo[1]) * inv_cell)), 0), ny - 1)
+        cz = min(max(int(math.floor((zi - lo[2]) * inv_cell)), 0), nz - 1)
+        x0 = max(cx - 1, 0)
+        x1 = min(cx + 1, nx - 1)
+        k = offsets[i]
+        for kz in range(max(cz - 1, 0), min(cz + 2, nz)):
+            for ky in range(max(cy - 1, 0), min(cy + 2, ny)):
+                base = (kz * ny + ky) * nx
+                for j in range(starts[base + x0], starts[base + x1 + 1]):
+                    dx = xi - x[j, 0]
+                    dy = yi - x[j, 1]
+                    dz = zi - x[j, 2]
+                    if dx * dx + dy * dy + dz * dz < r2max and j != i:
+                        nbr[k] = j
+                        k += 1
+
+
+@nb.njit(cache=True)
+def prefix_sum(counts, offsets):
+    """offsets[0] = 0, offsets[i + 1] = offsets[i] + counts[i]; returns the total."""
+    offsets[0] = 0
+    for i in range(counts.shape[0]):
+        offsets[i + 1] = offsets[i] + counts[i]
+    return offsets[counts.shape[0]]
+
+
+# -- walls ------------------------------------------------------------------------------------------
+@nb.njit(cache=True, parallel=True)
+def wall_distance(x, sdf, sdf_o, sdf_inv, d, nrm):
+    """SDF distance and wall normal (into the fluid) of every particle."""
+    for i in nb.prange(x.shape[0]):
+        dw, gx, gy, gz = sdf_sample(sdf, sdf_o[0], sdf_o[1], sdf_o[2], sdf_inv, x[i, 0], x[i, 1], x[i, 2])
+        d[i] = dw
+        nrm[i, 0] = gx
+        nrm[i, 1] = gy
+        nrm[i, 2] = gz
+
+
+# -- prediction: u* = u + dt (nu lap u + g), x* = x + dt u* ---------------------------------------
+@nb.njit(cache=True, parallel=True)
+def predict(x, v, gravity, dt, xs, vs):
+    """Explicit prediction with gravity only (no viscosity effect declared)."""
+    for i in nb.prange(x.shape[0]):
+        for a in range(3):
+            u = v[i, a] + dt * gravity[a]
+            vs[i, a] = u
+            xs[i, a] = x[i, a] + dt * u
+
+
+@nb.njit(cache=True, parallel=True)
+def predict_viscosity(x, v, offsets, nbr, re_l, lap_coef, nu, d, maps, m_o, m_inv, fix, inv_dr, wall_visc, gravity,
+                      dt, xs, vs):
+    """Explicit prediction with the MPS Laplacian of the velocity, <lap u>_i = (2 d / (lambda n0))
+    [sum_j (u_j - u_i) w(r_ij) - u_i Zl(x_i)] (``lap_coef`` = 2 d / (lambda n0)); the wall term is the
+    resting no-slip wall (eq. 13-15 in MPS form, Zl from the wall maps), only with ``wall_visc``."""
+    r2max = re_l * re_l
+    for i in nb.prange(x.shape[0]):
+        xi = x[i, 0]
+        yi = x[i, 1]
+        zi = x[i, 2]
+        lx = 0.0
+        ly = 0.0
+        lz = 0.0
+        for k in range(offsets[i], offsets[i + 1]):
+            j = nbr[k]
+            dx = x[j, 0] - xi
+            dy = x[j, 1] - yi
+            dz = x[j, 2] - zi
+            r2 = dx * dx + dy * dy + dz * dz
+            if r2 < r2max and r2 > 1e-24:
+                w = weight(math.sqrt(r2), re_l)
+                lx += (v[j, 0] - v[i, 0]) * w
+                ly += (v[j, 1] - v[i, 1]) * w
+                lz += (v[j, 2] - v[i, 2]) * w
+        if wall_visc and d[i] < re_l:
+            zw = wall_sum(maps, m_o, m_inv, fix, inv_dr, xi, yi, zi, d[i], ZL, FIX_L)
+            lx -= v[i, 0] * zw
+            ly -= v[i, 1] * zw
+            lz -= v[i, 2] * zw
+        c = nu * lap_coef
+        ux = v[i, 0] + dt * (c * lx + gravity[0])
+        uy = v[i, 1] + dt * (c * ly + gravity[1])
+        uz = v[i, 2] + dt * (c * lz + gravity[2])
+        vs[i, 0] = ux
+        vs[i, 1] = uy
+        vs[i, 2] = uz
+        xs[i, 0] = xi + dt * ux
+        xs[i, 1] = yi + dt * uy
+        xs[i, 2] = zi + dt * uz
+
+
+@nb.njit(cache=True, parallel=True)
+def collide(xs, vs, offsets, nbr, r_col, restitution, dt, x_out, v_out):
+    """Collision of close particles (Koshizuka's treatment): for every approaching pair closer than
+    r_col, the relative normal velocity is reduced as in an inelastic collision of equal masses,
+    du_i = (1 + e) / 2 ((u_j - u_i) . n) n, and x_i moves by dt du_i. Jacobi form (each i sums over
+    its pairs from the same old velocities), so it is symmetric and deterministic."""
+    r2max = r_col * r_col
+    f = 0.5 * (1.0 + restitution)
+    for i in nb.prange(xs.shape[0]):
+        xi = xs[i, 0]
+        yi = xs[i, 1]
+        zi = xs[i, 2]
+        dux = 0.0
+        duy = 0.0
+        duz = 0.0
+        for k in range(offsets[i], offsets[i + 1]):
+            j = nbr[k]
+            dx = xs[j, 0] - xi
+            dy = xs[j, 1] - yi
+            dz = xs[j, 2] - zi
+            r2 = dx * dx + dy * dy + dz * dz
+            if r2 < r2max and r2 > 1e-24:
+                r = math.sqrt(r2)
+                nx = dx / r
+                ny = dy / r
+                nz = dz / r
+                vn = (vs[j, 0] - vs[i, 0]) * nx + (vs[j, 1] - vs[i, 1]) * ny + (vs[j, 2] - vs[i, 2]) * nz
+                if vn < 0.0:  # approaching
+                    dux += f * vn * nx
+                    duy += f * vn * ny
+                    duz += f * vn * nz
+        v_out[i, 0] = vs[i, 0] + dux
+        v_out[i, 1] = vs[i, 1] + duy
+        v_out[i, 2] = vs[i, 2] + duz
+        x_out[i, 0] = xi + dt * dux
+        x_out[i, 1] = yi + dt * duy
+        x_out[i, 2] = zi + dt * duz
+
+
+@nb.njit(cache=True, parallel=True)
+def number_density(x, offsets, nbr, re_n, d, maps, m_o, m_inv, fix, inv_dr, n):
+    """n_i = sum_{j != i} w(r_ij) + Zn(x_i): the fluid neighbours plus the wall's share from the 3D map
+    (mps_walls.MPSWallMaps)."""
+    r2max = re_n * re_n
+    for i in nb.prange(x.shape[0]):
+        s = 0.0
+        for k in range(offsets[i], offsets[i + 1]):
+            j = nbr[k]
+            dx = x[j, 0] - x[i, 0]
+            dy = x[j, 1] - x[i, 1]
+            dz = x[j, 2] - x[i, 2]
+            r2 = dx * dx + dy * dy + dz * dz
+            if r2 < r2max and r2 > 1e-24:
+                s += weight(math.sqrt(r2), re_n)
+        if d[i] < re_n:
+            s += wall_sum(maps, m_o, m_inv, fix, inv_dr, x[i, 0], x[i, 1], x[i, 2], d[i], ZN, FIX_N)
+        n[i] = s
+
+
+@nb.njit(cache=True, parallel=True)
+def divergence(x, v, offsets, nbr, re_n, grad_coef, d, maps, m_o, m_inv, fix, inv_dr, g_dt, div):
+    """MPS divergence <div u>_i = (d / n0) [sum_j (u_j - u_i) . (x_j - x_i) / r_ij^2 w(r_ij)
+    - (u_i - g dt) . G(x_i)] (``grad_coef`` = d / n0), G the wall maps' sum (x_w - x_i) / r^2 w over the
+    resting walls (u_w = 0). The g dt part of u* into the wall is left out because the hydrostatic wall
+    pressure (p_w = p_i + rho g . (x_w - x_i)) already balances it: counted twice, a tank at rest would
+    be driven towards twice rho g h at the floor."""
+    r2max = re_n * re_n
+    for i in nb.prange(x.shape[0]):
+        s = 0.0
+        for k in range(offsets[i], offsets[i + 1]):
+            j = nbr[k]
+            dx = x[j, 0] - x[i, 0]
+            dy = x[j, 1] - x[i, 1]
+            dz = x[j, 2] - x[i, 2]
+            r2 = dx * dx + dy * dy + dz * dz
+            if r2 < r2max and r2 > 1e-24:
+                du = (v[j, 0] - v[i, 0]) * dx + (v[j, 1] - v[i, 1]) * dy + (v[j, 2] - v[i, 2]) * dz
+                s += du / r2 * weight(math.sqrt(r2), re_n)
+        if d[i] < re_n:
+            xi, yi, zi, di = x[i, 0], x[i, 1], x[i, 2], d[i]
+            s -= (v[i, 0] - g_dt[0]) * wall_sum(maps, m_o, m_inv, fix, inv_dr, xi, yi, zi, di, G, FIX_G)
+            s -= (v[i, 1] - g_dt[1]) * wall_sum(maps, m_o, m_inv, fix, inv_dr, xi, yi, zi, di, G + 1, FIX_G)
+            s -= (v[i, 2] - g_dt[2]) * wall_sum(maps, m_o, m_inv, fix, inv_dr, xi, yi, zi, di, G + 2, FIX_G)
+        div[i] = grad_coef * s
+
+
+# -- pressure Poisson equation ----------------------------------------------------------------------
+@nb.njit(cache=True, parallel=True)
+def _count_rows(x, offsets, nbr, re_l, dirichlet, row_counts):
+    r2max = re_l * re_l
+    for i in nb.prange(x.shape[0]):
+        c = 0
+        if not dirichlet[i]:
+            for k in range(offsets[i], offsets[i + 1]):
+                j = nbr[k]
+                if dirichlet[j]:
+                    continue
+                dx = x[j, 0] - x[i, 0]
+                dy = x[j, 1] - x[i, 1]
+                dz = x[j, 2] - x[i, 2]
+                r2 = dx * dx + dy * dy + dz * dz
+                if r2 < r2max and r2 > 1e-24:
+                    c += 1
+        row_counts[i] = c
+
+
+@nb.njit(cache=True, parallel=True)
+def _fill_rows(x, offsets, nbr, re_l, lap_coef, dirichlet, n, n0, src_coef, div, div_coef, diag_extra, d, maps,
+               m_o, m_inv, fix, inv_dr, g_vec, rho, row_off, cols, vals, diag, b):
+    r2max = re_l * re_l
+    for i in nb.prange(x.shape[0]):
+        if dirichlet[i]:
+            diag[i] = 1.0
+            b[i] = 0.0
+            continue
+        k_out = row_off[i]
+        s = 0.0
+        for k in range(offsets[i], offsets[i + 1]):
+            j = nbr[k]
+            dx = x[j, 0] - x[i, 0]
+            dy = x[j, 1] - x[i, 1]
+            dz = x[j, 2] - x[i, 2]
+            r2 = dx * dx + dy * dy + dz * dz
+            if r2 < r2max and r2 > 1e-24:
+                w = lap_coef * weight(math.sqrt(r2), re_l)
+                s += w
+                if not dirichlet[j]:
+                    cols[k_out] = j
+                    vals[k_out] = -w
+                    k_out += 1
+        diag[i] = s + diag_extra
+        bi = src_coef * (n[i] - n0) / n0 + div_coef * div[i]
+        if d[i] < re_l:
+            # the wall's resting pressure p_w = p_i + rho g . (x_w - x_i) (mps_walls.py): the p_i part
+            # cancels, the hydrostatic part rho g . M is known and moves to the right-hand side
+            xi, yi, zi, di = x[i, 0], x[i, 1], x[i, 2], d[i]
+            gm = (g_vec[0] * wall_sum(maps, m_o, m_inv, fix, inv_dr, xi, yi, zi, di, M, FIX_M)
+                  + g_vec[1] * wall_sum(maps, m_o, m_inv, fix, inv_dr, xi, yi, zi, di, M + 1, FIX_M)
+                  + g_vec[2] * wall_sum(maps, m_o, m_inv, fix, inv_dr, xi, yi, zi, di, M + 2, FIX_M))
+            bi += lap_coef * rho * gm
+        b[i] = bi
+
+
+@nb.njit(cache=True)
+def build_poisson(x, offsets, nbr, re_l, lap_coef, dirichlet, n, n0, src_coef, div, div_coef, diag_extra, d, maps,
+                  m_o, m_inv, fix, inv_dr, g_vec, rho, row_counts, row_off, cols, vals, diag, b):
+    """The PPE  -<lap p>_i + (alpha rho / dt^2) p_i = src_coef (n*_i - n0) / n0 + div_coef <div u*>_i  as a CSR
+    matrix: off-diagonals -c w(r_ij) between non-Dirichlet particles, diagonal c sum_j w(r_ij) plus
+    the compressibility term ``diag_extra``, c = 2 d / (lambda n0). Dirichlet rows (free surface,
+    p = 0) are identity rows, so the matrix stays symmetric positive definite. Returns nnz, or -1 when
+    ``cols`` is too small (the caller grows it and calls again)."""
+    _count_rows(x, offsets, nbr, re_l, dirichlet, row_counts)
+    nnz = prefix_sum(row_counts, row_off)
+    if nnz > cols.shape[0]:
+        return -1
+    _fill_rows(x, offsets, nbr, re_l, lap_coef, dirichlet, n, n0, src_coef, div, div_coef, diag_extra, d, maps,
+               m_o, m_inv, fix, inv_dr, g_vec, rho, row_off, cols, vals, diag, b)
+    return nnz
+
+
+@nb.njit(cache=True, parallel=True)
+def _spmv_dot(row_off, cols, vals, diag, p, q, partial):
+    """q = A p and returns p . q (fixed-order block sums)."""
+    n = p.shape[0]
+    nbk = partial.shape[0]
+    bs = (n + nbk - 1) // nbk
+    for bk in nb.prange(nbk):
+        s = 0.0
+        for i in range(bk * bs, min((bk + 1) * bs, n)):
+            acc = diag[i] * p[i]
+            for k in range(row_off[i], row_off[i + 1]):
+                acc += vals[k] * p[cols[k]]
+            q[i] = acc
+            s += p[i] * acc
+        partial[bk] = s
+    tot = 0.0
+    for bk in range(nbk):
+        tot += partial[bk]
+    return tot
+
+
+@nb.njit(cache=True, parallel=True)
+def _residual(row_off, cols, vals, diag, x, b, r, z, partial, partial2):
+    """r = b - A x, z = r / diag; returns (r . z, r . r, b . b)."""
+    n = x.shape[0]
+    nbk = partial.shape[0]
+    bs = (n + nbk - 1) // nbk
+    for bk in nb.prange(nbk):
+        s = 0.0
+        s2 = 0.0
+        s3 = 0.0
+        for i in range(bk * bs, min((bk + 1) * bs, n)):
+            acc = diag[i] * x[i]
+            for k in range(row_off[i], row_off[i + 1]):
+                acc += vals[k] * x[cols[k]]
+            ri = b[i] - acc
+            r[i] = ri
+            z[i] = ri / diag[i]
+            s += ri * z[i]
+            s2 += ri * ri
+            s3 += b[i] * b[i]
+        partial[bk] = s
+        partial2[bk, 0] = s2
+        partial2[bk, 1] = s3
+    rz = 0.0
+    rr = 0.0
+    bb = 0.0
+    for bk in range(nbk):
+        rz += partial[bk]
+        rr += partial2[bk, 0]
+        bb += partial2[bk, 1]
+    return rz, rr, bb
+
+
+@nb.njit(cache=True, parallel=True)
+def _update(x, r, z, p, q, diag, alpha, partial2):
+    """x += alpha p, r -= alpha q, z = r / diag; returns (r . z, r . r)."""
+    n = x.shape[0]
+    nbk = partial2.shape[0]
+    bs = (n + nbk - 1) // nbk
+    for bk in nb.prange(nbk):
+        s = 0.0
+        s2 = 0.0
+        for i in range(bk * bs, min((bk + 1) * bs, n)):
+            x[i] += alpha * p[i]
+            ri = r[i] - alpha * q[i]
+            r[i] = ri
+            zi = ri / diag[i]
+            z[i] = zi
+            s += ri * zi
+            s2 += ri * ri
+        partial2[bk, 0] = s
+        partial2[bk, 1] = s2
+    rz = 0.0
+    rr = 0.0
+    for bk in range(nbk):
+        rz += partial2[bk, 0]
+        rr += partial2[bk, 1]
+    return rz, rr
+
+
+@nb.njit(cache=True, parallel=True)
+def _direction(p, z, beta):
+    for i in nb.prange(p.shape[0]):
+        p[i] = z[i] + beta * p[i]
+
+
+@nb.njit(cache=True)
+def pcg(row_off, cols, vals, diag, b, x, r, z, p, q, partial, partial2, rtol, max_iter):
+    """Jacobi-preconditioned conjugate gradient for the SPD system of ``build_poisson``, from the
+    initial guess in ``x`` (the previous step's pressure). Stops at ||r|| <= rtol ||b||. Returns the
+    number of iterations."""
+    rz, rr, bb = _residual(row_off, cols, vals, diag, x, b, r, z, partial, partial2)
+    tol2 = rtol * rtol * max(bb, 1e-300)
+    if rr <= tol2:
+        return 0
+    for i in range(p.shape[0]):
+        p[i] = z[i]
+    it = 0
+    while it < max_iter:
+        it += 1
+        pq = _spmv_dot(row_off, cols, vals, diag, p, q, partial)
+        if pq <= 0.0:
+            break
+        alpha = rz / pq
+        rz_new, rr = _update(x, r, z, p, q, diag, alpha, partial2)
+        if rr <= tol2:
+            break
+        _direction(p, z, rz_new / rz)
+        rz = rz_new
+    return it
+
+
+# -- correction ------------------------------------------------------------------------------------
+@nb.njit(cache=True, parallel=True)
+def correct(xs, vs, p, offsets, nbr, re_g, grad_coef, d, maps, m_o, m_inv, fix, inv_dr, g_vec, rho, dt, x_out, v_out):
+    """Pressure gradient <grad p>_i = (d / n0) [sum_j (p_j - p_min_i) / r_ij^2 (x_j - x_i) w(r_ij)
+    + (p_i - p_min_i) G(x_i) + rho T(x_i) g], p_min_i the smallest pressure of i and its neighbours; the
+    wall terms are the wall maps' sums with the resting wall pressure p_w = p_i + rho g . (x_w - x_i)
+    (mps_walls.py); then u = u* - (dt / rho) <grad p>, x = x* + dt (u - u*)."""
+    r2max = re_g * re_g
+    for i in nb.prange(xs.shape[0]):
+        xi = xs[i, 0]
+        yi = xs[i, 1]
+        zi = xs[i, 2]
+        pmin = p[i]
+        for k in range(offsets[i], offsets[i + 1]):
+            j = nbr[k]
+            dx = xs[j, 0] - xi
+            dy = xs[j, 1] - yi
+            dz = xs[j, 2] - zi
+            if dx * dx + dy * dy + dz * dz < r2max and p[j] < pmin:
+                pmin = p[j]
+        gx = 0.0
+        gy = 0.0
+        gz = 0.0
+        for k in range(offsets[i], offsets[i + 1]):
+            j = nbr[k]
+            dx = xs[j, 0] - xi
+            dy = xs[j, 1] - yi
+            dz = xs[j, 2] - zi
+            r2 = dx * dx + dy * dy + dz * dz
+            if r2 < r2max and r2 > 1e-24:
+                f = (p[j] - pmin) / r2 * weight(math.sqrt(r2), re_g)
+                gx += f * dx
+                gy += f * dy
+                gz += f * dz
+        if d[i] < re_g:
+            di = d[i]
+            dp = p[i] - pmin
+            gx += dp * wall_sum(maps, m_o, m_inv, fix, inv_dr, xi, yi, zi, di, G, FIX_G)
+            gy += dp * wall_sum(maps, m_o, m_inv, fix, inv_dr, xi, yi, zi, di, G + 1, FIX_G)
+            gz += dp * wall_sum(maps, m_o, m_inv, fix, inv_dr, xi, yi, zi, di, G + 2, FIX_G)
+            txx = wall_sum(maps, m_o, m_inv, fix, inv_dr, xi, yi, zi, di, T, FIX_T)
+            tyy = wall_sum(maps, m_o, m_inv, fix, inv_dr, xi, yi, zi, di, T + 1, FIX_T)
+            tzz = wall_sum(maps, m_o, m_inv, fix, inv_dr, xi, yi, zi, di, T + 2, FIX_T)
+            txy = wall_sum(maps, m_o, m_inv, fix, inv_dr, xi, yi, zi, di, T + 3, FIX_T)
+            txz = wall_sum(maps, m_o, m_inv, fix, inv_dr, xi, yi, zi, di, T + 4, FIX_T)
+            tyz = wall_sum(maps, m_o, m_inv, fix, inv_dr, xi, yi, zi, di, T + 5, FIX_T)
+            gx += rho * (txx * g_vec[0] + txy * g_vec[1] + txz * g_vec[2])
+            gy += rho * (txy * g_vec[0] + tyy * g_vec[1] + tyz * g_vec[2])
+            gz += rho * (txz * g_vec[0] + tyz * g_vec[1] + tzz * g_vec[2])
+        c = dt * grad_coef / rho
+        dux = -c * gx
+        duy = -c * gy
+        duz = -c * gz
+        v_out[i, 0] = vs[i, 0] + dux
+        v_out[i, 1] = vs[i, 1] + duy
+        v_out[i, 2] = vs[i, 2] + duz
+        x_out[i, 0] = xi + dt * dux
+        x_out[i, 1] = yi + dt * duy
+        x_out[i, 2] = zi + dt * duz
+
+
+@nb.njit(cache=True, parallel=True)
+def clamp_negative(p):
+    for i in nb.prange(p.shape[0]):
+        if p[i] < 0.0:
+            p[i] = 0.0
+
+
+@nb.njit(cache=True, parallel=True)
+def mark_free_surface(n, threshold, dirichlet):
+    """Dirichlet (p = 0) where n*_i < beta n0."""
+    for i in nb.prange(n.shape[0]):
+        dirichlet[i] = n[i] < threshold
+
+
+@nb.njit(cache=True, parallel=True)
+def project_out_of_walls(x, v, sdf, sdf_o, sdf_inv, r_rep, max_corr):
+    """The (16) wall pressure as a position correction: a particle closer than r_rep moves back along
+    the SDF normal (capped at max_corr per step; up to three projections for edges and corners) and
+    loses its velocity component into the wall."""
+    for i in nb.prange(x.shape[0]):
+        px = x[i, 0]
+        py = x[i, 1]
+        pz = x[i, 2]
+        vx = v[i, 0]
+        vy = v[i, 1]
+        vz = v[i, 2]
+        for _ in range(3):
+            dw, nx, ny, nz = sdf_sample(sdf, sdf_o[0], sdf_o[1], sdf_o[2], sdf_inv, px, py, pz)
+            if dw >= r_rep * 0.999:
+                break
+            corr = min(r_rep - dw, max_corr)
+            px += corr * nx
+            py += corr * ny
+            pz += corr * nz
+            vn = vx * nx + vy * ny + vz * nz
+            if vn < 0.0:
+                vx -= vn * nx
+                vy -= vn * ny
+                vz -= vn * nz
+        x[i, 0] = px
+        x[i, 1] = py
+        x[i, 2] = pz
+        v[i, 0] = vx
+        v[i, 1] = vy
+        v[i, 2] = vz
+
+
+@nb.njit(cache=True, parallel=True)
+def max_speed2(v):
+    """max |v|^2 (an exact max, so deterministic)."""
+    m = 0.0
+    for i in nb.prange(v.shape[0]):
+        s = v[i, 0] * v[i, 0] + v[i, 1] * v[i, 1] + v[i, 2] * v[i, 2]
+        m = max(m, s)
+    return m
