@@ -1,0 +1,190 @@
+"""simulate.mps: lattice constants, wall maps, hydrostatic pressure, dam break against Martin & Moyce,
+zero wall penetration on the dragon, resume-from-checkpoint equality, frames readable by surface_extract."""
+import json
+import logging
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import pipeline
+from pipeline import Registry
+from pipeline.stage import Artifact, Context, StageError
+from pipeline.testing import run_stage, scene_sections
+from stages.common.formats import ParticleMeta, load_particle_frame
+from stages.common.sdf import box_interior_sdf, grid_from_function
+from stages.simulate.emitters import lattice
+from stages.simulate.mps import MPSParams, MPSSimulate, MPSSolver
+from stages.simulate.mps_walls import MPSWallMaps, build_tables, lattice_constants
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from test_sph_dam_break import _reference  # noqa: E402  (the Martin & Moyce series)
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+G = 9.81
+
+
+def test_lattice_constants_match_physics_md():
+    for re, n0, lam in ((2.1, 14.42, 1.702), (3.1, 54.32, 3.243), (4.0, 123.99, 5.212)):
+        n, l = lattice_constants(1.0, re)
+        assert abs(n - n0) < 0.01 and abs(l - lam) < 0.001
+
+
+def test_wall_maps_count_every_wall_in_edges_and_corners():
+    """A particle of the cubic lattice next to a flat wall, in an edge and in a corner of a box: fluid
+    neighbours plus the wall maps give n0 (a wall-particle lattice would give exactly n0)."""
+    l0 = 0.01
+    sdf = grid_from_function(box_interior_sdf([0, 0, 0], [0.1, 0.1, 0.1]), [0, 0, 0], [0.1, 0.1, 0.1], l0 / 2)
+    tables = build_tables(l0, 2.1 * l0, 3.1 * l0, 256)
+    maps = MPSWallMaps(sdf, l0, 2.1 * l0, 3.1 * l0, tables)
+    x = lattice([0, 0, 0], [0.1, 0.1, 0.1], l0)
+    s = MPSSolver(x, np.zeros_like(x), np.arange(len(x)), sdf, spacing=l0, rho0=1000.0, params=MPSParams())
+    s.walls = maps
+    s.sort_and_neighbours()
+    s.number_density(s.x)
+    ratio = s.n / s.n0
+    dist = np.sort(np.minimum(s.x, 0.1 - s.x), axis=1)  # per particle: nearest, second, third wall
+    flat = (dist[:, 0] < l0) & (dist[:, 1] > 4 * l0)
+    edge = (dist[:, 1] < l0) & (dist[:, 2] > 4 * l0)
+    corner = dist[:, 2] < l0
+    print("n/n0 flat, edge, corner:", ratio[flat].mean(), ratio[edge].mean(), ratio[corner].mean())
+    assert np.allclose(ratio[flat], 1.0, atol=1e-3)  # calibrated to the lattice table
+    # the quadrature's error adds up over two or three walls; measured +2.3 % / +4.6 %
+    assert np.all(np.abs(ratio[edge] - 1) < 0.04) and np.all(np.abs(ratio[corner] - 1) < 0.07)
+    # the planar table of the nearest wall alone would put these far below beta = 0.97 (free surface)
+    assert np.all(ratio[edge | corner] > 0.97)
+
+
+def test_hydrostatic_pressure_against_rho_g_h():
+    l0, W, H = 0.01, 0.08, 0.16  # 8 x 8 x 16 particles
+    sdf = grid_from_function(box_interior_sdf([0, 0, 0], [W, W, 0.22]), [0, 0, 0], [W, W, 0.22], l0 / 2)
+    x = lattice([0, 0, 0], [W, W, H], l0)
+    s = MPSSolver(x, np.zeros_like(x), np.arange(len(x)), sdf, spacing=l0, rho0=1000.0, params=MPSParams(),
+                  gravity=(0, 0, -G), mu=1.0, v_ref=float(np.sqrt(2 * G * H)))
+    s.advance_to(0.4)
+    p_mean = np.zeros(len(x))
+    for k in range(1, 6):  # average each particle over the last 0.05 s
+        s.advance_to(0.4 + 0.01 * k)
+        f = s.frame()
+        p_mean[f.id] += f.p / 5
+    z = f.x[:, 2]
+    speed = np.linalg.norm(f.v, axis=1)
+    assert z.min() > 0.0 and s.d.min() > 0.0
+    assert speed.max() < 0.15  # settled (the top layer still ripples a little)
+    rows = []
+    for depth in (4, 8, 12, 15):  # particle layers below the surface, the whole layer (walls included)
+        layer = np.abs(z - (H - (depth - 0.5) * l0)) < 0.5 * l0
+        expected = 1000.0 * G * (H - z[layer]).mean()
+        p = p_mean[f.id][layer]
+        rows.append((depth, expected, p.mean(), p.std()))
+    print("hydrostatic (depth in layers, rho g h, mean p, std p):", np.round(rows, 1).tolist())
+    for depth, expected, mean, std in rows:
+        # MPS settles with the pressure below rho g h (the p_min gradient adds support): measured
+        # 8-10 % low here; the spread (std) within a layer 2-7 % of rho g h
+        assert 0.8 * expected < mean < 1.05 * expected
+        assert std < 0.1 * expected
+
+
+def test_dam_break_surge_front_against_martin_moyce():
+    a, l0, width = 0.1, 0.01, 0.04  # the SPH test's column (tests/test_sph_dam_break.py), 800 particles
+    lo, hi = np.array([0.0, 0.0, 0.0]), np.array([5 * a, width, 3 * a])
+    sdf = grid_from_function(box_interior_sdf(lo, hi), lo, hi, l0 / 2)
+    x = lattice([0, 0, 0], [a, width, 2 * a], l0)
+    s = MPSSolver(x, np.zeros_like(x), np.arange(len(x)), sdf, spacing=l0, rho0=1000.0, params=MPSParams(),
+                  gravity=(0, 0, -G), v_ref=float(np.sqrt(2 * G * 2 * a)))
+    scale = np.sqrt(2 * G / a)
+    sim = []
+    for T in np.arange(0.25, 3.0 + 1e-9, 0.25):
+        s.advance_to(T / scale)
+        xs = np.sort(s.x[:, 0])
+        sim.append((T, (xs[-3] + 0.5 * l0) / a))  # the front, ignoring two lone droplets
+    sim = np.array(sim)
+    ref = _reference()
+    ref = ref[ref[:, 0] <= 3.0]
+    z_sim = np.interp(ref[:, 0], sim[:, 0], sim[:, 1])
+    rel = (z_sim - ref[:, 1]) / ref[:, 1]
+    print("MPS dam break T, Z/a ref, Z/a sim, rel:", np.c_[ref, z_sim, rel].round(3).tolist())
+    assert s.left_domain == 0 and s.x[:, 2].min() > 0
+    # ahead of the experiment as expected (no gate modelled); measured 3-8 % ahead at 800 particles.
+    # Looser than PHYSICS.md's 10 % because 4 particles across the width and 10 across the column
+    # make the front position jump by one spacing (0.1 a) between samples.
+    assert np.all(rel > -0.05) and np.all(rel < 0.15), rel
+
+
+def test_unsupported_effects_are_a_stage_error(tmp_path):
+    sdf = _sdf(tmp_path)
+    scene = dict(SCENE, effects={"gravity": {}, "surface_tension": {"gamma": 0.07}, "wind": {"velocity": [1, 0, 0]}})
+    with pytest.raises(StageError, match="effects surface_tension, wind are not supported by MPS"):
+        run_stage(MPSSimulate, tmp_path / "out", scene=scene, inputs={"sdf": sdf})
+
+
+# -- the stage -----------------------------------------------------------------------------------------
+L0 = 0.02
+SCENE = {
+    "scene": {"name": "t", "frames": {"fps": 50, "count": 7}, "units": {"up_axis": "Z"}},
+    "fluid": {"spacing": L0, "emitters": [{"box": {"min": [0.0, 0, 0], "max": [0.12, 0.2, 0.2]}}]},
+    "effects": {"gravity": {}, "viscosity": {"mu": 0.01}},
+}
+
+
+def _sdf(tmp: Path) -> Path:
+    folder = tmp / "sdf"
+    folder.mkdir(exist_ok=True)
+    grid_from_function(box_interior_sdf([0, 0, 0], [0.3, 0.2, 0.4]), [0, 0, 0], [0.3, 0.2, 0.4], L0 / 2).save(folder)
+    return folder
+
+
+def _ctx(out: Path, ckpt: Path | None) -> Context:
+    sections = scene_sections(SCENE)
+    return Context(out_dir=out, scene={k: sections[k] for k in MPSSimulate.reads}, config_dir=Path.cwd(),
+                   frames=tuple(range(7)), log=logging.getLogger("t"), checkpoint_dir=ckpt)
+
+
+def test_resume_from_checkpoint_is_identical_and_frames_feed_surface_extract(tmp_path):
+    sdf = _sdf(tmp_path)
+    arts = {"sdf": Artifact(name="sdf", key="t", path=sdf)}
+    params = MPSSimulate.Params(threads=1, checkpoint_every=2)
+    straight = tmp_path / "straight"
+    straight.mkdir()
+    MPSSimulate().run(_ctx(straight, tmp_path / "ck_straight"), arts, params)
+    # an interrupted run: keep only what existed after frame 4's checkpoint, then run again
+    ck = tmp_path / "ck"
+    shutil.copytree(tmp_path / "ck_straight", ck)
+    for p in ck.glob("state_*.npz"):
+        if p.name != "state_00004.npz":
+            p.unlink()
+    for f in (5, 6):
+        (ck / "frames" / f"{f:05d}.npz").unlink(missing_ok=True)
+    resumed = tmp_path / "resumed"
+    resumed.mkdir()
+    MPSSimulate().run(_ctx(resumed, ck), arts, params)
+    for f in range(7):
+        a, b = load_particle_frame(straight, f), load_particle_frame(resumed, f)
+        assert np.array_equal(a.x, b.x) and np.array_equal(a.v, b.v) and np.array_equal(a.id, b.id)
+        assert np.array_equal(a.p, b.p)
+    meta = ParticleMeta.load(straight)
+    assert meta.solver == "mps" and meta.stats["particles"] == 6 * 10 * 10 and max(meta.stats["inside_wall"]) == 0
+    # the same ParticleFrame format: surface_extract reads it unchanged
+    from stages.surface_extract.marching_cubes import MarchingCubes
+    surf = run_stage(MarchingCubes, tmp_path / "surf", scene=SCENE, inputs={"particles": straight}, frames=(6,))
+    from stages.common.formats import load_surface
+    mesh = load_surface(surf, 6)
+    assert len(mesh.faces) > 100
+    f6 = load_particle_frame(straight, 6)
+    lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
+    assert np.all(lo > f6.x.min(axis=0) - 2 * L0) and np.all(hi < f6.x.max(axis=0) + 2 * L0)
+
+
+def test_poured_fluid_stays_out_of_the_dragon(tmp_path):
+    """tests/test_wall_integrity.py's dragon case with simulate: {use: mps}."""
+    sets = ("scene.frames.count=13", "fluid.spacing=0.025", "simulate.use=mps")
+    report = pipeline.run(CONFIGS / "seed_dragon.yaml", registry=Registry.from_entry_points(), overrides=sets,
+                          cache_dir=tmp_path / "cache", out_dir=tmp_path / "out")
+    stats = json.loads((Path(report.outputs["particles"]) / "meta.json").read_text())["stats"]
+    print("dragon mps: particles", stats["particles"], "ms/step", stats["summary"]["ms_per_step"])
+    assert stats["particles"] > 2000
+    assert min(e[2] for e in stats["extent_min"]) < 0.45  # the fluid fell onto the model
+    assert max(stats["inside_wall"]) == 0
+    assert stats["left_domain"] == 0
