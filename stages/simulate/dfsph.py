@@ -1,0 +1,304 @@
+"""simulate.dfsph: Divergence-Free SPH (Bender and Koschier 2015, 2017) with the distance-function
+walls of the seed method (PHYSICS.md eq. 11-16) used like a boundary density map.
+
+Weakly compressible SPH (simulate.sph) needs a time step below the speed of sound; DFSPH solves for
+the pressure instead, so its step is bound by the CFL condition only. One step (Bender and Koschier
+2017, Alg. 1), from a state whose density, factors and neighbour lists are current:
+  1. non-pressure accelerations (gravity, viscosity, effects: sph_kernels.forces with pressure=None);
+  2. dt = cfl l0 / v_max (capped by the frame interval, dt_max, viscous/force limits, effects);
+  3. v* = v + dt a; constant-density solve on v* (predicted density back to rho0);
+  4. x += dt v*; the eq. 16 position clamp as a safety net;
+  5. sort, density, factors, neighbour lists at the new positions; divergence-free solve on v.
+The stage shares the scene set-up and frame loop with the other solvers (driver.py).
+
+STATUS: EXPERIMENTAL, NOT REGISTERED as an entry point. It does not yet hold a hydrostatic tank at
+rest: the solves meet their average tolerance while a resting column still sinks with a layer-by-layer
+alternating velocity (odd-even decoupling: with h = 2 l0 the discrete divergence of a particle sees
+only the layers next to it, so a velocity alternating between layers is invisible to the solver;
+h = 2.5-3 l0 did not cure it). tests/test_dfsph.py checks the pieces that do work (neighbour lists,
+the wall gradient against the fluid's, the predicted density rate against the real one, bitwise
+resume) and keeps the hydrostatic test as a strict xfail."""
+from __future__ import annotations
+
+import math
+from typing import Literal, Mapping
+
+import numpy as np
+from pydantic import Field
+
+from pipeline.stage import Artifact, Context, Params, Stage
+from stages.common.formats import ParticleFrame
+from stages.common.sdf import SDFGrid
+
+from . import dfsph_kernels as D
+from . import sph_kernels as K
+from .driver import drive, prepare, set_threads
+from .effects import EffectConstants, cohesion_coef, compile_effects
+from .kernels import lattice_mass, poly6_coef, spiky_grad_coef, spiky_lattice_factor, visc_lap_coef
+from .neighbours import CellGrid, reorder
+from .timestep import stable_dt, step_to
+from .wall_maps import WallMaps
+
+
+class DFSPHParams(Params):
+    support: float = Field(2.0, ge=1.5, le=4.0, description="kernel support radius h in units of the spacing l0")
+    cfl: float = Field(0.5, gt=0, le=1.0, description="advective limit dt <= cfl l0 / v_max")
+    dt_max: float = Field(0.005, gt=0, description="largest time step, s (also capped by the frame interval)")
+    max_density_error: float = Field(0.001, gt=0, le=0.05, description="constant-density solve: stop when the "
+                                     "average predicted compression is below this fraction of rho0")
+    max_divergence_error: float = Field(0.001, gt=0, le=0.05, description="divergence solve: stop when the average "
+                                        "dt D rho / Dt is below this fraction of rho0")
+    min_iterations: int = Field(2, ge=1, description="constant-density solve: at least this many iterations")
+    max_iterations: int = Field(100, ge=1, description="iteration cap of each solve")
+    warm_start: float = Field(0.5, ge=0, le=1, description="start each solve from this fraction of the last "
+                              "step's pressure (Bender and Koschier 2017, sec. 4.4)")
+    divergence_solve: bool = Field(True, description="run the divergence-free solve (Bender and Koschier 2015)")
+    gradient: Literal["spiky", "poly6"] = Field("spiky", description="pressure kernel gradient: Spiky (eq. 8, "
+                                                "normalised as in sph) or the exact Poly6 derivative of the density")
+    r_rep: float = Field(0.5, gt=0, le=1.0, description="eq. 16 wall clamp distance (safety net), in units of l0")
+    checkpoint_every: int = Field(10, ge=1, description="write a checkpoint every this many frames")
+    threads: int | None = Field(None, ge=1, description="numba threads (fixed count = reproducible results)")
+    table_samples: int = Field(256, ge=16, description="samples of the wall tables over [0, h]")
+
+
+class DFSPHSolver:
+    """State (x, v, id, kappa in cell order) plus the per-step kernels; every buffer is reused."""
+
+    c = 0.0  # no speed of sound: incompressible
+
+    def __init__(self, x, v, ids, sdf: SDFGrid, *, spacing: float, rho0: float, params: DFSPHParams,
+                 gravity=(0.0, 0.0, 0.0), mu: float | None = None, wall_viscosity: bool = True,
+                 domain=None, effects: EffectConstants | None = None):
+        if effects is None:
+            effects = EffectConstants(mu=mu, wall_viscosity=wall_viscosity)
+        self.effects = effects
+        self.p = params
+        self.l0 = float(spacing)
+        self.h = params.support * self.l0
+        self.rho0 = float(rho0)
+        self.mass = lattice_mass(self.rho0, self.l0, self.h)
+        self.walls = WallMaps(sdf, self.l0, self.h, self.mass, self.rho0, params.table_samples)
+        self.fix_vis = self.walls.fix_vis if effects.wall_viscosity else np.zeros_like(self.walls.fix_vis)
+        if effects.adhesion_accel is not None and len(effects.adhesion_accel) != params.table_samples:
+            raise ValueError("effects.adhesion_accel must be sampled like the wall tables (table_samples)")
+        self.grad_norm = spiky_lattice_factor(self.rho0, self.l0, self.h, self.mass)
+        self.spiky = params.gradient == "spiky"
+        self.grad_coef = spiky_grad_coef(self.h) / self.grad_norm if self.spiky else 6.0 * poly6_coef(self.h)
+        self.gravity = np.asarray(gravity, np.float64)
+        self.mu = float(effects.mu) if effects.mu is not None else 0.0
+        self.sdf = sdf
+        self.sdf_inv = 1.0 / sdf.spacing
+        lo, hi = (sdf.origin, sdf.upper) if domain is None else domain
+        self.domain = (np.asarray(lo, float), np.asarray(hi, float))
+        self.grid = CellGrid(sdf.origin, sdf.upper, self.h)
+        self.wall_mirror = D.WALL_MIRROR
+        self.cap = 48  # neighbour-list stride, grown when a pass finds more
+        self.x = np.array(x, np.float64)
+        self.v = np.array(v, np.float64)
+        self.id = np.array(ids, np.int32)
+        self.kappa = np.zeros(len(self.x))  # constant-density solve's kappa = p / rho (kept: warm start)
+        self.kappa_v = np.zeros(len(self.x))  # divergence solve's kappa
+        self.min_rho = 0.6 * self.rho0  # divergence solve: leave sparse free-surface particles alone
+        self.t = 0.0
+        self.steps = 0
+        self.left_domain = 0
+        self.iterations = [0, 0]  # total (density, divergence) iterations, for the statistics
+        self.solve_error = [0.0, 0.0]  # sum over steps of the final average (density, divergence) error / rho0
+        self._scratch: dict = {}
+        self._fresh = False
+        self._alloc()
+
+    def _alloc(self) -> None:
+        n = len(self.x)
+        self.rho = np.zeros(n)
+        self.pr = np.zeros(n)
+        self.alpha = np.zeros(n)
+        self.d = np.zeros(n)
+        self.nrm = np.zeros((n, 3))
+        self.psi = np.zeros((n, 3))
+        self.acc = np.zeros((n, 3))
+        self.zero_acc = np.zeros((n, 3))
+        self.acc_p = np.zeros((n, 3))
+        self.err = np.zeros(n)
+        self.count = np.zeros(n, np.int32)
+        self.nbr = np.zeros(n * self.cap, np.int32)
+        self.fac = np.zeros(n * self.cap, np.float32)
+        self.normals = np.zeros((n, 3)) if self.effects.tension_k is not None else None
+
+    # -- the pieces of a step -----------------------------------------------------------------
+    def refresh(self) -> None:
+        """Sort into cell order, then density, factors and neighbour lists at the current positions."""
+        order = self.grid.sort(self.x)
+        self.x, self.v, self.id, self.kappa, self.kappa_v = reorder(
+            [self.x, self.v, self.id, self.kappa, self.kappa_v], order, self._scratch)
+        g, w = self.grid, self.walls
+        while True:
+            most = D.density_alpha_neighbours(
+                self.x, g.starts, g.lo, 1.0 / g.cell, g.dims, self.h, poly6_coef(self.h), self.grad_coef, self.mass,
+                self.rho0, w.maps, w.origin, 1.0 / w.spacing, w.fix_rho, 0.25 * self.l0, w.inv_dr, self.sdf.dist,
+                self.sdf.origin, self.sdf_inv, self.wall_mirror, self.spiky, self.cap, self.nbr, self.fac, self.count, self.rho, self.alpha,
+                self.d, self.nrm, self.psi)
+            if most <= self.cap:
+                break
+            self.cap = int(most) + 8  # never drop a neighbour: grow and run the pass again
+            self.nbr = np.zeros(len(self.x) * self.cap, np.int32)
+            self.fac = np.zeros(len(self.x) * self.cap, np.float32)
+        self._fresh = True
+
+    def effect_args(self) -> tuple:
+        """(viscosity, tension, adhesion, friction, wind, attractor) for K.forces: None when absent."""
+        e = self.effects
+        vis = (self.mu, visc_lap_coef(self.h), self.fix_vis) if e.mu is not None else None
+        ten = (e.tension_k, self.normals, cohesion_coef(self.h)) if e.tension_k is not None else None
+        adh = (e.adhesion_accel,) if e.adhesion_accel is not None else None
+        fri = (e.friction_rate,) if e.friction_rate is not None else None
+        wind = (e.wind_velocity, e.wind_drag) if e.wind_velocity is not None else None
+        att = (e.attractor_point, e.attractor_k, e.attractor_soft) if e.attractor_point is not None else None
+        return vis, ten, adh, fri, wind, att
+
+    def non_pressure_forces(self) -> None:
+        g, w = self.grid, self.walls
+        if self.normals is not None:
+            K.surface_normals(self.x, self.rho, g.starts, g.lo, 1.0 / g.cell, g.dims, self.h, self.grad_coef,
+                              self.mass, self.normals)
+        K.forces(self.x, self.v, self.rho, self.d, self.nrm, g.starts, g.lo, 1.0 / g.cell, g.dims, self.h, self.mass,
+                 self.rho0, w.maps, w.origin, 1.0 / w.spacing, w.inv_dr, self.gravity, self.acc, None,
+                 *self.effect_args())
+
+    def stable_dt(self, dt_max: float) -> float:
+        v2, a2 = K.max_speed2_accel2(self.v, self.acc)
+        nu = self.mu / self.rho0 if self.mu > 0 else None
+        return stable_dt(l0=self.l0, h=self.h, v_max=math.sqrt(v2), a_max=math.sqrt(a2), cfl=self.p.cfl,
+                         sound_speed=None, nu=nu, dt_max=min(dt_max, self.p.dt_max, self.effects.dt_limit))
+
+    def _solve(self, dt: float, divergence: bool) -> tuple[int, float]:
+        """Projected Jacobi iterations of the constant-density (or divergence-free) solve, warm started
+        from ``warm_start`` times the last step's kappa; adds dt a(kappa) to self.v. Returns
+        (iterations, final average error / rho0)."""
+        p = self.p
+        kappa = self.kappa_v if divergence else self.kappa
+        kappa *= p.warm_start
+        eta = p.max_divergence_error if divergence else p.max_density_error
+        least = 1 if divergence else p.min_iterations
+        common = (self.nbr, self.fac, self.count, self.cap, self.mass, self.psi, self.rho, self.alpha)
+        n = max(len(self.x), 1)
+        it = 0
+        avg = 0.0
+        while it < p.max_iterations:
+            D.pressure_accel(self.x, *common[:7], kappa, self.wall_mirror, self.acc_p)
+            if divergence:
+                D.jacobi_divergence(self.x, self.v, self.acc_p, *common, dt, self.min_rho, kappa, self.err)
+                avg = float(self.err.sum()) * dt / n / self.rho0
+            else:
+                D.jacobi_density(self.x, self.v, self.acc_p, *common, self.rho0, dt, kappa, self.err)
+                avg = float(self.err.sum()) / n / self.rho0
+            it += 1
+            if avg <= eta and it >= least:
+                break
+        D.pressure_accel(self.x, *common[:7], kappa, self.wall_mirror, self.acc_p)
+        D.kick(self.v, self.acc_p, dt)
+        return it, avg
+
+    def step(self, t_end: float) -> float:
+        """One DFSPH step towards t_end (never past it); returns dt."""
+        if not self._fresh:
+            self.refresh()
+        self.non_pressure_forces()
+        dt = step_to(self.t, t_end, self.stable_dt(t_end - self.t))
+        D.kick(self.v, self.acc, dt)
+        it, err = self._solve(dt, divergence=False)
+        self.iterations[0] += it
+        self.solve_error[0] += err
+        # x += dt v*, then the eq. 16 clamp along the SDF normal as a safety net (acceleration already in v)
+        K.integrate(self.x, self.v, self.zero_acc, dt, self.sdf.dist, self.sdf.origin, self.sdf_inv,
+                    self.p.r_rep * self.l0, 0.5 * self.l0)
+        self.refresh()
+        if self.p.divergence_solve:
+            it, err = self._solve(dt, divergence=True)
+            self.iterations[1] += it
+            self.solve_error[1] += err
+        self.t = t_end if dt >= t_end - self.t else self.t + dt
+        self.steps += 1
+        return dt
+
+    def advance_to(self, t_end: float) -> int:
+        n = 0
+        while self.t < t_end:
+            self.step(t_end)
+            n += 1
+        return n
+
+    def remove_escaped(self) -> int:
+        """Drop particles outside the domain (counted in ``left_domain``)."""
+        lo, hi = self.domain
+        keep = np.all((self.x >= lo) & (self.x <= hi) & np.isfinite(self.x), axis=1)
+        gone = int(len(keep) - keep.sum())
+        if gone:
+            self.x = np.ascontiguousarray(self.x[keep])
+            self.v = np.ascontiguousarray(self.v[keep])
+            self.id = np.ascontiguousarray(self.id[keep])
+            self.kappa = np.ascontiguousarray(self.kappa[keep])
+            self.kappa_v = np.ascontiguousarray(self.kappa_v[keep])
+            self._scratch.clear()
+            self._alloc()
+            self._fresh = False
+            self.left_domain += gone
+        return gone
+
+    def frame(self) -> ParticleFrame:
+        """The current state with its density and pressure (p = kappa rho of the last density solve)."""
+        if not self._fresh:
+            self.refresh()
+        D.pressure_of(self.kappa, self.rho, self.pr)
+        return ParticleFrame(x=self.x.copy(), v=self.v.copy(), rho=self.rho.copy(), p=self.pr.copy(), id=self.id.copy())
+
+    def state(self) -> dict:
+        return {"x": self.x, "v": self.v, "id": self.id, "kappa": self.kappa, "kappa_v": self.kappa_v, "t": np.float64(self.t),
+                "steps": np.int64(self.steps), "left_domain": np.int64(self.left_domain),
+                "iterations": np.asarray(self.iterations, np.int64), "solve_error": np.asarray(self.solve_error)}
+
+    def load_state(self, s: Mapping) -> None:
+        self.x = np.ascontiguousarray(s["x"], np.float64)
+        self.v = np.ascontiguousarray(s["v"], np.float64)
+        self.id = np.ascontiguousarray(s["id"], np.int32)
+        self.kappa = np.ascontiguousarray(s["kappa"], np.float64)
+        self.kappa_v = np.ascontiguousarray(s["kappa_v"], np.float64)
+        self.t = float(s["t"])
+        self.steps = int(s["steps"])
+        self.left_domain = int(s["left_domain"])
+        self.iterations = [int(k) for k in s["iterations"]]
+        self.solve_error = [float(e) for e in s["solve_error"]]
+        self._scratch.clear()
+        self._alloc()
+        self._fresh = False
+
+    def solver_stats(self) -> dict:
+        n = max(self.steps, 1)
+        return {"mean_density_iterations": self.iterations[0] / n, "mean_divergence_iterations": self.iterations[1] / n,
+                "mean_density_solve_error": self.solve_error[0] / n,
+                "mean_divergence_solve_error": self.solve_error[1] / n}
+
+
+class DFSPHSimulate(Stage):
+    kind = "simulate"
+    name = "dfsph"
+    version = "1"
+    Params = DFSPHParams
+    inputs = ("sdf",)
+    reads = ("scene", "fluid", "effects")
+    outputs = ("particles",)
+    description = "divergence-free SPH (Bender and Koschier 2017) with distance-function walls, numba"
+
+    def frame_count(self, ctx: Context, params: Params, inputs: Mapping[str, Artifact]) -> int | None:
+        return ctx.scene["scene"].frames.count
+
+    def run(self, ctx: Context, inputs: Mapping[str, Artifact], params: DFSPHParams) -> None:
+        set_threads(params.threads or getattr(ctx, "threads", None))
+        setup = prepare(ctx, inputs, "simulate.dfsph")
+        h = params.support * setup.spacing
+        effects = compile_effects(setup.effects, meters_per_unit=setup.meters_per_unit, rho0=setup.density,
+                                  l0=setup.spacing, h=h, table_samples=params.table_samples)
+        solver = DFSPHSolver(setup.x, setup.v, np.arange(len(setup.x), dtype=np.int32), setup.sdf,
+                             spacing=setup.spacing, rho0=setup.density, params=params, gravity=setup.gravity,
+                             domain=setup.domain, effects=effects)
+        drive(ctx, solver, setup, solver_name="dfsph", checkpoint_every=params.checkpoint_every)

@@ -1,0 +1,231 @@
+"""The numba kernels of Divergence-Free SPH (Bender and Koschier 2015, 2017) with distance-function
+walls (PHYSICS.md eq. 11-16) treated like a boundary density map (Koschier and Bender 2017).
+
+Notation (SI, arrays in cell order, see neighbours.py):
+- density rho_i = sum_j m W_ij (eq. 4, 10, Poly6, self included) + Z_rho(x_i) (eq. 11-12, wall map);
+- gradient grad_i W_ij = -f_ij (x_i - x_j) with f_ij = c (h - r)^2 / r (Spiky, eq. 8; c divided by the
+  lattice factor of kernels.spiky_lattice_factor, as in the SPH solver), stored per pair as f_ij;
+- wall gradient Psi_i = sum_wall m grad_i W_iw = grad Z_rho(x_i), the gradient of the wall density
+  the density uses (central differences of step ``fd``); it points into the wall, and along a flat wall
+  it is the derivative of the Z_rho table along the SDF normal;
+- pressure acceleration (eq. 6 in kappa form, kappa = p / rho):
+      a_i = -sum_j m (kappa_i / rho_i + kappa_j / rho_j) grad_i W_ij - WALL_MIRROR kappa_i / rho_i Psi_i
+  (the wall mirrors the particle's own pressure, p_wall = p_i, rho_wall = rho_i);
+- rate of density change D rho_i / Dt = sum_j m (v_i - v_j) . grad_i W_ij + v_i . Psi_i (walls at rest);
+- DFSPH factor alpha_i = rho_i / ((S_i + 2 Psi_i) . (S_i + Psi_i) + sum_j |m grad_i W_ij|^2), S_i the
+  fluid part of sum_j m grad_i W_ij: the diagonal of the Jacobi iteration with the mirrored wall.
+
+Neighbour lists are built once per step in the density pass (fixed stride ``cap`` per particle; a
+pass that finds more neighbours than ``cap`` reports it and the caller grows ``cap`` and runs the pass
+again, so no neighbour is ever dropped); the solver iterations then loop over the lists only.
+Every loop is a prange over i writing only row i: deterministic for any thread count. Sums over all
+particles are left to the caller (serial numpy sums, fixed order)."""
+from __future__ import annotations
+
+import math
+
+import numba as nb
+
+from stages.common.sdf import sdf_sample
+
+from .wall_maps import map_sample
+from .wall_tables import table_lookup
+
+WALL_MIRROR = 2.0  # p_wall = p_i: the wall's share of eq. 6 counts the particle's pressure twice
+
+
+@nb.njit(cache=True, inline="always")
+def _wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, x, y, z):
+    """Z_rho at a point (eq. 12): the 3D wall map times the flat-wall factor at the SDF distance."""
+    dw, _, _, _ = sdf_sample(sdf, sdf_o[0], sdf_o[1], sdf_o[2], sdf_inv, x, y, z)
+    if dw >= h:
+        return 0.0
+    return map_sample(wmap, wo[0], wo[1], wo[2], winv, x, y, z, 0) * table_lookup(fix_rho, dw, inv_dr)
+
+
+@nb.njit(cache=True, parallel=True)
+def density_alpha_neighbours(x, starts, lo, inv_cell, dims, h, poly6_coef, grad_coef, mass, rho0, wmap, wo, winv,
+                             fix_rho, fd, inv_dr, sdf, sdf_o, sdf_inv, wall_mirror, spiky, cap, nbr, fac, count, rho, alpha,
+                             d, nrm, psi):
+    """One pass over the cell grid: density (eq. 11), SDF distance ``d`` and normal ``nrm``, wall
+    gradient ``psi``, the DFSPH factor ``alpha`` and the neighbour list (``nbr``/``fac`` rows of stride
+    ``cap``, ``count`` entries, j != i). Returns the largest neighbour count (exact max): if it exceeds
+    ``cap`` the lists are incomplete and the caller must grow ``cap`` and call again."""
+    h2 = h * h
+    nx, ny, nz = dims[0], dims[1], dims[2]
+    most = 0
+    for i in nb.prange(x.shape[0]):
+        xi = x[i, 0]
+        yi = x[i, 1]
+        zi = x[i, 2]
+        cx = min(max(int(math.floor((xi - lo[0]) * inv_cell)), 0), nx - 1)
+        cy = min(max(int(math.floor((yi - lo[1]) * inv_cell)), 0), ny - 1)
+        cz = min(max(int(math.floor((zi - lo[2]) * inv_cell)), 0), nz - 1)
+        x0 = max(cx - 1, 0)
+        x1 = min(cx + 1, nx - 1)
+        s = 0.0
+        sx = 0.0
+        sy = 0.0
+        sz = 0.0
+        sq = 0.0
+        n = 0
+        row = i * cap
+        for kz in range(max(cz - 1, 0), min(cz + 2, nz)):
+            for ky in range(max(cy - 1, 0), min(cy + 2, ny)):
+                base = (kz * ny + ky) * nx
+                for j in range(starts[base + x0], starts[base + x1 + 1]):
+                    dx = xi - x[j, 0]
+                    dy = yi - x[j, 1]
+                    dz = zi - x[j, 2]
+                    r2 = dx * dx + dy * dy + dz * dz
+                    if r2 < h2:
+                        q = h2 - r2
+                        s += q * q * q
+                        if j != i:
+                            if spiky:  # eq. 8: -grad_i W_ij = c (h - r)^2 / r (x_i - x_j)
+                                f = 0.0
+                                if r2 > 1e-24:
+                                    r = math.sqrt(r2)
+                                    f = grad_coef * (h - r) * (h - r) / r
+                            else:  # Poly6 (eq. 10) gradient: -grad_i W_ij = 6 c (h^2 - r^2)^2 (x_i - x_j)
+                                f = grad_coef * q * q
+                            # m grad_i W_ij = -m f (x_i - x_j)
+                            sx -= f * dx
+                            sy -= f * dy
+                            sz -= f * dz
+                            sq += f * f * r2
+                            if n < cap:
+                                nbr[row + n] = j
+                                fac[row + n] = f
+                            n += 1
+        count[i] = n
+        most = max(most, n)
+        dw, gx, gy, gz = sdf_sample(sdf, sdf_o[0], sdf_o[1], sdf_o[2], sdf_inv, xi, yi, zi)
+        d[i] = dw
+        nrm[i, 0] = gx
+        nrm[i, 1] = gy
+        nrm[i, 2] = gz
+        zw = 0.0
+        px = 0.0
+        py = 0.0
+        pz = 0.0
+        if dw < h + fd:  # only particles within h of a wall have wall terms
+            zw = _wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi, zi)
+            # Psi = grad Z_rho by central differences of the same function the density uses, so the
+            # solver's predicted density change matches the real one, edges and corners included
+            c = 0.5 / fd
+            px = c * (_wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi + fd, yi, zi)
+                      - _wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi - fd, yi, zi))
+            py = c * (_wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi + fd, zi)
+                      - _wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi - fd, zi))
+            pz = c * (_wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi, zi + fd)
+                      - _wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi, zi - fd))
+        psi[i, 0] = px
+        psi[i, 1] = py
+        psi[i, 2] = pz
+        r_i = mass * poly6_coef * s + zw
+        rho[i] = r_i
+        sx *= mass
+        sy *= mass
+        sz *= mass
+        sq *= mass * mass
+        den = ((sx + wall_mirror * px) * (sx + px) + (sy + wall_mirror * py) * (sy + py)
+               + (sz + wall_mirror * pz) * (sz + pz) + sq)
+        den = max(den, sq)
+        alpha[i] = r_i / den if den > 1e-9 * r_i * r_i / h2 else 0.0  # no neighbours: no pressure
+    return most
+
+
+@nb.njit(cache=True, parallel=True)
+def pressure_accel(x, nbr, fac, count, cap, mass, psi, rho, kappa, wall_mirror, acc):
+    """acc_i = the pressure acceleration of the module docstring for the field ``kappa`` (eq. 6 in
+    kappa form, Spiky gradient eq. 8, the wall's share along Psi). Writes only acc_i."""
+    for i in nb.prange(x.shape[0]):
+        xi = x[i, 0]
+        yi = x[i, 1]
+        zi = x[i, 2]
+        ki = kappa[i] / rho[i]
+        ax = 0.0
+        ay = 0.0
+        az = 0.0
+        row = i * cap
+        for k in range(count[i]):
+            j = nbr[row + k]
+            kk = ki + kappa[j] / rho[j]
+            if kk != 0.0:
+                f = kk * fac[row + k]
+                ax += f * (xi - x[j, 0])
+                ay += f * (yi - x[j, 1])
+                az += f * (zi - x[j, 2])
+        # -sum m kk grad_i W_ij = +sum m kk f (x_i - x_j); the wall: -mirror k_i Psi_i
+        cw = wall_mirror * ki
+        acc[i, 0] = mass * ax - cw * psi[i, 0]
+        acc[i, 1] = mass * ay - cw * psi[i, 1]
+        acc[i, 2] = mass * az - cw * psi[i, 2]
+
+
+@nb.njit(cache=True, inline="always")
+def _density_rate(i, x, v, acc, dt, nbr, fac, count, cap, mass, psi):
+    """D rho_i / Dt = sum_j m (u_i - u_j) . grad_i W_ij + u_i . Psi_i at the velocities u = v + dt acc
+    (the wall is at rest)."""
+    xi = x[i, 0]
+    yi = x[i, 1]
+    zi = x[i, 2]
+    uxi = v[i, 0] + dt * acc[i, 0]
+    uyi = v[i, 1] + dt * acc[i, 1]
+    uzi = v[i, 2] + dt * acc[i, 2]
+    s = 0.0
+    row = i * cap
+    for k in range(count[i]):
+        j = nbr[row + k]
+        s += fac[row + k] * ((uxi - v[j, 0] - dt * acc[j, 0]) * (xi - x[j, 0])
+                             + (uyi - v[j, 1] - dt * acc[j, 1]) * (yi - x[j, 1])
+                             + (uzi - v[j, 2] - dt * acc[j, 2]) * (zi - x[j, 2]))
+    return -mass * s + uxi * psi[i, 0] + uyi * psi[i, 1] + uzi * psi[i, 2]
+
+
+@nb.njit(cache=True, parallel=True)
+def jacobi_density(x, v, acc, nbr, fac, count, cap, mass, psi, rho, alpha, rho0, dt, kappa, err):
+    """One projected Jacobi sweep of the constant-density solve (Bender and Koschier 2017, Alg. 3, on
+    the total kappa as in SPlisHSPlasH 2.x so a warm start can be undone): predicted density
+    rho*_i = rho_i + dt D rho_i / Dt at v + dt acc(kappa); kappa_i += alpha_i (rho*_i - rho0) / dt^2,
+    clamped at 0 (no tension: a free surface is not pulled together). err_i = the compression
+    (rho*_i - rho0 where kappa_i > 0 or rho*_i > rho0, else 0)."""
+    inv_dt2 = 1.0 / (dt * dt)
+    for i in nb.prange(x.shape[0]):
+        e = rho[i] + dt * _density_rate(i, x, v, acc, dt, nbr, fac, count, cap, mass, psi) - rho0
+        e = max(e, 0.0)
+        err[i] = e
+        kappa[i] += e * alpha[i] * inv_dt2
+
+
+@nb.njit(cache=True, parallel=True)
+def jacobi_divergence(x, v, acc, nbr, fac, count, cap, mass, psi, rho, alpha, dt, min_rho, kappa, err):
+    """One projected Jacobi sweep of the divergence-free solve (Alg. 2): D rho_i / Dt at v + dt acc(kappa),
+    kappa_i += alpha_i (D rho_i / Dt) / dt, clamped at 0 (only compressing flow is corrected).
+    Particles with rho_i < min_rho (a sparse free-surface neighbourhood, SPlisHSPlasH's
+    fewer-than-20-neighbours rule) are left alone."""
+    inv_dt = 1.0 / dt
+    for i in nb.prange(x.shape[0]):
+        e = 0.0
+        if rho[i] >= min_rho:
+            e = _density_rate(i, x, v, acc, dt, nbr, fac, count, cap, mass, psi)
+        e = max(e, 0.0)
+        err[i] = e
+        kappa[i] += e * alpha[i] * inv_dt
+
+
+@nb.njit(cache=True, parallel=True)
+def kick(v, acc, dt):
+    """v += dt a (the non-pressure accelerations: gravity, viscosity, effects)."""
+    for i in nb.prange(v.shape[0]):
+        v[i, 0] += dt * acc[i, 0]
+        v[i, 1] += dt * acc[i, 1]
+        v[i, 2] += dt * acc[i, 2]
+
+
+@nb.njit(cache=True, parallel=True)
+def pressure_of(kappa, rho, p):
+    """p_i = kappa_i rho_i (kappa = p / rho)."""
+    for i in nb.prange(rho.shape[0]):
+        p[i] = kappa[i] * rho[i]
