@@ -37,7 +37,8 @@ def test_sphere_obstacle_matches_the_exact_distance_in_the_band(tmp_path):
     d = g.dist.reshape(-1)
     band = np.abs(exact) < g.band - 0.01
     assert g.band == pytest.approx(0.2) and g.spacing == pytest.approx(0.025)
-    assert np.abs(d[band] - exact[band]).max() < 1e-3  # icosphere chord error ~ 4e-4
+    # icosphere chord error ~ 4e-4 plus up to a few 1e-4 where the closest triangle was handed outwards
+    assert np.abs(d[band] - exact[band]).max() < 0.1 * g.spacing
     assert np.all(np.abs(d[~band]) >= g.band - 0.011) and np.abs(d).max() <= g.band + 1e-6
     assert np.all(np.sign(d[np.abs(exact) > 0.01]) == np.sign(exact[np.abs(exact) > 0.01]))
     # the sampler's normal points away from the sphere (into the fluid)
@@ -104,6 +105,52 @@ def test_real_asset_bakes_with_a_plausible_sign(tmp_path):
     assert (g.dist < 0).sum() * g.spacing ** 3 == pytest.approx(mesh.volume, rel=0.05)
 
 
+def test_band_distance_is_exact_near_the_wall_and_never_below_it_beyond():
+    """mesh_distance.band_distance against open3d's exact distance: brute force (reach covering the
+    band) is exact; the default (exact within 2 spacings, propagated beyond) never undercuts the true
+    distance and stays within a tenth of a spacing of it."""
+    import open3d as o3d
+
+    from stages.sdf_bake.mesh_distance import band_distance
+
+    s = trimesh.creation.icosphere(subdivisions=3, radius=0.3)
+    s.vertices[:, 2] *= 0.6  # an ellipsoid: curvature varies, so neighbours' triangles differ
+    tri = s.vertices[s.faces]
+    h, band = 0.02, 0.16
+    origin, shape = np.full(3, -0.5), (51, 51, 51)
+    brute, _ = band_distance(tri, origin, h, shape, band, exact_reach=band + 2 * h)
+    prop, counts = band_distance(tri, origin, h, shape, band, exact_reach=2 * h)
+    assert counts["propagated_nodes"] > counts["exact_nodes"] > 0
+    axes = [origin[a] + h * np.arange(shape[a]) for a in range(3)]
+    pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(s.vertices.astype(np.float32)), o3d.core.Tensor(s.faces.astype(np.uint32)))
+    exact = np.minimum(scene.compute_distance(o3d.core.Tensor(pts.astype(np.float32))).numpy(), band).reshape(shape)
+    assert np.abs(brute - exact).max() < 1e-5 * 0.3  # float32 in open3d
+    near = exact < 2 * h
+    assert np.abs(prop[near] - exact[near]).max() < 1e-5 * 0.3
+    assert (prop - brute).min() > -1e-12 and (prop - brute).max() < 0.1 * h
+
+
+def test_grid_line_votes_agree_on_a_closed_mesh_and_outvote_a_hole():
+    """Six grid-line votes: all agree on a closed sphere (also where lines run through its vertices,
+    the grid is centred on it); with one face removed, every node keeps a majority (no 3-3 tie) and
+    the right sign."""
+    from stages.sdf_bake.mesh_distance import inside_votes
+
+    s = trimesh.creation.icosphere(subdivisions=2, radius=0.3)
+    h, origin, shape = 0.02, np.full(3, -0.4), (41, 41, 41)
+    axes = [origin[a] + h * np.arange(shape[a]) for a in range(3)]
+    r = np.linalg.norm(np.stack(np.meshgrid(*axes, indexing="ij"), -1), axis=-1)
+    votes = inside_votes(s.vertices[s.faces], origin, h, shape)
+    assert set(np.unique(votes)) == {0, 6}
+    inside = votes == 6
+    assert np.all(inside[r < 0.27]) and not np.any(inside[r > 0.301])
+    holey = inside_votes(s.vertices[s.faces[1:]], origin, h, shape)
+    assert not np.any(holey == 3)
+    assert np.array_equal(holey >= 4, inside)
+
+
 def test_missing_fluid_section_is_a_stage_error(tmp_path):
     scene = {"scene": {"name": "t"}, "walls": [{"builtin": "box_tank"}]}
     walls_dir = run_stage(TrimeshImport, tmp_path / "w", scene=scene)
@@ -118,10 +165,11 @@ def test_exact_queries_grow_with_wall_area_not_domain_volume():
     wm = WallMesh(s.vertices, s.faces.astype(np.int32), np.zeros(len(s.faces), np.int32),
                   [{"name": "s", "fluid": "outside", "report": {"watertight": True}}])
     h, band = 0.02, 0.08
-    small, st_small = bake(wm, np.full(3, -0.5), np.full(3, 0.5), h, band, 8, 7)
-    big, st_big = bake(wm, np.full(3, -2.0), np.full(3, 2.0), h, band, 8, 7)
+    small, st_small = bake(wm, np.full(3, -0.5), np.full(3, 0.5), h, band)
+    big, st_big = bake(wm, np.full(3, -2.0), np.full(3, 2.0), h, band)
+    measured = {k: st["exact_nodes"] + st["propagated_nodes"] for k, st in (("small", st_small), ("big", st_big))}
     assert st_big["nodes"] > 50 * st_small["nodes"]
-    assert st_big["exact_queries"] < 1.3 * st_small["exact_queries"]
-    assert st_small["exact_queries"] < 0.3 * st_small["nodes"]
+    assert measured["big"] < 1.3 * measured["small"]
+    assert measured["small"] < 0.3 * st_small["nodes"]
     # and the far field is the clamped positive value everywhere outside the band
     assert big.dist[0, 0, 0] == pytest.approx(band) and (big.dist < 0).sum() == (small.dist < 0).sum()
