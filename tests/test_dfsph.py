@@ -1,10 +1,19 @@
-"""simulate.dfsph (experimental): the pieces of the solver against brute force and finite differences;
-the hydrostatic tank is a strict xfail until the odd-even decoupling is fixed (see dfsph.py)."""
+"""simulate.dfsph: the pieces of the solver against brute force and finite differences, the dam break
+against Martin & Moyce, resume-from-checkpoint equality through the stage; the hydrostatic tank is a
+strict xfail until a resting tank stays at rest (see dfsph.py)."""
+import logging
+import shutil
+from pathlib import Path
+
 import numpy as np
 import pytest
 
+from pipeline.stage import Artifact, Context
+from pipeline.testing import scene_sections
+from stages.common.formats import ParticleMeta, load_particle_frame
+
 from stages.common.sdf import box_interior_sdf, grid_from_function
-from stages.simulate.dfsph import DFSPHParams, DFSPHSolver
+from stages.simulate.dfsph import DFSPHParams, DFSPHSimulate, DFSPHSolver
 from stages.simulate.emitters import lattice
 from stages.simulate.kernels import poly6_np
 
@@ -61,7 +70,7 @@ def test_predicted_density_rate_matches_the_real_change():
         s.v[:] = sign * vel
         kappa, err = np.zeros(len(s.x)), np.zeros(len(s.x))
         D.jacobi_density(s.x, s.v, np.zeros_like(s.x), s.nbr, s.fac, s.count, s.cap, s.mass, s.psi, s.rho * 0,
-                         s.alpha, 0.0, 1.0, kappa, err)
+                         s.alpha, 0.0, 1.0, 0.5, kappa, err)
         rate += sign * err
     dt = 1e-6
     moved = DFSPHSolver(s.x + dt * vel, np.zeros_like(s.x), s.id, s.sdf, spacing=L0, rho0=1000.0, params=s.p,
@@ -84,19 +93,82 @@ def test_predicted_density_rate_matches_the_real_change():
     assert np.corrcoef(actual[~far], real[~far])[0, 1] > 0.95
 
 
-def test_resume_is_bitwise_identical():
-    a = _tank()
-    a.advance_to(0.02)
-    saved = {k: np.copy(v) for k, v in a.state().items()}
-    a.advance_to(0.04)
-    b = _tank()
-    b.load_state(saved)
-    b.advance_to(0.04)
-    fa, fb = a.frame(), b.frame()
-    assert np.array_equal(fa.x, fb.x) and np.array_equal(fa.v, fb.v) and np.array_equal(fa.id, fb.id)
+def test_dam_break_surge_front_and_density_error():
+    """The column of tests/test_sph_dam_break.py (a = 0.1 m, H = 2a, 800 particles): surge front against
+    Martin & Moyce up to T = 3, and the density error against the solver's bound."""
+    from test_sph_dam_break import _reference
+    a, l0, width, g = 0.1, 0.01, 0.04, 9.81
+    lo, hi = np.array([0.0, 0.0, 0.0]), np.array([5 * a, width, 3 * a])
+    sdf = grid_from_function(box_interior_sdf(lo, hi), lo, hi, l0 / 2)
+    x = lattice([0, 0, 0], [a, width, 2 * a], l0)
+    params = DFSPHParams()
+    s = DFSPHSolver(x, np.zeros_like(x), np.arange(len(x)), sdf, spacing=l0, rho0=1000.0, params=params,
+                    gravity=(0, 0, -g), mu=0.01)
+    scale = np.sqrt(2 * g / a)
+    front, err = [], []
+    for T in np.arange(0.25, 3.0 + 1e-9, 0.25):
+        s.advance_to(T / scale)
+        xs = np.sort(s.x[:, 0])
+        front.append((T, (xs[-3] + 0.5 * l0) / a))  # ignore lone droplets, as for sph
+        err.append(np.maximum(s.rho / 1000.0 - 1, 0).mean())
+    ref = _reference()
+    ref = ref[ref[:, 0] <= 3.0]
+    sim = np.array(front)
+    z = np.interp(ref[:, 0], sim[:, 0], sim[:, 1])
+    rel = (z - ref[:, 1]) / ref[:, 1]
+    print("dfsph dam break rel. front error", rel.round(3).tolist(), "density error", np.mean(err), s.solver_stats())
+    assert s.left_domain == 0 and s.x[:, 2].min() > 0
+    # like sph, ahead of the experiment (its gate is not modelled): measured 6-10 % ahead
+    assert np.all(rel > -0.05) and np.all(rel < 0.15), rel
+    # every solve ended under its bound; the real density error (after the move) stays under 1 %
+    assert s.solver_stats()["mean_density_solve_error"] <= params.max_density_error
+    assert np.mean(err) < 0.01 and max(err) < 0.02
+    assert s.solver_stats()["mean_density_iterations"] < 10
 
 
-@pytest.mark.xfail(strict=True, reason="a resting column still sinks (odd-even decoupling), see dfsph.py")
+L0_STAGE = 0.02
+SCENE = {
+    "scene": {"name": "t", "frames": {"fps": 50, "count": 7}, "units": {"up_axis": "Z"}},
+    "fluid": {"spacing": L0_STAGE, "emitters": [{"box": {"min": [0, 0, 0], "max": [0.12, 0.2, 0.2]}}]},
+    "effects": {"gravity": {}, "viscosity": {"mu": 0.01}},
+}
+
+
+def _ctx(out: Path, ckpt: Path | None) -> Context:
+    sections = scene_sections(SCENE)
+    return Context(out_dir=out, scene={k: sections[k] for k in DFSPHSimulate.reads}, config_dir=Path.cwd(),
+                   frames=tuple(range(7)), log=logging.getLogger("t"), checkpoint_dir=ckpt)
+
+
+def test_stage_resume_from_checkpoint_is_bitwise_identical(tmp_path):
+    folder = tmp_path / "sdf"
+    folder.mkdir()
+    grid_from_function(box_interior_sdf([0, 0, 0], [0.3, 0.2, 0.4]), [0, 0, 0], [0.3, 0.2, 0.4],
+                       L0_STAGE / 2).save(folder)
+    arts = {"sdf": Artifact(name="sdf", key="t", path=folder)}
+    params = DFSPHSimulate.Params(threads=1, checkpoint_every=2)
+    straight = tmp_path / "straight"
+    straight.mkdir()
+    DFSPHSimulate().run(_ctx(straight, tmp_path / "ck_straight"), arts, params)
+    ck = tmp_path / "ck"
+    shutil.copytree(tmp_path / "ck_straight", ck)
+    for p in ck.glob("state_*.npz"):
+        if p.name != "state_00004.npz":
+            p.unlink()
+    for f in (5, 6):
+        (ck / "frames" / f"{f:05d}.npz").unlink(missing_ok=True)
+    resumed = tmp_path / "resumed"
+    resumed.mkdir()
+    DFSPHSimulate().run(_ctx(resumed, ck), arts, params)
+    for f in range(7):
+        a, b = load_particle_frame(straight, f), load_particle_frame(resumed, f)
+        assert np.array_equal(a.x, b.x) and np.array_equal(a.v, b.v) and np.array_equal(a.p, b.p)
+    meta = ParticleMeta.load(straight)
+    assert meta.solver == "dfsph" and meta.stats["summary"]["inside_wall_max"] == 0
+    assert load_particle_frame(straight, 6).x[:, 2].min() > 0.0
+
+
+@pytest.mark.xfail(strict=True, reason="a resting tank keeps a sloshing noise near its edges and corners, see dfsph.py")
 def test_hydrostatic_tank_stays_at_rest():
     s = _tank()
     s.advance_to(0.1)

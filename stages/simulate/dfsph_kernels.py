@@ -10,10 +10,13 @@ Notation (SI, arrays in cell order, see neighbours.py):
   it is the derivative of the Z_rho table along the SDF normal;
 - pressure acceleration (eq. 6 in kappa form, kappa = p / rho):
       a_i = -sum_j m (kappa_i / rho_i + kappa_j / rho_j) grad_i W_ij - WALL_MIRROR kappa_i / rho_i Psi_i
-  (the wall mirrors the particle's own pressure, p_wall = p_i, rho_wall = rho_i);
+  (WALL_MIRROR = 1: the wall's share counts the particle's kappa once, as the boundary terms of
+  Akinci et al. 2012 and SPlisHSPlasH's DFSPH do; 2 = a mirrored wall pressure p_wall = p_i, which
+  made a resting tank unstable);
 - rate of density change D rho_i / Dt = sum_j m (v_i - v_j) . grad_i W_ij + v_i . Psi_i (walls at rest);
-- DFSPH factor alpha_i = rho_i / ((S_i + 2 Psi_i) . (S_i + Psi_i) + sum_j |m grad_i W_ij|^2), S_i the
-  fluid part of sum_j m grad_i W_ij: the diagonal of the Jacobi iteration with the mirrored wall.
+- DFSPH factor alpha_i = rho_i / ((S_i + WALL_MIRROR Psi_i) . (S_i + Psi_i) + sum_j |m grad_i W_ij|^2),
+  S_i the fluid part of sum_j m grad_i W_ij: the exact diagonal of the linearised solve;
+- each solve is a projected, relaxed Jacobi iteration on the total kappa (>= 0), warm started.
 
 Neighbour lists are built once per step in the density pass (fixed stride ``cap`` per particle; a
 pass that finds more neighbours than ``cap`` reports it and the caller grows ``cap`` and runs the pass
@@ -31,7 +34,7 @@ from stages.common.sdf import sdf_sample
 from .wall_maps import map_sample
 from .wall_tables import table_lookup
 
-WALL_MIRROR = 2.0  # p_wall = p_i: the wall's share of eq. 6 counts the particle's pressure twice
+WALL_MIRROR = 1.0  # the wall's share of the pressure acceleration counts kappa_i once (see above)
 
 
 @nb.njit(cache=True, inline="always")
@@ -185,7 +188,7 @@ def _density_rate(i, x, v, acc, dt, nbr, fac, count, cap, mass, psi):
 
 
 @nb.njit(cache=True, parallel=True)
-def jacobi_density(x, v, acc, nbr, fac, count, cap, mass, psi, rho, alpha, rho0, dt, kappa, err):
+def jacobi_density(x, v, acc, nbr, fac, count, cap, mass, psi, rho, alpha, rho0, dt, omega, kappa, err):
     """One projected Jacobi sweep of the constant-density solve (Bender and Koschier 2017, Alg. 3, on
     the total kappa as in SPlisHSPlasH 2.x so a warm start can be undone): predicted density
     rho*_i = rho_i + dt D rho_i / Dt at v + dt acc(kappa); kappa_i += alpha_i (rho*_i - rho0) / dt^2,
@@ -194,13 +197,12 @@ def jacobi_density(x, v, acc, nbr, fac, count, cap, mass, psi, rho, alpha, rho0,
     inv_dt2 = 1.0 / (dt * dt)
     for i in nb.prange(x.shape[0]):
         e = rho[i] + dt * _density_rate(i, x, v, acc, dt, nbr, fac, count, cap, mass, psi) - rho0
-        e = max(e, 0.0)
-        err[i] = e
-        kappa[i] += e * alpha[i] * inv_dt2
+        err[i] = max(e, 0.0)
+        kappa[i] = max(kappa[i] + omega * e * alpha[i] * inv_dt2, 0.0)
 
 
 @nb.njit(cache=True, parallel=True)
-def jacobi_divergence(x, v, acc, nbr, fac, count, cap, mass, psi, rho, alpha, dt, min_rho, kappa, err):
+def jacobi_divergence(x, v, acc, nbr, fac, count, cap, mass, psi, rho, alpha, dt, omega, min_rho, kappa, err):
     """One projected Jacobi sweep of the divergence-free solve (Alg. 2): D rho_i / Dt at v + dt acc(kappa),
     kappa_i += alpha_i (D rho_i / Dt) / dt, clamped at 0 (only compressing flow is corrected).
     Particles with rho_i < min_rho (a sparse free-surface neighbourhood, SPlisHSPlasH's
@@ -210,9 +212,8 @@ def jacobi_divergence(x, v, acc, nbr, fac, count, cap, mass, psi, rho, alpha, dt
         e = 0.0
         if rho[i] >= min_rho:
             e = _density_rate(i, x, v, acc, dt, nbr, fac, count, cap, mass, psi)
-        e = max(e, 0.0)
-        err[i] = e
-        kappa[i] += e * alpha[i] * inv_dt
+        err[i] = max(e, 0.0)
+        kappa[i] = max(kappa[i] + omega * e * alpha[i] * inv_dt, 0.0)
 
 
 @nb.njit(cache=True, parallel=True)
