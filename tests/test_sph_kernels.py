@@ -99,3 +99,124 @@ def test_wall_map_counts_every_wall_in_edges_and_corners():
     assert abs(flat - table_lookup(z_rho, 0.005, wm.inv_dr)) < 0.005 * rho0  # a flat floor: the lattice table
     edge, corner = z((0.005, 0.05, 0.005)), z((0.005, 0.005, 0.005))
     assert 1.7 * flat < edge < 2.0 * flat and 2.4 * flat < corner < 3.0 * flat  # every wall counted once
+
+
+def _random_cloud(n=1400, seed=3):
+    rng = np.random.default_rng(seed)
+    l0 = 0.01
+    h = 2.0 * l0
+    x = rng.uniform(0.008, 0.11, (n, 3))  # ~30 % denser than the lattice, some within h of the walls
+    v = rng.normal(0, 0.1, (n, 3))
+    sdf = grid_from_function(box_interior_sdf([0, 0, 0], [0.14, 0.14, 0.14]), [0, 0, 0], [0.14, 0.14, 0.14], l0)
+    grid = CellGrid(sdf.origin, sdf.upper, h)
+    order = grid.sort(x)
+    return x[order].copy(), v[order].copy(), sdf, grid, l0, h
+
+
+def test_neighbour_list_is_exactly_the_pairs_within_h_in_scan_order_and_reports_overflow():
+    from stages.simulate.neighbours import neighbour_list
+    x, _, _, grid, _, h = _random_cloud()
+    n = len(x)
+    big = np.zeros((n, 200), np.int32)
+    cnt = np.zeros(n, np.int32)
+    neighbour_list(x, grid.starts, grid.lo, 1 / grid.cell, grid.dims, h, big, cnt)
+    r2 = ((x[:, None, :] - x[None, :, :]) ** 2).sum(-1)
+    for i in range(n):
+        brute = np.flatnonzero(r2[i] < h * h)
+        assert sorted(big[i, :cnt[i]]) == list(brute)
+    assert cnt.max() > 40
+    # a capacity below the largest count: the true counts are still reported, the stored prefix agrees
+    small = np.zeros((n, 16), np.int32)
+    cnt2 = np.zeros(n, np.int32)
+    neighbour_list(x, grid.starts, grid.lo, 1 / grid.cell, grid.dims, h, small, cnt2)
+    assert np.array_equal(cnt, cnt2) and np.array_equal(small, big[:, :16])
+
+
+def test_list_kernels_are_bitwise_the_cell_scan_kernels():
+    """density_neighbours + forces(neighbours, inv_rho) + surface_normals(neighbours) against the
+    cell-scan kernels: the same pairs in the same order, so the same bits, for every effect set."""
+    from stages.simulate.neighbours import neighbour_list
+    from stages.simulate.wall_maps import WallMaps
+    x, v, sdf, grid, l0, h = _random_cloud()
+    n = len(x)
+    m = lattice_mass(1000.0, l0, h)
+    wm = WallMaps(sdf, l0, h, m, 1000.0, 64)  # walls within h of some particles: wall terms on
+    g = (grid.starts, grid.lo, 1 / grid.cell, grid.dims)
+    common = (h, poly6_coef(h), m, 1000.0, wm.maps, wm.origin, 1 / wm.spacing, wm.fix_rho, wm.inv_dr, sdf.dist,
+              sdf.origin, 1 / sdf.spacing, K.EOS_LINEAR, 100.0, True)
+    a = [np.zeros(n), np.zeros(n), np.zeros(n), np.zeros((n, 3))]
+    K.density_pressure(x, *g, *common, *a)
+    nbr, cnt, inv_rho = np.zeros((n, 80), np.int32), np.zeros(n, np.int32), np.zeros(n)
+    neighbour_list(x, *g, h, nbr, cnt)
+    b = [np.zeros(n), np.zeros(n), np.zeros(n), np.zeros((n, 3))]
+    K.density_neighbours(x, nbr, cnt, *common, *b, inv_rho)
+    for u, w in zip(a, b):
+        assert np.array_equal(u, w)
+    rho, p, d, nrm = b
+    assert (d < h).any() and np.array_equal(inv_rho, 1.0 / rho)
+    gc = spiky_grad_coef(h)
+    n1, n2 = np.zeros((n, 3)), np.zeros((n, 3))
+    K.surface_normals(x, rho, *g, h, gc, m, n1)
+    K.surface_normals(x, rho, *g, h, gc, m, n2, (nbr, cnt))
+    assert np.array_equal(n1, n2)
+    press = (p, gc, np.linspace(1.0, 0.5, 64), 0.5)
+    vis = (0.01, visc_lap_coef(h), np.linspace(1.0, 0.0, 64))
+    ten = (0.05, n1, cohesion_coef(h))
+    adh, fri = (np.linspace(2.0, 0.0, 64),), (3.0,)
+    wind, att = (np.array([1.0, 0.0, 0.0]), 2.0), (np.array([0.07, 0.07, 0.2]), 0.01, 0.01)
+    grav = np.array([0.0, 0.0, -9.81])
+    for effects in ((press, vis, None, None, None, None, None), (None, vis, ten, adh, fri, wind, att),
+                    (press, vis, ten, adh, fri, wind, att)):
+        acc1, acc2 = np.zeros((n, 3)), np.zeros((n, 3))
+        args = (x, v, rho, d, nrm, *g, h, m, 1000.0, wm.maps, wm.origin, 1 / wm.spacing, wm.inv_dr, grav)
+        K.forces(*args, acc1, *effects)
+        K.forces(*args, acc2, *effects, (nbr, cnt), inv_rho)
+        assert np.abs(acc1).max() > 0 and np.array_equal(acc1, acc2)
+
+
+def test_solver_grows_the_neighbour_list_and_matches_a_roomy_one():
+    """A list that starts too small (compressed start) is grown; the result does not depend on it."""
+    from stages.simulate import sph as S
+    rng = np.random.default_rng(5)
+    l0 = 0.01
+    x = rng.uniform(0.03, 0.09, (1500, 3))  # ~1.4 x the lattice density: > 16 neighbours everywhere
+    sdf = grid_from_function(box_interior_sdf([0, 0, 0], [0.12, 0.12, 0.12]), [0, 0, 0], [0.12, 0.12, 0.12], l0)
+    runs = []
+    for cap in (16, 200):
+        old, S.NEIGHBOUR_CAP = S.NEIGHBOUR_CAP, cap
+        try:
+            s = S.SPHSolver(x, np.zeros_like(x), np.arange(len(x)), sdf, spacing=l0, rho0=1000.0,
+                            params=S.SPHParams(), gravity=(0, 0, -9.81), mu=0.01)
+            for _ in range(5):
+                s.step(1.0)
+        finally:
+            S.NEIGHBOUR_CAP = old
+        runs.append(s)
+    assert runs[0].nbr.shape[1] > 16 and runs[0].nbr.shape[1] >= runs[0].cnt.max()
+    assert np.array_equal(runs[0].x, runs[1].x) and np.array_equal(runs[0].v, runs[1].v)
+
+
+def test_bricked_wall_maps_are_the_dense_maps():
+    """BrickWallMaps keeps only the bricks near the walls, with the same node values as WallMaps, and
+    the kernels' lookups through it give the same bits (a box with a sphere inside: edges, corners
+    and a curved wall)."""
+    from stages.simulate.sph import BrickWallMaps
+    from stages.simulate.wall_maps import WallMaps, map_sample
+    l0, h, rho0 = 0.01, 0.02, 1000.0
+    m = lattice_mass(rho0, l0, h)
+    box = box_interior_sdf([0, 0, 0], [0.6, 0.4, 0.4])
+    sdf = grid_from_function(lambda p: np.minimum(box(p), np.linalg.norm(p - [0.3, 0.2, 0.2], axis=1) - 0.08),
+                             [0, 0, 0], [0.6, 0.4, 0.4], l0)
+    dense = WallMaps(sdf, l0, h, m, rho0, 64)
+    bricks = BrickWallMaps(sdf, l0, h, m, rho0, 64)
+    assert bricks.nbytes < 0.7 * dense.maps.nbytes  # 0.61 here; the thinner the band, the less
+    assert np.array_equal(bricks.maps, dense.maps)
+    for name in ("fix_rho", "fix_press", "fix_vis", "inv_dr"):
+        assert np.array_equal(getattr(bricks, name), getattr(dense, name))
+    rng = np.random.default_rng(2)
+    pts = rng.uniform(-0.01, 0.61, (3000, 3)) * [1, 2 / 3, 2 / 3]
+    inv = 1 / dense.spacing
+    for c in range(5):
+        a = [map_sample(dense.maps, *dense.origin, inv, *p, c) for p in pts]
+        b = [K.brick_sample(*bricks.wmap, *bricks.origin, inv, *p, c) for p in pts]
+        assert np.array_equal(a, b) and np.count_nonzero(a) > 100

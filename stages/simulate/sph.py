@@ -18,9 +18,8 @@ from . import sph_kernels as K
 from .driver import drive, prepare, set_threads
 from .effects import EffectConstants, compile_effects, cohesion_coef
 from .kernels import lattice_mass, poly6_coef, spiky_grad_coef, spiky_lattice_factor, visc_lap_coef
-from .neighbours import CellGrid, reorder
+from .neighbours import CellGrid, neighbour_list, reorder
 from .timestep import stable_dt, step_to
-from .wall_maps import WallMaps
 
 
 class SPHParams(Params):
@@ -36,6 +35,64 @@ class SPHParams(Params):
     artificial_viscosity: float = Field(0.05, ge=0, le=1, description="Monaghan alpha (dimensionless): "
                                         "dissipates WCSPH acoustic noise on approaching pairs, nu_art ~ alpha c h / 8")
     table_samples: int = Field(256, ge=16, description="samples of the Z_rho / Z_vis wall tables over [0, h]")
+
+
+# neighbour-list slots per particle to start with: 27 neighbours within h = 2 l0 on the resting
+# lattice, ~40 at 1.5 rho0; grown to the largest count seen when a pass finds more
+NEIGHBOUR_CAP = 48
+
+
+class BrickWallMaps:
+    """wall_maps.WallMaps stored as bricks (sph_kernels.BRICK^3 nodes) holding a node of the band
+    d < h + l0/2 where the map is non-zero: the same node values and lookups (bitwise), without the dense array
+    over the whole SDF box (1.3 KB per particle in the PEERS dam break, and built at that size).
+    ``wmap`` is what the kernels take: (index, bricks, shape)."""
+
+    def __init__(self, sdf: SDFGrid, l0: float, h: float, mass: float, rho0: float, samples: int = 256):
+        from . import wall_maps as W
+        from .kernels import spiky_grad_coef as cs, visc_lap_coef as cv
+        # the flat-wall factors do not depend on the SDF: a WallMaps of a tiny grid gives exactly them
+        tiny = SDFGrid(origin=np.zeros(3), spacing=l0, dist=np.ones((2, 2, 2), np.float32), band=1.0)
+        flat = W.WallMaps(tiny, l0, h, mass, rho0, samples)
+        self.fix_rho, self.fix_press, self.fix_vis, self.inv_dr = flat.fix_rho, flat.fix_press, flat.fix_vis, flat.inv_dr
+        self.h = h
+        dq = 0.5 * l0
+        self.spacing = 0.5 * l0
+        self.origin = np.asarray(sdf.origin, np.float64)
+        self.shape = np.floor((sdf.upper - sdf.origin) / self.spacing).astype(np.int64) + 1  # as WallMaps
+        nbk = -(-self.shape // K.BRICK)
+        need = np.zeros(tuple(nbk), np.uint8)
+        sinv = 1.0 / sdf.spacing
+        K.bricks_needed(sdf.dist, sdf.origin, sinv, self.origin, self.spacing, self.shape, h + dq, need)
+        slots = np.flatnonzero(need.ravel()).astype(np.int64)
+        self.index = np.full(need.shape, -1, np.int32)
+        self.index.ravel()[slots] = np.arange(len(slots), dtype=np.int32)
+        self.bricks = np.zeros((len(slots), K.BRICK, K.BRICK, K.BRICK, 5), np.float32)
+        scale = dq ** 3 / l0 ** 3
+        K.build_bricks(sdf.dist, sdf.origin, sinv, self.origin, self.spacing, self.shape, self.index, slots, h, dq,
+                       W._offsets(h, dq), poly6_coef(h), cs(h), cv(h), scale, mass, rho0, self.bricks)
+        self._dense = None
+
+    @property
+    def wmap(self) -> tuple:
+        return self.index, self.bricks, self.shape
+
+    @property
+    def maps(self) -> np.ndarray:
+        """The dense (nx, ny, nz, 5) map, built on first use (for code written against WallMaps)."""
+        if self._dense is None:
+            dense = np.zeros((*self.shape, 5), np.float32)
+            B = K.BRICK
+            for (bx, by, bz) in np.argwhere(self.index >= 0):
+                b = self.bricks[self.index[bx, by, bz]]
+                sx, sy, sz = (min(B, n - o) for n, o in zip(self.shape, (bx * B, by * B, bz * B)))
+                dense[bx * B:bx * B + sx, by * B:by * B + sy, bz * B:bz * B + sz] = b[:sx, :sy, :sz]
+            self._dense = dense
+        return self._dense
+
+    @property
+    def nbytes(self) -> int:
+        return self.index.nbytes + self.bricks.nbytes
 
 
 class SPHSolver:
@@ -55,7 +112,7 @@ class SPHSolver:
         self.h = params.support * self.l0
         self.rho0 = float(rho0)
         self.mass = lattice_mass(self.rho0, self.l0, self.h)
-        self.walls = WallMaps(sdf, self.l0, self.h, self.mass, self.rho0, params.table_samples)
+        self.walls = BrickWallMaps(sdf, self.l0, self.h, self.mass, self.rho0, params.table_samples)
         self.fix_vis = self.walls.fix_vis if wall_viscosity else np.zeros_like(self.walls.fix_vis)
         self.inv_dr = self.walls.inv_dr
         if effects.adhesion_accel is not None and len(effects.adhesion_accel) != params.table_samples:
@@ -88,6 +145,10 @@ class SPHSolver:
         self.d = np.zeros(n)
         self.nrm = np.zeros((n, 3))
         self.acc = np.zeros((n, 3))
+        # the pairs r < h of the last density pass, reused by forces (grown on overflow, never shrunk)
+        self.nbr = np.zeros((n, getattr(self, "nbr_cap", NEIGHBOUR_CAP)), np.int32)
+        self.cnt = np.zeros(n, np.int32)
+        self.inv_rho = np.zeros(n)
         self.normals = np.zeros((n, 3)) if self.effects.tension_k is not None else None
 
     # -- one step -----------------------------------------------------------------------------
@@ -95,10 +156,19 @@ class SPHSolver:
         order = self.grid.sort(self.x)
         self.x, self.v, self.id = reorder([self.x, self.v, self.id], order, self._scratch)
         g = self.grid
-        K.density_pressure(self.x, g.starts, g.lo, 1.0 / g.cell, g.dims, self.h, poly6_coef(self.h), self.mass,
-                           self.rho0, self.walls.maps, self.walls.origin, 1.0 / self.walls.spacing,
-                           self.walls.fix_rho, self.inv_dr, self.sdf.dist, self.sdf.origin, self.sdf_inv,
-                           self.eos, self.stiffness, self.p.clamp_pressure, self.rho, self.pr, self.d, self.nrm)
+        while True:
+            neighbour_list(self.x, g.starts, g.lo, 1.0 / g.cell, g.dims, self.h, self.nbr, self.cnt)
+            most = int(self.cnt.max()) if len(self.cnt) else 0
+            if most <= self.nbr.shape[1]:
+                break
+            # a compressed spot has more neighbours than the list holds: grow it and redo the pass
+            # (the list does not depend on the capacity, so this stays deterministic)
+            self.nbr_cap = most + 8
+            self.nbr = np.zeros((len(self.x), self.nbr_cap), np.int32)
+        K.density_neighbours(self.x, self.nbr, self.cnt, self.h, poly6_coef(self.h), self.mass, self.rho0,
+                             self.walls.wmap, self.walls.origin, 1.0 / self.walls.spacing, self.walls.fix_rho,
+                             self.inv_dr, self.sdf.dist, self.sdf.origin, self.sdf_inv, self.eos, self.stiffness,
+                             self.p.clamp_pressure, self.rho, self.pr, self.d, self.nrm, self.inv_rho)
 
     def effect_args(self) -> tuple:
         """(viscosity, tension, adhesion, friction, wind, attractor) for K.forces: None when absent."""
@@ -116,11 +186,11 @@ class SPHSolver:
         grad_coef = spiky_grad_coef(self.h) / self.grad_norm
         if self.normals is not None:  # Akinci normals: a pass after the density, only with tension
             K.surface_normals(self.x, self.rho, g.starts, g.lo, 1.0 / g.cell, g.dims, self.h, grad_coef, self.mass,
-                              self.normals)
+                              self.normals, (self.nbr, self.cnt))
         pressure = (self.pr, grad_coef, self.fix_press, self.p.artificial_viscosity * self.c * self.h)
         K.forces(self.x, self.v, self.rho, self.d, self.nrm, g.starts, g.lo, 1.0 / g.cell, g.dims, self.h, self.mass,
-                 self.rho0, self.walls.maps, self.walls.origin, 1.0 / self.walls.spacing, self.inv_dr, self.gravity,
-                 self.acc, pressure, *self.effect_args())
+                 self.rho0, self.walls.wmap, self.walls.origin, 1.0 / self.walls.spacing, self.inv_dr, self.gravity,
+                 self.acc, pressure, *self.effect_args(), (self.nbr, self.cnt), self.inv_rho)
 
     def stable_dt(self, dt_max: float) -> float:
         v2, a2 = K.max_speed2_accel2(self.v, self.acc)

@@ -36,22 +36,164 @@ import math
 
 import numba as nb
 import numpy as np
+from numba.core import types
+from numba.extending import overload
 
 from stages.common.sdf import sdf_sample
 
-from .wall_maps import map_sample
+from .wall_maps import _quadrature_at, map_sample
 from .wall_tables import table_lookup
 
 EOS_LINEAR = 0
 EOS_TAIT = 1
+BRICK = 4  # wall-map brick edge, in nodes
+
+
+# -- wall maps stored as bricks (memory) ------------------------------------------------------------
+# The dense wall map of wall_maps.py covers the whole SDF box at l0/2 with 5 float32 channels, 1.3 KB
+# per particle in the PEERS dam break, yet it is non-zero only within h + l0/2 of a wall. The bricked
+# form keeps only the BRICK^3-node blocks that hold a node of that band: the same node values (the
+# same quadrature, wall_maps._quadrature_at) and the same trilinear arithmetic, so every lookup
+# returns the same bits as the dense map. ``wmap`` arguments below take either form.
+
+@nb.njit(cache=True, parallel=True)
+def bricks_needed(sdf, so, sinv, mo, mh, shape, reach, need):
+    """need[bx, by, bz] = 1 if any node of the brick has SDF distance < reach (a non-zero map value)."""
+    nbx, nby, nbz = need.shape
+    for b in nb.prange(nbx * nby * nbz):
+        bx = b // (nby * nbz)
+        by = (b // nbz) % nby
+        bz = b % nbz
+        hit = 0
+        for i in range(bx * BRICK, min(bx * BRICK + BRICK, shape[0])):
+            for j in range(by * BRICK, min(by * BRICK + BRICK, shape[1])):
+                for k in range(bz * BRICK, min(bz * BRICK + BRICK, shape[2])):
+                    d, _, _, _ = sdf_sample(sdf, so[0], so[1], so[2], sinv, mo[0] + i * mh, mo[1] + j * mh,
+                                            mo[2] + k * mh)
+                    if d < reach:
+                        hit = 1
+        need[bx, by, bz] = hit
+
+
+@nb.njit(cache=True, parallel=True)
+def build_bricks(sdf, so, sinv, mo, mh, shape, index, slots, h, dq, offsets, c6, cs, cv, scale, mass, rho0, bricks):
+    """Fill every allocated brick (slots[s] = its flat brick index) node by node as wall_maps._build
+    fills the dense map (zero at d >= h + dq, else the quadrature)."""
+    nby, nbz = index.shape[1], index.shape[2]
+    for s in nb.prange(slots.shape[0]):
+        b = slots[s]
+        bx = b // (nby * nbz)
+        by = (b // nbz) % nby
+        bz = b % nbz
+        out = np.zeros(5)
+        for a in range(BRICK):
+            i = bx * BRICK + a
+            for c in range(BRICK):
+                j = by * BRICK + c
+                for e in range(BRICK):
+                    k = bz * BRICK + e
+                    for ch in range(5):
+                        bricks[s, a, c, e, ch] = 0.0
+                    if i >= shape[0] or j >= shape[1] or k >= shape[2]:
+                        continue
+                    px = mo[0] + i * mh
+                    py = mo[1] + j * mh
+                    pz = mo[2] + k * mh
+                    d, _, _, _ = sdf_sample(sdf, so[0], so[1], so[2], sinv, px, py, pz)
+                    if d >= h + dq:
+                        continue
+                    _quadrature_at(sdf, so, sinv, px, py, pz, h, dq, offsets, c6, cs, cv, scale, mass, rho0, out)
+                    for ch in range(5):
+                        bricks[s, a, c, e, ch] = out[ch]
+
+
+@nb.njit(cache=True, inline="always")
+def _node(index, bricks, i, j, k, c):
+    s = index[i // BRICK, j // BRICK, k // BRICK]
+    if s < 0:
+        return np.float32(0.0)
+    return bricks[s, i % BRICK, j % BRICK, k % BRICK, c]
+
+
+@nb.njit(cache=True, inline="always")
+def brick_sample(index, bricks, shape, ox, oy, oz, inv_h, x, y, z, c):
+    """wall_maps.map_sample of the dense map, read from its bricks (bitwise the same value: nodes of
+    bricks that are not stored are 0.0, as in the dense map)."""
+    nx, ny, nz = shape[0], shape[1], shape[2]
+    fx = min(max((x - ox) * inv_h, 0.0), nx - 1.000001)
+    fy = min(max((y - oy) * inv_h, 0.0), ny - 1.000001)
+    fz = min(max((z - oz) * inv_h, 0.0), nz - 1.000001)
+    i = int(fx)
+    j = int(fy)
+    k = int(fz)
+    tx = fx - i
+    ty = fy - j
+    tz = fz - k
+    m000 = _node(index, bricks, i, j, k, c)
+    m100 = _node(index, bricks, i + 1, j, k, c)
+    m010 = _node(index, bricks, i, j + 1, k, c)
+    m110 = _node(index, bricks, i + 1, j + 1, k, c)
+    m001 = _node(index, bricks, i, j, k + 1, c)
+    m101 = _node(index, bricks, i + 1, j, k + 1, c)
+    m011 = _node(index, bricks, i, j + 1, k + 1, c)
+    m111 = _node(index, bricks, i + 1, j + 1, k + 1, c)
+    c00 = m000 + (m100 - m000) * tx
+    c10 = m010 + (m110 - m010) * tx
+    c01 = m001 + (m101 - m001) * tx
+    c11 = m011 + (m111 - m011) * tx
+    c0 = c00 + (c10 - c00) * ty
+    c1 = c01 + (c11 - c01) * ty
+    return c0 + (c1 - c0) * tz
+
+
+def wall_sample(wmap, ox, oy, oz, inv_h, x, y, z, c):
+    """Channel c of the wall map at (x, y, z): ``wmap`` the dense (nx, ny, nz, 5) array or the bricked
+    form (index, bricks, shape); chosen at compile time."""
+
+
+@overload(wall_sample)
+def _wall_sample(wmap, ox, oy, oz, inv_h, x, y, z, c):
+    if isinstance(wmap, types.Array):
+        return lambda wmap, ox, oy, oz, inv_h, x, y, z, c: map_sample(wmap, ox, oy, oz, inv_h, x, y, z, c)
+    return lambda wmap, ox, oy, oz, inv_h, x, y, z, c: brick_sample(wmap[0], wmap[1], wmap[2], ox, oy, oz, inv_h,
+                                                                    x, y, z, c)
+
+
+@nb.njit(cache=True, inline="always")
+def _walls_and_pressure(i, s, xi, yi, zi, h, poly6_coef, mass, rho0, wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o,
+                        sdf_inv, eos, stiffness, clamp, rho, p, d, nrm):
+    """Particle i's density from its kernel sum ``s`` = sum_j (h^2 - r^2)^3 plus the wall term, its
+    pressure, SDF distance and normal (the tail of eq. 11, 12 and eq. 5)."""
+    dw, gx, gy, gz = sdf_sample(sdf, sdf_o[0], sdf_o[1], sdf_o[2], sdf_inv, xi, yi, zi)
+    d[i] = dw
+    nrm[i, 0] = gx
+    nrm[i, 1] = gy
+    nrm[i, 2] = gz
+    zw = 0.0
+    if dw < h:  # only particles within h of a wall have wall terms
+        zw = wall_sample(wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 0) * table_lookup(fix_rho, dw, inv_dr)
+    r = mass * poly6_coef * s + zw
+    rho[i] = r
+    if eos == EOS_TAIT:
+        ratio = r / rho0
+        r7 = ratio * ratio * ratio
+        r7 = r7 * r7 * ratio
+        pi = stiffness * (r7 - 1.0)
+    else:
+        pi = stiffness * (r - rho0)
+    if clamp and pi < 0.0:
+        pi = 0.0
+    p[i] = pi
 
 
 @nb.njit(cache=True, parallel=True)
 def density_pressure(x, starts, lo, inv_cell, dims, h, poly6_coef, mass, rho0, wmap, wo, winv, fix_rho, inv_dr,
                      sdf, sdf_o, sdf_inv, eos, stiffness, clamp, rho, p, d, nrm):
     """Eq. 11: rho_i = sum_j m W(r_ij) (eq. 4, 10, self included) + Z_rho (eq. 12) from the 3D wall
-    map (wall_maps.py) times the flat-wall factor at the SDF distance r_iw; eq. 5 pressure p = k (rho - rho0) (or Tait, B = stiffness), optionally
-    clamped at 0. Also stores the SDF distance ``d`` and wall normal ``nrm`` of each particle."""
+    map (wall_maps.py) times the flat-wall factor at the SDF distance r_iw; eq. 5 pressure
+    p = k (rho - rho0) (or Tait, B = stiffness), optionally clamped at 0. Also stores the SDF distance
+    ``d`` and wall normal ``nrm`` of each particle. Grid cells of size >= h (27 cells scanned);
+    SPHSolver uses ``density_neighbours`` instead."""
     h2 = h * h
     nx, ny, nz = dims[0], dims[1], dims[2]
     for i in nb.prange(x.shape[0]):
@@ -75,37 +217,49 @@ def density_pressure(x, starts, lo, inv_cell, dims, h, poly6_coef, mass, rho0, w
                     if r2 < h2:
                         q = h2 - r2
                         s += q * q * q
-        dw, gx, gy, gz = sdf_sample(sdf, sdf_o[0], sdf_o[1], sdf_o[2], sdf_inv, xi, yi, zi)
-        d[i] = dw
-        nrm[i, 0] = gx
-        nrm[i, 1] = gy
-        nrm[i, 2] = gz
-        zw = 0.0
-        if dw < h:  # only particles within h of a wall have wall terms
-            zw = map_sample(wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 0) * table_lookup(fix_rho, dw, inv_dr)
-        r = mass * poly6_coef * s + zw
-        rho[i] = r
-        if eos == EOS_TAIT:
-            ratio = r / rho0
-            r7 = ratio * ratio * ratio
-            r7 = r7 * r7 * ratio
-            pi = stiffness * (r7 - 1.0)
-        else:
-            pi = stiffness * (r - rho0)
-        if clamp and pi < 0.0:
-            pi = 0.0
-        p[i] = pi
+        _walls_and_pressure(i, s, xi, yi, zi, h, poly6_coef, mass, rho0, wmap, wo, winv, fix_rho, inv_dr, sdf,
+                            sdf_o, sdf_inv, eos, stiffness, clamp, rho, p, d, nrm)
 
 
 @nb.njit(cache=True, parallel=True)
-def surface_normals(x, rho, starts, lo, inv_cell, dims, h, grad_coef, mass, out):
+def density_neighbours(x, nbr, cnt, h, poly6_coef, mass, rho0, wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv,
+                       eos, stiffness, clamp, rho, p, d, nrm, inv_rho):
+    """``density_pressure`` (eq. 11, 12, 5) over the neighbour list of neighbours.neighbour_list (same
+    pairs in the same order, so bitwise the same density), plus ``inv_rho`` = 1 / rho for ``forces``
+    (the same IEEE quotient the pair loop would compute, once per particle instead of once per pair)."""
+    h2 = h * h
+    for i in nb.prange(x.shape[0]):
+        xi = x[i, 0]
+        yi = x[i, 1]
+        zi = x[i, 2]
+        s = 0.0
+        for jj in range(cnt[i]):
+            j = nbr[i, jj]
+            dx = xi - x[j, 0]
+            dy = yi - x[j, 1]
+            dz = zi - x[j, 2]
+            q = h2 - (dx * dx + dy * dy + dz * dz)
+            s += q * q * q
+        _walls_and_pressure(i, s, xi, yi, zi, h, poly6_coef, mass, rho0, wmap, wo, winv, fix_rho, inv_dr, sdf,
+                            sdf_o, sdf_inv, eos, stiffness, clamp, rho, p, d, nrm)
+        inv_rho[i] = 1.0 / rho[i]
+
+
+@nb.njit(cache=True, parallel=True)
+def surface_normals(x, rho, starts, lo, inv_cell, dims, h, grad_coef, mass, out, neighbours=None):
     """Akinci et al. 2013 particle normals n_i = h sum_j m/rho_j grad_i W_ij (Spiky gradient, eq. 8):
     |n| ~ 1 at the free surface, ~ 0 inside, pointing INTO the fluid as in the paper (the curvature term
     -k (n_i - n_j) then pushes a surface particle out and its inner neighbour in, which is what
     counteracts the cohesion's clustering at the surface; with outward normals a drop turns into a
-    hollow shell). A pass after the density, run only when surface tension is declared."""
+    hollow shell). A pass after the density, run only when surface tension is declared. ``neighbours``
+    as in ``forces`` (then the grid arguments are unused)."""
     h2 = h * h
     nx, ny, nz = dims[0], dims[1], dims[2]
+    n_spans = 9
+    if neighbours is not None:
+        nbr = neighbours[0]
+        cnt = neighbours[1]
+        n_spans = 1
     for i in nb.prange(x.shape[0]):
         xi = x[i, 0]
         yi = x[i, 1]
@@ -118,20 +272,33 @@ def surface_normals(x, rho, starts, lo, inv_cell, dims, h, grad_coef, mass, out)
         sx = 0.0
         sy = 0.0
         sz = 0.0
-        for kz in range(max(cz - 1, 0), min(cz + 2, nz)):
-            for ky in range(max(cy - 1, 0), min(cy + 2, ny)):
+        for span in range(n_spans):
+            if neighbours is not None:
+                first = 0
+                last = min(cnt[i], nbr.shape[1])
+            else:
+                kz = cz - 1 + span // 3
+                ky = cy - 1 + span % 3
+                if kz < 0 or kz >= nz or ky < 0 or ky >= ny:
+                    continue
                 base = (kz * ny + ky) * nx
-                for j in range(starts[base + x0], starts[base + x1 + 1]):
-                    dx = xi - x[j, 0]
-                    dy = yi - x[j, 1]
-                    dz = zi - x[j, 2]
-                    r2 = dx * dx + dy * dy + dz * dz
-                    if r2 < h2 and r2 > 1e-24:
-                        r = math.sqrt(r2)
-                        f = (h - r) * (h - r) / (r * rho[j])
-                        sx += f * dx
-                        sy += f * dy
-                        sz += f * dz
+                first = starts[base + x0]
+                last = starts[base + x1 + 1]
+            for jj in range(first, last):
+                if neighbours is not None:
+                    j = nbr[i, jj]
+                else:
+                    j = jj
+                dx = xi - x[j, 0]
+                dy = yi - x[j, 1]
+                dz = zi - x[j, 2]
+                r2 = dx * dx + dy * dy + dz * dz
+                if r2 < h2 and r2 > 1e-24:
+                    r = math.sqrt(r2)
+                    f = (h - r) * (h - r) / (r * rho[j])
+                    sx += f * dx
+                    sy += f * dy
+                    sz += f * dz
         c = -h * mass * grad_coef  # grad_i W = -c (h - r)^2 (x_i - x_j) / r
         out[i, 0] = c * sx
         out[i, 1] = c * sy
@@ -140,12 +307,23 @@ def surface_normals(x, rho, starts, lo, inv_cell, dims, h, grad_coef, mass, out)
 
 @nb.njit(cache=True, parallel=True)
 def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, wmap, wo, winv, inv_dr, gravity, acc,
-           pressure, viscosity, tension, adhesion, friction, wind, attractor):
+           pressure, viscosity, tension, adhesion, friction, wind, attractor, neighbours=None, inv_rho=None):
     """Acceleration of every particle: gravity plus the declared effects (module docstring). Pressure
     eq. 6, 8 (+ Monaghan av) and the wall pressure along the wall map; viscosity eq. 7, 9 and the wall
-    term eq. 13-15; tension, adhesion, friction, wind, attractor as in PHYSICS.md "Effects"."""
+    term eq. 13-15; tension, adhesion, friction, wind, attractor as in PHYSICS.md "Effects".
+
+    ``neighbours`` = (nbr, cnt) from ``density_neighbours`` at the same positions: the pairs are taken
+    from the list instead of the 9 cell rows, in the same order, so the sums are bitwise the same.
+    ``inv_rho`` (N,) = 1 / rho from ``density_neighbours``, optional: saves a division per pair (the
+    same quotient, so again bitwise the same)."""
     h2 = h * h
     nx, ny, nz = dims[0], dims[1], dims[2]
+    if neighbours is not None:
+        nbr = neighbours[0]
+        cnt = neighbours[1]
+        n_spans = 1
+    else:
+        n_spans = 9  # the (z, y) rows of 3 x-contiguous cells around particle i
     gx0 = gravity[0]
     gy0 = gravity[1]
     gz0 = gravity[2]
@@ -201,62 +379,82 @@ def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, wmap, w
             nyi = normals[i, 1]
             nzi = normals[i, 2]
         near_wall = d[i] < h  # loop-invariant: LLVM unswitches the Shepard sum out of other particles' loops
-        for kz in range(max(cz - 1, 0), min(cz + 2, nz)):
-            for ky in range(max(cy - 1, 0), min(cy + 2, ny)):
+        for span in range(n_spans):
+            if neighbours is not None:
+                first = 0
+                last = min(cnt[i], nbr.shape[1])
+            else:
+                kz = cz - 1 + span // 3
+                ky = cy - 1 + span % 3
+                if kz < 0 or kz >= nz or ky < 0 or ky >= ny:
+                    continue
                 base = (kz * ny + ky) * nx
-                for j in range(starts[base + x0], starts[base + x1 + 1]):
-                    dx = xi - x[j, 0]
-                    dy = yi - x[j, 1]
-                    dz = zi - x[j, 2]
-                    r2 = dx * dx + dy * dy + dz * dz
-                    if pressure is not None:
-                        if near_wall and r2 < h2:
-                            q = h2 - r2
-                            q = q * q * q
-                            sp += p[j] * q
-                            sw += q
-                    if r2 < h2 and r2 > 1e-24:
-                        r = math.sqrt(r2)
-                        hr = h - r
+                first = starts[base + x0]
+                last = starts[base + x1 + 1]
+            for jj in range(first, last):
+                if neighbours is not None:
+                    j = nbr[i, jj]
+                else:
+                    j = jj
+                dx = xi - x[j, 0]
+                dy = yi - x[j, 1]
+                dz = zi - x[j, 2]
+                r2 = dx * dx + dy * dy + dz * dz
+                if pressure is not None:
+                    if near_wall and r2 < h2:
+                        q = h2 - r2
+                        q = q * q * q
+                        sp += p[j] * q
+                        sw += q
+                if r2 < h2 and r2 > 1e-24:
+                    r = math.sqrt(r2)
+                    hr = h - r
+                    if inv_rho is not None:
+                        inv_rhoj = inv_rho[j]
+                    else:
                         inv_rhoj = 1.0 / rho[j]
-                        if pressure is not None:
-                            # eq. 6 with the Spiky gradient (eq. 8): -grad W = c (h - r)^2 (x_i - x_j) / r.
-                            # Without eq. 6's factor 1/2 (Monaghan's symmetric form at rho ~ rho0): with
-                            # it, sum V (p_i + p_j) / 2 grad W gives only half of grad p on a lattice,
-                            # and the hydrostatic pressure came out twice rho g h
-                            f = (pi + p[j]) * inv_rhoj
-                            # Monaghan's artificial viscosity on approaching pairs (av = alpha c h): it
-                            # dissipates the acoustic noise of the weakly compressible EOS; without it a
-                            # dam break never settles and sprays into a gas. Symmetric in i, j.
-                            vdx = (vxi - v[j, 0]) * dx + (vyi - v[j, 1]) * dy + (vzi - v[j, 2]) * dz
-                            if vdx < 0.0:
-                                f += av * (-vdx) / (r2 + eps) * 2.0 * rhoi / (rhoi + rho[j])
-                            f *= hr * hr / r
-                            ax += f * dx
-                            ay += f * dy
-                            az += f * dz
-                        if viscosity is not None:
-                            # eq. 7 with the viscosity Laplacian (eq. 9)
-                            w = hr * inv_rhoj
-                            bx += (v[j, 0] - vxi) * w
-                            by += (v[j, 1] - vyi) * w
-                            bz += (v[j, 2] - vzi) * w
-                        if tension is not None:
-                            # Akinci 2013: cohesion C(r) (eq. 2) and curvature, both times K_ij
-                            kij = 2.0 * rho0 / (rhoi + rho[j])
-                            c3 = hr * hr * hr * r2 * r
-                            if r > 0.5 * h:
-                                cr = c3
-                            else:
-                                cr = 2.0 * c3 - h6_64
-                            cc = kij * cr / r
-                            tx -= cc * dx
-                            ty -= cc * dy
-                            tz -= cc * dz
-                            ux -= kij * (nxi - normals[j, 0])
-                            uy -= kij * (nyi - normals[j, 1])
-                            uz -= kij * (nzi - normals[j, 2])
-        inv_rhoi = 1.0 / rho[i]
+                    if pressure is not None:
+                        # eq. 6 with the Spiky gradient (eq. 8): -grad W = c (h - r)^2 (x_i - x_j) / r.
+                        # Without eq. 6's factor 1/2 (Monaghan's symmetric form at rho ~ rho0): with
+                        # it, sum V (p_i + p_j) / 2 grad W gives only half of grad p on a lattice,
+                        # and the hydrostatic pressure came out twice rho g h
+                        f = (pi + p[j]) * inv_rhoj
+                        # Monaghan's artificial viscosity on approaching pairs (av = alpha c h): it
+                        # dissipates the acoustic noise of the weakly compressible EOS; without it a
+                        # dam break never settles and sprays into a gas. Symmetric in i, j.
+                        vdx = (vxi - v[j, 0]) * dx + (vyi - v[j, 1]) * dy + (vzi - v[j, 2]) * dz
+                        # (branch-free: a receding pair adds an exact +0.0; the branch was
+                        # mispredicted for about half the pairs)
+                        f += av * max(-vdx, 0.0) / (r2 + eps) * 2.0 * rhoi / (rhoi + rho[j])
+                        f *= hr * hr / r
+                        ax += f * dx
+                        ay += f * dy
+                        az += f * dz
+                    if viscosity is not None:
+                        # eq. 7 with the viscosity Laplacian (eq. 9)
+                        w = hr * inv_rhoj
+                        bx += (v[j, 0] - vxi) * w
+                        by += (v[j, 1] - vyi) * w
+                        bz += (v[j, 2] - vzi) * w
+                    if tension is not None:
+                        # Akinci 2013: cohesion C(r) (eq. 2) and curvature, both times K_ij
+                        kij = 2.0 * rho0 / (rhoi + rho[j])
+                        c3 = hr * hr * hr * r2 * r
+                        if r > 0.5 * h:
+                            cr = c3
+                        else:
+                            cr = 2.0 * c3 - h6_64
+                        cc = kij * cr / r
+                        tx -= cc * dx
+                        ty -= cc * dy
+                        tz -= cc * dz
+                        ux -= kij * (nxi - normals[j, 0])
+                        uy -= kij * (nyi - normals[j, 1])
+                        uz -= kij * (nzi - normals[j, 2])
+        if inv_rho is not None:
+            inv_rhoi = inv_rho[i]
+        else:
+            inv_rhoi = 1.0 / rho[i]
         if pressure is not None:
             c = mass * grad_coef * inv_rhoi
             ax = ax * c + gx0
@@ -267,9 +465,9 @@ def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, wmap, w
                 # p_wall the Shepard (Poly6-weighted) average of the neighbours' pressure, at least p_i
                 pw = max(pi, sp / sw)
                 cw = (pi + pw) * inv_rhoi * table_lookup(fix_press, d[i], inv_dr)
-                ax += cw * map_sample(wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 1)
-                ay += cw * map_sample(wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 2)
-                az += cw * map_sample(wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 3)
+                ax += cw * wall_sample(wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 1)
+                ay += cw * wall_sample(wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 2)
+                az += cw * wall_sample(wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 3)
         else:
             ax = gx0
             ay = gy0
@@ -277,7 +475,7 @@ def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, wmap, w
         if viscosity is not None:
             if near_wall:
                 # eq. 13-14: the resting wall's viscous term -mu v_i Z_vis(r_iw)
-                zw = mu * inv_rhoi * table_lookup(fix_vis, d[i], inv_dr) * map_sample(
+                zw = mu * inv_rhoi * table_lookup(fix_vis, d[i], inv_dr) * wall_sample(
                     wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 4)
                 ax -= zw * vxi
                 ay -= zw * vyi
