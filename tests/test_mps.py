@@ -26,6 +26,17 @@ CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 G = 9.81
 
 
+@pytest.fixture(autouse=True)
+def one_thread():
+    """These cases have a few hundred particles: one thread avoids the per-kernel thread barriers (the
+    CG launches three parallel regions per iteration), which cost most on a busy shared machine."""
+    import numba as nb
+    before = nb.get_num_threads()
+    nb.set_num_threads(1)
+    yield
+    nb.set_num_threads(before)
+
+
 def test_lattice_constants_match_physics_md():
     for re, n0, lam in ((2.1, 14.42, 1.702), (3.1, 54.32, 3.243), (4.0, 123.99, 5.212)):
         n, l = lattice_constants(1.0, re)

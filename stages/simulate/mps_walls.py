@@ -29,8 +29,6 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
-from stages.common.sdf import sdf_sample
-
 from .wall_tables import wall_lattice
 
 
@@ -96,61 +94,64 @@ M = 11  # 11-13: sum (x_w - x) w_l                Laplacian, hydrostatic wall pr
 CHANNELS = 14
 
 
-@nb.njit(cache=True)
-def _quadrature(sdf, so, sinv, px, py, pz, re_n, re_l, dq, offsets, scale, out):
-    """The wall sums at (px, py, pz) by quadrature over the wall region {d < 0}: cell-centred samples
-    of spacing dq, each weighing scale = (dq / l0)^3 wall particles, with a smooth occupancy over one
-    cell of the wall surface."""
-    for c in range(CHANNELS):
-        out[c] = 0.0
-    for k in range(offsets.shape[0]):
-        ox = offsets[k, 0]
-        oy = offsets[k, 1]
-        oz = offsets[k, 2]
-        r2 = ox * ox + oy * oy + oz * oz
-        d, _, _, _ = sdf_sample(sdf, so[0], so[1], so[2], sinv, px + ox, py + oy, pz + oz)
-        occ = min(max(0.5 - d / dq, 0.0), 1.0) * scale
-        if occ == 0.0:
-            continue
-        r = math.sqrt(r2)
-        if r < re_n:
-            wn = occ * (re_n / r - 1.0)
-            out[ZN] += wn
-            f = wn / r2
-            out[G] += f * ox
-            out[G + 1] += f * oy
-            out[G + 2] += f * oz
-            out[T] += f * ox * ox
-            out[T + 1] += f * oy * oy
-            out[T + 2] += f * oz * oz
-            out[T + 3] += f * ox * oy
-            out[T + 4] += f * ox * oz
-            out[T + 5] += f * oy * oz
-        if r < re_l:
-            wl = occ * (re_l / r - 1.0)
-            out[ZL] += wl
-            out[M] += wl * ox
-            out[M + 1] += wl * oy
-            out[M + 2] += wl * oz
+def stencil(l0: float, re_n: float, re_l: float) -> tuple[np.ndarray, np.ndarray]:
+    """Quadrature stencil of cell-centred samples around a map node (spacing dq = l0 / 2): sample k
+    sits at o_k = (idx_k + 1/2) dq, |o_k| < max(re), i.e. at index node + idx_k of the staggered lattice
+    (node + dq / 2 on every axis); per sample the weights (K, CHANNELS) of every channel, each sample
+    weighing (dq / l0)^3 wall particles. Cell-centred samples never sit on the node (r > 0), and
+    measured in box edges and corners they over-count n by 2-5 % where node-centred ones under-count by
+    as much (which would take corner particles for free surface)."""
+    dq = 0.5 * l0
+    r_max = max(re_n, re_l)
+    k = int(math.ceil(r_max / dq)) + 1
+    g = np.arange(-k, k)
+    X, Y, Z = np.meshgrid(g, g, g, indexing="ij")
+    idx = np.stack([X.ravel(), Y.ravel(), Z.ravel()], 1)
+    o = (idx + 0.5) * dq
+    r = np.linalg.norm(o, axis=1)
+    keep = r < r_max
+    idx, o, r = idx[keep], o[keep], r[keep]
+    scale = (dq / l0) ** 3
+    wn = scale * mps_weight_np(r, re_n)
+    wl = scale * mps_weight_np(r, re_l)
+    f = wn / (r * r)
+    w = np.zeros((len(r), CHANNELS))
+    w[:, ZN] = wn
+    w[:, G:G + 3] = f[:, None] * o
+    w[:, T:T + 3] = f[:, None] * o * o
+    w[:, T + 3] = f * o[:, 0] * o[:, 1]
+    w[:, T + 4] = f * o[:, 0] * o[:, 2]
+    w[:, T + 5] = f * o[:, 1] * o[:, 2]
+    w[:, ZL] = wl
+    w[:, M:M + 3] = wl[:, None] * o
+    return np.ascontiguousarray(idx.astype(np.int64)), np.ascontiguousarray(w)
+
+
+def occupancy(d, dq):
+    """Smooth occupancy of the wall region {d < 0}: 1 deeper than dq/2, 0 beyond dq/2 in the fluid."""
+    return np.clip(0.5 - np.asarray(d) / dq, 0.0, 1.0)
 
 
 @nb.njit(cache=True, parallel=True)
-def _build(sdf, so, sinv, mo, mh, shape, re_n, re_l, dq, offsets, scale, maps):
-    nx, ny, nz = shape[0], shape[1], shape[2]
-    r_max = max(re_n, re_l)
+def _build(dist, occ, reach, idx, w, maps):
+    """maps[node] = sum_k occ[node + idx_k] w_k for the nodes closer to a wall than ``reach``: a discrete
+    convolution with the occupancy on the staggered lattice (indices beyond it clamped to its border,
+    as the SDF sampler clamps)."""
+    nx, ny, nz = occ.shape[0], occ.shape[1], occ.shape[2]
+    nc = w.shape[1]
     for i in nb.prange(nx):
-        out = np.zeros(CHANNELS)
         for j in range(ny):
             for k in range(nz):
-                px = mo[0] + i * mh
-                py = mo[1] + j * mh
-                pz = mo[2] + k * mh
-                d, _, _, _ = sdf_sample(sdf, so[0], so[1], so[2], sinv, px, py, pz)
-                if d >= r_max + dq:
+                if dist[i, j, k] >= reach:
                     continue  # maps start at zero
-                _quadrature(sdf, so, sinv, px, py, pz, re_n, re_l, dq, offsets, scale, out)
-                for c in range(CHANNELS):
-                    maps[i, j, k, c] = out[c]
+                for s in range(idx.shape[0]):
+                    a = min(max(i + idx[s, 0], 0), nx - 1)
+                    b = min(max(j + idx[s, 1], 0), ny - 1)
+                    c = min(max(k + idx[s, 2], 0), nz - 1)
+                    o = occ[a, b, c]
+                    if o > 0.0:
+                        for ch in range(nc):
+                            maps[i, j, k, ch] += o * w[s, ch]
 
 
 class MPSWallMaps:
@@ -167,24 +168,18 @@ class MPSWallMaps:
         self.spacing = dq
         self.origin = np.asarray(sdf.origin, np.float64)
         shape = np.floor((sdf.upper - sdf.origin) / dq).astype(np.int64) + 1
+        nodes = np.stack([g.ravel() for g in np.meshgrid(
+            *[self.origin[a] + dq * np.arange(shape[a]) for a in range(3)], indexing="ij")], 1)
+        dist = sdf.sample(nodes)[0].reshape(shape)
+        occ = occupancy(sdf.sample(nodes + 0.5 * dq)[0], dq).reshape(shape)  # the staggered lattice
+        idx, w = stencil(l0, re_n, re_l)
         self.maps = np.zeros((*shape, CHANNELS), np.float32)
-        r_max = max(re_n, re_l)
-        k = int(math.ceil(r_max / dq)) + 1
-        g = (np.arange(-k, k) + 0.5) * dq
-        X, Y, Z = np.meshgrid(g, g, g, indexing="ij")
-        off = np.stack([X.ravel(), Y.ravel(), Z.ravel()], 1)
-        off = np.ascontiguousarray(off[np.linalg.norm(off, axis=1) < r_max])
-        scale = dq ** 3 / l0 ** 3
-        _build(sdf.dist, sdf.origin, 1.0 / sdf.spacing, self.origin, dq, shape, re_n, re_l, dq, off, scale, self.maps)
-        # flat-wall correction: the floor z = 0 below a particle at height r
-        from stages.common.sdf import grid_from_function
-        lo = np.array([-2 * r_max, -2 * r_max, -2 * r_max])
-        plane = grid_from_function(lambda p: p[:, 2], lo, -lo, dq / 2)
+        _build(dist, occ, max(re_n, re_l) + dq, idx, w, self.maps)
+        # flat-wall correction: the same stencil over the floor z = 0 below a particle at height r
         r = np.linspace(0.0, tables.r_max, len(tables.zn))
         flat = np.zeros((len(r), 5))
-        out = np.zeros(CHANNELS)
         for i, ri in enumerate(r):
-            _quadrature(plane.dist, plane.origin, 1.0 / plane.spacing, 0.0, 0.0, ri, re_n, re_l, dq, off, scale, out)
+            out = occupancy(ri + (idx[:, 2] + 0.5) * dq, dq) @ w
             flat[i] = out[ZN], -out[G + 2], out[T + 2], out[ZL], -out[M + 2]
         lattice = np.stack([tables.zn, tables.zg, tables.zgz, tables.zl, tables.zlz], axis=1)
         self.fix = np.ascontiguousarray(np.where(flat > 1e-9, lattice / np.maximum(flat, 1e-300), 1.0).T)
