@@ -282,7 +282,7 @@ def check_effects(effects) -> None:
 class MPSSimulate(Stage):
     kind = "simulate"
     name = "mps"
-    version = "1"
+    version = "2"
     Params = MPSParams
     inputs = ("sdf",)
     reads = ("scene", "fluid", "effects")

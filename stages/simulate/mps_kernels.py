@@ -329,19 +329,23 @@ def build_poisson(x, offsets, nbr, re_l, lap_coef, dirichlet, n, n0, src_coef, d
 
 
 @nb.njit(cache=True, parallel=True)
-def _spmv_dot(row_off, cols, vals, diag, p, q, partial):
-    """q = A p and returns p . q (fixed-order block sums)."""
+def _direction_spmv(row_off, cols, vals, diag, z, p, q, beta, partial):
+    """p = z + beta p and q = A p as q = A z + beta q (the previous A p), in one pass; returns p . q
+    (fixed-order block sums). One parallel region instead of two: each costs a thread barrier."""
     n = p.shape[0]
     nbk = partial.shape[0]
     bs = (n + nbk - 1) // nbk
     for bk in nb.prange(nbk):
         s = 0.0
         for i in range(bk * bs, min((bk + 1) * bs, n)):
-            acc = diag[i] * p[i]
+            acc = diag[i] * z[i]
             for k in range(row_off[i], row_off[i + 1]):
-                acc += vals[k] * p[cols[k]]
-            q[i] = acc
-            s += p[i] * acc
+                acc += vals[k] * z[cols[k]]
+            pi = z[i] + beta * p[i]
+            qi = acc + beta * q[i]
+            p[i] = pi
+            q[i] = qi
+            s += pi * qi
         partial[bk] = s
     tot = 0.0
     for bk in range(nbk):
@@ -409,12 +413,6 @@ def _update(x, r, z, p, q, diag, alpha, partial2):
     return rz, rr
 
 
-@nb.njit(cache=True, parallel=True)
-def _direction(p, z, beta):
-    for i in nb.prange(p.shape[0]):
-        p[i] = z[i] + beta * p[i]
-
-
 @nb.njit(cache=True)
 def pcg(row_off, cols, vals, diag, b, x, r, z, p, q, partial, partial2, rtol, max_iter):
     """Jacobi-preconditioned conjugate gradient for the SPD system of ``build_poisson``, from the
@@ -424,19 +422,20 @@ def pcg(row_off, cols, vals, diag, b, x, r, z, p, q, partial, partial2, rtol, ma
     tol2 = rtol * rtol * max(bb, 1e-300)
     if rr <= tol2:
         return 0
-    for i in range(p.shape[0]):
-        p[i] = z[i]
+    p[:] = 0.0
+    q[:] = 0.0
+    beta = 0.0
     it = 0
     while it < max_iter:
         it += 1
-        pq = _spmv_dot(row_off, cols, vals, diag, p, q, partial)
+        pq = _direction_spmv(row_off, cols, vals, diag, z, p, q, beta, partial)
         if pq <= 0.0:
             break
         alpha = rz / pq
         rz_new, rr = _update(x, r, z, p, q, diag, alpha, partial2)
         if rr <= tol2:
             break
-        _direction(p, z, rz_new / rz)
+        beta = rz_new / rz
         rz = rz_new
     return it
 
