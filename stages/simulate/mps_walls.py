@@ -22,7 +22,7 @@ like the SPH tables (wall_tables.py): Zn, Zg = -G . n, Zgz = T_nn, Zl, Zlz = -M 
 cheap: 0.35 s for a 0.1 x 0.1 x 0.3 m tank at l0 = 1 cm), scaled per wall distance so that on a flat
 wall each equals its lattice table. A particle in a concave edge or corner then counts both or all
 three walls: n/n0 on the initial lattice is 1.000 at a flat wall, 1.023 in an edge, 1.045 in a corner
-(the nearest-wall table alone gives about 0.93 and 0.86: those particles would be taken for free
+(the nearest-wall table alone gives 0.79 and 0.63: those particles would be taken for free
 surface, p = 0, and be pushed towards the missing wall). Convex edges and thin plates are
 over-counted by a flat calibration too; the eq. 16 projection keeps every particle out of the wall."""
 from __future__ import annotations
