@@ -106,7 +106,13 @@ class ReferenceSolver(SPHSolver):
     27 cells scanned in the density pass and again in the force pass."""
 
     def __init__(self, *a, **k):
-        super().__init__(*a, **k)
+        import stages.simulate.sph as S
+        from stages.simulate.wall_maps import WallMaps
+        bricks, S.BrickWallMaps = S.BrickWallMaps, WallMaps  # the dense map, as before
+        try:
+            super().__init__(*a, **k)
+        finally:
+            S.BrickWallMaps = bricks
         self.grid = CellGrid(self.sdf.origin, self.sdf.upper, self.h)
         self.nbr = np.zeros((0, 0), np.int32)  # the reference keeps no neighbour list
         self.cnt = np.zeros(0, np.int32)
@@ -190,16 +196,36 @@ def measure_one(scene: str, n_target: int, steps: int, warmup: int, reference: b
            "wall_map_bytes_per_particle": s.walls.nbytes / n, "neighbour_slots": int(s.nbr.shape[1]),
            "density_error_mean": float(np.maximum(s.rho / RHO0 - 1, 0).mean()), "sound_speed": s.c,
            "solver_setup_s": setup_s}
+    out["cpu_ms_per_step_1thread"] = one_thread_cpu_ms(s, max(2, min(steps, 8)))
     if reference:
         out.update(side_by_side(s, x, sdf, l0, height, steps))
     return out
 
 
+def one_thread_cpu_ms(solver, steps: int) -> float:
+    """CPU milliseconds per step on one thread (process time): unlike wall time on 2 threads, this
+    barely moves when other jobs share the machine (a descheduled thread stalls every parallel loop)."""
+    import numba
+    nt = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        solver.step(10.0)
+        t0 = time.process_time()
+        for _ in range(steps):
+            solver.step(10.0)
+        return 1e3 * (time.process_time() - t0) / steps
+    finally:
+        numba.set_num_threads(nt)
+
+
 def side_by_side(new: SPHSolver, x, sdf, l0, height, steps: int) -> dict:
     """The old and the new step from the same state, in alternating rounds (noisy machine)."""
-    ref = make_solver(ReferenceSolver, x, sdf, l0, height)
+    tracemalloc.start()
+    ref = make_solver(ReferenceSolver, x, sdf, l0, height)  # with the dense wall map of wall_maps.py
     ref.load_state({k: np.copy(v) for k, v in new.state().items()})  # own arrays: the sort reuses buffers
     ref.step(10.0)
+    _, ref_peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
     new.step(10.0)
     t_new, t_ref = [], []
     rounds = 4
@@ -211,8 +237,15 @@ def side_by_side(new: SPHSolver, x, sdf, l0, height, steps: int) -> dict:
                 solver.step(10.0)
             times.append((time.perf_counter() - t0) / per)
     ms_new, ms_ref = 1e3 * min(t_new), 1e3 * min(t_ref)
+    cpu_new, cpu_ref = [], []
+    for _ in range(3):  # and on one thread, in CPU time (robust to machine load)
+        cpu_ref.append(one_thread_cpu_ms(ref, per))
+        cpu_new.append(one_thread_cpu_ms(new, per))
     return {"side_by_side_ms_per_step_reference": ms_ref, "side_by_side_ms_per_step_new": ms_new,
-            "speedup": ms_ref / ms_new}
+            "speedup": ms_ref / ms_new, "side_by_side_cpu_ms_per_step_1thread_reference": min(cpu_ref),
+            "side_by_side_cpu_ms_per_step_1thread_new": min(cpu_new), "cpu_speedup_1thread": min(cpu_ref) / min(cpu_new),
+            "reference_traced_bytes_per_particle": ref_peak / len(x),
+            "bitwise_equal_after_rounds": bool(np.array_equal(ref.x, new.x) and np.array_equal(ref.v, new.v))}
 
 
 def _threads() -> int:
@@ -299,12 +332,15 @@ def main() -> None:
                 p["ratio_wall_s_per_sim_s_theirs_over_ours"] = p["wall_s_per_sim_s"] / ours["wall_s_per_sim_s"]
             peers[str(n)] = p
     print("SPlisHSPlasH WCSPH:", json.dumps(peers))
+    nan = float("nan")
     print(f"\n{'scene':10} {'particles':>9} {'ms/step':>8} {'Mpart-steps/s':>13} {'B/particle':>10} "
-          f"{'wall s/sim s':>12} {'ref ms':>7} {'speedup':>7}")
+          f"{'wall s/sim s':>12} {'ref ms':>7} {'speedup':>7} {'1-thread CPU ms: ref':>20} {'new':>7} {'speedup':>7}")
     for r in rows:
         print(f"{r['scene']:10} {r['particles']:9d} {r['ms_per_step']:8.1f} {r['particle_steps_per_s'] / 1e6:13.2f} "
               f"{r['traced_bytes_per_particle']:10.0f} {r['wall_s_per_sim_s']:12.1f} "
-              f"{r.get('side_by_side_ms_per_step_reference', float('nan')):7.1f} {r.get('speedup', float('nan')):7.2f}")
+              f"{r.get('side_by_side_ms_per_step_reference', nan):7.1f} {r.get('speedup', nan):7.2f} "
+              f"{r.get('side_by_side_cpu_ms_per_step_1thread_reference', nan):20.1f} "
+              f"{r['cpu_ms_per_step_1thread']:7.1f} {r.get('cpu_speedup_1thread', nan):7.2f}")
     if not a.quick:
         out = ROOT / "benchmarks" / "results" / "sph.json"
         out.write_text(json.dumps({"command": " ".join(["benchmarks/bench_sph.py"] + sys.argv[1:]),

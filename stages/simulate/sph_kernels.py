@@ -4,6 +4,12 @@ Every particle loop is a prange over i that writes only particle i (no scatter, 
 result is bitwise deterministic whatever the thread count. Arrays are in cell order (see
 neighbours.py). All lengths SI (metres), see driver.py.
 
+One SPHSolver step: neighbours.neighbour_list (the pairs r < h, compares and stores only), then
+``density_neighbours`` and ``forces`` over that list (the cell scan of 216 candidates per particle
+happens once per step instead of twice, and the kernel sums run over the ~30 real neighbours). The
+list holds the pairs in the order the cell scan meets them, so every sum is bitwise the cell-scan sum:
+the cell-scan forms (``density_pressure``, ``forces`` without ``neighbours``) stay for DFSPH and tests.
+
 Effects are compile-time (issue 8). ``forces`` is ONE fused neighbour-loop kernel; each effect is an
 optional argument that is either a tuple of its constants or None. Numba types None as NoneType and
 prunes every ``if arg is not None:`` branch before lowering (dead-branch pruning), and cache=True keeps
@@ -11,12 +17,13 @@ one machine-code build per effect set on disk, so an absent effect costs nothing
 
     forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0,
            wmap, wo, winv, inv_dr, gravity, acc,
-           pressure, viscosity, tension, adhesion, friction, wind, attractor)
+           pressure, viscosity, tension, adhesion, friction, wind, attractor, neighbours=None, inv_rho=None)
 
     common   x, v (N,3) positions m, velocities m/s; rho (N,) density kg/m^3; d (N,) SDF distance m and
              nrm (N,3) SDF normal (into the fluid), both from density_pressure; starts/lo/inv_cell/dims
              the cell grid (neighbours.py); h support m; mass kg; rho0 kg/m^3; wmap/wo/winv the wall
-             maps (wall_maps.py) and inv_dr their tables' 1/dr; gravity (3,) m/s^2 (always added;
+             maps (wall_maps.py dense array, or the bricked (index, bricks, shape) of sph.BrickWallMaps)
+             and inv_dr their tables' 1/dr; gravity (3,) m/s^2 (always added;
              zeros without the effect); acc (N,3) output, m/s^2 (overwritten).
     pressure   (p, grad_coef, fix_press, av): p (N,) Pa; grad_coef the Spiky gradient coefficient
                (eq. 8, divided by the lattice factor); fix_press the wall-pressure table; av = alpha c h,
@@ -116,27 +123,8 @@ def _node(index, bricks, i, j, k, c):
 
 
 @nb.njit(cache=True, inline="always")
-def brick_sample(index, bricks, shape, ox, oy, oz, inv_h, x, y, z, c):
-    """wall_maps.map_sample of the dense map, read from its bricks (bitwise the same value: nodes of
-    bricks that are not stored are 0.0, as in the dense map)."""
-    nx, ny, nz = shape[0], shape[1], shape[2]
-    fx = min(max((x - ox) * inv_h, 0.0), nx - 1.000001)
-    fy = min(max((y - oy) * inv_h, 0.0), ny - 1.000001)
-    fz = min(max((z - oz) * inv_h, 0.0), nz - 1.000001)
-    i = int(fx)
-    j = int(fy)
-    k = int(fz)
-    tx = fx - i
-    ty = fy - j
-    tz = fz - k
-    m000 = _node(index, bricks, i, j, k, c)
-    m100 = _node(index, bricks, i + 1, j, k, c)
-    m010 = _node(index, bricks, i, j + 1, k, c)
-    m110 = _node(index, bricks, i + 1, j + 1, k, c)
-    m001 = _node(index, bricks, i, j, k + 1, c)
-    m101 = _node(index, bricks, i + 1, j, k + 1, c)
-    m011 = _node(index, bricks, i, j + 1, k + 1, c)
-    m111 = _node(index, bricks, i + 1, j + 1, k + 1, c)
+def _trilinear(m000, m100, m010, m110, m001, m101, m011, m111, tx, ty, tz):
+    """wall_maps.map_sample's arithmetic, operation for operation (so the same bits)."""
     c00 = m000 + (m100 - m000) * tx
     c10 = m010 + (m110 - m010) * tx
     c01 = m001 + (m101 - m001) * tx
@@ -144,6 +132,94 @@ def brick_sample(index, bricks, shape, ox, oy, oz, inv_h, x, y, z, c):
     c0 = c00 + (c10 - c00) * ty
     c1 = c01 + (c11 - c01) * ty
     return c0 + (c1 - c0) * tz
+
+
+@nb.njit(cache=True, inline="always")
+def _cell(shape, ox, oy, oz, inv_h, x, y, z):
+    fx = min(max((x - ox) * inv_h, 0.0), shape[0] - 1.000001)
+    fy = min(max((y - oy) * inv_h, 0.0), shape[1] - 1.000001)
+    fz = min(max((z - oz) * inv_h, 0.0), shape[2] - 1.000001)
+    i = int(fx)
+    j = int(fy)
+    k = int(fz)
+    return i, j, k, fx - i, fy - j, fz - k
+
+
+@nb.njit(cache=True, inline="always")
+def _slot(index, i, j, k):
+    return index[i // BRICK, j // BRICK, k // BRICK]
+
+
+@nb.njit(cache=True, inline="always")
+def _at(bricks, s, i, j, k, c):
+    if s < 0:
+        return np.float32(0.0)  # a brick that is not stored: all its nodes are 0 in the dense map
+    return bricks[s, i % BRICK, j % BRICK, k % BRICK, c]
+
+
+@nb.njit(cache=True, inline="always")
+def brick_sample(index, bricks, shape, ox, oy, oz, inv_h, x, y, z, c):
+    """wall_maps.map_sample of the dense map, read from its bricks (bitwise the same value)."""
+    i, j, k, tx, ty, tz = _cell(shape, ox, oy, oz, inv_h, x, y, z)
+    s000 = _slot(index, i, j, k)
+    s100 = _slot(index, i + 1, j, k)
+    s010 = _slot(index, i, j + 1, k)
+    s110 = _slot(index, i + 1, j + 1, k)
+    s001 = _slot(index, i, j, k + 1)
+    s101 = _slot(index, i + 1, j, k + 1)
+    s011 = _slot(index, i, j + 1, k + 1)
+    s111 = _slot(index, i + 1, j + 1, k + 1)
+    return _trilinear(_at(bricks, s000, i, j, k, c), _at(bricks, s100, i + 1, j, k, c),
+                      _at(bricks, s010, i, j + 1, k, c), _at(bricks, s110, i + 1, j + 1, k, c),
+                      _at(bricks, s001, i, j, k + 1, c), _at(bricks, s101, i + 1, j, k + 1, c),
+                      _at(bricks, s011, i, j + 1, k + 1, c), _at(bricks, s111, i + 1, j + 1, k + 1, c), tx, ty, tz)
+
+
+@nb.njit(cache=True, inline="always")
+def brick_sample_1234(index, bricks, shape, ox, oy, oz, inv_h, x, y, z):
+    """Channels 1-4 (wall pressure direction, Z_vis) at once: the brick slots are looked up once."""
+    i, j, k, tx, ty, tz = _cell(shape, ox, oy, oz, inv_h, x, y, z)
+    s000 = _slot(index, i, j, k)
+    s100 = _slot(index, i + 1, j, k)
+    s010 = _slot(index, i, j + 1, k)
+    s110 = _slot(index, i + 1, j + 1, k)
+    s001 = _slot(index, i, j, k + 1)
+    s101 = _slot(index, i + 1, j, k + 1)
+    s011 = _slot(index, i, j + 1, k + 1)
+    s111 = _slot(index, i + 1, j + 1, k + 1)
+    out1 = 0.0
+    out2 = 0.0
+    out3 = 0.0
+    out4 = 0.0
+    for c in range(1, 5):
+        v = _trilinear(_at(bricks, s000, i, j, k, c), _at(bricks, s100, i + 1, j, k, c),
+                       _at(bricks, s010, i, j + 1, k, c), _at(bricks, s110, i + 1, j + 1, k, c),
+                       _at(bricks, s001, i, j, k + 1, c), _at(bricks, s101, i + 1, j, k + 1, c),
+                       _at(bricks, s011, i, j + 1, k + 1, c), _at(bricks, s111, i + 1, j + 1, k + 1, c), tx, ty, tz)
+        if c == 1:
+            out1 = v
+        elif c == 2:
+            out2 = v
+        elif c == 3:
+            out3 = v
+        else:
+            out4 = v
+    return out1, out2, out3, out4
+
+
+def wall_sample_1234(wmap, ox, oy, oz, inv_h, x, y, z):
+    """Channels 1-4 of the wall map at (x, y, z), either form of ``wmap``."""
+
+
+@overload(wall_sample_1234)
+def _wall_sample_1234(wmap, ox, oy, oz, inv_h, x, y, z):
+    if isinstance(wmap, types.Array):
+        def dense(wmap, ox, oy, oz, inv_h, x, y, z):
+            return (map_sample(wmap, ox, oy, oz, inv_h, x, y, z, 1), map_sample(wmap, ox, oy, oz, inv_h, x, y, z, 2),
+                    map_sample(wmap, ox, oy, oz, inv_h, x, y, z, 3), map_sample(wmap, ox, oy, oz, inv_h, x, y, z, 4))
+        return dense
+    return lambda wmap, ox, oy, oz, inv_h, x, y, z: brick_sample_1234(wmap[0], wmap[1], wmap[2], ox, oy, oz, inv_h,
+                                                                      x, y, z)
 
 
 def wall_sample(wmap, ox, oy, oz, inv_h, x, y, z, c):
@@ -455,6 +531,9 @@ def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, wmap, w
             inv_rhoi = inv_rho[i]
         else:
             inv_rhoi = 1.0 / rho[i]
+        w1 = w2 = w3 = w4 = 0.0
+        if near_wall:  # the wall map's channels 1-4 in one lookup (unused ones are optimised away)
+            w1, w2, w3, w4 = wall_sample_1234(wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi)
         if pressure is not None:
             c = mass * grad_coef * inv_rhoi
             ax = ax * c + gx0
@@ -465,9 +544,9 @@ def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, wmap, w
                 # p_wall the Shepard (Poly6-weighted) average of the neighbours' pressure, at least p_i
                 pw = max(pi, sp / sw)
                 cw = (pi + pw) * inv_rhoi * table_lookup(fix_press, d[i], inv_dr)
-                ax += cw * wall_sample(wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 1)
-                ay += cw * wall_sample(wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 2)
-                az += cw * wall_sample(wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 3)
+                ax += cw * w1
+                ay += cw * w2
+                az += cw * w3
         else:
             ax = gx0
             ay = gy0
@@ -475,8 +554,7 @@ def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, wmap, w
         if viscosity is not None:
             if near_wall:
                 # eq. 13-14: the resting wall's viscous term -mu v_i Z_vis(r_iw)
-                zw = mu * inv_rhoi * table_lookup(fix_vis, d[i], inv_dr) * wall_sample(
-                    wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 4)
+                zw = mu * inv_rhoi * table_lookup(fix_vis, d[i], inv_dr) * w4
                 ax -= zw * vxi
                 ay -= zw * vyi
                 az -= zw * vzi
