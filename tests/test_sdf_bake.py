@@ -132,6 +132,23 @@ def test_band_distance_is_exact_near_the_wall_and_never_below_it_beyond():
     assert (prop - brute).min() > -1e-12 and (prop - brute).max() < 0.1 * h
 
 
+def test_band_distance_does_not_depend_on_the_thread_count():
+    import numba
+
+    from stages.sdf_bake.mesh_distance import band_distance
+
+    s = trimesh.creation.icosphere(subdivisions=3, radius=0.3)
+    tri = s.vertices[s.faces]
+    threads = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        one, _ = band_distance(tri, np.full(3, -0.5), 0.02, (51, 51, 51), 0.16, 0.04)
+    finally:
+        numba.set_num_threads(threads)
+    many, _ = band_distance(tri, np.full(3, -0.5), 0.02, (51, 51, 51), 0.16, 0.04)
+    assert np.array_equal(one, many)
+
+
 def test_grid_line_votes_agree_on_a_closed_mesh_and_outvote_a_hole():
     """Six grid-line votes: all agree on a closed sphere (also where lines run through its vertices,
     the grid is centred on it); with one face removed, every node keeps a majority (no 3-3 tie) and

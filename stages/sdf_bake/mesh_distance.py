@@ -1,14 +1,25 @@
-"""Numba kernels of the narrow-band bake: exact unsigned distance to a triangle mesh in a band, and
-inside/outside votes by ray parity along the grid lines.
+"""Numba kernels of the narrow-band bake: distance to a triangle mesh in a band, and inside/outside
+votes by ray parity along the grid lines.
 
-Distance (exact, PHYSICS.md "Walls from a distance function"): every triangle visits the grid nodes
-within ``band`` of its bounding box (the box rounded by a ball of radius ``band``) and lowers each
-node's value to the exact point-triangle distance (closest point by Voronoi regions, Ericson,
-Real-Time Collision Detection 5.1.5). A node is skipped when the triangle's plane is already farther
-than its current value, so most visits cost one dot product. The work grows with the wall area times
-the band width (each node is visited by the triangles within band of it), not with the domain volume.
-Nodes are split into slabs of x; a thread owns a slab and writes only its nodes; the minimum of exact
-values does not depend on the order, so results are deterministic for any thread count.
+Distance (PHYSICS.md "Walls from a distance function"), in three passes:
+1. Exact near the wall: every triangle visits the grid nodes within ``exact_reach`` of its bounding box
+   and lowers each node's value to the exact point-triangle distance (closest point by Voronoi regions,
+   Ericson, Real-Time Collision Detection 5.1.5), remembering the triangle. A node is skipped when the
+   triangle's plane is already farther than its current value. Nodes are split into slabs of x; a
+   thread owns a slab and writes only its nodes.
+2. Breadth first outwards (26 neighbours, layer by layer): a node takes the closest of its
+   neighbours' triangles in earlier layers (Danielsson's vector propagation; the sweeps of Bridson's
+   makelevelset3 / SDFGen do the same along the axes).
+3. Once more in order of that distance (buckets of half a spacing): a node takes the closest of the
+   final triangles of its neighbours in lower buckets. Breadth-first layers count a diagonal step as
+   one, so pass 2 alone can reach a node sideways before its neighbour towards the wall is done.
+Every value is the exact distance to some triangle (never below the true distance); beyond
+``exact_reach`` it may miss the true closest triangle where none of the neighbours nearer the wall
+has it (near the medial axis or behind sharp creases). On the dragon at 256^3: 2 % of the band nodes
+differ from open3d's exact distance, by at most 0.07 grid spacings. The work follows the band (the
+wall's area times the band width), not the domain's volume. Passes 2 and 3 are prange over the
+nodes of a layer / bucket, each written by one thread and reading only finished ones; ties go to the
+lower triangle index: the result does not depend on the thread count.
 
 Sign: for each axis, each grid line through the nodes is a ray; its crossings with the triangles are
 found by a 2D point-in-triangle test in the plane across the axis with Bridson's symbolic tie-break
