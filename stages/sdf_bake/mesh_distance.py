@@ -410,6 +410,8 @@ def _refine(tri, degenerate, normals, spheres, origin, h, dims, dist, ids, layer
     for b in range(starts.shape[0] - 1):
         lo = starts[b]
         hi = starts[b + 1]
+        if hi == lo:  # a parallel region costs a fork and a join even when empty
+            continue
         chunk = (hi - lo + n_threads - 1) // n_threads
         for c in nb.prange(n_threads):
             for q in range(lo + c * chunk, min(lo + (c + 1) * chunk, hi)):
@@ -462,7 +464,8 @@ def band_distance(tri: np.ndarray, origin: np.ndarray, h: float, shape: tuple[in
                           flat_d, flat_i, layer, queue, len(exact), seen)
         n_prop = int(tail - len(exact))
         # second pass by distance (buckets of h/2 from the exact reach)
-        order, starts = _bucket_order(flat_d, layer, reach, 0.5 * h, 250)
+        n_buckets = min(int(np.ceil((limit - reach) / (0.5 * h))) + 1, 250)
+        order, starts = _bucket_order(flat_d, layer, reach, 0.5 * h, n_buckets)
         _refine(tri, degenerate, normals, spheres, origin, float(h), np.asarray(shape, np.int64), flat_d, flat_i,
                 layer, order, starts, seen)
     np.minimum(out, band, out=out)
