@@ -168,6 +168,22 @@ def test_grid_line_votes_agree_on_a_closed_mesh_and_outvote_a_hole():
     assert np.array_equal(holey >= 4, inside)
 
 
+def test_open_bowl_votes_inside_below_the_rim_and_outside_above_it():
+    """The documented meaning of the sign for an open container (a thin bowl, no lid): the cavity
+    below the rim is inside (5 of 6 lines meet the bowl twice), the space above the opening outside."""
+    from stages.sdf_bake.mesh_distance import inside_votes
+
+    s = trimesh.creation.icosphere(subdivisions=3, radius=0.3)
+    bowl = s.faces[s.triangles_center[:, 2] < 0.05]
+    h, origin, shape = 0.02, np.full(3, -0.4), (41, 41, 41)
+    axes = [origin[a] + h * np.arange(shape[a]) for a in range(3)]
+    p = np.stack(np.meshgrid(*axes, indexing="ij"), -1)
+    r = np.linalg.norm(p, axis=-1)
+    votes = inside_votes(s.vertices[bowl], origin, h, shape)
+    assert np.all(votes[(r < 0.27) & (p[..., 2] < 0.0)] == 5)
+    assert np.all(votes[(r < 0.27) & (p[..., 2] > 0.1)] == 1)
+
+
 def test_missing_fluid_section_is_a_stage_error(tmp_path):
     scene = {"scene": {"name": "t"}, "walls": [{"builtin": "box_tank"}]}
     walls_dir = run_stage(TrimeshImport, tmp_path / "w", scene=scene)
