@@ -5,7 +5,7 @@ a ms at 100k), and the particle arrays are gathered into cell order so neighbour
 memory. The grid covers a fixed box (the SDF grid); particles outside are clamped into the border
 cells (still correct: the pair test is by distance) and removed by the solver at frame boundaries.
 Arrays grow with N; nothing has a fixed per-cell capacity. ``neighbour_list`` turns the cell scan into
-a per-particle list of the pairs r < h once per step (SPH's density and force passes both read it).
+a per-particle list of the pairs r < h once per step (SPH's density and force passes both read it)."""
 from __future__ import annotations
 
 import math
