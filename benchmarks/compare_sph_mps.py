@@ -50,7 +50,7 @@ def surge_front(particles: Path, x_back: float, a: float, l0: float) -> list[tup
     out = []
     for f in range(meta.frame_count):
         x = np.sort(load_particle_frame(particles, f).x[:, 0])
-        out.append((f / meta.fps * scale, (x[-3] + 0.5 * l0 - x_back) / a))
+        out.append((float(f / meta.fps * scale), float((x[-3] + 0.5 * l0 - x_back) / a)))
     return out
 
 
@@ -102,11 +102,13 @@ def main() -> None:
                 f"{s['wall_seconds_per_simulated_second']:.0f} s/sim s")
     tmax = max(np.array(s["surge_front"])[:, 0].max() for s in summary["solvers"].values())
     ax.set_xlim(0, tmax * 1.02)
-    ax.set_ylim(0.8, ref[ref[:, 0] <= tmax, 1].max() * 1.15)
+    zmax = max(np.array(s["surge_front"])[:, 1].max() for s in summary["solvers"].values())
+    ax.set_ylim(0.8, max(zmax, ref[ref[:, 0] <= tmax, 1].max()) * 1.05)
     ax.set_xlabel("T = t sqrt(2 g / a)")
     ax.set_ylabel("surge front Z / a")
     n = next(iter(summary["solvers"].values()))["particles"]
-    ax.set_title(f"dam break, column a x 2a, {n} particles (configs/compare_sph_mps.yaml)", fontsize=9)
+    ax.set_title(f"dam break, column a x 2a, {n} particles (configs/compare_sph_mps.yaml)\n"
+                 "timings from one run on a shared 2-core machine", fontsize=9)
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize=7, loc="upper left")
     fig.tight_layout()

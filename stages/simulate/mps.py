@@ -94,6 +94,7 @@ class MPSSolver:
         w = self.walls
         self.wall_args = (w.maps, w.origin, 1.0 / w.spacing, w.fix, w.inv_dr)
         self.gravity = np.asarray(gravity, np.float64)
+        self.g_dt = np.zeros(3)
         self.mu = float(mu) if mu is not None else None
         self.wall_viscosity = bool(wall_viscosity)
         self.v_ref = float(max(v_ref, 1e-3))
@@ -166,7 +167,6 @@ class MPSSolver:
                          sound_speed=None, nu=nu, dt_max=dt_max)
 
     def solve_pressure(self, dt: float) -> int:
-        T = self.tables
         rho = self.rho0
         K.mark_free_surface(self.n, self.p.beta * self.n0, self.dirichlet)
         mixed = self.p.source == "mixed"
@@ -174,8 +174,9 @@ class MPSSolver:
         src = gamma * rho / dt ** 2
         div_coef = -(1.0 - gamma) * rho / dt if mixed else 0.0
         if mixed:
+            np.multiply(self.gravity, dt, out=self.g_dt)
             K.divergence(self.xs, self.vs, self.offsets, self.nbr, self.re_n, self.grad_coef, self.d, *self.wall_args,
-                         self.gravity * dt, self.div)
+                         self.g_dt, self.div)
         diag_extra = self.p.compressibility * rho / dt ** 2
         while True:
             nnz = K.build_poisson(self.xs, self.offsets, self.nbr, self.re_l, self.lap_coef, self.dirichlet, self.n,
@@ -194,7 +195,6 @@ class MPSSolver:
 
     def step(self, t_end: float) -> float:
         """One step towards t_end (never past it); returns dt."""
-        T = self.tables
         self.sort_and_neighbours()
         dt = step_to(self.t, t_end, self.stable_dt(t_end - self.t))
         if self.mu is not None:

@@ -13,7 +13,6 @@ from __future__ import annotations
 import math
 
 import numba as nb
-import numpy as np
 
 from stages.common.sdf import sdf_sample
 
