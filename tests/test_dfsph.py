@@ -69,8 +69,8 @@ def test_predicted_density_rate_matches_the_real_change():
     for sign in (1, -1):  # the kernel clamps at 0: the signed rate from +v and -v
         s.v[:] = sign * vel
         kappa, err = np.zeros(len(s.x)), np.zeros(len(s.x))
-        D.jacobi_density(s.x, s.v, np.zeros_like(s.x), s.nbr, s.fac, s.count, s.cap, s.mass, s.psi, s.rho * 0,
-                         s.alpha, 0.0, 1.0, 0.5, kappa, err)
+        D.jacobi_density(s.x, s.v, s.nbr, s.fac, s.count, s.cap, s.mass, s.psi, s.rho * 0 + 1.0, s.alpha, 1.0,
+                         1.0, 0.5, kappa, np.zeros(len(s.x)), err)
         rate += sign * err
     dt = 1e-6
     moved = DFSPHSolver(s.x + dt * vel, np.zeros_like(s.x), s.id, s.sdf, spacing=L0, rho0=1000.0, params=s.p,

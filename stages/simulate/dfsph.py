@@ -119,7 +119,8 @@ class DFSPHSolver:
         self.psi = np.zeros((n, 3))
         self.acc = np.zeros((n, 3))
         self.zero_acc = np.zeros((n, 3))
-        self.acc_p = np.zeros((n, 3))
+        self.u = np.zeros((n, 3))  # v + dt a(kappa) during a solve
+        self.kr = np.zeros(n)  # kappa / rho during a solve
         self.err = np.zeros(n)
         self.count = np.zeros(n, np.int32)
         self.nbr = np.zeros(n * self.cap, np.int32)
@@ -162,9 +163,11 @@ class DFSPHSolver:
         if self.normals is not None:
             K.surface_normals(self.x, self.rho, g.starts, g.lo, 1.0 / g.cell, g.dims, self.h, self.grad_coef,
                               self.mass, self.normals)
+        # over this step's neighbour lists (same pairs, same order as the cell scan: the same sums)
+        lists = (self.nbr.reshape(len(self.x), self.cap), self.count)
         K.forces(self.x, self.v, self.rho, self.d, self.nrm, g.starts, g.lo, 1.0 / g.cell, g.dims, self.h, self.mass,
                  self.rho0, w.maps, w.origin, 1.0 / w.spacing, w.inv_dr, self.gravity, self.acc, None,
-                 *self.effect_args())
+                 *self.effect_args(), neighbours=lists)
 
     def stable_dt(self, dt_max: float) -> float:
         v2, a2 = K.max_speed2_accel2(self.v, self.acc)
@@ -173,31 +176,33 @@ class DFSPHSolver:
                          sound_speed=None, nu=nu, dt_max=min(dt_max, self.p.dt_max, self.effects.dt_limit))
 
     def _solve(self, dt: float, divergence: bool) -> tuple[int, float]:
-        """Projected Jacobi iterations of the constant-density (or divergence-free) solve, warm started
-        from ``warm_start`` times the last step's kappa; adds dt a(kappa) to self.v. Returns
+        """Projected, relaxed Jacobi iterations of the constant-density (or divergence-free) solve, warm
+        started from ``warm_start`` times the last step's kappa; sets self.v = v + dt a(kappa). Returns
         (iterations, final average error / rho0)."""
         p = self.p
         kappa = self.kappa_v if divergence else self.kappa
-        kappa *= p.warm_start
+        D.warm_start(kappa, self.rho, p.warm_start, self.kr)
         eta = p.max_divergence_error if divergence else p.max_density_error
         least = 1 if divergence else p.min_iterations
-        common = (self.nbr, self.fac, self.count, self.cap, self.mass, self.psi, self.rho, self.alpha)
+        lists = (self.nbr, self.fac, self.count, self.cap, self.mass, self.psi)
         n = max(len(self.x), 1)
         it = 0
         avg = 0.0
         while it < p.max_iterations:
-            D.pressure_accel(self.x, *common[:7], kappa, self.wall_mirror, self.acc_p)
+            D.predict_velocity(self.x, self.v, dt, *lists, self.kr, self.wall_mirror, self.u)
             if divergence:
-                D.jacobi_divergence(self.x, self.v, self.acc_p, *common, dt, p.relaxation, self.min_rho, kappa, self.err)
+                D.jacobi_divergence(self.x, self.u, *lists, self.rho, self.alpha, dt, p.relaxation, self.min_rho,
+                                    kappa, self.kr, self.err)
                 avg = float(self.err.sum()) * dt / n / self.rho0
             else:
-                D.jacobi_density(self.x, self.v, self.acc_p, *common, self.rho0, dt, p.relaxation, kappa, self.err)
+                D.jacobi_density(self.x, self.u, *lists, self.rho, self.alpha, self.rho0, dt, p.relaxation, kappa,
+                                 self.kr, self.err)
                 avg = float(self.err.sum()) / n / self.rho0
             it += 1
             if avg <= eta and it >= least:
                 break
-        D.pressure_accel(self.x, *common[:7], kappa, self.wall_mirror, self.acc_p)
-        D.kick(self.v, self.acc_p, dt)
+        D.predict_velocity(self.x, self.v, dt, *lists, self.kr, self.wall_mirror, self.u)
+        D.copy_rows(self.u, self.v)
         return it, avg
 
     def step(self, t_end: float) -> float:

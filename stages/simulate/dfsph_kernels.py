@@ -140,80 +140,98 @@ def density_alpha_neighbours(x, starts, lo, inv_cell, dims, h, poly6_coef, grad_
 
 
 @nb.njit(cache=True, parallel=True)
-def pressure_accel(x, nbr, fac, count, cap, mass, psi, rho, kappa, wall_mirror, acc):
-    """acc_i = the pressure acceleration of the module docstring for the field ``kappa`` (eq. 6 in
-    kappa form, Spiky gradient eq. 8, the wall's share along Psi). Writes only acc_i."""
+def predict_velocity(x, v, dt, nbr, fac, count, cap, mass, psi, kr, wall_mirror, u):
+    """u_i = v_i + dt a_i, a_i the pressure acceleration of the module docstring for the field
+    kr = kappa / rho (eq. 6 in kappa form, the wall's share along Psi). Writes only u_i."""
     for i in nb.prange(x.shape[0]):
         xi = x[i, 0]
         yi = x[i, 1]
         zi = x[i, 2]
-        ki = kappa[i] / rho[i]
+        ki = kr[i]
         ax = 0.0
         ay = 0.0
         az = 0.0
         row = i * cap
         for k in range(count[i]):
             j = nbr[row + k]
-            kk = ki + kappa[j] / rho[j]
-            if kk != 0.0:
-                f = kk * fac[row + k]
-                ax += f * (xi - x[j, 0])
-                ay += f * (yi - x[j, 1])
-                az += f * (zi - x[j, 2])
+            f = (ki + kr[j]) * fac[row + k]
+            ax += f * (xi - x[j, 0])
+            ay += f * (yi - x[j, 1])
+            az += f * (zi - x[j, 2])
         # -sum m kk grad_i W_ij = +sum m kk f (x_i - x_j); the wall: -mirror k_i Psi_i
         cw = wall_mirror * ki
-        acc[i, 0] = mass * ax - cw * psi[i, 0]
-        acc[i, 1] = mass * ay - cw * psi[i, 1]
-        acc[i, 2] = mass * az - cw * psi[i, 2]
+        u[i, 0] = v[i, 0] + dt * (mass * ax - cw * psi[i, 0])
+        u[i, 1] = v[i, 1] + dt * (mass * ay - cw * psi[i, 1])
+        u[i, 2] = v[i, 2] + dt * (mass * az - cw * psi[i, 2])
 
 
 @nb.njit(cache=True, inline="always")
-def _density_rate(i, x, v, acc, dt, nbr, fac, count, cap, mass, psi):
-    """D rho_i / Dt = sum_j m (u_i - u_j) . grad_i W_ij + u_i . Psi_i at the velocities u = v + dt acc
-    (the wall is at rest)."""
+def _density_rate(i, x, u, nbr, fac, count, cap, mass, psi):
+    """D rho_i / Dt = sum_j m (u_i - u_j) . grad_i W_ij + u_i . Psi_i at the velocities u (the wall is
+    at rest)."""
     xi = x[i, 0]
     yi = x[i, 1]
     zi = x[i, 2]
-    uxi = v[i, 0] + dt * acc[i, 0]
-    uyi = v[i, 1] + dt * acc[i, 1]
-    uzi = v[i, 2] + dt * acc[i, 2]
+    uxi = u[i, 0]
+    uyi = u[i, 1]
+    uzi = u[i, 2]
     s = 0.0
     row = i * cap
     for k in range(count[i]):
         j = nbr[row + k]
-        s += fac[row + k] * ((uxi - v[j, 0] - dt * acc[j, 0]) * (xi - x[j, 0])
-                             + (uyi - v[j, 1] - dt * acc[j, 1]) * (yi - x[j, 1])
-                             + (uzi - v[j, 2] - dt * acc[j, 2]) * (zi - x[j, 2]))
+        s += fac[row + k] * ((uxi - u[j, 0]) * (xi - x[j, 0]) + (uyi - u[j, 1]) * (yi - x[j, 1])
+                             + (uzi - u[j, 2]) * (zi - x[j, 2]))
     return -mass * s + uxi * psi[i, 0] + uyi * psi[i, 1] + uzi * psi[i, 2]
 
 
 @nb.njit(cache=True, parallel=True)
-def jacobi_density(x, v, acc, nbr, fac, count, cap, mass, psi, rho, alpha, rho0, dt, omega, kappa, err):
-    """One projected Jacobi sweep of the constant-density solve (Bender and Koschier 2017, Alg. 3, on
-    the total kappa as in SPlisHSPlasH 2.x so a warm start can be undone): predicted density
-    rho*_i = rho_i + dt D rho_i / Dt at v + dt acc(kappa); kappa_i += alpha_i (rho*_i - rho0) / dt^2,
-    clamped at 0 (no tension: a free surface is not pulled together). err_i = the compression
-    (rho*_i - rho0 where kappa_i > 0 or rho*_i > rho0, else 0)."""
+def jacobi_density(x, u, nbr, fac, count, cap, mass, psi, rho, alpha, rho0, dt, omega, kappa, kr, err):
+    """One projected, relaxed Jacobi sweep of the constant-density solve (Bender and Koschier 2017,
+    Alg. 3, on the total kappa as in SPlisHSPlasH 2.x, so a warm start can be undone): predicted density
+    rho*_i = rho_i + dt D rho_i / Dt at u = v + dt a(kappa); kappa_i += omega alpha_i (rho*_i - rho0) / dt^2,
+    clamped at 0 (no tension: a free surface is not pulled together); kr_i = kappa_i / rho_i.
+    err_i = max(rho*_i - rho0, 0), the compression."""
     inv_dt2 = 1.0 / (dt * dt)
     for i in nb.prange(x.shape[0]):
-        e = rho[i] + dt * _density_rate(i, x, v, acc, dt, nbr, fac, count, cap, mass, psi) - rho0
+        e = rho[i] + dt * _density_rate(i, x, u, nbr, fac, count, cap, mass, psi) - rho0
         err[i] = max(e, 0.0)
-        kappa[i] = max(kappa[i] + omega * e * alpha[i] * inv_dt2, 0.0)
+        k = max(kappa[i] + omega * e * alpha[i] * inv_dt2, 0.0)
+        kappa[i] = k
+        kr[i] = k / rho[i]
 
 
 @nb.njit(cache=True, parallel=True)
-def jacobi_divergence(x, v, acc, nbr, fac, count, cap, mass, psi, rho, alpha, dt, omega, min_rho, kappa, err):
-    """One projected Jacobi sweep of the divergence-free solve (Alg. 2): D rho_i / Dt at v + dt acc(kappa),
-    kappa_i += alpha_i (D rho_i / Dt) / dt, clamped at 0 (only compressing flow is corrected).
+def jacobi_divergence(x, u, nbr, fac, count, cap, mass, psi, rho, alpha, dt, omega, min_rho, kappa, kr, err):
+    """One projected, relaxed Jacobi sweep of the divergence-free solve (Alg. 2): D rho_i / Dt at u,
+    kappa_i += omega alpha_i (D rho_i / Dt) / dt, clamped at 0 (only compressing flow is corrected).
     Particles with rho_i < min_rho (a sparse free-surface neighbourhood, SPlisHSPlasH's
     fewer-than-20-neighbours rule) are left alone."""
     inv_dt = 1.0 / dt
     for i in nb.prange(x.shape[0]):
         e = 0.0
         if rho[i] >= min_rho:
-            e = _density_rate(i, x, v, acc, dt, nbr, fac, count, cap, mass, psi)
+            e = _density_rate(i, x, u, nbr, fac, count, cap, mass, psi)
         err[i] = max(e, 0.0)
-        kappa[i] = max(kappa[i] + omega * e * alpha[i] * inv_dt, 0.0)
+        k = max(kappa[i] + omega * e * alpha[i] * inv_dt, 0.0)
+        kappa[i] = k
+        kr[i] = k / rho[i]
+
+
+@nb.njit(cache=True, parallel=True)
+def warm_start(kappa, rho, factor, kr):
+    """kappa *= factor (the last step's solution as the initial guess), kr = kappa / rho."""
+    for i in nb.prange(kappa.shape[0]):
+        k = kappa[i] * factor
+        kappa[i] = k
+        kr[i] = k / rho[i]
+
+
+@nb.njit(cache=True, parallel=True)
+def copy_rows(src, dst):
+    for i in nb.prange(src.shape[0]):
+        dst[i, 0] = src[i, 0]
+        dst[i, 1] = src[i, 1]
+        dst[i, 2] = src[i, 2]
 
 
 @nb.njit(cache=True, parallel=True)
