@@ -363,15 +363,12 @@ def _propagate(tri, degenerate, normals, spheres, origin, h, dims, band, dist, i
                             tail += 1
         lo = hi
         hi = tail
-        n_threads = seen.shape[0]
-        chunk = (hi - lo + n_threads - 1) // n_threads
-        for c in nb.prange(n_threads):
-            for q in range(lo + c * chunk, min(lo + (c + 1) * chunk, hi)):
-                node = queue[q]
-                d, t = _best_of_neighbours(tri, degenerate, normals, spheres, origin, h, dims, node, layer, lay,
-                                           dist, ids, ids, False, seen[c])
-                dist[node] = d
-                ids[node] = t
+        for q in nb.prange(lo, hi):
+            node = queue[q]
+            d, t = _best_of_neighbours(tri, degenerate, normals, spheres, origin, h, dims, node, layer, lay,
+                                       dist, ids, ids, False, seen[nb.get_thread_id()])
+            dist[node] = d
+            ids[node] = t
     return tail
 
 
@@ -406,20 +403,17 @@ def _refine(tri, degenerate, normals, spheres, origin, h, dims, dist, ids, layer
     7 % of the band nodes were then off, by up to 2 spacings); going by distance follows the wall's
     normals, like a fast-marching front. Race-free: a bucket writes only its nodes and reads finished
     buckets."""
-    n_threads = seen.shape[0]
     for b in range(starts.shape[0] - 1):
         lo = starts[b]
         hi = starts[b + 1]
         if hi == lo:  # a parallel region costs a fork and a join even when empty
             continue
-        chunk = (hi - lo + n_threads - 1) // n_threads
-        for c in nb.prange(n_threads):
-            for q in range(lo + c * chunk, min(lo + (c + 1) * chunk, hi)):
-                node = order[q]
-                d, t = _best_of_neighbours(tri, degenerate, normals, spheres, origin, h, dims, node, layer,
-                                           layer[node], dist, ids, ids, False, seen[c])
-                dist[node] = d
-                ids[node] = t
+        for q in nb.prange(lo, hi):
+            node = order[q]
+            d, t = _best_of_neighbours(tri, degenerate, normals, spheres, origin, h, dims, node, layer,
+                                       layer[node], dist, ids, ids, False, seen[nb.get_thread_id()])
+            dist[node] = d
+            ids[node] = t
 
 
 def band_distance(tri: np.ndarray, origin: np.ndarray, h: float, shape: tuple[int, int, int], band: float,
@@ -459,7 +453,7 @@ def band_distance(tri: np.ndarray, origin: np.ndarray, h: float, shape: tuple[in
         layer[exact] = 0
         queue = np.empty(flat_d.shape, np.int64)
         queue[:len(exact)] = exact
-        seen = np.empty((max(nb.get_num_threads(), 1), 32), np.int32)
+        seen = np.empty((nb.config.NUMBA_NUM_THREADS, 32), np.int32)  # scratch per thread (get_thread_id)
         tail = _propagate(tri, degenerate, normals, spheres, origin, float(h), np.asarray(shape, np.int64), float(band),
                           flat_d, flat_i, layer, queue, len(exact), seen)
         n_prop = int(tail - len(exact))
