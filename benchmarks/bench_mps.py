@@ -31,12 +31,12 @@ def scene(n_target: int):
     return l0, sdf, x
 
 
-def run(solver: str, n_target: int, steps: int, warmup: int) -> dict:
+def run(solver: str, n_target: int, steps: int, warmup: int, mps_params: dict | None = None) -> dict:
     l0, sdf, x = scene(n_target)
     kw = dict(spacing=l0, rho0=1000.0, gravity=(0, 0, -9.81), mu=0.01, v_ref=float(np.sqrt(2 * 9.81 * 1.0)))
     t0 = time.perf_counter()
     if solver == "mps":
-        s = MPSSolver(x, np.zeros_like(x), np.arange(len(x)), sdf, params=MPSParams(), **kw)
+        s = MPSSolver(x, np.zeros_like(x), np.arange(len(x)), sdf, params=MPSParams(**(mps_params or {})), **kw)
     else:
         s = SPHSolver(x, np.zeros_like(x), np.arange(len(x)), sdf, params=SPHParams(), **kw)
     setup = time.perf_counter() - t0
@@ -60,19 +60,23 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=20)
     ap.add_argument("--warmup", type=int, default=5)
     ap.add_argument("--threads", type=int, default=None)
+    ap.add_argument("--re-laplacian", type=float, default=None, help="MPS Laplacian radius in l0 (default 3.1)")
     a = ap.parse_args()
     if a.threads:
         nb.set_num_threads(a.threads)
     results = []
     for n in a.sizes.split(","):
         for solver in ("sph", "mps"):
-            r = run(solver, int(n), a.steps, a.warmup)
+            mps = {"re_laplacian": a.re_laplacian} if a.re_laplacian else {}
+            r = run(solver, int(n), a.steps, a.warmup, mps)
+            if solver == "mps":
+                r["re_laplacian"] = a.re_laplacian or MPSParams().re_laplacian
             print(json.dumps(r))
             results.append(r)
     out = Path(__file__).parent / "results" / "mps.json"
     out.parent.mkdir(exist_ok=True)
     out.write_text(json.dumps({"command": "benchmarks/bench_mps.py " + " ".join(
-        f"--{k}={v}" for k, v in vars(a).items() if v is not None), "results": results}, indent=2))
+        f"--{k.replace('_', '-')}={v}" for k, v in vars(a).items() if v is not None), "results": results}, indent=2))
 
 
 if __name__ == "__main__":
