@@ -1,6 +1,6 @@
 """Benchmark of sdf_bake.open3d on the Stanford dragon: narrow-band bake vs dense open3d, and accuracy.
 
-Run: ``python benchmarks/bench_sdf.py [--sizes 128 256] [--dense-max 256] [--band-cells 8] [--exact-reach 2]``.
+Run: ``python benchmarks/bench_sdf.py [--sizes 128 256] [--dense-max 256] [--band-cells 8] [--exact-reach 4]``.
 For each box size N the node spacing is chosen so the dragon's padded bounding box is about N nodes
 long; the particle spacing is l0 = 2 h (cell = 0.5) and the band 4 l0 = 8 h (the stage defaults).
 A tiny bake first loads the numba kernels (cache), so the times are of the bake alone. Node values are
@@ -38,7 +38,7 @@ def main() -> None:
     ap.add_argument("--dense-max", type=int, default=256, help="run the dense open3d comparison up to this size")
     ap.add_argument("--points", type=int, default=20000, help="random band points for the accuracy figures")
     ap.add_argument("--band-cells", type=float, default=8.0, help="band half width in grid spacings (8 = 4 l0 at cell 0.5)")
-    ap.add_argument("--exact-reach", type=float, default=2.0, help="brute-force reach in grid spacings (stage default 2)")
+    ap.add_argument("--exact-reach", type=float, default=4.0, help="brute-force reach in grid spacings (stage default 4)")
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "sdf.json")
     args = ap.parse_args()
 

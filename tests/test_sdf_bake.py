@@ -107,7 +107,7 @@ def test_real_asset_bakes_with_a_plausible_sign(tmp_path):
 
 def test_band_distance_is_exact_near_the_wall_and_never_below_it_beyond():
     """mesh_distance.band_distance against open3d's exact distance: brute force (reach covering the
-    band) is exact; the default (exact within 2 spacings, propagated beyond) never undercuts the true
+    band) is exact; with a reach of 2 spacings (propagated beyond) it never undercuts the true
     distance and stays within a tenth of a spacing of it."""
     import open3d as o3d
 
