@@ -184,6 +184,28 @@ def test_open_bowl_votes_inside_below_the_rim_and_outside_above_it():
     assert np.all(votes[(r < 0.27) & (p[..., 2] > 0.1)] == 1)
 
 
+def test_tied_votes_are_decided_by_random_rays():
+    """A box with a hole on each of three faces, where the x, y and z lines through its centre leave
+    it: nodes near the centre get three votes each way, and open3d's random rays (which mostly hit
+    the box) make them inside like the rest of the box."""
+    from stages.sdf_bake.open3d_bake import bake
+
+    b = trimesh.creation.box(extents=(1, 1, 1)).subdivide().subdivide().subdivide()
+    c = b.triangles_center
+    holes = np.zeros(len(b.faces), bool)
+    for a in range(3):
+        q = np.zeros(3)
+        q[a] = 0.5
+        holes |= np.linalg.norm(c - q, axis=1) < 0.1
+    faces = b.faces[~holes].astype(np.int32)
+    wm = WallMesh(b.vertices, faces, np.zeros(len(faces), np.int32),
+                  [{"name": "b", "fluid": "outside", "report": {"watertight": False}}])
+    g, stats = bake(wm, np.full(3, -0.7), np.full(3, 0.7), 0.05, 0.2)
+    assert stats["sign_ties"] > 0
+    d, _ = g.sample(np.array([[0.0, 0.0, 0.0], [0.02, -0.03, 0.01], [0.3, -0.3, 0.2], [0.65, 0.0, 0.0]]))
+    assert np.all(d[:3] < 0) and d[3] > 0
+
+
 def test_missing_fluid_section_is_a_stage_error(tmp_path):
     scene = {"scene": {"name": "t"}, "walls": [{"builtin": "box_tank"}]}
     walls_dir = run_stage(TrimeshImport, tmp_path / "w", scene=scene)

@@ -35,7 +35,6 @@ allows it.
 from __future__ import annotations
 
 import time
-from pathlib import Path
 from typing import Mapping
 
 import numpy as np
