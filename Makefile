@@ -28,6 +28,7 @@ setup: $(STAMP)
 
 demo: setup
 	$(BIN)/pipeline run configs/dam_break.yaml
+	$(BIN)/pipeline run configs/dragon.yaml
 
 test: setup
 	$(BIN)/python -m pytest -q
