@@ -4,7 +4,9 @@ walls (PHYSICS.md eq. 11-16) treated like a boundary density map (Koschier and B
 Notation (SI, arrays in cell order, see neighbours.py):
 - density rho_i = sum_j m W_ij (eq. 4, 10, Poly6, self included) + Z_rho(x_i) (eq. 11-12, wall map);
 - gradient grad_i W_ij = -f_ij (x_i - x_j) with f_ij = c (h - r)^2 / r (Spiky, eq. 8; c divided by the
-  lattice factor of kernels.spiky_lattice_factor, as in the SPH solver), stored per pair as f_ij;
+  lattice factor of kernels.spiky_lattice_factor, as in the SPH solver), stored per pair as f_ij (float32);
+  the option f_ij = 6 c6 (h^2 - r^2)^2 is the exact Poly6 derivative of the density, but it let a resting
+  tank blow up (the Poly6 gradient vanishes for close pairs), so Spiky is the default;
 - wall gradient Psi_i = sum_wall m grad_i W_iw = grad Z_rho(x_i), the gradient of the wall density
   the density uses (central differences of step ``fd``); it points into the wall, and along a flat wall
   it is the derivative of the Z_rho table along the SDF normal;
