@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 HERE = Path(__file__).parent
-BENCHES = ["bench_sdf.py", "bench_sph.py", "bench_dfsph.py", "bench_mps.py", "bench_effects.py", "bench_walls.py",
+BENCHES = ["bench_sdf.py", "bench_sph.py", "bench_dfsph.py", "bench_mps.py", "bench_hydrostatic.py", "bench_effects.py", "bench_walls.py",
            "bench_surface.py", "bench_render.py", "compare_sph_mps.py", "dragon_snap_figure.py"]
 
 
