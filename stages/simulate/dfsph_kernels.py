@@ -7,9 +7,11 @@ Notation (SI, arrays in cell order, see neighbours.py):
   lattice factor of kernels.spiky_lattice_factor, as in the SPH solver), stored per pair as f_ij (float32);
   the option f_ij = 6 c6 (h^2 - r^2)^2 is the exact Poly6 derivative of the density, but it let a resting
   tank blow up (the Poly6 gradient vanishes for close pairs), so Spiky is the default;
-- wall gradient Psi_i = sum_wall m grad_i W_iw = grad Z_rho(x_i), the gradient of the wall density
-  the density uses (central differences of step ``fd``); it points into the wall, and along a flat wall
-  it is the derivative of the Z_rho table along the SDF normal;
+- wall gradient Psi_i = sum_wall m grad_i W_iw, pointing into the wall: with the Spiky gradient (the
+  default) -rho0 G(x_i) fix_press(d_i), G the wall map's wall-direction channels (the Spiky sums of the
+  wall quadrature) and fix_press the flat-wall factor over the lattice factor, so it is the fluid's own
+  gradient of the missing neighbours, edges and corners included; with the Poly6 gradient, grad Z_rho
+  by central differences (step ``fd``) of the wall density itself;
 - pressure acceleration (eq. 6 in kappa form, kappa = p / rho):
       a_i = -sum_j m (kappa_i / rho_i + kappa_j / rho_j) grad_i W_ij - WALL_MIRROR kappa_i / rho_i Psi_i
   (WALL_MIRROR = 1: the wall's share counts the particle's kappa once, as the boundary terms of
@@ -33,7 +35,7 @@ import numba as nb
 
 from stages.common.sdf import sdf_sample
 
-from .wall_maps import map_sample
+from .sph_kernels import wall_sample, wall_sample_1234
 from .wall_tables import table_lookup
 
 WALL_MIRROR = 1.0  # the wall's share of the pressure acceleration counts kappa_i once (see above)
@@ -45,17 +47,19 @@ def _wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, x, y,
     dw, _, _, _ = sdf_sample(sdf, sdf_o[0], sdf_o[1], sdf_o[2], sdf_inv, x, y, z)
     if dw >= h:
         return 0.0
-    return map_sample(wmap, wo[0], wo[1], wo[2], winv, x, y, z, 0) * table_lookup(fix_rho, dw, inv_dr)
+    return wall_sample(wmap, wo[0], wo[1], wo[2], winv, x, y, z, 0) * table_lookup(fix_rho, dw, inv_dr)
 
 
 @nb.njit(cache=True, parallel=True)
 def density_alpha_neighbours(x, starts, lo, inv_cell, dims, h, poly6_coef, grad_coef, mass, rho0, wmap, wo, winv,
-                             fix_rho, fd, inv_dr, sdf, sdf_o, sdf_inv, wall_mirror, spiky, cap, nbr, fac, count, rho, alpha,
-                             d, nrm, psi):
+                             fix_rho, fix_press, fd, inv_dr, sdf, sdf_o, sdf_inv, wall_mirror, spiky, cap, nbr, fac, count,
+                             rho, alpha, d, nrm, psi, warm, kappa, kappa_v, kr, kr_v):
     """One pass over the cell grid: density (eq. 11), SDF distance ``d`` and normal ``nrm``, wall
     gradient ``psi``, the DFSPH factor ``alpha`` and the neighbour list (``nbr``/``fac`` rows of stride
     ``cap``, ``count`` entries, j != i). Returns the largest neighbour count (exact max): if it exceeds
-    ``cap`` the lists are incomplete and the caller must grow ``cap`` and call again."""
+    ``cap`` the lists are incomplete and the caller must grow ``cap`` and call again.
+    Also the warm starts of both solves (their rho is this pass's): kr = warm kappa / rho and
+    kr_v = warm kappa_v / rho (one parallel region less each, which counts on a busy 2-core machine)."""
     h2 = h * h
     nx, ny, nz = dims[0], dims[1], dims[2]
     most = 0
@@ -114,10 +118,23 @@ def density_alpha_neighbours(x, starts, lo, inv_cell, dims, h, poly6_coef, grad_
         px = 0.0
         py = 0.0
         pz = 0.0
-        if dw < h + fd:  # only particles within h of a wall have wall terms
+        if spiky:
+            if dw < h:  # only particles within h of a wall have wall terms
+                zw = _wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi, zi)
+                # Psi = sum_wall m grad_i W_iw with the fluid's (normalised) Spiky gradient: the map's
+                # wall direction G = (m / rho0) sum -grad W times the flat-wall factor, so Psi cancels the
+                # fluid's S_i on the rest lattice at a floor, in edges and in corners alike (grad Z_rho
+                # is the Poly6 slope: 11-13 % short of S in edges and corners, and S + Psi then pushed
+                # compressed corner particles into the walls)
+                g1, g2, g3, _ = wall_sample_1234(wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi)
+                c = -rho0 * table_lookup(fix_press, dw, inv_dr)
+                px = c * g1
+                py = c * g2
+                pz = c * g3
+        elif dw < h + fd:
             zw = _wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi, zi)
-            # Psi = grad Z_rho by central differences of the same function the density uses, so the
-            # solver's predicted density change matches the real one, edges and corners included
+            # Poly6: Psi = grad Z_rho by central differences of the same function the density uses, so
+            # the solver's predicted density change matches the real one, edges and corners included
             c = 0.5 / fd
             px = c * (_wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi + fd, yi, zi)
                       - _wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi - fd, yi, zi))
@@ -138,13 +155,17 @@ def density_alpha_neighbours(x, starts, lo, inv_cell, dims, h, poly6_coef, grad_
                + (sz + wall_mirror * pz) * (sz + pz) + sq)
         den = max(den, sq)
         alpha[i] = r_i / den if den > 1e-9 * r_i * r_i / h2 else 0.0  # no neighbours: no pressure
+        kr[i] = warm * kappa[i] / r_i
+        kr_v[i] = warm * kappa_v[i] / r_i
     return most
 
 
 @nb.njit(cache=True, parallel=True)
-def predict_velocity(x, v, dt, nbr, fac, count, cap, mass, psi, kr, wall_mirror, u):
-    """u_i = v_i + dt a_i, a_i the pressure acceleration of the module docstring for the field
-    kr = kappa / rho (eq. 6 in kappa form, the wall's share along Psi). Writes only u_i."""
+def predict_velocity(x, v, acc, dt, nbr, fac, count, cap, mass, psi, kr, wall_mirror, u):
+    """u_i = v_i + dt (a_i + acc_i), a_i the pressure acceleration of the module docstring for the
+    field kr = kappa / rho (eq. 6 in kappa form, the wall's share along Psi); ``acc`` the non-pressure
+    accelerations (the density solve: v is the velocity before them) or None. Reads v and writes u at
+    row i only, so ``u`` may be ``v`` (the last pass of a solve updates v in place)."""
     for i in nb.prange(x.shape[0]):
         xi = x[i, 0]
         yi = x[i, 1]
@@ -162,9 +183,16 @@ def predict_velocity(x, v, dt, nbr, fac, count, cap, mass, psi, kr, wall_mirror,
             az += f * (zi - x[j, 2])
         # -sum m kk grad_i W_ij = +sum m kk f (x_i - x_j); the wall: -mirror k_i Psi_i
         cw = wall_mirror * ki
-        u[i, 0] = v[i, 0] + dt * (mass * ax - cw * psi[i, 0])
-        u[i, 1] = v[i, 1] + dt * (mass * ay - cw * psi[i, 1])
-        u[i, 2] = v[i, 2] + dt * (mass * az - cw * psi[i, 2])
+        ax = mass * ax - cw * psi[i, 0]
+        ay = mass * ay - cw * psi[i, 1]
+        az = mass * az - cw * psi[i, 2]
+        if acc is not None:
+            ax += acc[i, 0]
+            ay += acc[i, 1]
+            az += acc[i, 2]
+        u[i, 0] = v[i, 0] + dt * ax
+        u[i, 1] = v[i, 1] + dt * ay
+        u[i, 2] = v[i, 2] + dt * az
 
 
 @nb.njit(cache=True, inline="always")
@@ -192,12 +220,13 @@ def jacobi_density(x, u, nbr, fac, count, cap, mass, psi, rho, alpha, rho0, dt, 
     Alg. 3, on the total kappa as in SPlisHSPlasH 2.x, so a warm start can be undone): predicted density
     rho*_i = rho_i + dt D rho_i / Dt at u = v + dt a(kappa); kappa_i += omega alpha_i (rho*_i - rho0) / dt^2,
     clamped at 0 (no tension: a free surface is not pulled together); kr_i = kappa_i / rho_i.
-    err_i = max(rho*_i - rho0, 0), the compression."""
+    err_i = max(rho*_i - rho0, 0), the compression. The current kappa_i is kr_i rho_i (kr holds the warm
+    start before the first sweep)."""
     inv_dt2 = 1.0 / (dt * dt)
     for i in nb.prange(x.shape[0]):
         e = rho[i] + dt * _density_rate(i, x, u, nbr, fac, count, cap, mass, psi) - rho0
         err[i] = max(e, 0.0)
-        k = max(kappa[i] + omega * e * alpha[i] * inv_dt2, 0.0)
+        k = max(kr[i] * rho[i] + omega * e * alpha[i] * inv_dt2, 0.0)
         kappa[i] = k
         kr[i] = k / rho[i]
 
@@ -207,42 +236,44 @@ def jacobi_divergence(x, u, nbr, fac, count, cap, mass, psi, rho, alpha, dt, ome
     """One projected, relaxed Jacobi sweep of the divergence-free solve (Alg. 2): D rho_i / Dt at u,
     kappa_i += omega alpha_i (D rho_i / Dt) / dt, clamped at 0 (only compressing flow is corrected).
     Particles with rho_i < min_rho (a sparse free-surface neighbourhood, SPlisHSPlasH's
-    fewer-than-20-neighbours rule) are left alone."""
+    fewer-than-20-neighbours rule) are left alone. The current kappa_i is kr_i rho_i."""
     inv_dt = 1.0 / dt
     for i in nb.prange(x.shape[0]):
         e = 0.0
         if rho[i] >= min_rho:
             e = _density_rate(i, x, u, nbr, fac, count, cap, mass, psi)
         err[i] = max(e, 0.0)
-        k = max(kappa[i] + omega * e * alpha[i] * inv_dt, 0.0)
+        k = max(kr[i] * rho[i] + omega * e * alpha[i] * inv_dt, 0.0)
         kappa[i] = k
         kr[i] = k / rho[i]
 
 
 @nb.njit(cache=True, parallel=True)
-def warm_start(kappa, rho, factor, kr):
-    """kappa *= factor (the last step's solution as the initial guess), kr = kappa / rho."""
-    for i in nb.prange(kappa.shape[0]):
-        k = kappa[i] * factor
-        kappa[i] = k
-        kr[i] = k / rho[i]
+def gather_state(order, x, v, ids, kappa, kappa_v, x2, v2, ids2, kappa2, kappa_v2):
+    """The solver state in cell order in ONE parallel region: row k of the outputs is row order[k] of
+    the inputs (neighbours.reorder does one region per array)."""
+    for k in nb.prange(order.shape[0]):
+        j = order[k]
+        x2[k, 0] = x[j, 0]
+        x2[k, 1] = x[j, 1]
+        x2[k, 2] = x[j, 2]
+        v2[k, 0] = v[j, 0]
+        v2[k, 1] = v[j, 1]
+        v2[k, 2] = v[j, 2]
+        ids2[k] = ids[j]
+        kappa2[k] = kappa[j]
+        kappa_v2[k] = kappa_v[j]
 
 
-@nb.njit(cache=True, parallel=True)
-def copy_rows(src, dst):
-    for i in nb.prange(src.shape[0]):
-        dst[i, 0] = src[i, 0]
-        dst[i, 1] = src[i, 1]
-        dst[i, 2] = src[i, 2]
-
-
-@nb.njit(cache=True, parallel=True)
-def kick(v, acc, dt):
-    """v += dt a (the non-pressure accelerations: gravity, viscosity, effects)."""
-    for i in nb.prange(v.shape[0]):
-        v[i, 0] += dt * acc[i, 0]
-        v[i, 1] += dt * acc[i, 1]
-        v[i, 2] += dt * acc[i, 2]
+@nb.njit(cache=True)
+def max_speed2_accel2(v, acc):
+    """(max |v|^2, max |a|^2), serial: 20k particles take ~20 us, less than waking the thread pool."""
+    mv = 0.0
+    ma = 0.0
+    for i in range(v.shape[0]):
+        mv = max(mv, v[i, 0] * v[i, 0] + v[i, 1] * v[i, 1] + v[i, 2] * v[i, 2])
+        ma = max(ma, acc[i, 0] * acc[i, 0] + acc[i, 1] * acc[i, 1] + acc[i, 2] * acc[i, 2])
+    return mv, ma
 
 
 @nb.njit(cache=True, parallel=True)
