@@ -225,7 +225,7 @@ def collapse_flipped(n_ref: np.ndarray, raw: np.ndarray, after: np.ndarray, face
 
     def faces_of(a: int) -> set[int]:
         if a not in changed:
-            changed[a] = {int(t) for t in order[start[a]:start[a + 1]] // 3}
+            changed[a] = {int(t) for t in order[start[a]:start[a + 1]] // 3 if alive[t]}
         return changed[a]
 
     at_stored = stored(after)
@@ -318,7 +318,7 @@ def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapPa
 
     Vertices keep their indices: a vertex merged away by a collapse stays in the array, unreferenced,
     at the position of the vertex it was merged into."""
-    counts = {"snapped": 0, "relaxed": 0, "collapsed": 0, "damped": 0,
+    counts = {"snapped": 0, "grown": 0, "relaxed": 0, "collapsed": 0, "damped": 0,
               "kept_faces": np.arange(len(mesh.faces))}
     if len(mesh.vertices) == 0:
         return mesh, counts
@@ -341,9 +341,23 @@ def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapPa
         out[idx] = near[ok]
         on_wall = np.zeros(len(v), np.bool_)
         on_wall[idx] = True
-        counts["relaxed"] = relax_on_wall(n_ref, out, f, on_wall, project, params.relax_rounds)
-        if params.collapse:
-            merged = collapse_flipped(n_ref, v, out, f, on_wall, alive)
+        for grow in range(3):
+            if grow:
+                # a vertex the contact test left out (its normal does not face the wall) can pin a
+                # fold at the contact line: the off-wall vertices of flipped triangles within the band
+                # join the snapped ones
+                ends = np.unique(f[alive & flipped_faces(n_ref, out, f)])
+                ends = ends[~on_wall[ends]]
+                near, _ = project(out[ends]) if len(ends) else (out[ends], None)
+                close = np.linalg.norm(near - out[ends], axis=1) < params.band * l0
+                if not close.any():
+                    break
+                out[ends[close]] = near[close]
+                on_wall[ends[close]] = True
+                counts["grown"] += int(close.sum())
+            counts["relaxed"] += relax_on_wall(n_ref, out, f, on_wall, project, params.relax_rounds)
+            if params.collapse:
+                merged += collapse_flipped(n_ref, v, out, f, on_wall, alive)
     while True:
         counts["damped"] += undo_flips(v, out, f[alive], n_ref=n_ref[alive])
         left = alive & flipped_faces(n_ref, out, f)
