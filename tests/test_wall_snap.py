@@ -1,31 +1,61 @@
-"""wall_snap.distance: a fluid box in a box tank ends flat on the walls (exact distance, not the grid)."""
+"""wall_snap.distance: fluid surfaces end on the exact walls (flat tank walls, a concave cylinder and a
+convex sphere), with no triangle flipped and the surface still closed."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from pipeline.testing import run_stage
-from stages.common.formats import WallMesh, load_surface
-from stages.common.meshes import face_normals
+from stages.common.formats import SurfaceMesh, WallMesh, load_surface
+from stages.common.meshes import boundary_edge_count, face_normals
 from stages.common.sdf import SDFGrid, box_interior_sdf, grid_from_function
 from stages.simulate.emitters import lattice
 from stages.surface_extract.marching_cubes import MarchingCubes
-from stages.wall_snap.distance import DistanceSnap, DistanceSnapParams, snap_mesh
+from stages.wall_snap.distance import DistanceSnap, DistanceSnapParams, closest_points_on, snap_mesh
 
 from test_surface_extract import L0, SCENE, particles
 
 LO, HI = np.zeros(3), np.array([0.2, 0.2, 0.2])
 
 
+def save_walls(folder, *meshes):
+    """Trimesh meshes as one wall mesh (the exact geometry the SDF stands for)."""
+    import trimesh
+
+    folder.mkdir()
+    m = trimesh.util.concatenate(list(meshes))
+    wall_id = np.concatenate([np.full(len(x.faces), i, np.int32) for i, x in enumerate(meshes)])
+    WallMesh(np.asarray(m.vertices), np.asarray(m.faces, np.int32), wall_id,
+             [{"name": f"wall{i}", "fluid": "inside"} for i in range(len(meshes))]).save(folder)
+    return folder
+
+
 def tank_walls(folder):
-    """The tank as a wall mesh (the exact geometry the SDF was made from)."""
     import trimesh
 
     box = trimesh.creation.box(bounds=[LO, HI])
     box.invert()  # a container: normals into the fluid
-    folder.mkdir()
-    WallMesh(np.asarray(box.vertices), np.asarray(box.faces, np.int32), np.zeros(len(box.faces), np.int32),
-             [{"name": "tank", "fluid": "inside"}]).save(folder)
-    return folder
+    return save_walls(folder, box)
+
+
+def assert_on_the_walls(raw: SurfaceMesh, snapped: SurfaceMesh, report: dict, walls: WallMesh, band: np.ndarray,
+                        inside_fluid, facets: float) -> None:
+    """Every ``band`` vertex within 1e-3 l0 of the exact wall mesh, none inside a wall, no triangle
+    flipped against the raw one it comes from, closed if the raw surface was, the rest unmoved."""
+    v0, v1 = raw.vertices.astype(np.float64), snapped.vertices.astype(np.float64)
+    gap = np.linalg.norm(closest_points_on(walls, v1) - v1, axis=1)
+    assert gap[band].max() < 1e-3 * L0
+    # nothing inside a wall (judged by the analytic distance; ``facets``: how far the wall mesh's flat
+    # facets lie off the analytic wall, where the raw contact line already sits)
+    assert inside_fluid(v1).min() > -facets
+    kept = report["kept_faces"]
+    assert len(kept) == len(snapped.faces) and len(kept) >= len(raw.faces) - 2 * report["collapsed"]
+    flips = np.einsum("ij,ij->i", face_normals(v0, raw.faces[kept]), face_normals(v1, snapped.faces)) < 0
+    assert not flips.any()
+    assert boundary_edge_count(raw.faces) == 0 and boundary_edge_count(snapped.faces) == 0
+    d0 = np.linalg.norm(closest_points_on(walls, v0) - v0, axis=1)
+    far = d0 > 1.5 * L0
+    assert np.allclose(v0[far], v1[far])
 
 
 def test_box_in_tank_snaps_flat_onto_the_walls(tmp_path):
@@ -37,37 +67,84 @@ def test_box_in_tank_snaps_flat_onto_the_walls(tmp_path):
     (tmp_path / "sdf").mkdir()
     sdf.save(tmp_path / "sdf")
     raw_dir = run_stage(MarchingCubes, tmp_path / "raw", scene=SCENE, inputs={"particles": src}, frames=(0,))
-    snap_dir = run_stage(DistanceSnap, tmp_path / "snap", scene=SCENE, frames=(0,),
-                         inputs={"raw_surface": raw_dir, "sdf": tmp_path / "sdf", "particles": src})
-    raw, snapped = load_surface(raw_dir, 0), load_surface(snap_dir, 0)
-    v0, v1 = raw.vertices.astype(np.float64), snapped.vertices.astype(np.float64)
-    d0, d1 = exact(v0), exact(v1)
+    raw = load_surface(raw_dir, 0)
+    v0 = raw.vertices.astype(np.float64)
+    d0 = exact(v0)
     band = d0 < 0.9 * L0  # strictly inside the snap band (1 l0): its edge is a tie
     assert band.sum() > 500 and (np.abs(d0[band]) > 0.05 * L0).any()  # the raw surface floats off the wall
-    # away from the tank's edges every snapped vertex lies on the wall to 1e-3 l0 from the SDF alone;
-    # in the concave edges the flip guard may hold a few back
+
+    # from the SDF alone (no wall mesh): away from the tank's edges every vertex lies on the wall
+    sdf_only, _ = snap_mesh(raw, sdf, L0, DistanceSnapParams())
+    v1 = sdf_only.vertices.astype(np.float64)
+    d1 = exact(v1)
     walls_near = (np.minimum(v1 - LO, HI - v1) < L0).sum(axis=1)
     flat = band & (walls_near == 1)
-    assert flat.sum() > 200
-    assert np.abs(d1[flat]).max() < 1e-3 * L0
-    assert np.abs(d1[band]).max() < 0.5 * L0
-    assert d1.min() > -1e-3 * L0  # nothing inside the wall
-    # with the wall mesh, every vertex of the band (edges too) ends on the exact wall, except the few
-    # the flip guard held back (at the contact line in the tank's corners)
-    walls = WallMesh.load(tank_walls(tmp_path / "walls"))
-    on_mesh, report = snap_mesh(raw, SDFGrid.load(tmp_path / "sdf"), L0, DistanceSnapParams(), walls)
-    v2 = on_mesh.vertices.astype(np.float64)
-    d2 = exact(v2)
-    off = band & (np.abs(d2) > 1e-3 * L0)
-    assert off.sum() <= report["damped"] and off.sum() < 0.01 * band.sum()
-    assert d2.min() > -1e-3 * L0
-    assert (np.einsum("ij,ij->i", face_normals(v0, raw.faces), face_normals(v2, raw.faces)) >= 0).all()
-    # the floor is flat: every floor-band vertex at z = 0
-    floor = band & (v0[:, 2] < L0)
-    assert np.abs(v1[floor & (walls_near == 1), 2]).max() < 1e-3 * L0
-    # no triangle flipped
-    f = snapped.faces
-    assert (np.einsum("ij,ij->i", face_normals(v0, f), face_normals(v1, f)) >= 0).all()
-    # vertices away from the walls did not move
-    far = d0 > 1.5 * L0
-    assert np.allclose(v0[far], v1[far])
+    assert flat.sum() > 200 and np.abs(d1[flat]).max() < 1e-3 * L0
+    assert d1.min() > -1e-3 * L0
+    assert (np.einsum("ij,ij->i", face_normals(v0, raw.faces), face_normals(v1, sdf_only.faces)) >= 0).all()
+
+    # with the wall mesh (the stage's default when the walls are upstream): every band vertex, in the
+    # concave edges and corners too, ends on the exact tank
+    walls_dir = tank_walls(tmp_path / "walls")
+    snap_dir = run_stage(DistanceSnap, tmp_path / "snap", scene=SCENE, frames=(0,),
+                         inputs={"raw_surface": raw_dir, "sdf": tmp_path / "sdf", "particles": src,
+                                 "walls": walls_dir})
+    snapped = load_surface(snap_dir, 0)
+    walls = WallMesh.load(walls_dir)
+    same, report = snap_mesh(raw, SDFGrid.load(tmp_path / "sdf"), L0, DistanceSnapParams(), walls)
+    assert np.array_equal(same.vertices, snapped.vertices) and np.array_equal(same.faces, snapped.faces)
+    assert_on_the_walls(raw, snapped, report, walls, band, exact, 1e-3 * L0)
+    assert np.abs(exact(snapped.vertices.astype(np.float64))[band]).max() < 1e-3 * L0
+    # the floor is flat: every band vertex nearer the floor than the side walls at z = 0
+    side = np.minimum(v0[:, :2] - LO[:2], HI[:2] - v0[:, :2]).min(axis=1)
+    floor = band & (v0[:, 2] < 0.5 * side)
+    assert floor.sum() > 100 and np.abs(snapped.vertices[floor, 2]).max() < 1e-3 * L0
+
+
+R, H, CENTRE, RS = 0.1, 0.2, np.array([0.0, 0.0, 0.05]), 0.05
+
+
+def cylinder_with_sphere(p: np.ndarray) -> np.ndarray:
+    """Signed distance, positive in the fluid: inside a cylinder tank (radius R, height H, axis z),
+    outside a sphere (radius RS) standing in it."""
+    r = np.hypot(p[:, 0], p[:, 1])
+    tank = np.minimum(np.minimum(R - r, p[:, 2]), H - p[:, 2])
+    return np.minimum(tank, np.linalg.norm(p - CENTRE, axis=1) - RS)
+
+
+@pytest.mark.parametrize("wall_term", [False, True])
+def test_fluid_in_a_cylinder_around_a_sphere_ends_on_both(tmp_path, wall_term):
+    """Curved walls, concave (the cylinder, its crease with the floor) and convex (the sphere), with
+    the raw surface floating off the walls (no wall term) or already cut at them (the default)."""
+    import trimesh
+
+    x = lattice([-R, -R, 0], [R, R, 0.08], L0)
+    x = x[cylinder_with_sphere(x) > 0]
+    (tmp_path / "p").mkdir()
+    src = particles(tmp_path / "p", [x])
+    sdf = grid_from_function(cylinder_with_sphere, [-R, -R, 0], [R, R, H], L0 / 2, band=4 * L0)
+    (tmp_path / "sdf").mkdir()
+    sdf.save(tmp_path / "sdf")
+    raw_dir = run_stage(MarchingCubes, tmp_path / "raw", scene=SCENE, frames=(0,),
+                        inputs={"particles": src, **({"sdf": tmp_path / "sdf"} if wall_term else {})})
+    raw = load_surface(raw_dir, 0)
+    tank = trimesh.creation.cylinder(radius=R, height=H, sections=96)
+    tank.apply_translation([0, 0, H / 2])
+    tank.invert()
+    ball = trimesh.creation.icosphere(subdivisions=4, radius=RS)
+    ball.apply_translation(CENTRE)
+    walls = WallMesh.load(save_walls(tmp_path / "walls", tank, ball))
+    snapped, report = snap_mesh(raw, sdf, L0, DistanceSnapParams(), walls)
+    # the contact region: within the band of a wall, surface normal facing it (the free surface near
+    # the sphere's top faces up and stays)
+    v0 = raw.vertices.astype(np.float64)
+    wall_point = closest_points_on(walls, v0)
+    d0 = np.linalg.norm(wall_point - v0, axis=1)
+    _, n_wall = sdf.sample(v0)
+    band = (d0 < 0.9 * L0) & (np.einsum("ij,ij->i", raw.normals, n_wall) < 0)
+    assert band.sum() > 500 and (d0[band] > 0.05 * L0).any()
+    on_ball = band & (np.linalg.norm(v0 - CENTRE, axis=1) < RS + L0)
+    on_side = band & (np.hypot(v0[:, 0], v0[:, 1]) > R - L0)
+    assert on_ball.sum() > 50 and on_side.sum() > 100
+    # a 96-gon is off its circle by R (1 - cos(pi / 96)) = 0.0027 l0, the icosphere by less
+    assert_on_the_walls(raw, snapped, report, walls, band, cylinder_with_sphere, 4e-3 * L0)
