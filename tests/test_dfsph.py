@@ -59,6 +59,20 @@ def test_wall_gradient_balances_the_fluid_gradient_on_a_flat_floor():
     assert np.allclose(s.psi[i, :2], 0.0, atol=1e-6 * S[2])
 
 
+def test_spiky_wall_gradient_balances_the_fluid_gradient_in_edges_and_corners():
+    """The default (Spiky) gradient on the rest lattice: a particle l0/2 from one, two or three walls has
+    S_i + Psi_i = 0 (S_i = sum_fluid m grad_i W_ij): the wall supplies exactly the missing neighbours'
+    gradient in a floor, an edge and a corner (the gradient of Z_rho was 11-13 % short in the last two)."""
+    s = _tank()
+    s.refresh()
+    for p in ([0.045, 0.045, 0.005], [0.045, 0.005, 0.005], [0.005, 0.005, 0.005], [0.095, 0.095, 0.005]):
+        i = np.argmin(np.linalg.norm(s.x - p, axis=1))
+        n = s.count[i]
+        j = s.nbr[i * s.cap:i * s.cap + n]
+        S = -s.mass * (s.fac[i * s.cap:i * s.cap + n, None] * (s.x[i] - s.x[j])).sum(axis=0)
+        assert np.linalg.norm(S + s.psi[i]) < 0.05 * np.linalg.norm(S), (p, S, s.psi[i])
+
+
 def test_predicted_density_rate_matches_the_real_change():
     """D rho / Dt of the solver (fluid pairs + wall term) against the density recomputed after a tiny move."""
     from stages.simulate import dfsph_kernels as D
@@ -168,9 +182,22 @@ def test_stage_resume_from_checkpoint_is_bitwise_identical(tmp_path):
     assert load_particle_frame(straight, 6).x[:, 2].min() > 0.0
 
 
-@pytest.mark.xfail(strict=True, reason="a resting tank keeps a sloshing noise near its edges and corners, see dfsph.py")
+@pytest.mark.xfail(strict=True, reason="a resting tank under gravity does not stay at rest: the column bounces "
+                   "and boils (mean speed 0.1-0.3 m/s), see the dfsph.py docstring")
 def test_hydrostatic_tank_stays_at_rest():
+    """10 x 10 x 20 particles at rest in a box: after 0.1 s still at rest, density error under 1 %, the
+    pressure 10 and 20 particles below the surface within 5 % of rho g h (h from the surface, l0/2 above
+    the top layer; the mean over the layer away from the side walls), no particle below the floor."""
     s = _tank()
     s.advance_to(0.1)
     assert np.linalg.norm(s.v, axis=1).max() < 0.05
     assert np.maximum(s.rho / 1000.0 - 1, 0).mean() < 0.01
+    assert s.x[:, 2].min() > 0.0
+    f = s.frame()
+    top = f.x[:, 2].max() + 0.5 * L0
+    inner = np.all(np.abs(f.x[:, :2] - W / 2) < W / 2 - 2.5 * L0, axis=1)
+    for depth in (10, 20):
+        z = H - (depth - 0.5) * L0
+        layer = inner & (np.abs(f.x[:, 2] - z) < 0.5 * L0)
+        assert layer.sum() >= 16
+        assert f.p[layer].mean() == pytest.approx(1000.0 * G * (top - z), rel=0.05)
