@@ -135,7 +135,8 @@ def main() -> None:
     ap.add_argument("--no-sph", action="store_true", help="skip our WCSPH (slow: bound by the speed of sound)")
     a = ap.parse_args()
     results = {"scene": "PEERS.md 20k dam break", "command": " ".join(sys.argv),
-               "note": "one run on a shared 2-core machine: compare the ratios, not the absolute times"}
+               "note": "one run on a shared 2-core machine: compare the ratios, not the absolute times",
+               "load_average_1min_start": os.getloadavg()[0]}
     results["dfsph"] = run_ours("dfsph", a.sim_time)
     print(json.dumps(results["dfsph"]), flush=True)
     if not a.no_sph:
@@ -154,6 +155,7 @@ def main() -> None:
     if "sph" in results:
         print(f"dfsph / our sph wall s per simulated s: "
               f"{results['dfsph']['wall_s_per_simulated_s'] / results['sph']['wall_s_per_simulated_s']:.3f}")
+    results["load_average_1min_end"] = os.getloadavg()[0]
     out = Path(__file__).parent / "results" / "dfsph.json"
     out.parent.mkdir(exist_ok=True)
     out.write_text(json.dumps(results, indent=2))
