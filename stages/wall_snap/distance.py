@@ -312,8 +312,9 @@ def revert_collapses(raw_faces: np.ndarray, faces: np.ndarray, alive: np.ndarray
 
 def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapParams,
               walls: WallMesh | None = None) -> tuple[SurfaceMesh, dict]:
-    """The mesh with its near-wall vertices on the walls; and a report: counts (snapped, relaxed,
-    collapsed, damped) and ``kept_faces``, the indices of the input's triangles that the output keeps
+    """The mesh with its near-wall vertices on the walls; and a report: counts (snapped by the contact
+    test, grown at folded contact lines, relaxation moves summed over the passes, collapsed edges,
+    damped) and ``kept_faces``, the indices of the input's triangles that the output keeps
     (in order; a kept triangle may have had one vertex replaced by a collapse).
 
     Vertices keep their indices: a vertex merged away by a collapse stays in the array, unreferenced,
@@ -341,7 +342,7 @@ def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapPa
         out[idx] = near[ok]
         on_wall = np.zeros(len(v), np.bool_)
         on_wall[idx] = True
-        for grow in range(3):
+        for grow in range(3 if params.relax_rounds or params.collapse else 1):
             if grow:
                 # a vertex the contact test left out (its normal does not face the wall) can pin a
                 # fold at the contact line: the off-wall vertices of flipped triangles within the band
