@@ -191,10 +191,12 @@ def relax_on_wall(n_ref: np.ndarray, after: np.ndarray, faces: np.ndarray, on_wa
     within the wall's tangent plane, and back onto the exact wall (closest point). In place on
     ``after``; returns how many vertices were moved."""
     relaxed = np.zeros(len(after), np.bool_)
+    n_flipped = len(faces) + 1
     for _ in range(rounds):
         flipped = flipped_faces(n_ref, after, faces)
-        if not flipped.any():
+        if flipped.sum() >= n_flipped:  # done, or stuck: what is left is for the collapse
             break
+        n_flipped = flipped.sum()
         active = np.zeros(len(after), np.bool_)
         active[faces[flipped]] = True
         active[faces[active[faces].any(axis=1)]] = True  # and their one-ring: room to spread the fold
@@ -356,7 +358,7 @@ def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapPa
                 out[ends[close]] = near[close]
                 on_wall[ends[close]] = True
                 counts["grown"] += int(close.sum())
-            counts["relaxed"] += relax_on_wall(n_ref, out, f, on_wall, project, params.relax_rounds)
+            counts["relaxed"] += relax_on_wall(n_ref[alive], out, f[alive], on_wall, project, params.relax_rounds)
             if params.collapse:
                 merged += collapse_flipped(n_ref, v, out, f, on_wall, alive)
     while True:
@@ -385,7 +387,7 @@ def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapPa
 class DistanceSnap(Stage):
     kind = "wall_snap"
     name = "distance"
-    version = "5"
+    version = "6"
     Params = DistanceSnapParams
     inputs = ("raw_surface", "sdf", "particles")  # particles: for l0 (band and tolerance are in l0)
     optional_inputs = ("walls",)
