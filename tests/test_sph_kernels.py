@@ -220,3 +220,110 @@ def test_bricked_wall_maps_are_the_dense_maps():
         a = [map_sample(dense.maps, *dense.origin, inv, *p, c) for p in pts]
         b = [K.brick_sample(*bricks.wmap, *bricks.origin, inv, *p, c) for p in pts]
         assert np.array_equal(a, b) and np.count_nonzero(a) > 100
+
+
+def _jittered_block(jitter=0.15, n=12, seed=4):
+    """A cubic block of n^3 particles at l0 = 1 cm, each moved by up to ``jitter`` l0, in cell order,
+    with its neighbour list and density (no walls within h)."""
+    from stages.simulate.neighbours import neighbour_list
+    rng = np.random.default_rng(seed)
+    l0, h = 0.01, 0.02
+    g = (np.arange(n) + 0.5) * l0 + 0.05
+    x = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    x = x + rng.uniform(-jitter, jitter, x.shape) * l0
+    sdf = grid_from_function(box_interior_sdf([0, 0, 0], [0.22, 0.22, 0.22]), [0, 0, 0], [0.22, 0.22, 0.22], l0)
+    grid = CellGrid(sdf.origin, sdf.upper, h)
+    x = x[grid.sort(x)].copy()
+    m = lattice_mass(1000.0, l0, h)
+    N = len(x)
+    nbr, cnt = np.zeros((N, 80), np.int32), np.zeros(N, np.int32)
+    neighbour_list(x, grid.starts, grid.lo, 1 / grid.cell, grid.dims, h, nbr, cnt)
+    rho, p, d, nrm, inv_rho = np.zeros(N), np.zeros(N), np.zeros(N), np.zeros((N, 3)), np.zeros(N)
+    no_walls = np.zeros((2, 2, 2, 5), np.float32)
+    K.density_neighbours(x, nbr, cnt, h, poly6_coef(h), m, 1000.0, no_walls, np.zeros(3), 1.0, np.zeros(8), 7 / h,
+                         sdf.dist, sdf.origin, 1 / sdf.spacing, K.EOS_LINEAR, 100.0, False, rho, p, d, nrm, inv_rho)
+    return x, nbr, cnt, rho, inv_rho, d, nrm, grid, m, l0, h
+
+
+def _correction(x, nbr, cnt, rho, inv_rho, d, nrm, m, h, wall_t=None, inv_dr=1.0):
+    from stages.simulate.kernels import spiky_lattice_factor
+    gc = spiky_grad_coef(h) / spiky_lattice_factor(1000.0, 0.01, h, m)
+    L = np.zeros((len(x), 6))
+    K.gradient_correction(x, nbr, cnt, inv_rho, rho, 1000.0, h, gc, m, 0.9, 0.97, d, nrm, wall_t, inv_dr, True, L)
+    return L, gc
+
+
+def test_gradient_correction_makes_the_pressure_gradient_exact_on_a_disordered_packing():
+    """L_i = T_i^-1: sum_j V_j (p_j - p_i) L_i grad W_ij = grad p for a linear p on a jittered lattice
+    (where the plain normalised Spiky sum is off by several %), L = I on the rest lattice, and the
+    identity where the support is not full (the block's faces)."""
+    x, nbr, cnt, rho, inv_rho, d, nrm, grid, m, l0, h = _jittered_block()
+    L, gc = _correction(x, nbr, cnt, rho, inv_rho, d, nrm, m, h)
+    gp = np.array([300.0, -200.0, -9810.0])  # Pa / m
+    p = x @ gp
+    # full support, and dense enough for the full correction (it fades out below 0.97 rho0)
+    inner = np.all(np.abs(x - x.mean(0)) < 0.06 - 2.5 * l0, axis=1) & (rho >= 0.97 * 1000.0)
+    assert inner.sum() > 100
+    plain_err, corr_err = [], []
+    for i in np.flatnonzero(inner):
+        j = nbr[i, :cnt[i]]
+        j = j[j != i]
+        dx = x[i] - x[j]
+        r = np.linalg.norm(dx, axis=1)
+        grad = -(gc * (h - r) ** 2 / r)[:, None] * dx  # grad_i W_ij
+        s = ((m * inv_rho[j] * (p[j] - p[i]))[:, None] * grad).sum(0)
+        Li = L[i][[0, 3, 4, 3, 1, 5, 4, 5, 2]].reshape(3, 3)
+        plain_err.append(np.linalg.norm(s - gp) / np.linalg.norm(gp))
+        corr_err.append(np.linalg.norm(Li @ s - gp) / np.linalg.norm(gp))
+    assert np.mean(plain_err) > 0.02 and max(corr_err) < 1e-9
+    # the particles with a thin support (faces, edges) keep the plain gradient
+    assert np.allclose(L[rho < 0.9 * 1000.0], [1, 1, 1, 0, 0, 0])
+    # the rest lattice: T = I (the Spiky normalisation), so L = I
+    x0, nbr0, cnt0, rho0, inv0, d0, nrm0, _, _, _, _ = _jittered_block(jitter=0.0)
+    L0, _ = _correction(x0, nbr0, cnt0, rho0, inv0, d0, nrm0, m, h)
+    full = np.all(np.abs(x0 - x0.mean(0)) < 0.06 - 2.5 * l0, axis=1)
+    assert np.abs(L0[full] - [1, 1, 1, 0, 0, 0]).max() < 1e-9
+
+
+def test_corrected_pair_forces_conserve_momentum():
+    """0.5 (L_i + L_j) grad W_ij keeps the pair force antisymmetric: the internal forces sum to zero."""
+    x, nbr, cnt, rho, inv_rho, d, nrm, grid, m, l0, h = _jittered_block(jitter=0.3)
+    L, gc = _correction(x, nbr, cnt, rho, inv_rho, d, nrm, m, h)
+    assert np.abs(L - [1, 1, 1, 0, 0, 0]).max() > 0.05
+    rng = np.random.default_rng(7)
+    n = len(x)
+    p = rng.uniform(0, 500.0, n)
+    v = rng.normal(0, 0.1, (n, 3))
+    zeros = np.zeros(8)
+    no_walls = np.zeros((2, 2, 2, 5), np.float32)
+    acc = np.zeros((n, 3))
+    K.forces(x, v, rho, np.full(n, 1.0), nrm, grid.starts, grid.lo, 1 / grid.cell, grid.dims, h, m, 1000.0, no_walls,
+             np.zeros(3), 1.0, 7 / h, np.zeros(3), acc, (p, gc, zeros, 0.5), None, None, None, None, None, None,
+             (nbr, cnt), inv_rho, (L,))
+    total = (m * acc).sum(axis=0)
+    assert np.abs(total).max() < 1e-10 * (m * np.abs(acc)).sum()
+
+
+def test_wall_gradient_tables_complete_the_lattice_tensor_at_a_flat_wall():
+    """Fluid lattice above a flat wall: its share of T = sum V grad W (x) (x_j - x_i) plus the wall's
+    table share t_nn n n^T + t_tt (I - n n^T) is the identity, at every lattice distance from the wall."""
+    from stages.simulate.kernels import spiky_lattice_factor, wall_gradient_tables
+    l0, h, rho0 = 0.01, 0.02, 1000.0
+    m = lattice_mass(rho0, l0, h)
+    gn = spiky_lattice_factor(rho0, l0, h, m)
+    samples = 81
+    t_nn, t_tt = wall_gradient_tables(l0, h, m, rho0, gn, samples)
+    g = np.arange(-3, 4) * l0
+    X, Y, Z = np.meshgrid(g, g, (np.arange(6) + 0.5) * l0, indexing="ij")
+    fluid = np.stack([X.ravel(), Y.ravel(), Z.ravel()], 1)
+    for k in (0, 1, 2):
+        xi = np.array([0.0, 0.0, (k + 0.5) * l0])
+        dx = xi - fluid
+        r = np.linalg.norm(dx, axis=1)
+        sel = (r > 1e-12) & (r < h)
+        w = m / rho0 * spiky_grad_coef(h) / gn * (h - r[sel]) ** 2 / r[sel]
+        T = (w[:, None, None] * dx[sel, :, None] * dx[sel, None, :]).sum(0)
+        i = (k + 0.5) * l0 / h * (samples - 1)  # a table node for k = 0, 1; linear between for 2 (beyond h: 0)
+        tn, tt = (np.interp(i, np.arange(samples), t) for t in (t_nn, t_tt))
+        assert np.allclose(T + np.diag([tt, tt, tn]), np.eye(3), atol=1e-9 if k < 2 else 5e-3)
+    assert t_nn[0] > 0.5 and t_tt[0] > 0.4 and t_nn[-1] == 0.0 and t_tt[-1] == 0.0

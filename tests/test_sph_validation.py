@@ -1,18 +1,21 @@
 """Physics validation at CI size: the hydrostatic tank (PHYSICS.md: p = rho g (H - z))."""
 import numpy as np
+import pytest
 
 from stages.common.sdf import box_interior_sdf, grid_from_function
 from stages.simulate.emitters import lattice
 from stages.simulate.sph import SPHParams, SPHSolver
 
+L0, W, H, G = 0.01, 0.1, 0.2, 9.81  # 10 x 10 x 20 particles
 
-def test_hydrostatic_tank_settles_to_rho_g_h():
-    l0, W, H, g = 0.01, 0.1, 0.2, 9.81  # 10 x 10 x 20 particles
-    sdf = grid_from_function(box_interior_sdf([0, 0, 0], [W, W, 0.3]), [0, 0, 0], [W, W, 0.3], l0 / 2)
-    x = lattice([0, 0, 0], [W, W, H], l0)
+
+def _settled_column(**params):
+    """The column settled for 0.8 s, then each particle's pressure averaged over the last 0.2 s."""
+    sdf = grid_from_function(box_interior_sdf([0, 0, 0], [W, W, 0.3]), [0, 0, 0], [W, W, 0.3], L0 / 2)
+    x = lattice([0, 0, 0], [W, W, H], L0)
     # a strong viscosity damps the start-up sloshing so the tank settles within a second (see report)
-    s = SPHSolver(x, np.zeros_like(x), np.arange(len(x)), sdf, spacing=l0, rho0=1000.0, params=SPHParams(threads=None),
-                  gravity=(0, 0, -g), mu=5.0, v_ref=float(np.sqrt(2 * g * H)))
+    s = SPHSolver(x, np.zeros_like(x), np.arange(len(x)), sdf, spacing=L0, rho0=1000.0,
+                  params=SPHParams(threads=None, **params), gravity=(0, 0, -G), mu=5.0, v_ref=float(np.sqrt(2 * G * H)))
     s.advance_to(0.8)
     p_by_id = np.zeros(len(x))
     for k in range(1, 11):  # WCSPH pressure is noisy: average each particle over the last 0.2 s
@@ -20,23 +23,53 @@ def test_hydrostatic_tank_settles_to_rho_g_h():
         f = s.frame()
         p_by_id[f.id] += f.p / 10
     f.p[:] = p_by_id[f.id]
+    return f
+
+
+def _error(f, depth_lo, depth_hi):
+    """Mean pressure against rho g (H - z) over the layers depth_lo < (H - z) / l0 <= depth_hi, columns at
+    least 2 l0 from the side walls (the layer counts its particle of depth depth_hi at H - (depth_hi - 0.5) l0)."""
+    z = f.x[:, 2]
+    depth = (H - z) / L0 + 0.5
+    sel = (depth > depth_lo + 0.5) & (depth <= depth_hi + 0.5)
+    sel &= np.minimum(f.x[:, :2], W - f.x[:, :2]).min(axis=1) > 2 * L0
+    return f.p[sel].mean() / (1000.0 * G * (H - z[sel])).mean() - 1
+
+
+def _at_rest_and_dense(f):
     z = f.x[:, 2]
     assert z.min() > 0.0  # no particle below the floor
     assert np.linalg.norm(f.v, axis=1).max() < 0.1
-    deep = z < H - 3 * l0  # away from the top layers, which lack neighbours
+    deep = z < H - 3 * L0  # away from the top layers, which lack neighbours
     err = np.abs(f.rho / 1000.0 - 1)
     assert err[deep].mean() < 0.01
     # the worst particles sit in the tank's vertical edges and corners; away from them every one is in
-    off_edges = deep & (np.sort(np.minimum(f.x[:, :2], W - f.x[:, :2]), axis=1)[:, 1] > 2 * l0)
+    off_edges = deep & (np.sort(np.minimum(f.x[:, :2], W - f.x[:, :2]), axis=1)[:, 1] > 2 * L0)
     # (a few particles disordered by the start-up sloshing sit above 1 %: with the default artificial
     # viscosity the worst single one measured 2.7 %)
     assert np.percentile(err[off_edges], 99) < 0.01 and err[off_edges].max() < 0.03
-    errors = {}
-    for depth in (5, 10, 15):  # particles of depth
-        # one layer, away from the side walls (the edges carry the one-wall-table error)
-        layer = (np.abs(z - (H - (depth - 0.5) * l0)) < 0.5 * l0) & (np.minimum(f.x[:, :2], W - f.x[:, :2]).min(axis=1) > 2 * l0)
-        expected = 1000.0 * g * (H - z[layer]).mean()
-        errors[depth] = abs(f.p[layer].mean() - expected) / expected
-    print('hydrostatic relative error by depth (particles):', errors, 'density error mean', err[deep].mean(),
-          'p99 off edges', np.percentile(err[off_edges], 99), 'max', err[deep].max())
-    assert max(errors.values()) < 0.12, errors
+
+
+def test_hydrostatic_tank_settles_to_rho_g_h():
+    """The default solver (no gradient correction): single layers at depth 10 and 20 (the floor row)."""
+    f = _settled_column()
+    _at_rest_and_dense(f)
+    errors = {depth: _error(f, depth - 1, depth) for depth in (10, 20)}
+    print('hydrostatic relative error by depth (particles):', errors)
+    # measured +11.3 % and +0.8 %: the settled packing's gradient is ~3 % weak and the side walls give no
+    # share of the vertical gradient (see PHYSICS.md / the gradient-correction test below)
+    assert max(abs(e) for e in errors.values()) < 0.13, errors
+
+
+@pytest.mark.parametrize("params", [dict(gradient_correction=True, wall_gradient=True)])
+def test_hydrostatic_tank_with_gradient_correction_within_3_percent(params):
+    """Symmetric kernel-gradient correction + the walls' share of the hydrostatic gradient: the pressure
+    over three layers around depth 10 and over the bottom three (18-20) within 3 % of rho g h (measured
+    +1.6 % and +1.3 %; single layers carry a ~5 % sampling error, ~36 particles with a 30-50 % spatial spread)."""
+    f = _settled_column(**params)
+    _at_rest_and_dense(f)
+    bands = {"9-11": _error(f, 8, 11), "18-20": _error(f, 17, 20)}
+    singles = {depth: _error(f, depth - 1, depth) for depth in (10, 20)}
+    print('corrected hydrostatic error, 3-layer bands:', bands, 'single layers:', singles)
+    assert max(abs(e) for e in bands.values()) < 0.03, bands
+    assert max(abs(e) for e in singles.values()) < 0.08, singles

@@ -17,7 +17,8 @@ from stages.common.sdf import SDFGrid
 from . import sph_kernels as K
 from .driver import drive, prepare, set_threads
 from .effects import EffectConstants, compile_effects, cohesion_coef
-from .kernels import lattice_mass, poly6_coef, spiky_grad_coef, spiky_lattice_factor, visc_lap_coef
+from .kernels import (lattice_mass, poly6_coef, spiky_grad_coef, spiky_lattice_factor, visc_lap_coef,
+                      wall_gradient_tables)
 from .neighbours import CellGrid, neighbour_list, reorder
 from .timestep import stable_dt, step_to
 
@@ -35,6 +36,14 @@ class SPHParams(Params):
     artificial_viscosity: float = Field(0.05, ge=0, le=1, description="Monaghan alpha (dimensionless): "
                                         "dissipates WCSPH acoustic noise on approaching pairs, nu_art ~ alpha c h / 8")
     table_samples: int = Field(256, ge=16, description="samples of the Z_rho / Z_vis wall tables over [0, h]")
+    gradient_correction: bool = Field(False, description="symmetric kernel-gradient correction of the pressure "
+                                      "force (Bonet and Lok 1999): exact for a linear pressure on any packing")
+    wall_gradient: bool = Field(False, description="the walls' share of the hydrostatic pressure gradient "
+                                "(Adami et al. 2012 wall pressure p_w = p + rho g . (x_w - x)): support along side walls")
+    correction_wall_fade: bool = Field(True, description="fade the correction out within h of a wall (none in the "
+                                       "first row): the flat-wall tensor table undercounts edges and corners")
+    correction_full: float = Field(0.97, gt=0.9, le=1, description="density ratio rho/rho0 from which the "
+                                   "correction applies fully (linearly less below, none at 0.9: the free surface)")
 
 
 # neighbour-list slots per particle to start with: 27 neighbours within h = 2 l0 on the resting
@@ -119,6 +128,9 @@ class SPHSolver:
             raise ValueError("effects.adhesion_accel must be sampled like the wall tables (table_samples)")
         self.grad_norm = spiky_lattice_factor(self.rho0, self.l0, self.h, self.mass)
         self.fix_press = self.walls.fix_press / self.grad_norm
+        self.wall_t = None
+        if params.wall_gradient or params.gradient_correction:
+            self.wall_t = wall_gradient_tables(self.l0, self.h, self.mass, self.rho0, self.grad_norm, params.table_samples)
         self.c = float(params.sound_speed or 10.0 * max(v_ref, 1e-3))
         self.stiffness = self.c ** 2 if params.eos == "linear" else self.rho0 * self.c ** 2 / 7.0
         self.eos = K.EOS_LINEAR if params.eos == "linear" else K.EOS_TAIT
@@ -150,6 +162,7 @@ class SPHSolver:
         self.cnt = np.zeros(n, np.int32)
         self.inv_rho = np.zeros(n)
         self.normals = np.zeros((n, 3)) if self.effects.tension_k is not None else None
+        self.lcorr = np.zeros((n, 6)) if self.p.gradient_correction else None
 
     # -- one step -----------------------------------------------------------------------------
     def sort_and_density(self) -> None:
@@ -188,9 +201,16 @@ class SPHSolver:
             K.surface_normals(self.x, self.rho, g.starts, g.lo, 1.0 / g.cell, g.dims, self.h, grad_coef, self.mass,
                               self.normals, (self.nbr, self.cnt))
         pressure = (self.pr, grad_coef, self.fix_press, self.p.artificial_viscosity * self.c * self.h)
+        correction = None
+        if self.lcorr is not None:
+            K.gradient_correction(self.x, self.nbr, self.cnt, self.inv_rho, self.rho, self.rho0, self.h, grad_coef,
+                                  self.mass, 0.9, self.p.correction_full, self.d, self.nrm, self.wall_t, self.inv_dr,
+                                  self.p.correction_wall_fade, self.lcorr)
+            correction = (self.lcorr,)
         K.forces(self.x, self.v, self.rho, self.d, self.nrm, g.starts, g.lo, 1.0 / g.cell, g.dims, self.h, self.mass,
                  self.rho0, self.walls.wmap, self.walls.origin, 1.0 / self.walls.spacing, self.inv_dr, self.gravity,
-                 self.acc, pressure, *self.effect_args(), (self.nbr, self.cnt), self.inv_rho)
+                 self.acc, pressure, *self.effect_args(), (self.nbr, self.cnt), self.inv_rho, correction,
+                 self.wall_t if self.p.wall_gradient else None)
 
     def stable_dt(self, dt_max: float) -> float:
         v2, a2 = K.max_speed2_accel2(self.v, self.acc)

@@ -17,7 +17,8 @@ one machine-code build per effect set on disk, so an absent effect costs nothing
 
     forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0,
            wmap, wo, winv, inv_dr, gravity, acc,
-           pressure, viscosity, tension, adhesion, friction, wind, attractor, neighbours=None, inv_rho=None)
+           pressure, viscosity, tension, adhesion, friction, wind, attractor, neighbours=None, inv_rho=None,
+           correction=None, wall_gradient=None)
 
     common   x, v (N,3) positions m, velocities m/s; rho (N,) density kg/m^3; d (N,) SDF distance m and
              nrm (N,3) SDF normal (into the fluid), both from density_pressure; starts/lo/inv_cell/dims
@@ -36,6 +37,9 @@ one machine-code build per effect set on disk, so an absent effect costs nothing
     friction   (rate,): tangential decay rate at wall contact, 1/s.
     wind       (u, drag): air velocity (3,) m/s, drag 1/s; on free-surface particles only.
     attractor  (point, k, soft): point (3,) m, a = k / r^2 (m^3/s^2), softening radius m.
+    correction (L,): the kernel-gradient correction of ``gradient_correction`` on the pressure term.
+    wall_gradient (t_nn, t_tt): the walls' share of the hydrostatic gradient (kernels.wall_gradient_tables).
+    Both are pressure-term options (ignored without ``pressure``), None = off, compiled out like the effects.
 """
 from __future__ import annotations
 
@@ -322,6 +326,89 @@ def density_neighbours(x, nbr, cnt, h, poly6_coef, mass, rho0, wmap, wo, winv, f
 
 
 @nb.njit(cache=True, parallel=True)
+def gradient_correction(x, nbr, cnt, inv_rho, rho, rho0, h, grad_coef, mass, none, full, d, nrm, wall_t, inv_dr,
+                        wall_fade, out):
+    """Kernel-gradient correction (Bonet and Lok 1999; Khayyer and Gotoh 2011 for MPS) for the eq. 6/8
+    pressure force: out[i] = L_i = T_i^-1 stored as (xx, yy, zz, xy, xz, yz), with
+    T_i = sum_j (m / rho_j) grad_i W_ij (x) (x_j - x_i) over the fluid neighbours (``grad_coef`` the
+    normalised eq. 8 coefficient, so T = I on the rest lattice), plus the wall's share t_nn n n^T +
+    t_tt (I - n n^T) from the tables ``wall_t`` = (t_nn, t_tt) at the SDF distance d (None: fluid only).
+    Then sum_j V_j (p_j - p_i) L_i grad W_ij is exact for a linear pressure on any packing. Without the
+    wall's share a particle beside a wall gets L far from I (1 / 0.64 along the normal), L_i != L_j
+    across the first rows, and the spurious pair forces stir the tank at rest (measured).
+    Blended towards the identity where the support is not full (the free surface): weight
+    s = (rho_i / rho0 - none) / (full - none) clamped to [0, 1] on the FULL density (fluid + wall term, so
+    a particle at a wall counts as full); identity too when det T < 0.05 (ill conditioned)."""
+    h2 = h * h
+    cg = mass * grad_coef
+    for i in nb.prange(x.shape[0]):
+        xi = x[i, 0]
+        yi = x[i, 1]
+        zi = x[i, 2]
+        txx = 0.0
+        tyy = 0.0
+        tzz = 0.0
+        txy = 0.0
+        txz = 0.0
+        tyz = 0.0
+        for jj in range(cnt[i]):
+            j = nbr[i, jj]
+            dx = xi - x[j, 0]
+            dy = yi - x[j, 1]
+            dz = zi - x[j, 2]
+            r2 = dx * dx + dy * dy + dz * dz
+            if r2 > 1e-24 and r2 < h2:
+                r = math.sqrt(r2)
+                w = (h - r) * (h - r) / r * inv_rho[j]
+                txx += w * dx * dx
+                tyy += w * dy * dy
+                tzz += w * dz * dz
+                txy += w * dx * dy
+                txz += w * dx * dz
+                tyz += w * dy * dz
+        txx *= cg
+        tyy *= cg
+        tzz *= cg
+        txy *= cg
+        txz *= cg
+        tyz *= cg
+        if wall_t is not None and d[i] < h:  # the wall's share (kernels.wall_gradient_tables)
+            tnn = table_lookup(wall_t[0], d[i], inv_dr)
+            ttt = table_lookup(wall_t[1], d[i], inv_dr)
+            ex = nrm[i, 0]
+            ey = nrm[i, 1]
+            ez = nrm[i, 2]
+            dt = tnn - ttt
+            txx += ttt + dt * ex * ex
+            tyy += ttt + dt * ey * ey
+            tzz += ttt + dt * ez * ez
+            txy += dt * ex * ey
+            txz += dt * ex * ez
+            tyz += dt * ey * ez
+        # inverse of the symmetric 3x3 by cofactors
+        cxx = tyy * tzz - tyz * tyz
+        cyy = txx * tzz - txz * txz
+        czz = txx * tyy - txy * txy
+        cxy = txz * tyz - txy * tzz
+        cxz = txy * tyz - tyy * txz
+        cyz = txy * txz - txx * tyz
+        det = txx * cxx + txy * cxy + txz * cxz
+        s = min(max((rho[i] / rho0 - none) / (full - none), 0.0), 1.0)
+        if wall_fade and d[i] < h:
+            s *= min(max(2.0 * d[i] / h - 1.0, 0.0), 1.0)
+        if det < 0.05:
+            s = 0.0
+        else:
+            det = s / det
+        out[i, 0] = 1.0 - s + cxx * det
+        out[i, 1] = 1.0 - s + cyy * det
+        out[i, 2] = 1.0 - s + czz * det
+        out[i, 3] = cxy * det
+        out[i, 4] = cxz * det
+        out[i, 5] = cyz * det
+
+
+@nb.njit(cache=True, parallel=True)
 def surface_normals(x, rho, starts, lo, inv_cell, dims, h, grad_coef, mass, out, neighbours=None):
     """Akinci et al. 2013 particle normals n_i = h sum_j m/rho_j grad_i W_ij (Spiky gradient, eq. 8):
     |n| ~ 1 at the free surface, ~ 0 inside, pointing INTO the fluid as in the paper (the curvature term
@@ -383,7 +470,8 @@ def surface_normals(x, rho, starts, lo, inv_cell, dims, h, grad_coef, mass, out,
 
 @nb.njit(cache=True, parallel=True)
 def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, wmap, wo, winv, inv_dr, gravity, acc,
-           pressure, viscosity, tension, adhesion, friction, wind, attractor, neighbours=None, inv_rho=None):
+           pressure, viscosity, tension, adhesion, friction, wind, attractor, neighbours=None, inv_rho=None,
+           correction=None, wall_gradient=None):
     """Acceleration of every particle: gravity plus the declared effects (module docstring). Pressure
     eq. 6, 8 (+ Monaghan av) and the wall pressure along the wall map; viscosity eq. 7, 9 and the wall
     term eq. 13-15; tension, adhesion, friction, wind, attractor as in PHYSICS.md "Effects".
@@ -391,9 +479,18 @@ def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, wmap, w
     ``neighbours`` = (nbr, cnt) from ``density_neighbours`` at the same positions: the pairs are taken
     from the list instead of the 9 cell rows, in the same order, so the sums are bitwise the same.
     ``inv_rho`` (N,) = 1 / rho from ``density_neighbours``, optional: saves a division per pair (the
-    same quotient, so again bitwise the same)."""
+    same quotient, so again bitwise the same).
+    ``correction`` (L,) with L (N, 6) from ``gradient_correction``, optional: the pressure pair term
+    uses the symmetrised corrected gradient 0.5 (L_i + L_j) grad W_ij (the pair force stays
+    antisymmetric, so momentum is conserved) and the wall pressure term L_i G_w.
+    ``wall_gradient`` (t_nn, t_tt) from kernels.wall_gradient_tables, optional: the wall's share of the
+    hydrostatic pressure gradient, -T_wall(r_iw) g (Adami et al. 2012: wall pressure extrapolated with
+    p_w = p_f + rho g . (x_w - x_f), the wall particles' pressure varying along the wall; with one uniform
+    wall pressure a particle beside a side wall misses that share of its vertical support)."""
     h2 = h * h
     nx, ny, nz = dims[0], dims[1], dims[2]
+    if correction is not None:
+        lc = correction[0]
     if neighbours is not None:
         nbr = neighbours[0]
         cnt = neighbours[1]
@@ -450,6 +547,13 @@ def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, wmap, w
         pi = 0.0
         if pressure is not None:
             pi = p[i]
+        if correction is not None:
+            lxx = lc[i, 0]
+            lyy = lc[i, 1]
+            lzz = lc[i, 2]
+            lxy = lc[i, 3]
+            lxz = lc[i, 4]
+            lyz = lc[i, 5]
         if tension is not None:
             nxi = normals[i, 0]
             nyi = normals[i, 1]
@@ -503,9 +607,21 @@ def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, wmap, w
                         # mispredicted for about half the pairs)
                         f += av * max(-vdx, 0.0) / (r2 + eps) * 2.0 * rhoi / (rhoi + rho[j])
                         f *= hr * hr / r
-                        ax += f * dx
-                        ay += f * dy
-                        az += f * dz
+                        if correction is not None:
+                            # 0.5 (L_i + L_j) applied to the pair direction (symmetric in i, j)
+                            mxx = 0.5 * (lxx + lc[j, 0])
+                            myy = 0.5 * (lyy + lc[j, 1])
+                            mzz = 0.5 * (lzz + lc[j, 2])
+                            mxy = 0.5 * (lxy + lc[j, 3])
+                            mxz = 0.5 * (lxz + lc[j, 4])
+                            myz = 0.5 * (lyz + lc[j, 5])
+                            ax += f * (mxx * dx + mxy * dy + mxz * dz)
+                            ay += f * (mxy * dx + myy * dy + myz * dz)
+                            az += f * (mxz * dx + myz * dy + mzz * dz)
+                        else:
+                            ax += f * dx
+                            ay += f * dy
+                            az += f * dz
                     if viscosity is not None:
                         # eq. 7 with the viscosity Laplacian (eq. 9)
                         w = hr * inv_rhoj
@@ -544,9 +660,25 @@ def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, wmap, w
                 # p_wall the Shepard (Poly6-weighted) average of the neighbours' pressure, at least p_i
                 pw = max(pi, sp / sw)
                 cw = (pi + pw) * inv_rhoi * table_lookup(fix_press, d[i], inv_dr)
-                ax += cw * w1
-                ay += cw * w2
-                az += cw * w3
+                wx = cw * w1
+                wy = cw * w2
+                wz = cw * w3
+                if wall_gradient is not None:
+                    # -T_wall g, T_wall = t_nn n n^T + t_tt (I - n n^T) along the SDF normal
+                    tnn = table_lookup(wall_gradient[0], d[i], inv_dr)
+                    ttt = table_lookup(wall_gradient[1], d[i], inv_dr)
+                    gn = gx0 * nrm[i, 0] + gy0 * nrm[i, 1] + gz0 * nrm[i, 2]
+                    wx -= ttt * gx0 + (tnn - ttt) * gn * nrm[i, 0]
+                    wy -= ttt * gy0 + (tnn - ttt) * gn * nrm[i, 1]
+                    wz -= ttt * gz0 + (tnn - ttt) * gn * nrm[i, 2]
+                if correction is not None:  # the wall's share corrected like the fluid's
+                    ax += lxx * wx + lxy * wy + lxz * wz
+                    ay += lxy * wx + lyy * wy + lyz * wz
+                    az += lxz * wx + lyz * wy + lzz * wz
+                else:
+                    ax += wx
+                    ay += wy
+                    az += wz
         else:
             ax = gx0
             ay = gy0
