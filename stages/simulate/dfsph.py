@@ -41,7 +41,7 @@ from stages.common.sdf import SDFGrid
 
 from . import dfsph_kernels as D
 from . import sph_kernels as K
-from .driver import drive, prepare, set_threads
+from .driver import SolverBase, drive, prepare, set_threads
 from .effects import EffectConstants, cohesion_coef, compile_effects
 from .kernels import lattice_mass, poly6_coef, spiky_grad_coef, spiky_lattice_factor, visc_lap_coef
 from .neighbours import CellGrid
@@ -74,8 +74,10 @@ class DFSPHParams(Params):
     table_samples: int = Field(256, ge=16, description="samples of the wall tables over [0, h]")
 
 
-class DFSPHSolver:
+class DFSPHSolver(SolverBase):
     """State (x, v, id, kappa in cell order) plus the per-step kernels; every buffer is reused."""
+
+    carried = ("kappa", "kappa_v")
 
     c = 0.0  # no speed of sound: incompressible
 
@@ -245,28 +247,9 @@ class DFSPHSolver:
         self.steps += 1
         return dt
 
-    def advance_to(self, t_end: float) -> int:
-        n = 0
-        while self.t < t_end:
-            self.step(t_end)
-            n += 1
-        return n
-
-    def remove_escaped(self) -> int:
-        """Drop particles outside the domain (counted in ``left_domain``)."""
-        lo, hi = self.domain
-        keep = np.all((self.x >= lo) & (self.x <= hi) & np.isfinite(self.x), axis=1)
-        gone = int(len(keep) - keep.sum())
-        if gone:
-            self.x = np.ascontiguousarray(self.x[keep])
-            self.v = np.ascontiguousarray(self.v[keep])
-            self.id = np.ascontiguousarray(self.id[keep])
-            self.kappa = np.ascontiguousarray(self.kappa[keep])
-            self.kappa_v = np.ascontiguousarray(self.kappa_v[keep])
-            self._alloc()
-            self._fresh = False
-            self.left_domain += gone
-        return gone
+    def _resized(self) -> None:
+        self._alloc()
+        self._fresh = False
 
     def frame(self) -> ParticleFrame:
         """The current state with its density and pressure (p = kappa rho of the last density solve)."""

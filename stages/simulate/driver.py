@@ -47,6 +47,32 @@ class Solver(Protocol):
     def load_state(self, s: Mapping) -> None: ...
 
 
+
+class SolverBase:
+    """The stepping every solver shares. A solver sets ``x``, ``v``, ``id``, ``t``, ``domain`` and
+    ``left_domain``, defines ``step(t_end)`` and ``_resized()`` (rebuild its per-particle buffers), and
+    names in ``carried`` its per-particle arrays besides x, v and id that live across steps."""
+    carried: tuple[str, ...] = ()
+
+    def advance_to(self, t_end: float) -> int:
+        n = 0
+        while self.t < t_end:
+            self.step(t_end)
+            n += 1
+        return n
+
+    def remove_escaped(self) -> int:
+        """Drop particles outside the domain (counted in ``left_domain``)."""
+        lo, hi = self.domain
+        keep = np.all((self.x >= lo) & (self.x <= hi) & np.isfinite(self.x), axis=1)
+        gone = int(len(keep) - keep.sum())
+        if gone:
+            for name in ("x", "v", "id") + self.carried:
+                setattr(self, name, np.ascontiguousarray(getattr(self, name)[keep]))
+            self._resized()
+            self.left_domain += gone
+        return gone
+
 @dataclass
 class Setup:
     """The scene as a solver needs it, in SI units (metres, seconds, kg)."""

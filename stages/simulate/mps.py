@@ -41,7 +41,7 @@ from stages.common.formats import ParticleFrame
 from stages.common.sdf import SDFGrid
 
 from . import mps_kernels as K
-from .driver import drive, prepare, set_threads
+from .driver import SolverBase, drive, prepare, set_threads
 from .kernels import lattice_mass
 from .mps_walls import MPSWallMaps, build_tables, lattice_constants
 from .neighbours import CellGrid, reorder
@@ -79,9 +79,11 @@ class MPSParams(Params):
     table_samples: int = Field(256, ge=16, description="samples of the wall tables over [0, max re]")
 
 
-class MPSSolver:
+class MPSSolver(SolverBase):
     """State (x, v, id, p in cell order) plus the per-step kernels; buffers are reused and grow only
     when the particle or pair count does."""
+
+    carried = ("pr",)
 
     def __init__(self, x, v, ids, sdf: SDFGrid, *, spacing: float, rho0: float, params: MPSParams,
                  gravity=(0.0, 0.0, 0.0), mu: float | None = None, wall_viscosity: bool = True,
@@ -229,27 +231,9 @@ class MPSSolver:
         self.steps += 1
         return dt
 
-    def advance_to(self, t_end: float) -> int:
-        n = 0
-        while self.t < t_end:
-            self.step(t_end)
-            n += 1
-        return n
-
-    def remove_escaped(self) -> int:
-        """Drop particles outside the domain (counted in ``left_domain``)."""
-        lo, hi = self.domain
-        keep = np.all((self.x >= lo) & (self.x <= hi) & np.isfinite(self.x), axis=1)
-        gone = int(len(keep) - keep.sum())
-        if gone:
-            self.x = np.ascontiguousarray(self.x[keep])
-            self.v = np.ascontiguousarray(self.v[keep])
-            self.id = np.ascontiguousarray(self.id[keep])
-            self.pr = np.ascontiguousarray(self.pr[keep])
-            self._scratch.clear()
-            self._alloc()
-            self.left_domain += gone
-        return gone
+    def _resized(self) -> None:
+        self._scratch.clear()
+        self._alloc()
 
     def frame(self) -> ParticleFrame:
         """The current state; density rho0 n / n0 at the current positions, the last solved pressure

@@ -15,7 +15,7 @@ from stages.common.formats import ParticleFrame
 from stages.common.sdf import SDFGrid
 
 from . import sph_kernels as K
-from .driver import drive, prepare, set_threads
+from .driver import SolverBase, drive, prepare, set_threads
 from .effects import EffectConstants, compile_effects, cohesion_coef
 from .kernels import (lattice_mass, poly6_coef, spiky_grad_coef, spiky_lattice_factor, visc_lap_coef,
                       wall_gradient_tables)
@@ -104,7 +104,7 @@ class BrickWallMaps:
         return self.index.nbytes + self.bricks.nbytes
 
 
-class SPHSolver:
+class SPHSolver(SolverBase):
     """State (x, v, id in cell order) plus the per-step kernels; every buffer is reused."""
 
     def __init__(self, x, v, ids, sdf: SDFGrid, *, spacing: float, rho0: float, params: SPHParams,
@@ -229,26 +229,9 @@ class SPHSolver:
         self.steps += 1
         return dt
 
-    def advance_to(self, t_end: float) -> int:
-        n = 0
-        while self.t < t_end:
-            self.step(t_end)
-            n += 1
-        return n
-
-    def remove_escaped(self) -> int:
-        """Drop particles outside the domain (counted in ``left_domain``)."""
-        lo, hi = self.domain
-        keep = np.all((self.x >= lo) & (self.x <= hi) & np.isfinite(self.x), axis=1)
-        gone = int(len(keep) - keep.sum())
-        if gone:
-            self.x = np.ascontiguousarray(self.x[keep])
-            self.v = np.ascontiguousarray(self.v[keep])
-            self.id = np.ascontiguousarray(self.id[keep])
-            self._scratch.clear()
-            self._alloc()
-            self.left_domain += gone
-        return gone
+    def _resized(self) -> None:
+        self._scratch.clear()
+        self._alloc()
 
     def frame(self) -> ParticleFrame:
         """The current state with fresh density and pressure (sorts the state, as a step would)."""
