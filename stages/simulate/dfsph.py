@@ -189,7 +189,7 @@ class DFSPHSolver(SolverBase):
                  *self.effect_args(), neighbours=lists)
 
     def stable_dt(self, dt_max: float) -> float:
-        v2, a2 = D.max_speed2_accel2(self.v, self.acc)
+        v2, a2 = K.max_speed2_accel2(self.v, self.acc)
         nu = self.mu / self.rho0 if self.mu > 0 else None
         return stable_dt(l0=self.l0, h=self.h, v_max=math.sqrt(v2), a_max=math.sqrt(a2), cfl=self.p.cfl,
                          sound_speed=None, nu=nu, dt_max=min(dt_max, self.p.dt_max, self.effects.dt_limit))

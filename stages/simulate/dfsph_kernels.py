@@ -35,6 +35,7 @@ import numba as nb
 
 from stages.common.sdf import sdf_sample
 
+from .neighbours import cell_coords
 from .sph_kernels import wall_sample, wall_sample_1234
 from .wall_tables import table_lookup
 
@@ -67,9 +68,7 @@ def density_alpha_neighbours(x, starts, lo, inv_cell, dims, h, poly6_coef, grad_
         xi = x[i, 0]
         yi = x[i, 1]
         zi = x[i, 2]
-        cx = min(max(int(math.floor((xi - lo[0]) * inv_cell)), 0), nx - 1)
-        cy = min(max(int(math.floor((yi - lo[1]) * inv_cell)), 0), ny - 1)
-        cz = min(max(int(math.floor((zi - lo[2]) * inv_cell)), 0), nz - 1)
+        cx, cy, cz = cell_coords(xi, yi, zi, lo[0], lo[1], lo[2], inv_cell, nx, ny, nz)
         x0 = max(cx - 1, 0)
         x1 = min(cx + 1, nx - 1)
         s = 0.0
@@ -263,17 +262,6 @@ def gather_state(order, x, v, ids, kappa, kappa_v, x2, v2, ids2, kappa2, kappa_v
         ids2[k] = ids[j]
         kappa2[k] = kappa[j]
         kappa_v2[k] = kappa_v[j]
-
-
-@nb.njit(cache=True)
-def max_speed2_accel2(v, acc):
-    """(max |v|^2, max |a|^2), serial: 20k particles take ~20 us, less than waking the thread pool."""
-    mv = 0.0
-    ma = 0.0
-    for i in range(v.shape[0]):
-        mv = max(mv, v[i, 0] * v[i, 0] + v[i, 1] * v[i, 1] + v[i, 2] * v[i, 2])
-        ma = max(ma, acc[i, 0] * acc[i, 0] + acc[i, 1] * acc[i, 1] + acc[i, 2] * acc[i, 2])
-    return mv, ma
 
 
 @nb.njit(cache=True, parallel=True)

@@ -16,6 +16,8 @@ import numba as nb
 
 from stages.common.sdf import sdf_sample
 
+from .neighbours import cell_coords
+from .sph_kernels import push_out_of_walls
 from .wall_maps import map_sample
 from .wall_tables import table_lookup
 
@@ -48,9 +50,7 @@ def count_neighbours(x, starts, lo, inv_cell, dims, radius, counts):
         xi = x[i, 0]
         yi = x[i, 1]
         zi = x[i, 2]
-        cx = min(max(int(math.floor((xi - lo[0]) * inv_cell)), 0), nx - 1)
-        cy = min(max(int(math.floor((yi - lo[1]) * inv_cell)), 0), ny - 1)
-        cz = min(max(int(math.floor((zi - lo[2]) * inv_cell)), 0), nz - 1)
+        cx, cy, cz = cell_coords(xi, yi, zi, lo[0], lo[1], lo[2], inv_cell, nx, ny, nz)
         x0 = max(cx - 1, 0)
         x1 = min(cx + 1, nx - 1)
         c = 0
@@ -75,9 +75,7 @@ def fill_neighbours(x, starts, lo, inv_cell, dims, radius, offsets, nbr):
         xi = x[i, 0]
         yi = x[i, 1]
         zi = x[i, 2]
-        cx = min(max(int(math.floor((xi - lo[0]) * inv_cell)), 0), nx - 1)
-        cy = min(max(int(math.floor((yi - lo[1]) * inv_cell)), 0), ny - 1)
-        cz = min(max(int(math.floor((zi - lo[2]) * inv_cell)), 0), nz - 1)
+        cx, cy, cz = cell_coords(xi, yi, zi, lo[0], lo[1], lo[2], inv_cell, nx, ny, nz)
         x0 = max(cx - 1, 0)
         x1 = min(cx + 1, nx - 1)
         k = offsets[i]
@@ -572,19 +570,7 @@ def project_out_of_walls(x, v, sdf, sdf_o, sdf_inv, r_rep, max_corr):
         vx = v[i, 0]
         vy = v[i, 1]
         vz = v[i, 2]
-        for _ in range(3):
-            dw, nx, ny, nz = sdf_sample(sdf, sdf_o[0], sdf_o[1], sdf_o[2], sdf_inv, px, py, pz)
-            if dw >= r_rep * 0.999:
-                break
-            corr = min(r_rep - dw, max_corr)
-            px += corr * nx
-            py += corr * ny
-            pz += corr * nz
-            vn = vx * nx + vy * ny + vz * nz
-            if vn < 0.0:
-                vx -= vn * nx
-                vy -= vn * ny
-                vz -= vn * nz
+        px, py, pz, vx, vy, vz = push_out_of_walls(px, py, pz, vx, vy, vz, sdf, sdf_o, sdf_inv, r_rep, max_corr)
         x[i, 0] = px
         x[i, 1] = py
         x[i, 2] = pz

@@ -52,6 +52,7 @@ from numba.extending import overload
 
 from stages.common.sdf import sdf_sample
 
+from .neighbours import cell_coords
 from .wall_maps import _quadrature_at, map_sample
 from .wall_tables import table_lookup
 
@@ -280,9 +281,7 @@ def density_pressure(x, starts, lo, inv_cell, dims, h, poly6_coef, mass, rho0, w
         xi = x[i, 0]
         yi = x[i, 1]
         zi = x[i, 2]
-        cx = min(max(int(math.floor((xi - lo[0]) * inv_cell)), 0), nx - 1)
-        cy = min(max(int(math.floor((yi - lo[1]) * inv_cell)), 0), ny - 1)
-        cz = min(max(int(math.floor((zi - lo[2]) * inv_cell)), 0), nz - 1)
+        cx, cy, cz = cell_coords(xi, yi, zi, lo[0], lo[1], lo[2], inv_cell, nx, ny, nz)
         x0 = max(cx - 1, 0)
         x1 = min(cx + 1, nx - 1)
         s = 0.0
@@ -427,9 +426,7 @@ def surface_normals(x, rho, starts, lo, inv_cell, dims, h, grad_coef, mass, out,
         xi = x[i, 0]
         yi = x[i, 1]
         zi = x[i, 2]
-        cx = min(max(int(math.floor((xi - lo[0]) * inv_cell)), 0), nx - 1)
-        cy = min(max(int(math.floor((yi - lo[1]) * inv_cell)), 0), ny - 1)
-        cz = min(max(int(math.floor((zi - lo[2]) * inv_cell)), 0), nz - 1)
+        cx, cy, cz = cell_coords(xi, yi, zi, lo[0], lo[1], lo[2], inv_cell, nx, ny, nz)
         x0 = max(cx - 1, 0)
         x1 = min(cx + 1, nx - 1)
         sx = 0.0
@@ -524,9 +521,7 @@ def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, wmap, w
         vyi = v[i, 1]
         vzi = v[i, 2]
         rhoi = rho[i]
-        cx = min(max(int(math.floor((xi - lo[0]) * inv_cell)), 0), nx - 1)
-        cy = min(max(int(math.floor((yi - lo[1]) * inv_cell)), 0), ny - 1)
-        cz = min(max(int(math.floor((zi - lo[2]) * inv_cell)), 0), nz - 1)
+        cx, cy, cz = cell_coords(xi, yi, zi, lo[0], lo[1], lo[2], inv_cell, nx, ny, nz)
         x0 = max(cx - 1, 0)
         x1 = min(cx + 1, nx - 1)
         eps = 0.01 * h2
@@ -736,6 +731,27 @@ def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, wmap, w
         acc[i, 2] = az
 
 
+@nb.njit(cache=True, inline="always")
+def push_out_of_walls(px, py, pz, vx, vy, vz, sdf, sdf_o, sdf_inv, r_rep, max_corr):
+    """Eq. 16: a particle closer to a wall than r_rep moves out along the SDF normal (at most max_corr
+    per projection) and loses its velocity into the wall; up to three projections, since in an edge or
+    corner each one finds the next closest wall. Returns the new (x, v)."""
+    for _ in range(3):
+        dw, nx, ny, nz = sdf_sample(sdf, sdf_o[0], sdf_o[1], sdf_o[2], sdf_inv, px, py, pz)
+        if dw >= r_rep * 0.999:
+            break
+        corr = min(r_rep - dw, max_corr)
+        px += corr * nx
+        py += corr * ny
+        pz += corr * nz
+        vn = vx * nx + vy * ny + vz * nz
+        if vn < 0.0:
+            vx -= vn * nx
+            vy -= vn * ny
+            vz -= vn * nz
+    return px, py, pz, vx, vy, vz
+
+
 @nb.njit(cache=True, parallel=True)
 def integrate(x, v, acc, dt, sdf, sdf_o, sdf_inv, r_rep, max_corr):
     """Symplectic Euler (v += dt a; x += dt v), then the wall pressure of eq. 16 as a position
@@ -748,20 +764,7 @@ def integrate(x, v, acc, dt, sdf, sdf_o, sdf_inv, r_rep, max_corr):
         px = x[i, 0] + dt * vx
         py = x[i, 1] + dt * vy
         pz = x[i, 2] + dt * vz
-        # up to three projections: in an edge or corner each one finds the next closest wall
-        for _ in range(3):
-            dw, nx, ny, nz = sdf_sample(sdf, sdf_o[0], sdf_o[1], sdf_o[2], sdf_inv, px, py, pz)
-            if dw >= r_rep * 0.999:
-                break
-            corr = min(r_rep - dw, max_corr)
-            px += corr * nx
-            py += corr * ny
-            pz += corr * nz
-            vn = vx * nx + vy * ny + vz * nz
-            if vn < 0.0:
-                vx -= vn * nx
-                vy -= vn * ny
-                vz -= vn * nz
+        px, py, pz, vx, vy, vz = push_out_of_walls(px, py, pz, vx, vy, vz, sdf, sdf_o, sdf_inv, r_rep, max_corr)
         v[i, 0] = vx
         v[i, 1] = vy
         v[i, 2] = vz
@@ -770,14 +773,13 @@ def integrate(x, v, acc, dt, sdf, sdf_o, sdf_inv, r_rep, max_corr):
         x[i, 2] = pz
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True)
 def max_speed2_accel2(v, acc):
-    """(max |v|^2, max |a|^2) for the time-step limits; an exact max, so deterministic."""
+    """(max |v|^2, max |a|^2) for the time-step limits, serial: 20k particles take ~20 us, less than
+    waking the thread pool (measured in DFSPH); an exact max either way, so deterministic."""
     mv = 0.0
     ma = 0.0
-    for i in nb.prange(v.shape[0]):
-        s = v[i, 0] * v[i, 0] + v[i, 1] * v[i, 1] + v[i, 2] * v[i, 2]
-        a = acc[i, 0] * acc[i, 0] + acc[i, 1] * acc[i, 1] + acc[i, 2] * acc[i, 2]
-        mv = max(mv, s)
-        ma = max(ma, a)
+    for i in range(v.shape[0]):
+        mv = max(mv, v[i, 0] * v[i, 0] + v[i, 1] * v[i, 1] + v[i, 2] * v[i, 2])
+        ma = max(ma, acc[i, 0] * acc[i, 0] + acc[i, 1] * acc[i, 1] + acc[i, 2] * acc[i, 2])
     return mv, ma
