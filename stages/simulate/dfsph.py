@@ -42,10 +42,10 @@ from stages.common.sdf import SDFGrid
 from . import dfsph_kernels as D
 from . import sph_kernels as K
 from .driver import SolverBase, drive, prepare, set_threads
-from .effects import EffectConstants, cohesion_coef, compile_effects
-from .kernels import lattice_mass, poly6_coef, spiky_grad_coef, spiky_lattice_factor, visc_lap_coef
+from .effects import EffectConstants, compile_effects
+from .kernels import lattice_mass, poly6_coef, spiky_grad_coef, spiky_lattice_factor
 from .neighbours import CellGrid
-from .sph import BrickWallMaps
+from .sph import BrickWallMaps, SPHSolver
 from .timestep import stable_dt, step_to
 
 
@@ -166,16 +166,8 @@ class DFSPHSolver(SolverBase):
             self.fac = np.zeros(len(self.x) * self.cap, np.float32)
         self._fresh = True
 
-    def effect_args(self) -> tuple:
-        """(viscosity, tension, adhesion, friction, wind, attractor) for K.forces: None when absent."""
-        e = self.effects
-        vis = (self.mu, visc_lap_coef(self.h), self.fix_vis) if e.mu is not None else None
-        ten = (e.tension_k, self.normals, cohesion_coef(self.h)) if e.tension_k is not None else None
-        adh = (e.adhesion_accel,) if e.adhesion_accel is not None else None
-        fri = (e.friction_rate,) if e.friction_rate is not None else None
-        wind = (e.wind_velocity, e.wind_drag) if e.wind_velocity is not None else None
-        att = (e.attractor_point, e.attractor_k, e.attractor_soft) if e.attractor_point is not None else None
-        return vis, ten, adh, fri, wind, att
+    # the same members (effects, mu, h, fix_vis, normals) feed the same force kernel
+    effect_args = SPHSolver.effect_args
 
     def non_pressure_forces(self) -> None:
         g, w = self.grid, self.walls
