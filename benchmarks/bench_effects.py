@@ -1,6 +1,6 @@
 """Effects benchmark (issue 8): ms/step on the PEERS.md 20k dam break (1 m cube in a 3 x 2 x 1.2 m tank,
 walls on) for each effect set, side by side in one run, plus the hand-written pressure-only kernel
-(``reference_forces_pressure``, the kernel sph_kernels had before issue 8) that the generic kernel with
+(``reference_forces_pressure``: the kernel sph_kernels had before issue 8, kept in step with its arithmetic) that the generic kernel with
 every effect absent must not be slower than.
 
     python benchmarks/bench_effects.py [--n 20000] [--steps 20] [--rounds 3] [--no-asm]
@@ -30,12 +30,12 @@ from stages.simulate.wall_maps import map_sample
 from stages.simulate.wall_tables import table_lookup
 
 
-@nb.njit(cache=True, parallel=True)
-def reference_forces_pressure(x, v, rho, p, d, starts, lo, inv_cell, dims, h, spiky_coef, mass,
+@nb.njit(cache=True, parallel=True, fastmath=True)  # built like sph_kernels.forces
+def reference_forces_pressure(x, v, rho, p, d, nbr, cnt, inv_rho, h, spiky_coef, mass,
                               wmap, wo, winv, fix_press, inv_dr, gravity, av, acc):
-    """Hand-written pressure (eq. 6, 8, Monaghan av) + gravity + wall pressure: no other code at all."""
+    """Hand-written pressure (eq. 6, 8, Monaghan av) + gravity + wall pressure over the solver's neighbour
+    list (the pairs r < h first in each row, cnt of them): no other code at all."""
     h2 = h * h
-    nx, ny, nz = dims[0], dims[1], dims[2]
     gx0 = gravity[0]
     gy0 = gravity[1]
     gz0 = gravity[2]
@@ -48,11 +48,7 @@ def reference_forces_pressure(x, v, rho, p, d, starts, lo, inv_cell, dims, h, sp
         vzi = v[i, 2]
         pi = p[i]
         rhoi = rho[i]
-        cx = min(max(int(math.floor((xi - lo[0]) * inv_cell)), 0), nx - 1)
-        cy = min(max(int(math.floor((yi - lo[1]) * inv_cell)), 0), ny - 1)
-        cz = min(max(int(math.floor((zi - lo[2]) * inv_cell)), 0), nz - 1)
-        x0 = max(cx - 1, 0)
-        x1 = min(cx + 1, nx - 1)
+        av2rhoi = av * rhoi
         eps = 0.01 * h2
         ax = 0.0
         ay = 0.0
@@ -60,32 +56,27 @@ def reference_forces_pressure(x, v, rho, p, d, starts, lo, inv_cell, dims, h, sp
         sp = 0.0
         sw = 1e-300
         near_wall = d[i] < h
-        for kz in range(max(cz - 1, 0), min(cz + 2, nz)):
-            for ky in range(max(cy - 1, 0), min(cy + 2, ny)):
-                base = (kz * ny + ky) * nx
-                for j in range(starts[base + x0], starts[base + x1 + 1]):
-                    dx = xi - x[j, 0]
-                    dy = yi - x[j, 1]
-                    dz = zi - x[j, 2]
-                    r2 = dx * dx + dy * dy + dz * dz
-                    if near_wall and r2 < h2:
-                        q = h2 - r2
-                        q = q * q * q
-                        sp += p[j] * q
-                        sw += q
-                    if r2 < h2 and r2 > 1e-24:
-                        r = math.sqrt(r2)
-                        hr = h - r
-                        inv_rhoj = 1.0 / rho[j]
-                        f = (pi + p[j]) * inv_rhoj
-                        vdx = (vxi - v[j, 0]) * dx + (vyi - v[j, 1]) * dy + (vzi - v[j, 2]) * dz
-                        if vdx < 0.0:
-                            f += av * (-vdx) / (r2 + eps) * 2.0 * rhoi / (rhoi + rho[j])
-                        f *= hr * hr / r
-                        ax += f * dx
-                        ay += f * dy
-                        az += f * dz
-        inv_rhoi = 1.0 / rho[i]
+        for jj in range(cnt[i]):
+            j = nbr[i, jj]
+            dx = xi - x[j, 0]
+            dy = yi - x[j, 1]
+            dz = zi - x[j, 2]
+            r2 = dx * dx + dy * dy + dz * dz
+            if near_wall and r2 < h2:
+                q = h2 - r2
+                q = q * q * q
+                sp += p[j] * q
+                sw += q
+            if r2 < h2 and r2 > 1e-24:
+                r = math.sqrt(r2)
+                hr = h - r
+                vdx = (vxi - v[j, 0]) * dx + (vyi - v[j, 1]) * dy + (vzi - v[j, 2]) * dz
+                den = (r2 + eps) * (rhoi + rho[j])
+                f = ((pi + p[j]) * inv_rho[j] * den + av2rhoi * (abs(vdx) - vdx)) * (hr * hr) / (den * r)
+                ax += f * dx
+                ay += f * dy
+                az += f * dz
+        inv_rhoi = inv_rho[i]
         c = mass * spiky_coef * inv_rhoi
         ax = ax * c + gx0
         ay = ay * c + gy0
@@ -105,8 +96,7 @@ class ReferenceSolver(SPHSolver):
     """SPHSolver stepping with the hand-written pressure + gravity kernel (no effects)."""
 
     def forces(self) -> None:
-        g = self.grid
-        reference_forces_pressure(self.x, self.v, self.rho, self.pr, self.d, g.starts, g.lo, 1.0 / g.cell, g.dims,
+        reference_forces_pressure(self.x, self.v, self.rho, self.pr, self.d, self.nbr, self.cnt_in, self.inv_rho,
                                   self.h, spiky_grad_coef(self.h) / self.grad_norm, self.mass, self.walls.maps,
                                   self.walls.origin, 1.0 / self.walls.spacing, self.fix_press, self.inv_dr,
                                   self.gravity, self.p.artificial_viscosity * self.c * self.h, self.acc)

@@ -36,6 +36,9 @@ class SPHParams(Params):
     artificial_viscosity: float = Field(0.05, ge=0, le=1, description="Monaghan alpha (dimensionless): "
                                         "dissipates WCSPH acoustic noise on approaching pairs, nu_art ~ alpha c h / 8")
     table_samples: int = Field(256, ge=16, description="samples of the Z_rho / Z_vis wall tables over [0, h]")
+    neighbour_skin: float = Field(0.2, ge=0, le=1.0, description="Verlet skin, in units of l0: the neighbour list "
+                                  "holds the pairs within h + skin and is rebuilt (with the cell sort) once "
+                                  "particles may have closed in by the skin; 0 = rebuilt every step")
     gradient_correction: bool = Field(False, description="symmetric kernel-gradient correction of the pressure "
                                       "force (Bonet and Lok 1999): exact for a linear pressure on any packing")
     wall_gradient: bool = Field(False, description="the walls' share of the hydrostatic pressure gradient "
@@ -47,7 +50,7 @@ class SPHParams(Params):
 
 
 # neighbour-list slots per particle to start with: 27 neighbours within h = 2 l0 on the resting
-# lattice, ~40 at 1.5 rho0; grown to the largest count seen when a pass finds more
+# lattice, 44 within h + 0.2 l0 (the default skin); grown to the largest count seen when a build finds more
 NEIGHBOUR_CAP = 48
 
 
@@ -140,7 +143,8 @@ class SPHSolver(SolverBase):
         self.sdf_inv = 1.0 / sdf.spacing
         lo, hi = (sdf.origin, sdf.upper) if domain is None else domain
         self.domain = (np.asarray(lo, float), np.asarray(hi, float))
-        self.grid = CellGrid(sdf.origin, sdf.upper, self.h)
+        self.skin = params.neighbour_skin * self.l0
+        self.grid = CellGrid(sdf.origin, sdf.upper, self.h + self.skin)
         self.x = np.array(x, np.float64)  # own copies: the sort reuses buffers
         self.v = np.array(v, np.float64)
         self.id = np.array(ids, np.int32)
@@ -157,20 +161,25 @@ class SPHSolver(SolverBase):
         self.d = np.zeros(n)
         self.nrm = np.zeros((n, 3))
         self.acc = np.zeros((n, 3))
-        # the pairs r < h of the last density pass, reused by forces (grown on overflow, never shrunk)
+        # the Verlet list: the pairs within h + skin at the last build (grown on overflow, never shrunk);
+        # each density pass moves the pairs r < h to the front of the row, cnt_in of them
         self.nbr = np.zeros((n, getattr(self, "nbr_cap", NEIGHBOUR_CAP)), np.int32)
         self.cnt = np.zeros(n, np.int32)
+        self.cnt_in = np.zeros(n, np.int32)
+        self.travel = np.zeros(n)  # path length of each particle since the build
+        self.stale = True  # no list for these arrays yet
         self.inv_rho = np.zeros(n)
         self.normals = np.zeros((n, 3)) if self.effects.tension_k is not None else None
         self.lcorr = np.zeros((n, 6)) if self.p.gradient_correction else None
 
     # -- one step -----------------------------------------------------------------------------
-    def sort_and_density(self) -> None:
+    def build_neighbours(self) -> None:
+        """Sort the particles into cell order and list the pairs within h + skin."""
         order = self.grid.sort(self.x)
         self.x, self.v, self.id = reorder([self.x, self.v, self.id], order, self._scratch)
         g = self.grid
         while True:
-            neighbour_list(self.x, g.starts, g.lo, 1.0 / g.cell, g.dims, self.h, self.nbr, self.cnt)
+            neighbour_list(self.x, g.starts, g.lo, 1.0 / g.cell, g.dims, self.h + self.skin, self.nbr, self.cnt)
             most = int(self.cnt.max()) if len(self.cnt) else 0
             if most <= self.nbr.shape[1]:
                 break
@@ -178,10 +187,18 @@ class SPHSolver(SolverBase):
             # (the list does not depend on the capacity, so this stays deterministic)
             self.nbr_cap = most + 8
             self.nbr = np.zeros((len(self.x), self.nbr_cap), np.int32)
-        K.density_neighbours(self.x, self.nbr, self.cnt, self.h, poly6_coef(self.h), self.mass, self.rho0,
-                             self.walls.wmap, self.walls.origin, 1.0 / self.walls.spacing, self.walls.fix_rho,
-                             self.inv_dr, self.sdf.dist, self.sdf.origin, self.sdf_inv, self.eos, self.stiffness,
-                             self.p.clamp_pressure, self.rho, self.pr, self.d, self.nrm, self.inv_rho)
+        self.travel[:] = 0.0
+        self.stale = False
+
+    def sort_and_density(self, rebuild: bool = False) -> None:
+        # two particles have closed in by at most the sum of their path lengths since the build: while
+        # that is below the skin, every pair r < h is still in the list
+        if rebuild or self.stale or 2.0 * K.max_of(self.travel) >= self.skin:
+            self.build_neighbours()
+        K.density_verlet(self.x, self.nbr, self.cnt, self.cnt_in, self.h, poly6_coef(self.h), self.mass, self.rho0,
+                         self.walls.wmap, self.walls.origin, 1.0 / self.walls.spacing, self.walls.fix_rho,
+                         self.inv_dr, self.sdf.dist, self.sdf.origin, self.sdf_inv, self.eos, self.stiffness,
+                         self.p.clamp_pressure, self.rho, self.pr, self.d, self.nrm, self.inv_rho)
 
     def effect_args(self) -> tuple:
         """(viscosity, tension, adhesion, friction, wind, attractor) for K.forces: None when absent."""
@@ -199,17 +216,17 @@ class SPHSolver(SolverBase):
         grad_coef = spiky_grad_coef(self.h) / self.grad_norm
         if self.normals is not None:  # Akinci normals: a pass after the density, only with tension
             K.surface_normals(self.x, self.rho, g.starts, g.lo, 1.0 / g.cell, g.dims, self.h, grad_coef, self.mass,
-                              self.normals, (self.nbr, self.cnt))
+                              self.normals, (self.nbr, self.cnt_in))
         pressure = (self.pr, grad_coef, self.fix_press, self.p.artificial_viscosity * self.c * self.h)
         correction = None
         if self.lcorr is not None:
-            K.gradient_correction(self.x, self.nbr, self.cnt, self.inv_rho, self.rho, self.rho0, self.h, grad_coef,
+            K.gradient_correction(self.x, self.nbr, self.cnt_in, self.inv_rho, self.rho, self.rho0, self.h, grad_coef,
                                   self.mass, 0.9, self.p.correction_full, self.d, self.nrm, self.wall_t, self.inv_dr,
                                   self.p.correction_wall_fade, self.lcorr)
             correction = (self.lcorr,)
         K.forces(self.x, self.v, self.rho, self.d, self.nrm, g.starts, g.lo, 1.0 / g.cell, g.dims, self.h, self.mass,
                  self.rho0, self.walls.wmap, self.walls.origin, 1.0 / self.walls.spacing, self.inv_dr, self.gravity,
-                 self.acc, pressure, *self.effect_args(), (self.nbr, self.cnt), self.inv_rho, correction,
+                 self.acc, pressure, *self.effect_args(), (self.nbr, self.cnt_in), self.inv_rho, correction,
                  self.wall_t if self.p.wall_gradient else None)
 
     def stable_dt(self, dt_max: float) -> float:
@@ -224,7 +241,7 @@ class SPHSolver(SolverBase):
         self.forces()
         dt = step_to(self.t, t_end, self.stable_dt(t_end - self.t))
         K.integrate(self.x, self.v, self.acc, dt, self.sdf.dist, self.sdf.origin, self.sdf_inv,
-                    self.p.r_rep * self.l0, 0.5 * self.l0)
+                    self.p.r_rep * self.l0, 0.5 * self.l0, self.travel)
         self.t = t_end if dt >= t_end - self.t else self.t + dt
         self.steps += 1
         return dt
@@ -234,8 +251,10 @@ class SPHSolver(SolverBase):
         self._alloc()
 
     def frame(self) -> ParticleFrame:
-        """The current state with fresh density and pressure (sorts the state, as a step would)."""
-        self.sort_and_density()
+        """The current state with fresh density and pressure. Sorts the state and rebuilds the list, so
+        that a run resumed from a checkpoint written after this (load_state: no list yet) builds the
+        same list from the same sorted state and goes on bitwise as the uninterrupted run."""
+        self.sort_and_density(rebuild=True)
         return ParticleFrame(x=self.x.copy(), v=self.v.copy(), rho=self.rho.copy(), p=self.pr.copy(), id=self.id.copy())
 
     def state(self) -> dict:

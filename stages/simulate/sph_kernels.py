@@ -325,6 +325,42 @@ def density_neighbours(x, nbr, cnt, h, poly6_coef, mass, rho0, wmap, wo, winv, f
 
 
 @nb.njit(cache=True, parallel=True)
+def density_verlet(x, nbr, cnt, cnt_in, h, poly6_coef, mass, rho0, wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o,
+                   sdf_inv, eos, stiffness, clamp, rho, p, d, nrm, inv_rho):
+    """``density_neighbours`` over a Verlet list: nbr[i, :cnt[i]] holds every particle that was within
+    h + skin of i when the list was built (neighbours.neighbour_list with that radius), so while no
+    pair has closed by more than the skin it holds every pair r < h. Each pass partitions the row in
+    place, the pairs r < h first in their list order (the rest keep their slots for later steps), sums
+    eq. 11 over them and leaves their count in ``cnt_in`` for ``forces``. Per particle only, so the
+    result does not depend on the thread count."""
+    h2 = h * h
+    for i in nb.prange(x.shape[0]):
+        xi = x[i, 0]
+        yi = x[i, 1]
+        zi = x[i, 2]
+        s = 0.0
+        k = 0
+        for jj in range(cnt[i]):
+            j = nbr[i, jj]
+            dx = xi - x[j, 0]
+            dy = yi - x[j, 1]
+            dz = zi - x[j, 2]
+            q = h2 - (dx * dx + dy * dy + dz * dz)
+            # branch-free partition (selects, not jumps: about a quarter of the candidates are out)
+            inside = q > 0.0
+            q = max(q, 0.0)
+            s += q * q * q
+            a = nbr[i, k]
+            nbr[i, jj] = a if inside else j
+            nbr[i, k] = j if inside else a
+            k += inside
+        cnt_in[i] = k
+        _walls_and_pressure(i, s, xi, yi, zi, h, poly6_coef, mass, rho0, wmap, wo, winv, fix_rho, inv_dr, sdf,
+                            sdf_o, sdf_inv, eos, stiffness, clamp, rho, p, d, nrm)
+        inv_rho[i] = 1.0 / rho[i]
+
+
+@nb.njit(cache=True, parallel=True)
 def gradient_correction(x, nbr, cnt, inv_rho, rho, rho0, h, grad_coef, mass, none, full, d, nrm, wall_t, inv_dr,
                         wall_fade, out):
     """Kernel-gradient correction (Bonet and Lok 1999; Khayyer and Gotoh 2011 for MPS) for the eq. 6/8
@@ -465,7 +501,10 @@ def surface_normals(x, rho, starts, lo, inv_cell, dims, h, grad_coef, mass, out,
         out[i, 2] = c * sz
 
 
-@nb.njit(cache=True, parallel=True)
+# fastmath: lets LLVM contract and reorder the pair arithmetic (22 % faster at 20k, accelerations within
+# 1e-15 relative of the strict build); still one fixed instruction sequence per particle, so the result
+# does not depend on the thread count
+@nb.njit(cache=True, parallel=True, fastmath=True)
 def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, wmap, wo, winv, inv_dr, gravity, acc,
            pressure, viscosity, tension, adhesion, friction, wind, attractor, neighbours=None, inv_rho=None,
            correction=None, wall_gradient=None):
@@ -540,8 +579,10 @@ def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, wmap, w
         sp = 0.0
         sw = 1e-300
         pi = 0.0
+        av2rhoi = 0.0
         if pressure is not None:
             pi = p[i]
+            av2rhoi = av * rhoi  # times |vdx| - vdx = 2 max(-vdx, 0)
         if correction is not None:
             lxx = lc[i, 0]
             lyy = lc[i, 1]
@@ -593,15 +634,16 @@ def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, wmap, w
                         # Without eq. 6's factor 1/2 (Monaghan's symmetric form at rho ~ rho0): with
                         # it, sum V (p_i + p_j) / 2 grad W gives only half of grad p on a lattice,
                         # and the hydrostatic pressure came out twice rho g h
-                        f = (pi + p[j]) * inv_rhoj
                         # Monaghan's artificial viscosity on approaching pairs (av = alpha c h): it
                         # dissipates the acoustic noise of the weakly compressible EOS; without it a
                         # dam break never settles and sprays into a gas. Symmetric in i, j.
                         vdx = (vxi - v[j, 0]) * dx + (vyi - v[j, 1]) * dy + (vzi - v[j, 2]) * dz
+                        # f = [(p_i + p_j) / rho_j + av max(-vdx, 0) / (r^2 + eps) 2 rho_i / (rho_i + rho_j)]
+                        #     (h - r)^2 / r, over one common denominator: one division per pair, not three
                         # (branch-free: a receding pair adds an exact +0.0; the branch was
                         # mispredicted for about half the pairs)
-                        f += av * max(-vdx, 0.0) / (r2 + eps) * 2.0 * rhoi / (rhoi + rho[j])
-                        f *= hr * hr / r
+                        den = (r2 + eps) * (rhoi + rho[j])
+                        f = ((pi + p[j]) * inv_rhoj * den + av2rhoi * (abs(vdx) - vdx)) * (hr * hr) / (den * r)
                         if correction is not None:
                             # 0.5 (L_i + L_j) applied to the pair direction (symmetric in i, j)
                             mxx = 0.5 * (lxx + lc[j, 0])
@@ -753,10 +795,11 @@ def push_out_of_walls(px, py, pz, vx, vy, vz, sdf, sdf_o, sdf_inv, r_rep, max_co
 
 
 @nb.njit(cache=True, parallel=True)
-def integrate(x, v, acc, dt, sdf, sdf_o, sdf_inv, r_rep, max_corr):
+def integrate(x, v, acc, dt, sdf, sdf_o, sdf_inv, r_rep, max_corr, travel=None):
     """Symplectic Euler (v += dt a; x += dt v), then the wall pressure of eq. 16 as a position
     correction along the SDF normal for r_iw < r_rep, capped at ``max_corr`` per step, and removal of
-    the velocity component into the wall."""
+    the velocity component into the wall. ``travel`` (N,), optional: each particle's path length is
+    added to it (how far it can have moved since the Verlet list was built)."""
     for i in nb.prange(x.shape[0]):
         vx = v[i, 0] + dt * acc[i, 0]
         vy = v[i, 1] + dt * acc[i, 1]
@@ -765,6 +808,11 @@ def integrate(x, v, acc, dt, sdf, sdf_o, sdf_inv, r_rep, max_corr):
         py = x[i, 1] + dt * vy
         pz = x[i, 2] + dt * vz
         px, py, pz, vx, vy, vz = push_out_of_walls(px, py, pz, vx, vy, vz, sdf, sdf_o, sdf_inv, r_rep, max_corr)
+        if travel is not None:
+            ex = px - x[i, 0]
+            ey = py - x[i, 1]
+            ez = pz - x[i, 2]
+            travel[i] += math.sqrt(ex * ex + ey * ey + ez * ez)
         v[i, 0] = vx
         v[i, 1] = vy
         v[i, 2] = vz
@@ -783,3 +831,12 @@ def max_speed2_accel2(v, acc):
         mv = max(mv, v[i, 0] * v[i, 0] + v[i, 1] * v[i, 1] + v[i, 2] * v[i, 2])
         ma = max(ma, acc[i, 0] * acc[i, 0] + acc[i, 1] * acc[i, 1] + acc[i, 2] * acc[i, 2])
     return mv, ma
+
+
+@nb.njit(cache=True)
+def max_of(a):
+    """max(a) (0 for an empty array), serial: exact, so deterministic."""
+    m = 0.0
+    for i in range(a.shape[0]):
+        m = max(m, a[i])
+    return m
