@@ -216,6 +216,42 @@ def test_verlet_density_finds_every_pair_while_particles_move_less_than_the_skin
     assert moved > 50  # the moves changed who is within h for many particles
 
 
+def test_bulk_particles_skipping_the_sdf_changes_nothing():
+    """integrate keeps a lower bound of each particle's wall distance, so particles far from the walls
+    skip the SDF samples (eq. 16 test, density wall term): the run is bitwise the run that samples
+    every particle every step, here a breaking dam whose particles hit the walls."""
+    from stages.simulate import sph as S
+    from stages.simulate.timestep import step_to
+
+    class SamplingEverywhere(S.SPHSolver):
+        def step(self, t_end):
+            self.d[:] = -1.0  # unknown: the density pass samples every particle
+            self.sort_and_density()
+            self.forces()
+            dt = step_to(self.t, t_end, self.stable_dt(t_end - self.t))
+            K.integrate(self.x, self.v, self.acc, dt, self.sdf.dist, self.sdf.origin, self.sdf_inv,
+                        self.p.r_rep * self.l0, 0.5 * self.l0, self.travel)  # no bound: every particle tested
+            self.t = t_end if dt >= t_end - self.t else self.t + dt
+            self.steps += 1
+            return dt
+
+    l0 = 0.01
+    x = lattice_block([0.005, 0.005, 0.005], [0.1, 0.1, 0.12], l0)
+    sdf = grid_from_function(box_interior_sdf([0, 0, 0], [0.3, 0.12, 0.2]), [0, 0, 0], [0.3, 0.12, 0.2], l0 / 2)
+    runs = [cls(x, np.zeros_like(x), np.arange(len(x)), sdf, spacing=l0, rho0=1000.0, params=S.SPHParams(),
+                gravity=(0, 0, -9.81), mu=0.01, v_ref=1.5) for cls in (S.SPHSolver, SamplingEverywhere)]
+    for s in runs:
+        s.advance_to(0.2)
+    fast, slow = runs
+    assert np.abs(fast.v).max() > 0.5 and fast.x[:, 0].max() > 0.2  # the surge ran along the floor
+    assert np.array_equal(fast.x, slow.x) and np.array_equal(fast.v, slow.v) and fast.steps == slow.steps
+
+
+def lattice_block(lo, hi, l0):
+    g = [np.arange(a, b, l0) for a, b in zip(lo, hi)]
+    return np.stack(np.meshgrid(*g, indexing="ij"), -1).reshape(-1, 3)
+
+
 def test_solver_grows_the_neighbour_list_and_matches_a_roomy_one():
     """A list that starts too small (compressed start) is grown; the result does not depend on it."""
     from stages.simulate import sph as S

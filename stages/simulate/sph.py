@@ -193,12 +193,15 @@ class SPHSolver(SolverBase):
     def sort_and_density(self, rebuild: bool = False) -> None:
         # two particles have closed in by at most the sum of their path lengths since the build: while
         # that is below the skin, every pair r < h is still in the list
-        if rebuild or self.stale or 2.0 * K.max_of(self.travel) >= self.skin:
+        built = rebuild or self.stale or 2.0 * K.max_of(self.travel) >= self.skin
+        if built:
             self.build_neighbours()
+        # after a build (the arrays reordered) every particle samples the SDF; between builds only those
+        # within h of a wall by integrate's lower bound of their distance
         K.density_verlet(self.x, self.nbr, self.cnt, self.cnt_in, self.h, poly6_coef(self.h), self.mass, self.rho0,
                          self.walls.wmap, self.walls.origin, 1.0 / self.walls.spacing, self.walls.fix_rho,
                          self.inv_dr, self.sdf.dist, self.sdf.origin, self.sdf_inv, self.eos, self.stiffness,
-                         self.p.clamp_pressure, self.rho, self.pr, self.d, self.nrm, self.inv_rho)
+                         self.p.clamp_pressure, self.rho, self.pr, self.d, self.nrm, self.inv_rho, built)
 
     def effect_args(self) -> tuple:
         """(viscosity, tension, adhesion, friction, wind, attractor) for K.forces: None when absent."""
@@ -241,7 +244,7 @@ class SPHSolver(SolverBase):
         self.forces()
         dt = step_to(self.t, t_end, self.stable_dt(t_end - self.t))
         K.integrate(self.x, self.v, self.acc, dt, self.sdf.dist, self.sdf.origin, self.sdf_inv,
-                    self.p.r_rep * self.l0, 0.5 * self.l0, self.travel)
+                    self.p.r_rep * self.l0, 0.5 * self.l0, self.travel, self.d)
         self.t = t_end if dt >= t_end - self.t else self.t + dt
         self.steps += 1
         return dt

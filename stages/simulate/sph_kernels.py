@@ -242,14 +242,19 @@ def _wall_sample(wmap, ox, oy, oz, inv_h, x, y, z, c):
 
 @nb.njit(cache=True, inline="always")
 def _walls_and_pressure(i, s, xi, yi, zi, h, poly6_coef, mass, rho0, wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o,
-                        sdf_inv, eos, stiffness, clamp, rho, p, d, nrm):
+                        sdf_inv, eos, stiffness, clamp, rho, p, d, nrm, lazy=False):
     """Particle i's density from its kernel sum ``s`` = sum_j (h^2 - r^2)^3 plus the wall term, its
-    pressure, SDF distance and normal (the tail of eq. 11, 12 and eq. 5)."""
-    dw, gx, gy, gz = sdf_sample(sdf, sdf_o[0], sdf_o[1], sdf_o[2], sdf_inv, xi, yi, zi)
-    d[i] = dw
-    nrm[i, 0] = gx
-    nrm[i, 1] = gy
-    nrm[i, 2] = gz
+    pressure, SDF distance and normal (the tail of eq. 11, 12 and eq. 5). ``lazy``: d[i] holds a lower
+    bound of i's wall distance (``integrate`` keeps one); beyond h it is kept and the SDF not sampled
+    (no wall term there, and nrm is only read within h)."""
+    if lazy and d[i] > h:
+        dw = d[i]
+    else:
+        dw, gx, gy, gz = sdf_sample(sdf, sdf_o[0], sdf_o[1], sdf_o[2], sdf_inv, xi, yi, zi)
+        d[i] = dw
+        nrm[i, 0] = gx
+        nrm[i, 1] = gy
+        nrm[i, 2] = gz
     zw = 0.0
     if dw < h:  # only particles within h of a wall have wall terms
         zw = wall_sample(wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 0) * table_lookup(fix_rho, dw, inv_dr)
@@ -326,13 +331,14 @@ def density_neighbours(x, nbr, cnt, h, poly6_coef, mass, rho0, wmap, wo, winv, f
 
 @nb.njit(cache=True, parallel=True)
 def density_verlet(x, nbr, cnt, cnt_in, h, poly6_coef, mass, rho0, wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o,
-                   sdf_inv, eos, stiffness, clamp, rho, p, d, nrm, inv_rho):
+                   sdf_inv, eos, stiffness, clamp, rho, p, d, nrm, inv_rho, exact=True):
     """``density_neighbours`` over a Verlet list: nbr[i, :cnt[i]] holds every particle that was within
     h + skin of i when the list was built (neighbours.neighbour_list with that radius), so while no
     pair has closed by more than the skin it holds every pair r < h. Each pass partitions the row in
     place, the pairs r < h first in their list order (the rest keep their slots for later steps), sums
     eq. 11 over them and leaves their count in ``cnt_in`` for ``forces``. Per particle only, so the
-    result does not depend on the thread count."""
+    result does not depend on the thread count. ``exact`` False: ``d`` holds the lower bounds
+    ``integrate`` left, and particles further than h from a wall skip the SDF sample."""
     h2 = h * h
     for i in nb.prange(x.shape[0]):
         xi = x[i, 0]
@@ -356,7 +362,7 @@ def density_verlet(x, nbr, cnt, cnt_in, h, poly6_coef, mass, rho0, wmap, wo, win
             k += inside
         cnt_in[i] = k
         _walls_and_pressure(i, s, xi, yi, zi, h, poly6_coef, mass, rho0, wmap, wo, winv, fix_rho, inv_dr, sdf,
-                            sdf_o, sdf_inv, eos, stiffness, clamp, rho, p, d, nrm)
+                            sdf_o, sdf_inv, eos, stiffness, clamp, rho, p, d, nrm, not exact)
         inv_rho[i] = 1.0 / rho[i]
 
 
@@ -795,11 +801,16 @@ def push_out_of_walls(px, py, pz, vx, vy, vz, sdf, sdf_o, sdf_inv, r_rep, max_co
 
 
 @nb.njit(cache=True, parallel=True)
-def integrate(x, v, acc, dt, sdf, sdf_o, sdf_inv, r_rep, max_corr, travel=None):
+def integrate(x, v, acc, dt, sdf, sdf_o, sdf_inv, r_rep, max_corr, travel=None, d=None):
     """Symplectic Euler (v += dt a; x += dt v), then the wall pressure of eq. 16 as a position
     correction along the SDF normal for r_iw < r_rep, capped at ``max_corr`` per step, and removal of
     the velocity component into the wall. ``travel`` (N,), optional: each particle's path length is
-    added to it (how far it can have moved since the Verlet list was built)."""
+    added to it (how far it can have moved since the Verlet list was built). ``d`` (N,), optional: a
+    lower bound of each particle's wall distance before the move; where it stays above r_rep after
+    the move, the SDF is not sampled (the eq. 16 test would find nothing: the trilinear SDF changes by
+    at most sqrt(3) per unit length, so d - 2 |dx| bounds the new distance) and d is lowered by
+    2 |dx|; elsewhere d is set to -1 (unknown, ``density_verlet`` samples it). Same result, less
+    random access to the SDF grid for the particles in the bulk."""
     for i in nb.prange(x.shape[0]):
         vx = v[i, 0] + dt * acc[i, 0]
         vy = v[i, 1] + dt * acc[i, 1]
@@ -807,7 +818,16 @@ def integrate(x, v, acc, dt, sdf, sdf_o, sdf_inv, r_rep, max_corr, travel=None):
         px = x[i, 0] + dt * vx
         py = x[i, 1] + dt * vy
         pz = x[i, 2] + dt * vz
-        px, py, pz, vx, vy, vz = push_out_of_walls(px, py, pz, vx, vy, vz, sdf, sdf_o, sdf_inv, r_rep, max_corr)
+        if d is not None:
+            step = dt * math.sqrt(vx * vx + vy * vy + vz * vz)
+            if d[i] - 2.0 * step >= r_rep:
+                d[i] -= 2.0 * step
+            else:
+                d[i] = -1.0
+                px, py, pz, vx, vy, vz = push_out_of_walls(px, py, pz, vx, vy, vz, sdf, sdf_o, sdf_inv, r_rep,
+                                                           max_corr)
+        else:
+            px, py, pz, vx, vy, vz = push_out_of_walls(px, py, pz, vx, vy, vz, sdf, sdf_o, sdf_inv, r_rep, max_corr)
         if travel is not None:
             ex = px - x[i, 0]
             ey = py - x[i, 1]
