@@ -31,7 +31,7 @@ from stages.simulate.wall_tables import table_lookup
 
 
 @nb.njit(cache=True, parallel=True, fastmath=True)  # built like sph_kernels.forces
-def reference_forces_pressure(x, v, rho, p, d, nbr, cnt, inv_rho, h, spiky_coef, mass,
+def reference_forces_pressure(x, v, p, d, nbr, cnt, inv_rho, h, spiky_coef, mass,
                               wmap, wo, winv, fix_press, inv_dr, gravity, av, acc):
     """Hand-written pressure (eq. 6, 8, Monaghan av) + gravity + wall pressure over the solver's neighbour
     list (the pairs r < h first in each row, cnt of them): no other code at all."""
@@ -47,8 +47,7 @@ def reference_forces_pressure(x, v, rho, p, d, nbr, cnt, inv_rho, h, spiky_coef,
         vyi = v[i, 1]
         vzi = v[i, 2]
         pi = p[i]
-        rhoi = rho[i]
-        av2rhoi = av * rhoi
+        inv_rhoi = inv_rho[i]
         eps = 0.01 * h2
         ax = 0.0
         ay = 0.0
@@ -71,12 +70,12 @@ def reference_forces_pressure(x, v, rho, p, d, nbr, cnt, inv_rho, h, spiky_coef,
                 r = math.sqrt(r2)
                 hr = h - r
                 vdx = (vxi - v[j, 0]) * dx + (vyi - v[j, 1]) * dy + (vzi - v[j, 2]) * dz
-                den = (r2 + eps) * (rhoi + rho[j])
-                f = ((pi + p[j]) * inv_rho[j] * den + av2rhoi * (abs(vdx) - vdx)) * (hr * hr) / (den * r)
+                inv_rhoj = inv_rho[j]
+                den = (r2 + eps) * (inv_rhoi + inv_rhoj)
+                f = inv_rhoj * ((pi + p[j]) * den + av * (abs(vdx) - vdx)) * (hr * hr) / (den * r)
                 ax += f * dx
                 ay += f * dy
                 az += f * dz
-        inv_rhoi = inv_rho[i]
         c = mass * spiky_coef * inv_rhoi
         ax = ax * c + gx0
         ay = ay * c + gy0
@@ -96,7 +95,7 @@ class ReferenceSolver(SPHSolver):
     """SPHSolver stepping with the hand-written pressure + gravity kernel (no effects)."""
 
     def forces(self) -> None:
-        reference_forces_pressure(self.x, self.v, self.rho, self.pr, self.d, self.nbr, self.cnt_in, self.inv_rho,
+        reference_forces_pressure(self.x, self.v, self.pr, self.d, self.nbr, self.cnt_in, self.inv_rho,
                                   self.h, spiky_grad_coef(self.h) / self.grad_norm, self.mass, self.walls.maps,
                                   self.walls.origin, 1.0 / self.walls.spacing, self.fix_press, self.inv_dr,
                                   self.gravity, self.p.artificial_viscosity * self.c * self.h, self.acc)

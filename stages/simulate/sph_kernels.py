@@ -585,10 +585,12 @@ def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, wmap, w
         sp = 0.0
         sw = 1e-300
         pi = 0.0
-        av2rhoi = 0.0
         if pressure is not None:
             pi = p[i]
-            av2rhoi = av * rhoi  # times |vdx| - vdx = 2 max(-vdx, 0)
+        if inv_rho is not None:
+            inv_rhoi = inv_rho[i]
+        else:
+            inv_rhoi = 1.0 / rhoi
         if correction is not None:
             lxx = lc[i, 0]
             lyy = lc[i, 1]
@@ -645,11 +647,13 @@ def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, wmap, w
                         # dam break never settles and sprays into a gas. Symmetric in i, j.
                         vdx = (vxi - v[j, 0]) * dx + (vyi - v[j, 1]) * dy + (vzi - v[j, 2]) * dz
                         # f = [(p_i + p_j) / rho_j + av max(-vdx, 0) / (r^2 + eps) 2 rho_i / (rho_i + rho_j)]
-                        #     (h - r)^2 / r, over one common denominator: one division per pair, not three
-                        # (branch-free: a receding pair adds an exact +0.0; the branch was
-                        # mispredicted for about half the pairs)
-                        den = (r2 + eps) * (rhoi + rho[j])
-                        f = ((pi + p[j]) * inv_rhoj * den + av2rhoi * (abs(vdx) - vdx)) * (hr * hr) / (den * r)
+                        #     (h - r)^2 / r
+                        #   = [(p_i + p_j) D + av (|vdx| - vdx)] (h - r)^2 / (rho_j D r),
+                        # D = (r^2 + eps) (1/rho_i + 1/rho_j): one division per pair, not three, and no
+                        # rho_j read (|vdx| - vdx = 2 max(-vdx, 0) exactly: a receding pair adds an exact
+                        # +0.0 without a branch, which was mispredicted for about half the pairs)
+                        den = (r2 + eps) * (inv_rhoi + inv_rhoj)
+                        f = inv_rhoj * ((pi + p[j]) * den + av * (abs(vdx) - vdx)) * (hr * hr) / (den * r)
                         if correction is not None:
                             # 0.5 (L_i + L_j) applied to the pair direction (symmetric in i, j)
                             mxx = 0.5 * (lxx + lc[j, 0])
@@ -686,10 +690,6 @@ def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, wmap, w
                         ux -= kij * (nxi - normals[j, 0])
                         uy -= kij * (nyi - normals[j, 1])
                         uz -= kij * (nzi - normals[j, 2])
-        if inv_rho is not None:
-            inv_rhoi = inv_rho[i]
-        else:
-            inv_rhoi = 1.0 / rho[i]
         w1 = w2 = w3 = w4 = 0.0
         if near_wall:  # the wall map's channels 1-4 in one lookup (unused ones are optimised away)
             w1, w2, w3, w4 = wall_sample_1234(wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi)
