@@ -133,9 +133,9 @@ def test_neighbour_list_is_exactly_the_pairs_within_h_in_scan_order_and_reports_
 
 
 def test_list_kernels_are_the_cell_scan_kernels():
-    """density_neighbours + surface_normals(neighbours) against the cell-scan kernels: the same pairs in
-    the same order, so the same bits; forces(neighbours, inv_rho) the same to rounding (a fastmath
-    build: the two loop forms may contract differently), for every effect set."""
+    """density_verlet (a list at radius h) + surface_normals(neighbours) against the cell-scan kernels:
+    the same pairs in the same order, so the same bits; forces(neighbours, inv_rho) the same to rounding
+    (a fastmath build: the two loop forms may contract differently), for every effect set."""
     from stages.simulate.neighbours import neighbour_list
     from stages.simulate.wall_maps import WallMaps
     x, v, sdf, grid, l0, h = _random_cloud()
@@ -150,7 +150,9 @@ def test_list_kernels_are_the_cell_scan_kernels():
     nbr, cnt, inv_rho = np.zeros((n, 80), np.int32), np.zeros(n, np.int32), np.zeros(n)
     neighbour_list(x, *g, h, nbr, cnt)
     b = [np.zeros(n), np.zeros(n), np.zeros(n), np.zeros((n, 3))]
-    K.density_neighbours(x, nbr, cnt, *common, *b, inv_rho)
+    cnt_in = np.zeros(n, np.int32)
+    K.density_verlet(x, nbr, cnt, cnt_in, *common, *b, inv_rho)
+    assert np.array_equal(cnt_in, cnt)
     for u, w in zip(a, b):
         assert np.array_equal(u, w)
     rho, p, d, nrm = b
@@ -318,8 +320,9 @@ def _jittered_block(jitter=0.15, n=12, seed=4):
     neighbour_list(x, grid.starts, grid.lo, 1 / grid.cell, grid.dims, h, nbr, cnt)
     rho, p, d, nrm, inv_rho = np.zeros(N), np.zeros(N), np.zeros(N), np.zeros((N, 3)), np.zeros(N)
     no_walls = np.zeros((2, 2, 2, 5), np.float32)
-    K.density_neighbours(x, nbr, cnt, h, poly6_coef(h), m, 1000.0, no_walls, np.zeros(3), 1.0, np.zeros(8), 7 / h,
-                         sdf.dist, sdf.origin, 1 / sdf.spacing, K.EOS_LINEAR, 100.0, False, rho, p, d, nrm, inv_rho)
+    K.density_verlet(x, nbr, cnt, np.zeros(N, np.int32), h, poly6_coef(h), m, 1000.0, no_walls, np.zeros(3), 1.0,
+                     np.zeros(8), 7 / h, sdf.dist, sdf.origin, 1 / sdf.spacing, K.EOS_LINEAR, 100.0, False, rho, p, d,
+                     nrm, inv_rho)
     return x, nbr, cnt, rho, inv_rho, d, nrm, grid, m, l0, h
 
 

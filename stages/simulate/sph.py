@@ -278,7 +278,7 @@ class SPHSolver(SolverBase):
 class SPHSimulate(Stage):
     kind = "simulate"
     name = "sph"
-    version = "3"
+    version = "4"
     Params = SPHParams
     inputs = ("sdf",)
     reads = ("scene", "fluid", "effects")

@@ -4,11 +4,12 @@ Every particle loop is a prange over i that writes only particle i (no scatter, 
 result is bitwise deterministic whatever the thread count. Arrays are in cell order (see
 neighbours.py). All lengths SI (metres), see driver.py.
 
-One SPHSolver step: neighbours.neighbour_list (the pairs r < h, compares and stores only), then
-``density_neighbours`` and ``forces`` over that list (the cell scan of 216 candidates per particle
-happens once per step instead of twice, and the kernel sums run over the ~30 real neighbours). The
-list holds the pairs in the order the cell scan meets them, so every sum is bitwise the cell-scan sum:
-the cell-scan forms (``density_pressure``, ``forces`` without ``neighbours``) stay for DFSPH and tests.
+One SPHSolver step: ``density_verlet`` and ``forces`` over a Verlet list (neighbours.neighbour_list
+at radius h + skin, built with the cell sort only every few steps, when particles may have closed in
+by the skin): the cell scan of ~290 candidates per particle happens once per build instead of twice
+per step, and the kernel sums run over the ~30 real neighbours. The cell-scan forms
+(``density_pressure``, ``forces`` without ``neighbours``) are the references in tests; DFSPH calls
+the cell-scan ``forces`` for its non-pressure accelerations.
 
 Effects are compile-time (issue 8). ``forces`` is ONE fused neighbour-loop kernel; each effect is an
 optional argument that is either a tuple of its constants or None. Numba types None as NoneType and
@@ -279,7 +280,7 @@ def density_pressure(x, starts, lo, inv_cell, dims, h, poly6_coef, mass, rho0, w
     map (wall_maps.py) times the flat-wall factor at the SDF distance r_iw; eq. 5 pressure
     p = k (rho - rho0) (or Tait, B = stiffness), optionally clamped at 0. Also stores the SDF distance
     ``d`` and wall normal ``nrm`` of each particle. Grid cells of size >= h (27 cells scanned);
-    SPHSolver uses ``density_neighbours`` instead."""
+    SPHSolver uses ``density_verlet`` instead."""
     h2 = h * h
     nx, ny, nz = dims[0], dims[1], dims[2]
     for i in nb.prange(x.shape[0]):
@@ -306,38 +307,15 @@ def density_pressure(x, starts, lo, inv_cell, dims, h, poly6_coef, mass, rho0, w
 
 
 @nb.njit(cache=True, parallel=True)
-def density_neighbours(x, nbr, cnt, h, poly6_coef, mass, rho0, wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv,
-                       eos, stiffness, clamp, rho, p, d, nrm, inv_rho):
-    """``density_pressure`` (eq. 11, 12, 5) over the neighbour list of neighbours.neighbour_list (same
-    pairs in the same order, so bitwise the same density), plus ``inv_rho`` = 1 / rho for ``forces``
-    (the same IEEE quotient the pair loop would compute, once per particle instead of once per pair)."""
-    h2 = h * h
-    for i in nb.prange(x.shape[0]):
-        xi = x[i, 0]
-        yi = x[i, 1]
-        zi = x[i, 2]
-        s = 0.0
-        for jj in range(cnt[i]):
-            j = nbr[i, jj]
-            dx = xi - x[j, 0]
-            dy = yi - x[j, 1]
-            dz = zi - x[j, 2]
-            q = h2 - (dx * dx + dy * dy + dz * dz)
-            s += q * q * q
-        _walls_and_pressure(i, s, xi, yi, zi, h, poly6_coef, mass, rho0, wmap, wo, winv, fix_rho, inv_dr, sdf,
-                            sdf_o, sdf_inv, eos, stiffness, clamp, rho, p, d, nrm)
-        inv_rho[i] = 1.0 / rho[i]
-
-
-@nb.njit(cache=True, parallel=True)
 def density_verlet(x, nbr, cnt, cnt_in, h, poly6_coef, mass, rho0, wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o,
                    sdf_inv, eos, stiffness, clamp, rho, p, d, nrm, inv_rho, exact=True):
-    """``density_neighbours`` over a Verlet list: nbr[i, :cnt[i]] holds every particle that was within
-    h + skin of i when the list was built (neighbours.neighbour_list with that radius), so while no
-    pair has closed by more than the skin it holds every pair r < h. Each pass partitions the row in
-    place, the pairs r < h first in their list order (the rest keep their slots for later steps), sums
-    eq. 11 over them and leaves their count in ``cnt_in`` for ``forces``. Per particle only, so the
-    result does not depend on the thread count. ``exact`` False: ``d`` holds the lower bounds
+    """``density_pressure`` (eq. 11, 12, 5) over a Verlet list, plus ``inv_rho`` = 1 / rho for ``forces``.
+    nbr[i, :cnt[i]] holds every particle that was within h + skin of i when the list was built
+    (neighbours.neighbour_list with that radius), so while no pair has closed in by more than the skin
+    it holds every pair r < h. Each pass partitions the row in place, the pairs r < h first in their
+    list order (the rest keep their slots for later steps), sums eq. 11 over them and leaves their
+    count in ``cnt_in`` for ``forces``. Per particle only, so the result does not depend on the thread
+    count. With a list at radius h (skin 0) in cell-scan order, bitwise ``density_pressure``. ``exact`` False: ``d`` holds the lower bounds
     ``integrate`` left, and particles further than h from a wall skip the SDF sample."""
     h2 = h * h
     for i in nb.prange(x.shape[0]):
@@ -518,10 +496,9 @@ def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, wmap, w
     eq. 6, 8 (+ Monaghan av) and the wall pressure along the wall map; viscosity eq. 7, 9 and the wall
     term eq. 13-15; tension, adhesion, friction, wind, attractor as in PHYSICS.md "Effects".
 
-    ``neighbours`` = (nbr, cnt) from ``density_neighbours`` at the same positions: the pairs are taken
-    from the list instead of the 9 cell rows, in the same order, so the sums are bitwise the same.
-    ``inv_rho`` (N,) = 1 / rho from ``density_neighbours``, optional: saves a division per pair (the
-    same quotient, so again bitwise the same).
+    ``neighbours`` = (nbr, cnt_in) from ``density_verlet`` at the same positions: the pairs r < h are
+    taken from the list instead of the 9 cell rows (the same sums to rounding).
+    ``inv_rho`` (N,) = 1 / rho from ``density_verlet``, optional: saves a division per pair.
     ``correction`` (L,) with L (N, 6) from ``gradient_correction``, optional: the pressure pair term
     uses the symmetrised corrected gradient 0.5 (L_i + L_j) grad W_ij (the pair force stays
     antisymmetric, so momentum is conserved) and the wall pressure term L_i G_w.
