@@ -1,7 +1,7 @@
 """Effects benchmark (issue 8): ms/step on the PEERS.md 20k dam break (1 m cube in a 3 x 2 x 1.2 m tank,
 walls on) for each effect set, side by side in one run, plus the hand-written pressure-only kernel
-(``reference_forces_pressure``: the kernel sph_kernels had before issue 8, kept in step with its arithmetic) that the generic kernel with
-every effect absent must not be slower than.
+(``reference_forces_pressure``: the kernel sph_kernels had before issue 8, kept in step with its
+arithmetic and neighbour list) that the generic kernel with every effect absent must not be slower than.
 
     python benchmarks/bench_effects.py [--n 20000] [--steps 20] [--rounds 3] [--no-asm]
 

@@ -5,7 +5,8 @@ a ms at 100k), and the particle arrays are gathered into cell order so neighbour
 memory. The grid covers a fixed box (the SDF grid); particles outside are clamped into the border
 cells (still correct: the pair test is by distance) and removed by the solver at frame boundaries.
 Arrays grow with N; nothing has a fixed per-cell capacity. ``neighbour_list`` turns the cell scan into
-a per-particle list of the pairs r < h once per step (SPH's density and force passes both read it)."""
+a per-particle list of the pairs within a radius: SPH builds it at h + skin (a Verlet list) and
+re-sorts and rebuilds only when particles may have closed in by the skin, every few steps."""
 from __future__ import annotations
 
 import math
@@ -112,7 +113,7 @@ def reorder(arrays: list[np.ndarray], order: np.ndarray, scratch: dict) -> list[
 
 @nb.njit(cache=True, parallel=True)
 def neighbour_list(x, starts, lo, inv_cell, dims, h, nbr, cnt):
-    """The pairs r_ij < h (self included) of every particle, for cells of size >= h: nbr[i, :cnt[i]]
+    """The pairs r_ij < h (self included; h at most the cell size) of every particle: nbr[i, :cnt[i]]
     are i's neighbours in the order a scan of the 9 (z, y) rows of 3 x-contiguous cells meets them, so
     sums over the list are bitwise the sums of a cell scan. cnt[i] is the true count even beyond the
     capacity K = nbr.shape[1] (only K are stored; the caller grows K and calls again).

@@ -315,8 +315,9 @@ def density_verlet(x, nbr, cnt, cnt_in, h, poly6_coef, mass, rho0, wmap, wo, win
     it holds every pair r < h. Each pass partitions the row in place, the pairs r < h first in their
     list order (the rest keep their slots for later steps), sums eq. 11 over them and leaves their
     count in ``cnt_in`` for ``forces``. Per particle only, so the result does not depend on the thread
-    count. With a list at radius h (skin 0) in cell-scan order, bitwise ``density_pressure``. ``exact`` False: ``d`` holds the lower bounds
-    ``integrate`` left, and particles further than h from a wall skip the SDF sample."""
+    count. With a list at radius h (skin 0) in cell-scan order, bitwise ``density_pressure``.
+    ``exact`` False: ``d`` holds the lower bounds ``integrate`` left, and particles further than h
+    from a wall skip the SDF sample."""
     h2 = h * h
     for i in nb.prange(x.shape[0]):
         xi = x[i, 0]
