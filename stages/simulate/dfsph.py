@@ -43,6 +43,7 @@ from . import dfsph_kernels as D
 from . import sph_kernels as K
 from .driver import SolverBase, drive, prepare, set_threads
 from .effects import EffectConstants, compile_effects
+from .dfsph_walls import SplineWallMaps, spline_coefs, spline_lattice_mass
 from .kernels import lattice_mass, poly6_coef, spiky_grad_coef, spiky_lattice_factor
 from .neighbours import CellGrid
 from .sph import BrickWallMaps, SPHSolver
@@ -65,8 +66,10 @@ class DFSPHParams(Params):
     warm_start: float = Field(1.0, ge=0, le=1, description="start each solve from this fraction of the last "
                               "step's pressure (Bender and Koschier 2017, sec. 4.4)")
     divergence_solve: bool = Field(True, description="run the divergence-free solve (Bender and Koschier 2015)")
-    gradient: Literal["spiky", "poly6"] = Field("spiky", description="pressure kernel gradient: Spiky (eq. 8, "
-                                                "normalised as in sph) or the exact Poly6 derivative of the density")
+    gradient: Literal["spiky", "poly6", "spline"] = Field("spiky", description="pressure kernel gradient: Spiky "
+                                                          "(eq. 8, normalised as in sph) or the exact Poly6 derivative "
+                                                          "of the density; 'spline': the cubic spline for the density and "
+                                                          "its gradient, walls as its quadrature (dfsph_walls.py)")
     r_rep: float = Field(0.2, gt=0, le=1.0, description="eq. 16 wall clamp distance, in units of l0: a safety net "
                          "below the first layer's rest distance 0.5 l0, so the solver, not the clamp, holds the fluid")
     checkpoint_every: int = Field(10, ge=1, description="write a checkpoint every this many frames")
@@ -91,15 +94,24 @@ class DFSPHSolver(SolverBase):
         self.l0 = float(spacing)
         self.h = params.support * self.l0
         self.rho0 = float(rho0)
-        self.mass = lattice_mass(self.rho0, self.l0, self.h)
-        self.walls = BrickWallMaps(sdf, self.l0, self.h, self.mass, self.rho0, params.table_samples)
+        self.mode = {"spiky": D.SPIKY, "poly6": D.POLY6, "spline": D.SPLINE}[params.gradient]
+        if self.mode == D.SPLINE:  # one kernel for the density and its gradient, walls included
+            self.mass = spline_lattice_mass(self.rho0, self.l0, self.h)
+            self.walls = SplineWallMaps(sdf, self.l0, self.h, self.mass, self.rho0, params.table_samples)
+        else:
+            self.mass = lattice_mass(self.rho0, self.l0, self.h)
+            self.walls = BrickWallMaps(sdf, self.l0, self.h, self.mass, self.rho0, params.table_samples)
         self.fix_vis = self.walls.fix_vis if effects.wall_viscosity else np.zeros_like(self.walls.fix_vis)
         if effects.adhesion_accel is not None and len(effects.adhesion_accel) != params.table_samples:
             raise ValueError("effects.adhesion_accel must be sampled like the wall tables (table_samples)")
         self.grad_norm = spiky_lattice_factor(self.rho0, self.l0, self.h, self.mass)
-        self.spiky = params.gradient == "spiky"
-        self.grad_coef = spiky_grad_coef(self.h) / self.grad_norm if self.spiky else 6.0 * poly6_coef(self.h)
+        self.grad_coef = spiky_grad_coef(self.h) / self.grad_norm if self.mode == D.SPIKY else 6.0 * poly6_coef(self.h)
         self.fix_press = self.walls.fix_press / self.grad_norm  # Spiky wall gradient, normalised like grad_coef
+        self.density_coefs = (poly6_coef(self.h), self.grad_coef)
+        if self.mode == D.SPLINE:
+            self.density_coefs = spline_coefs(self.h)
+            self.grad_coef = spiky_grad_coef(self.h) / self.grad_norm  # surface tension's normals only
+            self.fix_press = self.walls.fix_press  # the spline's own wall gradient, not normalised
         self.gravity = np.asarray(gravity, np.float64)
         self.mu = float(effects.mu) if effects.mu is not None else 0.0
         self.sdf = sdf
@@ -155,9 +167,9 @@ class DFSPHSolver(SolverBase):
         g, w = self.grid, self.walls
         while True:
             most = D.density_alpha_neighbours(
-                self.x, g.starts, g.lo, 1.0 / g.cell, g.dims, self.h, poly6_coef(self.h), self.grad_coef, self.mass,
+                self.x, g.starts, g.lo, 1.0 / g.cell, g.dims, self.h, *self.density_coefs, self.mass,
                 self.rho0, w.wmap, w.origin, 1.0 / w.spacing, w.fix_rho, self.fix_press, 0.25 * self.l0, w.inv_dr, self.sdf.dist,
-                self.sdf.origin, self.sdf_inv, self.wall_mirror, self.spiky, self.cap, self.nbr, self.fac, self.count, self.rho, self.alpha,
+                self.sdf.origin, self.sdf_inv, self.wall_mirror, self.mode, self.cap, self.nbr, self.fac, self.count, self.rho, self.alpha,
                 self.d, self.nrm, self.psi, self.p.warm_start, self.kappa, self.kappa_v, self.kr, self.kr_v)
             if most <= self.cap:
                 break

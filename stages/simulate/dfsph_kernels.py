@@ -35,10 +35,12 @@ import numba as nb
 
 from stages.common.sdf import sdf_sample
 
+from .dfsph_walls import spline_f, spline_w
 from .neighbours import cell_coords
 from .sph_kernels import wall_sample, wall_sample_1234
 from .wall_tables import table_lookup
 
+SPIKY, POLY6, SPLINE = 0, 1, 2  # the ``gradient`` modes of density_alpha_neighbours
 WALL_MIRROR = 1.0  # the wall's share of the pressure acceleration counts kappa_i once (see above)
 
 
@@ -53,14 +55,18 @@ def _wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, x, y,
 
 @nb.njit(cache=True, parallel=True)
 def density_alpha_neighbours(x, starts, lo, inv_cell, dims, h, poly6_coef, grad_coef, mass, rho0, wmap, wo, winv,
-                             fix_rho, fix_press, fd, inv_dr, sdf, sdf_o, sdf_inv, wall_mirror, spiky, cap, nbr, fac, count,
+                             fix_rho, fix_press, fd, inv_dr, sdf, sdf_o, sdf_inv, wall_mirror, mode, cap, nbr, fac, count,
                              rho, alpha, d, nrm, psi, warm, kappa, kappa_v, kr, kr_v):
     """One pass over the cell grid: density (eq. 11), SDF distance ``d`` and normal ``nrm``, wall
     gradient ``psi``, the DFSPH factor ``alpha`` and the neighbour list (``nbr``/``fac`` rows of stride
     ``cap``, ``count`` entries, j != i). Returns the largest neighbour count (exact max): if it exceeds
     ``cap`` the lists are incomplete and the caller must grow ``cap`` and call again.
     Also the warm starts of both solves (their rho is this pass's): kr = warm kappa / rho and
-    kr_v = warm kappa_v / rho (one parallel region less each, which counts on a busy 2-core machine)."""
+    kr_v = warm kappa_v / rho (one parallel region less each, which counts on a busy 2-core machine).
+    ``mode`` SPIKY / POLY6: Poly6 density with that gradient (``poly6_coef``, ``grad_coef`` its
+    coefficients); SPLINE: the cubic spline for both (dfsph_walls.py; ``poly6_coef`` and ``grad_coef``
+    then carry its k and l, and the wall map must be dfsph_walls.SplineWallMaps)."""
+    spiky = mode != POLY6  # the wall terms of SPIKY and SPLINE are read the same way from their maps
     h2 = h * h
     nx, ny, nz = dims[0], dims[1], dims[2]
     most = 0
@@ -87,6 +93,20 @@ def density_alpha_neighbours(x, starts, lo, inv_cell, dims, h, poly6_coef, grad_
                     dz = zi - x[j, 2]
                     r2 = dx * dx + dy * dy + dz * dz
                     if r2 < h2:
+                        if mode == SPLINE:
+                            r = math.sqrt(r2)
+                            s += spline_w(r, h, poly6_coef)
+                            if j != i:
+                                f = spline_f(r, h, grad_coef)  # -grad_i W_ij = f (x_i - x_j), the density's own
+                                sx -= f * dx
+                                sy -= f * dy
+                                sz -= f * dz
+                                sq += f * f * r2
+                                if n < cap:
+                                    nbr[row + n] = j
+                                    fac[row + n] = f
+                                n += 1
+                            continue
                         q = h2 - r2
                         s += q * q * q
                         if j != i:
@@ -144,7 +164,7 @@ def density_alpha_neighbours(x, starts, lo, inv_cell, dims, h, poly6_coef, grad_
         psi[i, 0] = px
         psi[i, 1] = py
         psi[i, 2] = pz
-        r_i = mass * poly6_coef * s + zw
+        r_i = mass * (s if mode == SPLINE else poly6_coef * s) + zw
         rho[i] = r_i
         sx *= mass
         sy *= mass
