@@ -39,7 +39,11 @@ def _error(f, depth_lo, depth_hi):
 def _at_rest_and_dense(f):
     z = f.x[:, 2]
     assert z.min() > 0.0  # no particle below the floor
-    assert np.linalg.norm(f.v, axis=1).max() < 0.1
+    # at rest: sqrt(2 g H) = 2 m/s would be the speed of a free fall from the top. The single fastest
+    # particle is acoustic noise in the tank's vertical edges, 0.05-0.15 m/s from one frame to the next
+    # (measured over 1 s); the 99th percentile stays near 0.03 m/s
+    speed = np.linalg.norm(f.v, axis=1)
+    assert np.percentile(speed, 99) < 0.05 and speed.max() < 0.2
     deep = z < H - 3 * L0  # away from the top layers, which lack neighbours
     err = np.abs(f.rho / 1000.0 - 1)
     assert err[deep].mean() < 0.01
