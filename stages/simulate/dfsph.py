@@ -18,15 +18,31 @@ and in a corner and 4 % in an edge (grad Z_rho, the Poly6 slope, was 11-13 % sho
 
 Status: the dam break runs (surge front 8-12 % ahead of Martin & Moyce at CI size, like sph) at a
 mean density error of 0.1-0.2 %. A resting tank is NOT at rest yet (tests/test_dfsph.py keeps the
-hydrostatic test as a strict xfail). What was measured (10 x 10 x 20 tank, l0 = 1 cm): without
-gravity it keeps a noise of ~0.03 m/s at the edges and corners (the wall map over-counts the density
-there by 1.1 % and 1.6 % on the initial lattice, and the solve removes that in one step); with gravity
-the whole column bounces and boils (mean speed ~0.1-0.3 m/s) whatever dt (0.001-0.005 s), relaxation,
-warm start, r_rep, iteration bound, wall mirror factor (1 or 2) or gradient (Spiky, Poly6), and also
-after relaxing the lattice first. A likely cause: the solve predicts density changes with the Spiky
-gradient while the density is a Poly6 sum; their per-pair ratio runs from 0.45 (r = 0.95 h) to 3 (r =
-0.3 h), so the solve's linear model is not the density's Jacobian. The fix to try next: one kernel
-for density and gradient (cubic spline, as SPlisHSPlasH) with wall maps built with that kernel."""
+hydrostatic test as a strict xfail: 10 x 10 x 20 tank, l0 = 1 cm, mean speed 0.1-0.3 m/s, max 0.3-1
+m/s, for 0.6 s and more). What was measured:
+- not the cause alone: dt (0.001-0.005 s), relaxation, warm start, r_rep, iteration bound, the Poly6
+  gradient, relaxing the lattice first, and ONE kernel for density and gradient (gradient="spline",
+  the cubic spline with walls as the quadrature of the same kernel, dfsph_walls.py: the solve's rate is
+  then the density's derivative, tested; the tank boils just the same, and the CI dam break front runs
+  11-16 % ahead at 4.7 density iterations a step instead of 6-10 % at 2.2, so it stays opt-in);
+- the floor: with S_i + Psi_i = 0 and the wall counting kappa_i once (WALL_MIRROR = 1, the symmetric
+  form whose solve is J M^-1 J^T), a floor particle's own kappa puts no net force on it (the wall's
+  kappa_i Psi_i cancels the kappa_i half of its pairs) and the layer above pushes it down: even a solve
+  converged to 1e-5 leaves the column falling at g dt in the first step and the bottom layer ends on the
+  eq. 16 clamp (0.2 l0), its kappa swinging 6x to 0.2x the hydrostatic value (a bouncing column). A
+  mirrored wall pressure (WALL_MIRROR = 2, the momentum balance of p_wall = p_i) makes the solve
+  non-symmetric; it bounced as much (both kernels). SPlisHSPlasH's volume maps (as we read them) put the
+  wall's volume at the nearest surface point, so |Psi| > |S| there and a kappa_i-once wall can hold a column;
+- edges and corners: the flat-wall factors of the wall map over-count the rest density there by 1.1
+  / 1.6 % (Poly6) and 1.4 / 2.3 % (spline), and S + Psi misses by 0.8 % (edge) and 4 % (corner): at
+  the bottom corners that is kappa |S + Psi| ~ 0.3 g of spurious force; the fastest particles sit in
+  the vertical edges and corners. Without gravity the tank keeps a bounded 0.02-0.05 m/s;
+- the solve's error counts compression only, so a warm-started pressure that now expands the fluid is
+  never undone; counting |e| where kappa > 0 lowered the mean speed (0.13-0.2 -> 0.11-0.14 m/s), not
+  enough.
+Next: a wall density whose slope at the rest distance is 2|S| (so the kappa_i-once wall holds the
+floor in the symmetric form), built for edges and corners from the wall geometry rather than the
+flat-wall factor."""
 from __future__ import annotations
 
 import math

@@ -15,7 +15,9 @@ channel 0 Z_rho = sum_wall m W (kg/m^3), 1-3 G = (m / rho0) sum_wall -grad_i W (
 fluid; Psi = -rho0 G), 4 Z_vis of eq. 15 (the viscosity Laplacian, for sph_kernels.forces). Each node
 integrates over {d < 0} with the l0/2 quadrature of wall_maps.py; 1D flat-wall factors (by wall
 distance) make a flat floor match the lattice sum over wall particles exactly (wall_tables.wall_lattice),
-so a particle l0/2 above a floor on the rest lattice has rho0 and S_i + Psi_i = 0."""
+so a particle l0/2 above a floor on the rest lattice has rho0 and S_i + Psi_i = 0.
+
+Used by DFSPHParams(gradient="spline"), opt-in: it did not bring a resting tank to rest (dfsph.py)."""
 from __future__ import annotations
 
 import math
