@@ -40,9 +40,12 @@ m/s, for 0.6 s and more). What was measured:
 - the solve's error counts compression only, so a warm-started pressure that now expands the fluid is
   never undone; counting |e| where kappa > 0 lowered the mean speed (0.13-0.2 -> 0.11-0.14 m/s), not
   enough.
-Next: a wall density whose slope at the rest distance is 2|S| (so the kappa_i-once wall holds the
-floor in the symmetric form), built for edges and corners from the wall geometry rather than the
-flat-wall factor."""
+  A wall density Z phi(d) (spline, phi the flat-wall Z over its rest value: the slope doubled at the
+  rest distance, Psi its exact gradient) kept the bottom layer off the clamp (>= 0.4 l0) but the column
+  bounced as before, also with both solves converged to 1e-5: the fastest particles then sat in the
+  bottom edges and corners.
+Next: wall terms that are right in edges and corners (from the wall geometry, not a flat-wall factor
+of the nearest distance), then the floor's slope; the tank of the test is the check."""
 from __future__ import annotations
 
 import math
