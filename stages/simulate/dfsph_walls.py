@@ -27,8 +27,8 @@ import numpy as np
 
 from stages.common.sdf import SDFGrid, grid_from_function, sdf_sample
 
-from . import sph_kernels as K
 from .kernels import visc_lap_coef, visc_lap_np
+from .sph import BrickWallMaps
 from .wall_maps import _offsets, _wall_weight
 from .wall_tables import wall_lattice
 
@@ -135,7 +135,9 @@ def _quadrature_at(sdf, so, sinv, px, py, pz, h, dq, offsets, k, l, cv, scale, m
 
 @nb.njit(cache=True, parallel=True)
 def _build_bricks(sdf, so, sinv, mo, mh, shape, index, slots, h, dq, offsets, k, l, cv, scale, mass, rho0, bricks):
-    """sph_kernels.build_bricks with this module's quadrature."""
+    """sph_kernels.build_bricks with this module's quadrature. (Passing the quadrature to one shared
+    kernel as an argument works, but numba cannot cache a kernel that takes a function: 2.4 s of
+    compilation in every process.)"""
     nby, nbz = index.shape[1], index.shape[2]
     B = bricks.shape[1]
     for s in nb.prange(slots.shape[0]):
@@ -165,28 +167,17 @@ def _build_bricks(sdf, so, sinv, mo, mh, shape, index, slots, h, dq, offsets, k,
                         bricks[s, a, c, e, ch] = out[ch]
 
 
-class SplineWallMaps:
-    """The wall map of this module, bricked (only BRICK^3-node blocks within h + l0/2 of a wall), with
-    the flat-wall factors fix_rho, fix_press (for G), fix_vis indexed by the wall distance."""
+class SplineWallMaps(BrickWallMaps):
+    """The wall map of this module, bricked as sph.BrickWallMaps (whose storage and lookups it shares),
+    with the flat-wall factors fix_rho, fix_press (for G), fix_vis indexed by the wall distance."""
 
     def __init__(self, sdf: SDFGrid, l0: float, h: float, mass: float, rho0: float, samples: int = 256):
         self.h = h
-        dq = 0.5 * l0
-        self.spacing = dq
-        self.origin = np.asarray(sdf.origin, np.float64)
-        self.shape = np.floor((sdf.upper - sdf.origin) / self.spacing).astype(np.int64) + 1
+        slots = self._allocate(sdf, l0, h)
+        dq = self.spacing
         k, l = spline_coefs(h)
-        offsets = _offsets(h, dq)
-        args = (h, dq, offsets, k, l, visc_lap_coef(h), dq ** 3 / l0 ** 3, mass, rho0)
-        nbk = -(-self.shape // K.BRICK)
-        need = np.zeros(tuple(nbk), np.uint8)
-        sinv = 1.0 / sdf.spacing
-        K.bricks_needed(sdf.dist, sdf.origin, sinv, self.origin, self.spacing, self.shape, h + dq, need)
-        slots = np.flatnonzero(need.ravel()).astype(np.int64)
-        self.index = np.full(need.shape, -1, np.int32)
-        self.index.ravel()[slots] = np.arange(len(slots), dtype=np.int32)
-        self.bricks = np.zeros((len(slots), K.BRICK, K.BRICK, K.BRICK, 5), np.float32)
-        _build_bricks(sdf.dist, sdf.origin, sinv, self.origin, self.spacing, self.shape, self.index, slots, *args,
+        args = (h, dq, _offsets(h, dq), k, l, visc_lap_coef(h), dq ** 3 / l0 ** 3, mass, rho0)
+        _build_bricks(sdf.dist, sdf.origin, 1.0 / sdf.spacing, self.origin, dq, self.shape, self.index, slots, *args,
                       self.bricks)
         # flat-wall factors: the lattice sums over the quadrature of a half space, per wall distance
         z_rho, z_grad, z_vis = flat_wall_tables(l0, h, mass, rho0, samples)
@@ -201,11 +192,3 @@ class SplineWallMaps:
         self.fix_press = np.where(flat[:, 3] > 1e-12, z_grad / np.maximum(flat[:, 3], 1e-300), 1.0)
         self.fix_vis = np.where(flat[:, 4] > 1e-12, z_vis / np.maximum(flat[:, 4], 1e-300), 1.0)
         self.inv_dr = (samples - 1) / h
-
-    @property
-    def wmap(self) -> tuple:
-        return self.index, self.bricks, self.shape
-
-    @property
-    def nbytes(self) -> int:
-        return self.index.nbytes + self.bricks.nbytes

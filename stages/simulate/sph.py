@@ -68,22 +68,26 @@ class BrickWallMaps:
         flat = W.WallMaps(tiny, l0, h, mass, rho0, samples)
         self.fix_rho, self.fix_press, self.fix_vis, self.inv_dr = flat.fix_rho, flat.fix_press, flat.fix_vis, flat.inv_dr
         self.h = h
-        dq = 0.5 * l0
+        slots = self._allocate(sdf, l0, h)
+        dq = self.spacing
+        K.build_bricks(sdf.dist, sdf.origin, 1.0 / sdf.spacing, self.origin, dq, self.shape, self.index, slots, h,
+                       dq, W._offsets(h, dq), poly6_coef(h), cs(h), cv(h), dq ** 3 / l0 ** 3, mass, rho0, self.bricks)
+
+    def _allocate(self, sdf: SDFGrid, l0: float, h: float) -> np.ndarray:
+        """Nodes every l0/2 over the SDF box (as WallMaps); zeroed bricks for those holding a node within
+        h + l0/2 of a wall. Returns each brick's flat brick index (the fill kernel's ``slots``)."""
         self.spacing = 0.5 * l0
         self.origin = np.asarray(sdf.origin, np.float64)
-        self.shape = np.floor((sdf.upper - sdf.origin) / self.spacing).astype(np.int64) + 1  # as WallMaps
-        nbk = -(-self.shape // K.BRICK)
-        need = np.zeros(tuple(nbk), np.uint8)
-        sinv = 1.0 / sdf.spacing
-        K.bricks_needed(sdf.dist, sdf.origin, sinv, self.origin, self.spacing, self.shape, h + dq, need)
+        self.shape = np.floor((sdf.upper - sdf.origin) / self.spacing).astype(np.int64) + 1
+        need = np.zeros(tuple(-(-self.shape // K.BRICK)), np.uint8)
+        K.bricks_needed(sdf.dist, sdf.origin, 1.0 / sdf.spacing, self.origin, self.spacing, self.shape,
+                        h + self.spacing, need)
         slots = np.flatnonzero(need.ravel()).astype(np.int64)
         self.index = np.full(need.shape, -1, np.int32)
         self.index.ravel()[slots] = np.arange(len(slots), dtype=np.int32)
         self.bricks = np.zeros((len(slots), K.BRICK, K.BRICK, K.BRICK, 5), np.float32)
-        scale = dq ** 3 / l0 ** 3
-        K.build_bricks(sdf.dist, sdf.origin, sinv, self.origin, self.spacing, self.shape, self.index, slots, h, dq,
-                       W._offsets(h, dq), poly6_coef(h), cs(h), cv(h), scale, mass, rho0, self.bricks)
         self._dense = None
+        return slots
 
     @property
     def wmap(self) -> tuple:
