@@ -242,7 +242,7 @@ def test_independent_branches_run_concurrently_with_a_pool(toy_config):
     they overlap in time; inline they run one after the other. Same outputs either way."""
     from pipeline.executors import ProcessExecutor
 
-    sets = ("outputs=[frames, usd]", "render.sleep=0.6", "export.sleep=1.5")
+    sets = ("outputs=[frames, usd]", "render.sleep=0.6", "export.sleep=0.5", "export.wait_for=render")
     ex = ProcessExecutor(2)
     try:
         r = run(toy_config, overrides=sets, executor=ex)

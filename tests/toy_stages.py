@@ -115,10 +115,17 @@ class ToyRender(Stage):
         (ctx.out_dir / f"frame_{frame:05d}.txt").write_text(f"{src} | render {params.width}")
 
 
-def _span(ctx, name: str, seconds: float) -> None:
-    """Sleep and record the (start, end) interval, so tests can see whether branches overlapped."""
+def _span(ctx, name: str, seconds: float, wait_for: str | None = None) -> None:
+    """Sleep and record the (start, end) interval, so tests can see whether branches overlapped.
+
+    A marker ``started_<name>`` is written at the start; with ``wait_for`` the span also lasts until the
+    marker of that other stage exists (at most 60 s), so an overlap test does not depend on how fast
+    worker processes start on a loaded machine: run one after the other, the spans still do not overlap."""
     t0 = time.time()
+    (ctx.config_dir / f"started_{name}").touch()
     time.sleep(seconds)
+    while wait_for and not (ctx.config_dir / f"started_{wait_for}").exists() and time.time() - t0 < 60:
+        time.sleep(0.05)
     with open(ctx.config_dir / f"span_{name}.log", "a") as fh:
         fh.write(f"{t0} {time.time()}\n")
 
@@ -130,10 +137,11 @@ class ToyExport(Stage):
 
     class Params(Params):
         sleep: float = Field(0.0, ge=0)
+        wait_for: str | None = Field(None, description="also wait until this stage has started (overlap tests)")
 
     def run(self, ctx, inputs, params):
         _bump(ctx, "export")
-        _span(ctx, "export", params.sleep)
+        _span(ctx, "export", params.sleep, params.wait_for)
         (ctx.out_dir / "scene.txt").write_text((inputs["particles"].path / "particles.txt").read_text())
 
 
