@@ -56,9 +56,9 @@ def _diff(old: dict[str, Any], new: dict[str, Any], graph: Graph) -> str:
 
 
 def _flatten(value: Any, prefix: str = "") -> dict[str, Any]:
-    if isinstance(value, dict):
+    if isinstance(value, (dict, list)) and value:
         out: dict[str, Any] = {}
-        for k, v in value.items():
+        for k, v in (value.items() if isinstance(value, dict) else enumerate(value)):
             out.update(_flatten(v, f"{prefix}{k}."))
         return out
     return {prefix.rstrip("."): value}
