@@ -17,7 +17,7 @@ import numpy as np
 import trimesh
 from pydantic import Field
 
-from pipeline.scene import BuiltinWall, FileWall, UsdWall
+from pipeline.scene import BuiltinWall, UsdWall
 from pipeline.stage import Artifact, Context, Params, Stage, StageError
 from stages.common.formats import WallMesh
 
