@@ -11,7 +11,7 @@ from .cache import Cache
 from .config import load_config
 from .errors import ConfigError
 from .graph import Graph, build_graph
-from .keys import frame_key, plan
+from .keys import frame_key, plan, resume_source
 from .registry import Registry
 from .runner import default_cache_dir
 
@@ -95,11 +95,15 @@ def status(config_path: str | Path, *, registry: Registry | None = None, overrid
             if cache.exists(kind, key):
                 rows.append(StageStatus(kind, node.cls.name, key, "stale", "entry damaged (files differ from manifest)", None))
                 continue
+        extends = ""
+        if kind in p.resume and resume_source(cache, kind, p.resume[kind]) is not None:
+            extends = f"; continues the cached shorter run ({node.cls.extends})"
         if prev.get("key") and prev["key"] != key:
-            rows.append(StageStatus(kind, node.cls.name, key, "stale", _diff(prev.get("components", {}), p.components[kind], graph),
+            rows.append(StageStatus(kind, node.cls.name, key, "stale",
+                                    _diff(prev.get("components", {}), p.components[kind], graph) + extends,
                                     prev.get("seconds")))
         else:
-            rows.append(StageStatus(kind, node.cls.name, key, "missing", "never run with these inputs", None))
+            rows.append(StageStatus(kind, node.cls.name, key, "missing", "never run with these inputs" + extends, None))
     return rows
 
 

@@ -182,6 +182,8 @@ def test_partial_frames_then_full_run_covers_every_frame(tmp_path):
 def test_extending_a_shot_resumes_and_equals_a_fresh_run(tmp_path, caplog):
     config = tiny(tmp_path, frames=3, outputs="[particles]")
     pipeline.run(config)
+    row = next(r for r in pipeline.status(config, overrides=("scene.frames.count=5",)) if r.kind == "simulate")
+    assert "scene.frames.count 3 -> 5" in row.reason and "continues the cached shorter run" in row.reason
     with caplog.at_level(logging.INFO, logger="stage.simulate.sph"):
         longer = pipeline.run(config, overrides=("scene.frames.count=5",))
     assert statuses(longer)["simulate"] == "ran" and statuses(longer)["sdf_bake"] == "cached"
