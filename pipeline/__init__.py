@@ -1,11 +1,12 @@
 """Fluid pipeline engine: config, registry, graph, cache, executors and CLI. Imports no stage.
 
 Public API for stage authors: Stage, Params, Artifact, Context, StageError (pipeline.stage);
-for callers: run, status, clean (pipeline.runner), Registry.
+for callers: run (pipeline.runner), status, clean (pipeline.status), Registry.
 """
 from .errors import CacheMissError, ConfigError, PipelineError, RegistryError, StageFailed
 from .registry import Registry
-from .runner import RunReport, clean, run, status
+from .runner import RunReport, run
+from .status import clean, status
 from .stage import Artifact, Context, Params, Progress, Stage, StageError
 
 __all__ = ["Artifact", "CacheMissError", "ConfigError", "Context", "Params", "PipelineError", "Progress",

@@ -9,6 +9,7 @@ from pathlib import Path
 import click
 
 from . import runner
+from .status import clean as clean_config, status as config_status
 from .errors import PipelineError
 from .registry import Registry
 from .stage import STAGE_KINDS
@@ -109,7 +110,7 @@ def status(config, overrides, cache_dir, frames):
     from rich.console import Console
     from rich.table import Table
 
-    rows = runner.status(config, overrides=tuple(overrides), cache_dir=cache_dir, frames=runner.parse_frames(frames))
+    rows = config_status(config, overrides=tuple(overrides), cache_dir=cache_dir, frames=runner.parse_frames(frames))
     table = Table("stage", "implementation", "key", "state", "reason", "last (s)")
     colour = {"cached": "green", "stale": "yellow", "missing": "red", "partial": "yellow"}
     for r in rows:
@@ -147,7 +148,7 @@ def stages():
 @_guard
 def clean(config, cache_dir, stage):
     """Remove the config's cache entries (or one stage's)."""
-    n = runner.clean(config, stage=stage, cache_dir=cache_dir)
+    n = clean_config(config, stage=stage, cache_dir=cache_dir)
     click.echo(f"removed {n} cache entr{'y' if n == 1 else 'ies'}")
 
 

@@ -1,9 +1,6 @@
-"""Run a config's graph against the cache: keys, hits, misses, per-frame jobs, publishing, run.json.
-
-A stage's key is the sha256 of its implementation and code version, its validated params (defaults
-included), the scene sections it reads, its upstream keys and the content hashes of the external files
-it names. A per-frame stage's frame key adds the frame index to its stage key. Whole-run stages run in
-dependency order in this process; per-frame jobs go to the executor.
+"""Run a config's plan (pipeline.keys) against the cache: hits, misses, per-frame jobs, publishing,
+run.json. Whole-run stages run in dependency order in this process; per-frame jobs go to the executor.
+Status and clean are in pipeline.status.
 """
 from __future__ import annotations
 
@@ -19,12 +16,14 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-from .cache import Cache, file_sha256, hash_key
-from .config import Config, dump_model, load_config
+from .cache import Cache
+from .config import Config, load_config
 from .errors import CacheMissError, ConfigError, PipelineError, StageFailed
 from .executors import Executor, make_executor
 from .graph import Graph, Node, build_graph
+from .keys import Plan, context, frame_key, plan, record_resume, resume_source
 from .registry import Registry
+from .reads import FRAMES, SceneReads
 from .stage import Artifact, Context, Progress, Stage, StageError
 
 log = logging.getLogger("pipeline")
@@ -60,65 +59,6 @@ class RunReport:
         return [s.kind for s in self.stages if s.status != "cached"]
 
 
-@dataclass
-class Plan:
-    config: Config
-    graph: Graph
-    cache: Cache
-    keys: dict[str, str]
-    components: dict[str, dict[str, Any]]
-    frames: tuple[int, ...]
-
-
-# -- keys ------------------------------------------------------------------------------------------
-def _context(config: Config, node: Node, out_dir: Path, frames: tuple[int, ...],
-             checkpoint_dir: Path | None = None) -> Context:
-    sections = config.sections()
-    ctx = Context(out_dir=out_dir, scene={s: sections[s] for s in node.cls.reads}, config_dir=config.dir,
-                  frames=frames, log=logging.getLogger(f"stage.{node.label}"), checkpoint_dir=checkpoint_dir)
-    return ctx
-
-
-def plan(config: Config, graph: Graph, cache: Cache, frames: tuple[int, ...] | None = None) -> Plan:
-    count = config.scene.scene.frames.count
-    if frames is None:
-        frames = tuple(range(count))
-    bad = [f for f in frames if not 0 <= f < count]
-    if bad:
-        raise ConfigError(f"--frames: frame {bad[0]} is outside the scene's frames 0..{count - 1}")
-    sections = {k: dump_model(v) for k, v in config.sections().items()}
-    keys: dict[str, str] = {}
-    components: dict[str, dict[str, Any]] = {}
-    for kind in graph.order():
-        node = graph.nodes[kind]
-        files: dict[str, str] = {}
-        stage = node.cls()
-        try:
-            external = stage.external_files(_context(config, node, config.dir, frames), node.params)
-        except StageError as e:
-            raise StageFailed(f"stage {node.label}: {e}", user_error=True) from None
-        for f in external:
-            f = Path(f)
-            if not f.is_file():
-                raise StageFailed(f"stage {node.label}: input file not found: {f}", user_error=True)
-            files[str(f)] = file_sha256(f)
-        comp = {
-            "stage": node.label,
-            "version": node.cls.version,
-            "params": dump_model(node.params),
-            "scene": {s: sections[s] for s in node.cls.reads},
-            "inputs": {name: keys[producer] for name, producer in node.inputs},
-            "files": files,
-        }
-        components[kind] = comp
-        keys[kind] = hash_key(comp)
-    return Plan(config=config, graph=graph, cache=cache, keys=keys, components=components, frames=tuple(frames))
-
-
-def frame_key(stage_key: str, frame: int) -> str:
-    return hash_key({"stage_key": stage_key, "frame": frame})
-
-
 # -- per-frame job (top level so process pools can pickle it) -----------------------------------
 @dataclass
 class FrameJob:
@@ -126,7 +66,7 @@ class FrameJob:
     kind: str
     stage_cls: type[Stage]
     params: Any
-    scene: dict[str, Any]
+    scene: SceneReads  # only what the stage declares
     config_dir: str
     frames: tuple[int, ...]
     inputs: dict[str, Artifact]
@@ -146,7 +86,8 @@ def run_frame_job(job: FrameJob) -> tuple[int, str, float, bool]:
         tmp = cache.new_tmp(key)
         t0 = time.perf_counter()
         try:
-            ctx = Context(out_dir=tmp, scene=job.scene, config_dir=Path(job.config_dir), frames=job.frames,
+            ctx = Context(out_dir=tmp, scene=job.scene, config_dir=Path(job.config_dir),
+                          frames=job.frames if FRAMES in job.stage_cls.reads else None,
                           log=logging.getLogger(f"stage.{job.stage_cls.qualname()}"))
             job.stage_cls().run_frame(ctx, job.inputs, job.params, job.frame)
             seconds = time.perf_counter() - t0
@@ -302,7 +243,9 @@ def _run_whole(p: Plan, node: Node, key: str, inputs: dict[str, Artifact], runna
             sr.seconds = float(hit.manifest.get("seconds", 0.0))
             return sr, hit.path
         tmp = cache.new_tmp(key)
-        ctx = _context(config, node, tmp, p.frames, checkpoint_dir=cache.checkpoint_dir(key))
+        resume = p.resume.get(node.kind)
+        ctx = context(config, node, tmp, p.frames, checkpoint_dir=cache.checkpoint_dir(key),
+                      resume_from=resume_source(cache, node.kind, resume) if resume and not forced else None)
         ctx.make_progress = bars.make
         t0 = time.perf_counter()
         try:
@@ -317,6 +260,8 @@ def _run_whole(p: Plan, node: Node, key: str, inputs: dict[str, Artifact], runna
                 raise
             raise _fail(node, key, config, exc, cache) from exc
         shutil.rmtree(cache.checkpoint_dir(key), ignore_errors=True)
+        if resume:
+            record_resume(cache, node.kind, resume, key)
     sr.status = "forced" if forced else "ran"
     return sr, entry.path
 
@@ -339,9 +284,9 @@ def _run_per_frame(p: Plan, node: Node, key: str, inputs: dict[str, Artifact], r
     if not runnable:
         raise CacheMissError(f"stage {node.label} has {len(todo)} frame(s) not cached (first: {todo[0]}) and the "
                              f"selection does not run it; run without --only/--from first")
-    sections = config.sections()
+    scene = SceneReads(config.sections(), node.cls.reads)
     jobs = [FrameJob(cache_root=str(cache.root), kind=node.kind, stage_cls=node.cls, params=node.params,
-                     scene={s: sections[s] for s in node.cls.reads}, config_dir=str(config.dir), frames=p.frames,
+                     scene=scene, config_dir=str(config.dir), frames=p.frames,
                      inputs=inputs, stage_key=key, frame=f, force=forced) for f in todo]
     bar = bars.make(f"{node.kind} frames", len(jobs))
     try:
@@ -452,110 +397,3 @@ def run(config_path: str | Path, *, registry: Registry | None = None, overrides:
     p = plan(config, graph, cache, frames)
     out = Path(out_dir) if out_dir else default_out_dir(config)
     return execute(p, out_dir=out, force=frozenset(force), executor=executor, progress=progress)
-
-
-# -- status ----------------------------------------------------------------------------------------
-@dataclass
-class StageStatus:
-    kind: str
-    implementation: str
-    key: str
-    state: str  # cached / stale / missing / partial
-    reason: str
-    seconds: float | None
-
-
-def _diff(old: dict[str, Any], new: dict[str, Any], graph: Graph) -> str:
-    if old.get("stage") != new.get("stage"):
-        return f"implementation {old.get('stage')} -> {new.get('stage')}"
-    if old.get("version") != new.get("version"):
-        return f"code version {old.get('version')} -> {new.get('version')}"
-    for section in ("params", "scene"):
-        a, b = _flatten(old.get(section, {})), _flatten(new.get(section, {}))
-        changed = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
-        if changed:
-            k = changed[0]
-            more = f" (+{len(changed) - 1} more)" if len(changed) > 1 else ""
-            return f"{section}: {k} {a.get(k, '<unset>')!r} -> {b.get(k, '<unset>')!r}{more}"
-    oi, ni = old.get("inputs", {}), new.get("inputs", {})
-    for name in sorted(set(oi) | set(ni)):
-        if oi.get(name) != ni.get(name):
-            return f"upstream {name} changed"
-    of, nf = old.get("files", {}), new.get("files", {})
-    for name in sorted(set(of) | set(nf)):
-        if of.get(name) != nf.get(name):
-            return f"input file changed: {name}"
-    return "key schema changed"
-
-
-def _flatten(value: Any, prefix: str = "") -> dict[str, Any]:
-    if isinstance(value, dict):
-        out: dict[str, Any] = {}
-        for k, v in value.items():
-            out.update(_flatten(v, f"{prefix}{k}."))
-        return out
-    return {prefix.rstrip("."): value}
-
-
-def status(config_path: str | Path, *, registry: Registry | None = None, overrides: tuple[str, ...] = (),
-           cache_dir: str | Path | None = None, frames: tuple[int, ...] | None = None) -> list[StageStatus]:
-    registry = registry or Registry.from_entry_points()
-    config = load_config(config_path, registry, overrides)
-    graph = build_graph(config)
-    cache = Cache(Path(cache_dir) if cache_dir else default_cache_dir(config))
-    p = plan(config, graph, cache, frames)
-    last = cache.read_state(config.path)
-    rows: list[StageStatus] = []
-    for kind in graph.order():
-        node, key = graph.nodes[kind], p.keys[kind]
-        prev = last.get(kind, {})
-        if node.per_frame:
-            hits = [cache.lookup(kind, frame_key(key, f)) for f in p.frames]
-            n = sum(h is not None for h in hits)
-            seconds = sum(float(h.manifest.get("seconds", 0)) for h in hits if h is not None) if n else None
-            if n == len(p.frames):
-                rows.append(StageStatus(kind, node.cls.name, key, "cached", f"{n} frames", seconds))
-                continue
-            if n:
-                rows.append(StageStatus(kind, node.cls.name, key, "partial", f"{n}/{len(p.frames)} frames cached", seconds))
-                continue
-        else:
-            hit = cache.lookup(kind, key)
-            if hit is not None:
-                rows.append(StageStatus(kind, node.cls.name, key, "cached", "up to date",
-                                        float(hit.manifest.get("seconds", 0.0))))
-                continue
-            if cache.exists(kind, key):
-                rows.append(StageStatus(kind, node.cls.name, key, "stale", "entry damaged (files differ from manifest)", None))
-                continue
-        if prev.get("key") and prev["key"] != key:
-            rows.append(StageStatus(kind, node.cls.name, key, "stale", _diff(prev.get("components", {}), p.components[kind], graph),
-                                    prev.get("seconds")))
-        else:
-            rows.append(StageStatus(kind, node.cls.name, key, "missing", "never run with these inputs", None))
-    return rows
-
-
-def clean(config_path: str | Path, *, registry: Registry | None = None, stage: str | None = None,
-          cache_dir: str | Path | None = None) -> int:
-    """Remove this config's cache entries (all frames), or only one stage's; returns how many."""
-    registry = registry or Registry.from_entry_points()
-    config = load_config(config_path, registry)
-    graph = build_graph(config)
-    if stage is not None and stage not in graph.nodes:
-        raise ConfigError(f"--stage {stage}: not a stage of this config ({', '.join(graph.order())})")
-    cache = Cache(Path(cache_dir) if cache_dir else default_cache_dir(config))
-    p = plan(config, graph, cache, tuple(range(config.scene.scene.frames.count)))
-    last = cache.read_state(config.path)
-    removed = 0
-    for kind in graph.order():
-        if stage is not None and kind != stage:
-            continue
-        keys = {p.keys[kind]} | ({last[kind]["key"]} if kind in last else set())
-        for key in keys:
-            if graph.nodes[kind].per_frame:
-                removed += sum(cache.remove(kind, frame_key(key, f)) for f in p.frames)
-            else:
-                removed += int(cache.remove(kind, key))
-                shutil.rmtree(cache.checkpoint_dir(key), ignore_errors=True)
-    return removed

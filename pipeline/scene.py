@@ -14,6 +14,20 @@ from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, field_val
 Vec3 = tuple[float, float, float]
 
 
+class InputFileMarker:
+    """Marks a config field holding a path (relative to the config file) to a file a stage reads. The
+    engine finds every such field in what a stage declares it reads (and in its params) and hashes the
+    file's content into the stage's key, so no stage has to remember to name its input files."""
+
+    def __repr__(self) -> str:
+        return "InputFile"
+
+
+INPUT_FILE = InputFileMarker()
+InputFile = Annotated[str, INPUT_FILE]
+OptionalInputFile = Annotated[Union[str, None], INPUT_FILE]
+
+
 class Model(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
@@ -80,13 +94,13 @@ class BuiltinWall(Placement):
 
 
 class FileWall(Placement):
-    file: str = Field(description="OBJ/PLY/STL/OFF/GLB/GLTF path, relative to the config file")
+    file: InputFile = Field(description="OBJ/PLY/STL/OFF/GLB/GLTF path, relative to the config file")
     fluid: Literal["inside", "outside"] = Field("outside", description="outside: a solid obstacle; inside: a container")
     meters_per_unit: float | None = Field(None, gt=0, description="the file's units if not the scene's")
 
 
 class UsdWall(Placement):
-    usd: str = Field(description=".usda/.usdc/.usdz path, relative to the config file")
+    usd: InputFile = Field(description=".usda/.usdc/.usdz path, relative to the config file")
     prims: list[str] = Field(default_factory=lambda: ["/**"], description="prim paths or glob patterns to use as walls")
     include_invisible: bool = Field(False, description="also use prims whose visibility is 'invisible'")
     fluid: Literal["inside", "outside"] = Field("outside", description="outside: a solid obstacle; inside: a container")
@@ -134,7 +148,7 @@ class SphereSpec(Model):
 
 
 class MeshEmitter(Emitter, Placement):
-    mesh: str = Field(description="fill the interior of this closed mesh file (relative to the config)")
+    mesh: InputFile = Field(description="fill the interior of this closed mesh file (relative to the config)")
 
 
 SphereEmitter.model_rebuild()
@@ -239,7 +253,7 @@ class Effects(Model):
 class Camera(Model):
     """The shot's camera, used by render (the frames) and export (the USD camera prim)."""
 
-    usd: str | None = Field(None, description="take the camera from this USD file (relative to the config file)")
+    usd: OptionalInputFile = Field(None, description="take the camera from this USD file (relative to the config file)")
     prim: str | None = Field(None, description="the UsdGeom.Camera prim in `usd`; default: the first camera found")
     position: Vec3 | None = Field(None, description="eye position, scene units; default: framed on the walls")
     focal_point: Vec3 | None = Field(None, description="point looked at, scene units; default: the walls' centre")

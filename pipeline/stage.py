@@ -2,10 +2,9 @@
 
 A stage is a small class: its kind (the DAG node it can fill, e.g. ``simulate``), its implementation
 name (chosen in the config with ``use:``), a hand-bumped code ``version``, a typed ``Params`` model,
-the artifacts it consumes and produces, the scene sections it reads, and ``run`` (or ``run_frame`` for
-per-frame stages). The engine checks the contract when the stage is registered and hashes
-``version``, the validated params (defaults included), the scene sections it reads, its upstream keys
-and the content of the external files it names into the cache key.
+the artifacts it consumes and produces, the config fields it reads, and ``run`` (or ``run_frame`` for
+per-frame stages). The engine checks the contract when the stage is registered; pipeline.keys says
+what goes into the cache key.
 """
 from __future__ import annotations
 
@@ -16,13 +15,15 @@ from typing import Any, Callable, ClassVar, Mapping
 
 from pydantic import BaseModel, ConfigDict
 
+from .reads import FRAMES, SceneReads, UndeclaredRead, check_read
+
 # The stage kinds of the DAG, in dependency order, and the artifact each one produces. The engine
 # knows these names (they are the vocabulary of configs), never the implementations.
 STAGE_KINDS: tuple[str, ...] = (
     "mesh_import", "sdf_bake", "simulate", "surface_extract", "wall_snap", "render", "movie", "export",
 )
 
-# The scene sections a stage may declare in ``reads``.
+# The scene sections a stage may read (``reads`` names them or dotted fields inside them).
 SCENE_SECTIONS: tuple[str, ...] = ("scene", "walls", "fluid", "effects", "camera")
 
 
@@ -69,21 +70,42 @@ class Progress:
             self._update(amount)
 
 
-@dataclass
 class Context:
-    """What a running stage may use: its scratch output folder, the scene sections it declared, the
-    config file's folder (paths in the config are relative to it), the frame set, a logger and a
-    progress factory."""
+    """What a running stage may use: its scratch output folder, the config fields it declared in
+    ``reads`` (``scene``: section -> value or a view of the declared fields), the config file's folder
+    (paths in the config are relative to it), the frame selection (only if it declared "frames"), a
+    logger and a progress factory. Reading anything undeclared raises UndeclaredRead."""
 
-    out_dir: Path
-    scene: Mapping[str, Any]
-    config_dir: Path
-    frames: tuple[int, ...]
-    log: logging.Logger
-    make_progress: Callable[[str, float], Progress] = lambda description, total: Progress()
-    threads: int | None = None
-    # a folder that survives an interrupted run of this stage key (checkpoints); None when not cached
-    checkpoint_dir: Path | None = None
+    def __init__(self, out_dir: Path, scene: Mapping[str, Any], config_dir: Path,
+                 frames: tuple[int, ...] | None, log: logging.Logger,
+                 make_progress: Callable[[str, float], Progress] | None = None, threads: int | None = None,
+                 checkpoint_dir: Path | None = None, resume_from: Path | None = None) -> None:
+        self.out_dir = out_dir
+        self.scene = scene
+        self.config_dir = config_dir
+        self._frames = None if frames is None else tuple(frames)
+        self.log = log
+        self.make_progress = make_progress or (lambda description, total: Progress())
+        self.threads = threads
+        # a folder that survives an interrupted run of this stage key (checkpoints); None when not cached
+        self.checkpoint_dir = checkpoint_dir
+        # read-only: the cached entry of a shorter run of the same shot (Stage.extends), to continue from
+        self.resume_from = resume_from
+
+    @classmethod
+    def for_stage(cls, stage_cls: type["Stage"], sections: Mapping[str, Any], *, out_dir: Path, config_dir: Path,
+                  frames: tuple[int, ...], **kw: Any) -> "Context":
+        """The context the engine gives ``stage_cls``: only its declared reads are visible."""
+        return cls(out_dir=out_dir, scene=SceneReads(sections, stage_cls.reads), config_dir=config_dir,
+                   frames=frames if FRAMES in stage_cls.reads else None,
+                   log=kw.pop("log", None) or logging.getLogger(f"stage.{stage_cls.qualname()}"), **kw)
+
+    @property
+    def frames(self) -> tuple[int, ...]:
+        """The frames this run computes (``--frames``); declare "frames" in ``reads`` to use it."""
+        if self._frames is None:
+            raise UndeclaredRead('ctx.frames: the stage does not declare "frames" in its reads')
+        return self._frames
 
     def progress(self, description: str, total: float) -> Progress:
         return self.make_progress(description, total)
@@ -105,7 +127,11 @@ class Stage:
     inputs: ClassVar[tuple[str, ...]] = ()
     optional_inputs: ClassVar[tuple[str, ...]] = ()
     outputs: ClassVar[tuple[str, ...]] = ()
+    # config fields the stage reads, as dotted paths ("scene.units", "fluid.spacing", "walls"), and
+    # "frames" if it uses the run's frame selection; the key holds exactly these, ctx exposes only these
     reads: ClassVar[tuple[str, ...]] = ()
+    # a read whose growth the stage can continue from a cached shorter run ("scene.frames.count")
+    extends: ClassVar[str | None] = None
     per_frame: ClassVar[bool] = False
     default: ClassVar[bool] = False  # the implementation used when the config names none for the kind
     description: ClassVar[str] = ""
@@ -116,7 +142,8 @@ class Stage:
         return self.inputs
 
     def external_files(self, ctx: Context, params: Params) -> list[Path]:
-        """Files outside the cache that this stage reads; their content goes into the key."""
+        """Files outside the cache that this stage reads beyond the config's ``InputFile`` fields (which the
+        engine finds itself), e.g. the layers a USD file composes; their content goes into the key."""
         return []
 
     def frame_count(self, ctx: Context, params: Params, inputs: Mapping[str, Artifact]) -> int | None:
@@ -149,9 +176,15 @@ class Stage:
             raise TypeError(f"stage {where}: Params must forbid unknown keys (extra='forbid')")
         if not cls.outputs:
             raise TypeError(f"stage {where}: declares no outputs")
-        for section in cls.reads:
-            if section not in SCENE_SECTIONS:
-                raise TypeError(f"stage {where}: reads unknown scene section {section!r}")
+        if isinstance(cls.reads, str):
+            raise TypeError(f"stage {where}: reads must be a tuple of names, not a string")
+        for read in cls.reads:
+            try:
+                check_read(read)
+            except ValueError as e:
+                raise TypeError(f"stage {where}: reads {e}") from None
+        if cls.extends is not None and cls.extends not in cls.reads:
+            raise TypeError(f"stage {where}: extends {cls.extends!r} must also be declared in reads")
         hook = "run_frame" if cls.per_frame else "run"
         if getattr(cls, hook) is getattr(Stage, hook):
             raise TypeError(f"stage {where}: per_frame={cls.per_frame} but {hook}() is not implemented")

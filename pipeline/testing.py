@@ -1,7 +1,6 @@
 """Run one stage directly, without the graph or the cache: for stage authors' tests."""
 from __future__ import annotations
 
-import logging
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -13,6 +12,16 @@ def scene_sections(config: Mapping[str, Any] | SceneConfig) -> dict[str, Any]:
     """Validated scene sections (scene, walls, fluid, effects, camera) from a plain dict or a SceneConfig."""
     sc = config if isinstance(config, SceneConfig) else SceneConfig.model_validate(dict(config))
     return {"scene": sc.scene, "walls": sc.walls, "fluid": sc.fluid, "effects": sc.effects, "camera": sc.camera}
+
+
+def stage_context(stage_cls: type[Stage], out_dir: Path, *, scene: Mapping[str, Any] | SceneConfig,
+                  frames: tuple[int, ...] | None = None, config_dir: Path | None = None, **kw: Any) -> Context:
+    """The Context the engine would give ``stage_cls``: only its declared reads are visible."""
+    sections = scene_sections(scene)
+    if frames is None:
+        frames = tuple(range(sections["scene"].frames.count))
+    return Context.for_stage(stage_cls, sections, out_dir=Path(out_dir), config_dir=config_dir or Path.cwd(),
+                             frames=tuple(frames), **kw)
 
 
 def run_stage(stage_cls: type[Stage], out_dir: Path, *, scene: Mapping[str, Any] | SceneConfig,
@@ -27,8 +36,7 @@ def run_stage(stage_cls: type[Stage], out_dir: Path, *, scene: Mapping[str, Any]
     out_dir.mkdir(parents=True, exist_ok=True)
     if frames is None:
         frames = tuple(range(sections["scene"].frames.count))
-    ctx = Context(out_dir=out_dir, scene={k: sections[k] for k in stage_cls.reads}, config_dir=config_dir or Path.cwd(),
-                  frames=tuple(frames), log=logging.getLogger(f"stage.{stage_cls.qualname()}"))
+    ctx = stage_context(stage_cls, out_dir, scene=sections, frames=frames, config_dir=config_dir)
     arts = {name: Artifact(name=name, key="test", path=Path(path)) for name, path in (inputs or {}).items()}
     stage = stage_cls()
     if stage_cls.per_frame:

@@ -170,13 +170,19 @@ def test_external_files_list_usd_sublayers(tmp_path):
     root = Sdf.Layer.CreateNew(str(tmp_path / "root.usda"))
     root.subLayerPaths.append("asset.usda")
     root.Save()
-    from pipeline.testing import scene_sections
-    from pipeline.stage import Context
-    import logging
+    from pipeline import Registry
+    from pipeline.cache import Cache
+    from pipeline.config import load_config
+    from pipeline.graph import build_graph
+    from pipeline.keys import plan
+    from pathlib import Path
 
-    sections = scene_sections({"scene": SCENE, "walls": [{"usd": "root.usda"}, {"file": "asset.obj"}]})
-    ctx = Context(out_dir=tmp_path, scene=sections, config_dir=tmp_path, frames=(0,), log=logging.getLogger("t"))
-    files = {p.name for p in TrimeshImport().external_files(ctx, TrimeshImport.Params())}
+    # the key of mesh_import hashes the wall files the config names and the layers a USD wall composes
+    (tmp_path / "c.yaml").write_text("config_version: 1\nscene: {name: t}\nwalls: [{usd: root.usda}, {file: asset.obj}]\n"
+                                     "outputs: [walls]\n")
+    cfg = load_config(tmp_path / "c.yaml", Registry.from_entry_points())
+    p = plan(cfg, build_graph(cfg), Cache(tmp_path / "cache"))
+    files = {Path(f).name for f in p.components["mesh_import"]["files"]}
     assert files == {"root.usda", "asset.usda", "asset.obj"}
 
 

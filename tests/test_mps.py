@@ -12,7 +12,7 @@ import pytest
 import pipeline
 from pipeline import Registry
 from pipeline.stage import Artifact, Context, StageError
-from pipeline.testing import run_stage, scene_sections
+from pipeline.testing import run_stage, scene_sections, stage_context
 from stages.common.formats import ParticleMeta, load_particle_frame
 from stages.common.sdf import box_interior_sdf, grid_from_function
 from stages.simulate.emitters import lattice
@@ -183,8 +183,8 @@ def _sdf(tmp: Path) -> Path:
 
 def _ctx(out: Path, ckpt: Path | None) -> Context:
     sections = scene_sections(SCENE)
-    return Context(out_dir=out, scene={k: sections[k] for k in MPSSimulate.reads}, config_dir=Path.cwd(),
-                   frames=tuple(range(7)), log=logging.getLogger("t"), checkpoint_dir=ckpt)
+    return stage_context(MPSSimulate, out, scene=sections, frames=tuple(range(7)), log=logging.getLogger("t"),
+                         checkpoint_dir=ckpt)
 
 
 def test_resume_from_checkpoint_is_identical_and_frames_feed_surface_extract(tmp_path):

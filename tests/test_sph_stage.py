@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from pipeline.stage import Artifact, Context
-from pipeline.testing import run_stage, scene_sections
+from pipeline.testing import run_stage, scene_sections, stage_context
 from stages.common.formats import ParticleMeta, load_particle_frame
 from stages.common.sdf import box_interior_sdf, grid_from_function
 from stages.simulate.sph import SPHSimulate
@@ -31,8 +31,8 @@ SCENE = {
 
 def _ctx(out: Path, ckpt: Path | None) -> Context:
     sections = scene_sections(SCENE)
-    return Context(out_dir=out, scene={k: sections[k] for k in SPHSimulate.reads}, config_dir=Path.cwd(),
-                   frames=tuple(range(7)), log=logging.getLogger("t"), checkpoint_dir=ckpt)
+    return stage_context(SPHSimulate, out, scene=sections, frames=tuple(range(7)), log=logging.getLogger("t"),
+                         checkpoint_dir=ckpt)
 
 
 def test_stage_writes_frames_meta_usd_and_drops_particles_in_walls(tmp_path, caplog):

@@ -77,17 +77,13 @@ class UsdExport(Stage):
     inputs = ("walls", "particles")
     optional_inputs = ("surface",)
     outputs = ("usd",)
-    reads = ("scene", "walls", "camera")
+    # the USD assets walls came from are in the upstream walls key (mesh_import hashes them)
+    reads = ("scene.units", "scene.frames.fps", "scene.frames.count", "camera", "frames")
     default = True
     description = "scene.usda composing walls, particles, fluid surface and camera layers (usd-core)"
 
     def input_names(self, params: UsdParams) -> tuple[str, ...]:
         return ("walls", "particles", "surface") if params.surface else ("walls", "particles")
-
-    def external_files(self, ctx: Context, params: UsdParams) -> list[Path]:
-        cam = ctx.scene["camera"]
-        return [ctx.resolve(w.usd) for w in ctx.scene.get("walls", []) if hasattr(w, "usd")] + (
-            [ctx.resolve(cam.usd)] if cam.usd else [])
 
     # -- the studio asset's frame -------------------------------------------------------------------
     def _asset_path(self, ctx: Context, info: dict) -> Path:

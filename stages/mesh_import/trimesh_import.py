@@ -17,7 +17,7 @@ import numpy as np
 import trimesh
 from pydantic import Field
 
-from pipeline.scene import BuiltinWall, FileWall, UsdWall
+from pipeline.scene import BuiltinWall, UsdWall
 from pipeline.stage import Artifact, Context, Params, Stage, StageError
 from stages.common.formats import WallMesh
 
@@ -82,20 +82,15 @@ class TrimeshImport(Stage):
     version = "2"
     Params = ImportParams
     outputs = ("walls",)
-    reads = ("scene", "walls")
+    reads = ("scene.units", "walls")
     default = True
     description = "walls from builtin shapes, OBJ/PLY/STL/OFF/GLB/GLTF (trimesh) and USD, cleaned, in world space"
 
     def external_files(self, ctx: Context, params: Params) -> list[Path]:
+        """The layers and assets each USD wall composes (the wall files themselves the engine finds)."""
         from .usd_import import usd_dependencies
 
-        files: list[Path] = []
-        for w in ctx.scene["walls"]:
-            if isinstance(w, FileWall):
-                files.append(ctx.resolve(w.file))
-            elif isinstance(w, UsdWall):
-                files += usd_dependencies(ctx.resolve(w.usd))
-        return files
+        return [f for w in ctx.scene["walls"] if isinstance(w, UsdWall) for f in usd_dependencies(ctx.resolve(w.usd))]
 
     def run(self, ctx: Context, inputs: Mapping[str, Artifact], params: Params) -> None:
         scene = ctx.scene["scene"]

@@ -36,7 +36,7 @@ class FfmpegMovie(Stage):
     Params = MovieParams
     inputs = ("frames",)
     outputs = ("movie",)
-    reads = ("scene",)
+    reads = ("scene.frames.fps", "frames")
     default = True
     description = "movie.mp4 at the scene's fps and contact_sheet.png from the rendered frames"
 

@@ -106,7 +106,7 @@ class PyvistaRender(Stage):
     inputs = ("walls",)
     optional_inputs = ("surface", "particles")
     outputs = ("frames",)
-    reads = ("scene", "camera")
+    reads = ("scene.units", "scene.frames.fps", "camera")
     per_frame = True
     default = True
     description = "offscreen PNG frames of the walls and fluid surface (or particles) with PyVista/VTK"
@@ -115,10 +115,6 @@ class PyvistaRender(Stage):
         if params.show == "surface":
             return ("walls", "surface", "particles")
         return ("walls", "particles")
-
-    def external_files(self, ctx: Context, params: RenderParams) -> list[Path]:
-        cam = ctx.scene["camera"]
-        return [ctx.resolve(cam.usd)] if cam.usd else []
 
     def run_frame(self, ctx: Context, inputs: Mapping[str, Artifact], params: RenderParams, frame: int) -> None:
         if frame % params.every:

@@ -217,7 +217,7 @@ class Open3dBake(Stage):
     Params = BakeParams
     inputs = ("walls",)
     outputs = ("sdf",)
-    reads = ("scene", "fluid")
+    reads = ("fluid.spacing", "scene.domain")
     default = True
     description = "narrow-band SDF on a grid (exact distance near the walls, sign by grid-line ray votes)"
 

@@ -313,7 +313,8 @@ class DFSPHSimulate(Stage):
     version = "2"
     Params = DFSPHParams
     inputs = ("sdf",)
-    reads = ("scene", "fluid", "effects")
+    reads = ("scene.units", "scene.domain", "scene.frames.count", "scene.frames.fps", "fluid", "effects")
+    extends = "scene.frames.count"  # a longer shot continues from the cached shorter run's last frame
     outputs = ("particles",)
     description = "divergence-free SPH (Bender and Koschier 2017) with distance-function walls, numba"
 

@@ -155,13 +155,17 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
     stats: dict = {"emitted": int(len(setup.x) + dropped), "dropped_in_wall": dropped, "density_error_mean": [],
                    "density_error_max": [], "inside_wall": [], "extent_min": [], "extent_max": [],
                    "wall_seconds": 0.0}
-    resumed = latest_checkpoint(ckpt_dir, count)
+    resumed, source = latest_checkpoint(ckpt_dir, count), ckpt_dir
+    if resumed is None and getattr(ctx, "resume_from", None) is not None:
+        # the cached entry of a shorter run of this shot (Stage.extends): continue from its last frame
+        source = Path(ctx.resume_from)
+        resumed = latest_checkpoint(source, count)
     progress = ctx.progress(f"simulating ({solver_name})", count)
     if resumed is not None:
         start, state = resumed
         solver.load_state(state)
         stats = _stats_from(state, stats)
-        restore_frames(ckpt_dir, ctx.out_dir, start)
+        restore_frames(source, ctx.out_dir, start)
         ctx.log.info("resumed from the checkpoint at frame %d", start)
         progress.advance(start + 1)
     else:
@@ -185,6 +189,8 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
             save_checkpoint(ckpt_dir, f, {**solver.state(), **_stats_to(stats)})
         progress.advance()
     stats["wall_seconds"] += time.perf_counter() - t0
+    # the final state in the entry itself, so a longer shot can continue from it
+    save_checkpoint(ctx.out_dir, count - 1, {**solver.state(), **_stats_to(stats)})
     sim_seconds = (count - 1) / fps
     stats.update(steps=solver.steps, left_domain=solver.left_domain, sound_speed=solver.c,
                  mean_dt=sim_seconds / max(solver.steps, 1), particles=int(len(solver.x)))

@@ -278,7 +278,8 @@ class MPSSimulate(Stage):
     version = "3"
     Params = MPSParams
     inputs = ("sdf",)
-    reads = ("scene", "fluid", "effects")
+    reads = ("scene.units", "scene.domain", "scene.frames.count", "scene.frames.fps", "fluid", "effects")
+    extends = "scene.frames.count"  # a longer shot continues from the cached shorter run's last frame
     outputs = ("particles",)
     default = False
     description = "moving particle semi-implicit (Koshizuka and Oka 1996) with distance-function walls, numba CG"

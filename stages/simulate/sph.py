@@ -285,7 +285,8 @@ class SPHSimulate(Stage):
     version = "4"
     Params = SPHParams
     inputs = ("sdf",)
-    reads = ("scene", "fluid", "effects")
+    reads = ("scene.units", "scene.domain", "scene.frames.count", "scene.frames.fps", "fluid", "effects")
+    extends = "scene.frames.count"  # a longer shot continues from the cached shorter run's last frame
     outputs = ("particles",)
     default = True
     description = "weakly compressible SPH with distance-function walls (Harada et al. 2007), numba"

@@ -1,0 +1,240 @@
+"""Cache keys: what a stage's result depends on, hashed.
+
+A stage's key is the sha256 of
+- its implementation, hand ``version`` (for format changes) and ``code``: the sha256 of the source of
+  its module and of every project module it imports, transitively (as joblib.Memory does for a
+  function), so an edit to a kernel invalidates the entries it made without anyone bumping a version;
+- its validated params (defaults included);
+- the config values it declares in ``reads`` (dotted paths: a stage is keyed on the fields it uses,
+  not on whole sections) and, if it declares "frames", the run's frame selection;
+- its upstream keys; a per-frame artifact consumed by a whole-run stage counts with the frame
+  selection (the whole-run result covers only those frames);
+- the content of every file it reads: each ``InputFile`` field in its reads and params, found by the
+  engine, plus what its ``external_files()`` hook adds.
+A per-frame stage keys each frame by its stage key and the frame index.
+
+A stage that ``extends`` a read (simulate: "scene.frames.count") also gets a resume key, its key with
+that read left out: a run with a larger value continues from the cached entry of a smaller one.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import re
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from .cache import Cache, file_sha256, hash_key
+from .config import Config, dump_model
+from .errors import ConfigError, StageFailed
+from .graph import Graph, Node
+from .reads import FRAMES, input_files, read_values, resolve
+from .stage import Context, Stage, StageError
+
+
+@dataclass
+class Plan:
+    config: Config
+    graph: Graph
+    cache: Cache
+    keys: dict[str, str]
+    components: dict[str, dict[str, Any]]
+    frames: tuple[int, ...]
+    resume: dict[str, tuple[str, int]]  # kind -> (resume key, value of the extended read)
+
+
+def frame_key(stage_key: str, frame: int) -> str:
+    return hash_key({"stage_key": stage_key, "frame": frame})
+
+
+def selection_key(stage_key: str, frames: tuple[int, ...]) -> str:
+    """The identity of a per-frame artifact restricted to a frame selection."""
+    return hash_key({"stage_key": stage_key, "frames": list(frames)})
+
+
+def context(config: Config, node: Node, out_dir: Path, frames: tuple[int, ...], **kw: Any) -> Context:
+    return Context.for_stage(node.cls, config.sections(), out_dir=out_dir, config_dir=config.dir, frames=frames, **kw)
+
+
+def plan(config: Config, graph: Graph, cache: Cache, frames: tuple[int, ...] | None = None) -> Plan:
+    count = config.scene.scene.frames.count
+    if frames is None:
+        frames = tuple(range(count))
+    frames = tuple(frames)
+    bad = [f for f in frames if not 0 <= f < count]
+    if bad:
+        raise ConfigError(f"--frames: frame {bad[0]} is outside the scene's frames 0..{count - 1}")
+    sections = config.sections()
+    keys: dict[str, str] = {}
+    components: dict[str, dict[str, Any]] = {}
+    resume: dict[str, tuple[str, int]] = {}
+    for kind in graph.order():
+        node = graph.nodes[kind]
+        values = read_values(sections, node.cls.reads)
+        comp: dict[str, Any] = {
+            "stage": node.label,
+            "version": node.cls.version,
+            "code": code_hashes(node.cls),
+            "params": dump_model(node.params),
+            "scene": dump_model(values),
+            "inputs": {name: (selection_key(keys[producer], frames)
+                              if graph.nodes[producer].per_frame and not node.per_frame else keys[producer])
+                       for name, producer in node.inputs},
+            "files": _files(config, node, values, frames),
+        }
+        if FRAMES in node.cls.reads:
+            comp["frames"] = list(frames)
+        components[kind] = comp
+        keys[kind] = hash_key(comp)
+        ext = node.cls.extends
+        if ext is not None and isinstance(comp["scene"].get(ext), int):
+            rest = {**comp, "scene": {k: v for k, v in comp["scene"].items() if k != ext}}
+            resume[kind] = (hash_key({"resume": ext, **rest}), comp["scene"][ext])
+    return Plan(config=config, graph=graph, cache=cache, keys=keys, components=components, frames=frames,
+                resume=resume)
+
+
+def _files(config: Config, node: Node, values: dict[str, Any], frames: tuple[int, ...]) -> dict[str, str]:
+    """``{path: sha256}`` of every file the stage reads."""
+    found: list[tuple[str, Path]] = []
+    for read, value in values.items():
+        found += [(where, resolve(config.dir, p)) for where, p in input_files(value, read)]
+    found += [(f"params.{where}", resolve(config.dir, p)) for where, p in input_files(node.params, "")]
+    try:
+        extra = node.cls().external_files(context(config, node, config.dir, frames), node.params)
+    except StageError as e:
+        raise StageFailed(f"stage {node.label}: {e}", user_error=True) from None
+    found += [("external file", Path(f)) for f in extra]
+    files: dict[str, str] = {}
+    for where, path in found:
+        if str(path) not in files:
+            if not path.is_file():
+                raise StageFailed(f"stage {node.label}: {where}: input file not found: {path}", user_error=True)
+            files[str(path)] = _file_hash(path)
+    return files
+
+
+_FILE_HASHES: dict[tuple[str, int, int], str] = {}
+
+
+def _file_hash(path: Path) -> str:
+    st = path.stat()
+    sig = (str(path.resolve()), st.st_size, st.st_mtime_ns)
+    if sig not in _FILE_HASHES:
+        _FILE_HASHES[sig] = file_sha256(path)
+    return _FILE_HASHES[sig]
+
+
+# -- code hashes -----------------------------------------------------------------------------------
+_SOURCES: dict[str, tuple[tuple[int, int], str, tuple[str, ...]]] = {}  # file -> (stat, sha, imports)
+# import statements, also inside functions; a regex rather than ast: parsing every module on each run
+# costs seconds, and a false match in a docstring only adds a module to the hash
+_FROM_IMPORT = re.compile(r"^[ \t]*from[ \t]+(\.*)([\w.]*)[ \t]+import[ \t]+(\([^)]*\)|[^\n#;]*)", re.M)
+_IMPORT = re.compile(r"^[ \t]*import[ \t]+([\w., \t]+)", re.M)
+
+
+def code_hashes(cls: type[Stage]) -> dict[str, str]:
+    """``{module: sha256 of its source}`` for the stage's module and every module of the project
+    (``pipeline``, ``stages`` and the stage's own top-level package) it imports, transitively; imports
+    inside functions count too, the packages' ``__init__`` only when imported by name (pipeline's would pull
+    in the whole engine). Parsed sources are reused while a file's size and mtime are unchanged."""
+    roots = {"pipeline", "stages", cls.__module__.split(".")[0]}
+    out: dict[str, str] = {}
+    todo = [cls.__module__]
+    seen: set[str] = set()
+    while todo:
+        name = todo.pop()
+        if name in seen:
+            continue
+        seen.add(name)
+        file = _module_file(name)
+        if file is None:
+            continue
+        sha, imports = _source(file, name)
+        out[name] = sha
+        todo += [m for m in imports if m.split(".")[0] in roots]
+    return dict(sorted(out.items()))
+
+
+def _module_file(name: str) -> str | None:
+    """The source file of module ``name``, found without importing anything (an import may compile
+    numba kernels); None when it is not a module of an imported top-level package."""
+    mod = sys.modules.get(name)
+    if mod is not None:
+        file = getattr(mod, "__file__", None)
+    else:
+        top, *rest = name.split(".")
+        pkg_dirs = getattr(sys.modules.get(top), "__path__", None)
+        if not rest or not pkg_dirs:
+            return None
+        file = None
+        for d in pkg_dirs:
+            base = Path(d).joinpath(*rest)
+            for cand in (base.with_suffix(".py"), base / "__init__.py"):
+                if cand.is_file():
+                    file = str(cand)
+                    break
+            if file:
+                break
+    return file if file and file.endswith(".py") else None
+
+
+def _source(file: str, name: str) -> tuple[str, tuple[str, ...]]:
+    st = os.stat(file)
+    sig = (st.st_size, st.st_mtime_ns)
+    hit = _SOURCES.get(file)
+    if hit is not None and hit[0] == sig:
+        return hit[1], hit[2]
+    data = Path(file).read_bytes()
+    sha = hashlib.sha256(data).hexdigest()[:16]
+    package = name if file.endswith("__init__.py") else name.rpartition(".")[0]
+    imports: list[str] = []
+    text = data.decode("utf-8", "replace")
+    for m in _FROM_IMPORT.finditer(text):
+        dots, module, names = m.group(1), m.group(2), m.group(3).strip("()")
+        if dots:
+            parts = package.split(".")
+            base = ".".join(parts[: len(parts) - len(dots) + 1] + ([module] if module else []))
+        else:
+            base = module
+        imports.append(base)
+        imports += [f"{base}.{n.split()[0]}" for n in names.replace("\\", " ").split(",") if n.split()]  # submodules
+    for m in _IMPORT.finditer(text):
+        imports += [n.split()[0] for n in m.group(1).split(",") if n.split()]
+    _SOURCES[file] = (sig, sha, tuple(dict.fromkeys(i for i in imports if i)))
+    return sha, _SOURCES[file][2]
+
+
+# -- resume index ----------------------------------------------------------------------------------
+def _resume_index(cache: Cache, kind: str, resume_key: str) -> Path:
+    return cache.root / "resume" / kind / f"{resume_key}.json"
+
+
+def resume_source(cache: Cache, kind: str, resume: tuple[str, int]) -> Path | None:
+    """The cached entry of the same stage with the largest smaller value of the extended read."""
+    resume_key, value = resume
+    try:
+        index = json.loads(_resume_index(cache, kind, resume_key).read_text())
+    except (OSError, ValueError):
+        return None
+    for old in sorted((int(v) for v in index if int(v) < value), reverse=True):
+        hit = cache.lookup(kind, index[str(old)])
+        if hit is not None:
+            return hit.path
+    return None
+
+
+def record_resume(cache: Cache, kind: str, resume: tuple[str, int], key: str) -> None:
+    path = _resume_index(cache, kind, resume[0])
+    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        index = json.loads(path.read_text())
+    except (OSError, ValueError):
+        index = {}
+    index[str(resume[1])] = key
+    tmp = path.with_suffix(f".{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(index, sort_keys=True))
+    os.replace(tmp, path)

@@ -1,0 +1,132 @@
+"""What `pipeline status` and `pipeline clean` tell and do: per stage cached / stale (with the cause:
+params, config field, code, frame selection, upstream, input file) / missing; removing a config's entries."""
+from __future__ import annotations
+
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from .cache import Cache
+from .config import load_config
+from .errors import ConfigError
+from .graph import Graph, build_graph
+from .keys import frame_key, plan, resume_source
+from .registry import Registry
+from .runner import default_cache_dir
+
+
+@dataclass
+class StageStatus:
+    kind: str
+    implementation: str
+    key: str
+    state: str  # cached / stale / missing / partial
+    reason: str
+    seconds: float | None
+
+
+def _diff(old: dict[str, Any], new: dict[str, Any], graph: Graph) -> str:
+    if old.get("stage") != new.get("stage"):
+        return f"implementation {old.get('stage')} -> {new.get('stage')}"
+    if old.get("version") != new.get("version"):
+        return f"code version {old.get('version')} -> {new.get('version')}"
+    oc, nc = old.get("code", {}), new.get("code", {})
+    if oc != nc:
+        changed = sorted(m for m in set(oc) | set(nc) if oc.get(m) != nc.get(m))
+        return f"code changed: {', '.join(changed[:3])}{' ...' if len(changed) > 3 else ''}"
+    if old.get("frames") != new.get("frames"):
+        return f"frame selection changed ({len(old.get('frames') or [])} -> {len(new.get('frames') or [])} frames)"
+    for section in ("params", "scene"):
+        a, b = _flatten(old.get(section, {})), _flatten(new.get(section, {}))
+        changed = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
+        if changed:
+            k = changed[0]
+            more = f" (+{len(changed) - 1} more)" if len(changed) > 1 else ""
+            return f"{section}: {k} {a.get(k, '<unset>')!r} -> {b.get(k, '<unset>')!r}{more}"
+    oi, ni = old.get("inputs", {}), new.get("inputs", {})
+    for name in sorted(set(oi) | set(ni)):
+        if oi.get(name) != ni.get(name):
+            return f"upstream {name} changed"
+    of, nf = old.get("files", {}), new.get("files", {})
+    for name in sorted(set(of) | set(nf)):
+        if of.get(name) != nf.get(name):
+            return f"input file changed: {name}"
+    return "key schema changed"
+
+
+def _flatten(value: Any, prefix: str = "") -> dict[str, Any]:
+    if isinstance(value, (dict, list)) and value:
+        out: dict[str, Any] = {}
+        for k, v in (value.items() if isinstance(value, dict) else enumerate(value)):
+            out.update(_flatten(v, f"{prefix}{k}."))
+        return out
+    return {prefix.rstrip("."): value}
+
+
+def status(config_path: str | Path, *, registry: Registry | None = None, overrides: tuple[str, ...] = (),
+           cache_dir: str | Path | None = None, frames: tuple[int, ...] | None = None) -> list[StageStatus]:
+    registry = registry or Registry.from_entry_points()
+    config = load_config(config_path, registry, overrides)
+    graph = build_graph(config)
+    cache = Cache(Path(cache_dir) if cache_dir else default_cache_dir(config))
+    p = plan(config, graph, cache, frames)
+    last = cache.read_state(config.path)
+    rows: list[StageStatus] = []
+    for kind in graph.order():
+        node, key = graph.nodes[kind], p.keys[kind]
+        prev = last.get(kind, {})
+        if node.per_frame:
+            hits = [cache.lookup(kind, frame_key(key, f)) for f in p.frames]
+            n = sum(h is not None for h in hits)
+            seconds = sum(float(h.manifest.get("seconds", 0)) for h in hits if h is not None) if n else None
+            if n == len(p.frames):
+                rows.append(StageStatus(kind, node.cls.name, key, "cached", f"{n} frames", seconds))
+                continue
+            if n:
+                rows.append(StageStatus(kind, node.cls.name, key, "partial", f"{n}/{len(p.frames)} frames cached", seconds))
+                continue
+        else:
+            hit = cache.lookup(kind, key)
+            if hit is not None:
+                rows.append(StageStatus(kind, node.cls.name, key, "cached", "up to date",
+                                        float(hit.manifest.get("seconds", 0.0))))
+                continue
+            if cache.exists(kind, key):
+                rows.append(StageStatus(kind, node.cls.name, key, "stale", "entry damaged (files differ from manifest)", None))
+                continue
+        extends = ""
+        if kind in p.resume and resume_source(cache, kind, p.resume[kind]) is not None:
+            extends = f"; continues the cached shorter run ({node.cls.extends})"
+        if prev.get("key") and prev["key"] != key:
+            rows.append(StageStatus(kind, node.cls.name, key, "stale",
+                                    _diff(prev.get("components", {}), p.components[kind], graph) + extends,
+                                    prev.get("seconds")))
+        else:
+            rows.append(StageStatus(kind, node.cls.name, key, "missing", "never run with these inputs" + extends, None))
+    return rows
+
+
+def clean(config_path: str | Path, *, registry: Registry | None = None, stage: str | None = None,
+          cache_dir: str | Path | None = None) -> int:
+    """Remove this config's cache entries (all frames), or only one stage's; returns how many."""
+    registry = registry or Registry.from_entry_points()
+    config = load_config(config_path, registry)
+    graph = build_graph(config)
+    if stage is not None and stage not in graph.nodes:
+        raise ConfigError(f"--stage {stage}: not a stage of this config ({', '.join(graph.order())})")
+    cache = Cache(Path(cache_dir) if cache_dir else default_cache_dir(config))
+    p = plan(config, graph, cache, tuple(range(config.scene.scene.frames.count)))
+    last = cache.read_state(config.path)
+    removed = 0
+    for kind in graph.order():
+        if stage is not None and kind != stage:
+            continue
+        keys = {p.keys[kind]} | ({last[kind]["key"]} if kind in last else set())
+        for key in keys:
+            if graph.nodes[kind].per_frame:
+                removed += sum(cache.remove(kind, frame_key(key, f)) for f in p.frames)
+            else:
+                removed += int(cache.remove(kind, key))
+                shutil.rmtree(cache.checkpoint_dir(key), ignore_errors=True)
+    return removed

@@ -1,0 +1,196 @@
+"""Cache keys hold exactly what a result depends on: the declared config fields, the frame selection,
+input files, the code; a longer shot continues from the cached shorter one, bitwise."""
+from __future__ import annotations
+
+import logging
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+import pipeline
+from pipeline import Registry
+from pipeline.cache import Cache
+from pipeline.config import load_config
+from pipeline.graph import build_graph
+from pipeline.keys import plan
+from pipeline.reads import UndeclaredRead
+from pipeline.testing import scene_sections, stage_context
+from stages.common.formats import frame_path
+
+TINY = """\
+config_version: 1
+scene:
+  name: tiny
+  frames: {fps: 30, count: FRAMES}
+walls:
+  - builtin: box_tank
+    size: [0.4, 0.3, 0.3]
+fluid:
+  spacing: 0.04
+  emitters:
+    - box: {min: [-0.2, -0.15, 0.0], max: [-0.05, 0.15, 0.16]}
+    - mesh: drop.obj
+effects:
+  gravity: {}
+stages:
+  simulate: {use: sph, threads: 1, checkpoint_every: 1}
+  render: {use: pyvista, show: surface, resolution: [32, 24], label: false}
+outputs: OUTPUTS
+"""
+
+
+def tiny(tmp_path: Path, frames: int = 3, outputs: str = "[usd, movie]") -> Path:
+    drop = trimesh.creation.box(extents=(0.08, 0.08, 0.08))
+    drop.apply_translation((0.1, 0.0, 0.15))
+    drop.export(tmp_path / "drop.obj")
+    path = tmp_path / "tiny.yaml"
+    path.write_text(TINY.replace("FRAMES", str(frames)).replace("OUTPUTS", outputs))
+    return path
+
+
+def keys(config: Path, *sets: str) -> dict[str, str]:
+    cfg = load_config(config, Registry.from_entry_points(), sets)
+    return plan(cfg, build_graph(cfg), Cache(config.parent / ".pipeline")).keys
+
+
+def statuses(report) -> dict[str, str]:
+    return {s.kind: s.status for s in report.stages}
+
+
+# -- keys on the fields a stage reads ----------------------------------------------------------------
+def test_stages_are_keyed_on_the_fields_they_read(tmp_path):
+    config = tiny(tmp_path)
+    base = keys(config)
+    longer = keys(config, "scene.frames.count=5")
+    assert longer["mesh_import"] == base["mesh_import"] and longer["sdf_bake"] == base["sdf_bake"]
+    assert longer["simulate"] != base["simulate"]
+    faster = keys(config, "fluid.emitters.0.velocity=[1,0,0]")
+    assert faster["sdf_bake"] == base["sdf_bake"] and faster["simulate"] != base["simulate"]
+    assert faster["render"] != base["render"]  # downstream of the particles
+    assert keys(config, "camera.view_angle=40")["simulate"] == base["simulate"]
+
+
+def test_a_stage_sees_only_what_it_declares(tmp_path):
+    from stages.sdf_bake.open3d_bake import Open3dBake
+
+    sections = scene_sections({"scene": {"name": "t"}, "fluid": {"spacing": 0.1, "emitters": [{"box": {
+        "min": [0, 0, 0], "max": [1, 1, 1]}}]}})
+    ctx = stage_context(Open3dBake, tmp_path, scene=sections)
+    assert ctx.scene["fluid"].spacing == 0.1 and ctx.scene["scene"].domain is None
+    with pytest.raises(UndeclaredRead, match="fluid.density"):
+        ctx.scene["fluid"].density
+    with pytest.raises(UndeclaredRead, match="scene.frames"):
+        ctx.scene["scene"].frames
+    with pytest.raises(UndeclaredRead, match="walls"):
+        ctx.scene["walls"]
+    with pytest.raises(UndeclaredRead, match="frames"):
+        ctx.frames
+
+
+def test_a_read_that_is_not_a_config_field_is_a_contract_error():
+    from pipeline.stage import Stage
+
+    class Typo(Stage):
+        kind, name, version, outputs, reads = "movie", "typo", "1", ("movie",), ("scene.frame.fps",)
+
+        def run(self, ctx, inputs, params):
+            pass
+
+    with pytest.raises(TypeError, match="scene.frame"):
+        Typo.check_contract()
+
+
+# -- every file a stage reads is in its key ----------------------------------------------------------
+def test_mesh_emitter_file_is_in_the_simulate_key(tmp_path):
+    config = tiny(tmp_path)
+    before = keys(config)
+    drop = trimesh.creation.box(extents=(0.06, 0.08, 0.08))
+    drop.apply_translation((0.1, 0.0, 0.15))
+    drop.export(tmp_path / "drop.obj")
+    after = keys(config)
+    assert after["simulate"] != before["simulate"]
+    assert after["sdf_bake"] == before["sdf_bake"] and after["mesh_import"] == before["mesh_import"]
+    (tmp_path / "drop.obj").unlink()
+    with pytest.raises(pipeline.StageFailed, match=r"fluid.emitters.1.mesh: input file not found"):
+        keys(config)
+
+
+# -- code changes invalidate without a version bump ---------------------------------------------------
+STAGE_MODULE = """\
+from pipeline.stage import Stage
+from .helper import text
+
+
+class CodeSim(Stage):
+    kind, name, version = "simulate", "code", "1"
+    inputs, outputs = ("sdf",), ("particles",)
+
+    def run(self, ctx, inputs, params):
+        with open(ctx.config_dir / "ran_code.log", "a") as fh:
+            fh.write("x\\n")
+        (ctx.out_dir / "particles.txt").write_text(text())
+"""
+
+
+def test_a_code_change_in_an_imported_module_invalidates(tmp_path, toy_config, monkeypatch):
+    pkg = tmp_path / "codepkg"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "sim.py").write_text(STAGE_MODULE)
+    (pkg / "helper.py").write_text("def text():\n    return 'one'\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    from codepkg.sim import CodeSim
+
+    registry = Registry.from_entry_points()
+    registry.add(CodeSim)
+    sets = ("simulate.use=code", "outputs=[particles]")
+    r1 = pipeline.run(toy_config, registry=registry, overrides=sets)
+    assert statuses(r1)["simulate"] == "ran"
+    assert statuses(pipeline.run(toy_config, registry=registry, overrides=sets))["simulate"] == "cached"
+    (pkg / "helper.py").write_text("def text():\n    return 'two'  # changed arithmetic, no version bump\n")
+    rows = {s.kind: s for s in pipeline.status(toy_config, registry=registry, overrides=sets)}
+    assert rows["simulate"].state == "stale" and "code changed: codepkg.helper" in rows["simulate"].reason
+    assert rows["sdf_bake"].state == "cached"
+    r3 = pipeline.run(toy_config, registry=registry, overrides=sets)
+    assert statuses(r3)["simulate"] == "ran" and statuses(r3)["sdf_bake"] == "cached"
+    assert len((toy_config.parent / "ran_code.log").read_text().split()) == 2
+
+
+# -- a partial frame run does not poison whole-run stages -----------------------------------------------
+def test_partial_frames_then_full_run_covers_every_frame(tmp_path):
+    import imageio.v3 as iio
+    from pxr import Usd
+
+    config = tiny(tmp_path, frames=3)
+    r1 = pipeline.run(config, frames=(0, 1))
+    assert statuses(r1)["movie"] == "ran"
+    r2 = pipeline.run(config)
+    st = statuses(r2)
+    assert st["simulate"] == "cached" and st["movie"] == "ran" and st["export"] == "ran"
+    assert r2.stage("render").frames_ran == 1  # only the new frame
+    out = Path(r2.out)
+    assert len(list(iio.imiter(out / "movie" / "movie.mp4"))) == 3
+    stage = Usd.Stage.Open(str(out / "usd" / "fluid_surface.usdc"))
+    points = stage.GetPrimAtPath("/World/Fluid/Surface").GetAttribute("points")
+    assert points.GetTimeSamples() == [0.0, 1.0, 2.0]
+
+
+# -- a longer shot continues from the cached shorter one --------------------------------------------
+def test_extending_a_shot_resumes_and_equals_a_fresh_run(tmp_path, caplog):
+    config = tiny(tmp_path, frames=3, outputs="[particles]")
+    pipeline.run(config)
+    row = next(r for r in pipeline.status(config, overrides=("scene.frames.count=5",)) if r.kind == "simulate")
+    assert "scene.frames.count 3 -> 5" in row.reason and "continues the cached shorter run" in row.reason
+    with caplog.at_level(logging.INFO, logger="stage.simulate.sph"):
+        longer = pipeline.run(config, overrides=("scene.frames.count=5",))
+    assert statuses(longer)["simulate"] == "ran" and statuses(longer)["sdf_bake"] == "cached"
+    assert "resumed from the checkpoint at frame 2" in caplog.text
+    fresh = pipeline.run(config, overrides=("scene.frames.count=5",), cache_dir=tmp_path / "fresh",
+                         out_dir=tmp_path / "fresh_out")
+    assert statuses(fresh)["simulate"] == "ran"
+    a, b = Path(longer.outputs["particles"]), Path(fresh.outputs["particles"])
+    for f in range(5):
+        assert frame_path(a, f).read_bytes() == frame_path(b, f).read_bytes(), f"frame {f} differs"
