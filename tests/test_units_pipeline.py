@@ -117,10 +117,9 @@ def test_every_stage_agrees_with_the_metre_z_up_scene(runs, variant):
     ib = np.array([where_b[b_id_of[int(i)]] for i in a.id])
     fall = np.abs(a.x[:, 2].max() - a0.x[:, 2].max())
     assert fall > 0.3 * L0  # the block has started to collapse: agreement means something
-    tol = 1e-3 * L0 if up == "Z" else 0.02 * L0  # Y-up: another summation order, the same physics
-    np.testing.assert_allclose(to_metres_z_up(b.x[ib], mpu, up), a.x, atol=tol)
-    np.testing.assert_allclose(to_metres_z_up(b.v[ib], mpu, up), a.v, atol=tol * 50)  # 1/fps
-    np.testing.assert_allclose(b.rho[ib], a.rho, rtol=1e-3)
+    np.testing.assert_allclose(to_metres_z_up(b.x[ib], mpu, up), a.x, atol=1e-3 * L0)  # measured: 1e-6 l0
+    np.testing.assert_allclose(to_metres_z_up(b.v[ib], mpu, up), a.v, atol=1e-3 * L0 * 50)  # l0 per frame
+    np.testing.assert_allclose(b.rho[ib], a.rho, rtol=1e-4)  # kg/m^3 in every unit
 
     # surface: not empty, the same mesh scaled (area by unit^2, volume by unit^3)
     for stage in ("raw", "surface"):
@@ -129,26 +128,40 @@ def test_every_stage_agrees_with_the_metre_z_up_scene(runs, variant):
             assert len(sa.faces) > 500
             vb = to_metres_z_up(sb.vertices, mpu, up)
             va = sa.vertices.astype(np.float64)
-            assert abs(len(sb.vertices) - len(sa.vertices)) <= 0.01 * len(sa.vertices)
+            assert len(sb.vertices) == len(sa.vertices)
             assert area(vb, sb.faces) == pytest.approx(area(va, sa.faces), rel=0.01)
             assert signed_volume(vb, sb.faces) == pytest.approx(signed_volume(va, sa.faces), rel=0.01)
-            if up == "Z":  # the identical computation in other units: the identical mesh
-                assert len(sb.vertices) == len(sa.vertices)
-                np.testing.assert_allclose(vb, va, atol=1e-4 * L0)
+            if up == "Z":  # the same arithmetic in other units: the same mesh (Y-up lists it in another order)
+                off = np.abs(vb - va).max(axis=1) > 1e-4 * L0
+                if stage == "surface" and f == 0:
+                    # frame 0 is an axis-aligned block: its top face meets the side walls at a right
+                    # angle, so whether a vertex of that edge passes wall_snap's contact test (surface
+                    # normal . wall normal < 0) is decided by rounding, in any units
+                    assert off.mean() < 0.02
+                else:
+                    assert not off.any()
 
     # the surface's volume is the water's (no Phi ~ 1e-6 of an empty grid)
     water = np.prod(np.subtract(WATER[1], WATER[0]))
     sb = load_surface(run["surface"], 0)
     assert signed_volume(to_metres_z_up(sb.vertices, mpu, up), sb.faces) == pytest.approx(water, rel=0.1)
 
-    # wall_snap: the contact vertices on the exact walls, to the same fraction of l0
+    # wall_snap: the contact region (raw vertices within l0/4 of a wall) ends on the exact walls, to the
+    # same fraction of l0 (float32 rounding) in every unit, and as many vertices end on the walls
+    found = []
     for r, m in ((ref, 1.0), (run, mpu)):
+        walls = WallMesh.load(r["walls"])
         raw, snapped = load_surface(r["raw"], LAST), load_surface(r["surface"], LAST)
-        moved = np.any(raw.vertices != snapped.vertices, axis=1)
-        assert moved.sum() > 50
-        v = snapped.vertices[moved].astype(np.float64)
-        gap = np.linalg.norm(closest_points_on(WallMesh.load(r["walls"]), v) - v, axis=1)
-        assert gap.max() * m < 1e-3 * L0
+        used = np.unique(snapped.faces)
+
+        def gap(v):
+            v = v[used].astype(np.float64)
+            return np.linalg.norm(closest_points_on(walls, v) - v, axis=1) * m / L0
+
+        contact, after = gap(raw.vertices) < 0.25, gap(snapped.vertices)
+        assert contact.sum() > 100 and after[contact].max() < 1e-5
+        found.append((contact.sum(), (after < 1e-3).sum()))
+    np.testing.assert_allclose(found[1], found[0], rtol=0.01)
 
     # render: the same picture (the automatic camera frames the walls in any units and up axis)
     import imageio.v3 as iio
@@ -158,4 +171,4 @@ def test_every_stage_agrees_with_the_metre_z_up_scene(runs, variant):
     water_px = (pa[..., 2] > pa[..., 0] + 40).sum()
     assert water_px > 200  # the water is in the picture
     diff = np.abs(pa - pb).max(axis=-1)
-    assert (diff > 40).mean() < 0.01 and diff.mean() < 2.0
+    assert (diff > 40).mean() < 0.01 and diff.mean() < 2.0  # measured: identical Z-up; Y-up 0.5 %, 0.6
