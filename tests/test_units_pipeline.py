@@ -57,10 +57,34 @@ def scene(mpu: float, up: str) -> dict:
             "effects": {"gravity": {}, "viscosity": {"mu": 0.001}}}
 
 
+def write_cm_y_up_set(path) -> None:
+    """The tank as a studio hands it over: Y-up, centimetres, a mesh under a transformed parent."""
+    import trimesh
+
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+    stage.SetDefaultPrim(UsdGeom.Xform.Define(stage, "/Set").GetPrim())
+    UsdGeom.Xform.Define(stage, "/Set/Props").AddTranslateOp().Set(Gf.Vec3d(1.0, 5.0, 0.0))
+    box = trimesh.creation.box(extents=np.abs(z_to_y(np.array(TANK) * 100)))  # centred; lifted by Props
+    box.apply_translation((-1.0, 0.0, 0.0))
+    tank = UsdGeom.Mesh.Define(stage, "/Set/Props/Tank")
+    tank.GetPointsAttr().Set([Gf.Vec3f(*map(float, v)) for v in box.vertices])
+    tank.GetFaceVertexCountsAttr().Set([3] * len(box.faces))
+    tank.GetFaceVertexIndicesAttr().Set([int(i) for i in box.faces.ravel()])
+    stage.GetRootLayer().Save()
+
+
+STUDIO = (0.001, "Z")  # this variant takes its tank from the centimetre Y-up set and exports back into it
+
+
 def run_pipeline(root, mpu: float, up: str) -> dict:
     sc = scene(mpu, up)
-    d = {k: root / k for k in ("walls", "sdf", "particles", "raw", "surface", "frames")}
-    run_stage(TrimeshImport, d["walls"], scene=sc)
+    d = {k: root / k for k in ("walls", "sdf", "particles", "raw", "surface", "frames", "usd")}
+    if (mpu, up) == STUDIO:
+        write_cm_y_up_set(root / "set.usda")
+        sc["walls"] = [{"usd": "set.usda", "prims": ["/Set/Props/Tank"], "fluid": "inside"}]
+    run_stage(TrimeshImport, d["walls"], scene=sc, config_dir=root)
     run_stage(Open3dBake, d["sdf"], scene=sc, inputs={"walls": d["walls"]})
     run_stage(SPHSimulate, d["particles"], scene=sc, params={"threads": 2}, inputs={"sdf": d["sdf"]})
     run_stage(MarchingCubes, d["raw"], scene=sc, inputs={"particles": d["particles"], "sdf": d["sdf"]},
@@ -70,6 +94,9 @@ def run_pipeline(root, mpu: float, up: str) -> dict:
     run_stage(PyvistaRender, d["frames"], scene=sc, frames=(LAST,),
               params={"resolution": list(RESOLUTION), "label": False},
               inputs={"walls": d["walls"], "surface": d["surface"], "particles": d["particles"]})
+    if (mpu, up) == STUDIO:
+        run_stage(UsdExport, d["usd"], scene=sc, frames=(0, LAST), config_dir=root,
+                  inputs={"walls": d["walls"], "particles": d["particles"], "surface": d["surface"]})
     return d
 
 
@@ -172,3 +199,34 @@ def test_every_stage_agrees_with_the_metre_z_up_scene(runs, variant):
     assert water_px > 200  # the water is in the picture
     diff = np.abs(pa - pb).max(axis=-1)
     assert (diff > 40).mean() < 0.01 and diff.mean() < 2.0  # measured: identical Z-up; Y-up 0.5 %, 0.6
+
+
+def test_a_centimetre_y_up_studio_set_comes_back_in_centimetres_y_up(runs):
+    """The millimetre Z-up scene's tank came from a cm Y-up USD set: export writes every layer in the
+    set's own frame, where the fluid is the metre scene's fluid times 100, turned to Y-up."""
+    ref, run = runs[(1.0, "Z")], runs[STUDIO]
+    stage = Usd.Stage.Open(str(run["usd"] / "scene.usda"))
+    assert UsdGeom.GetStageUpAxis(stage) == "Y" and UsdGeom.GetStageMetersPerUnit(stage) == 0.01
+    cache = UsdGeom.BBoxCache(Usd.TimeCode.Default(), [UsdGeom.Tokens.default_])
+    box = cache.ComputeWorldBound(stage.GetPrimAtPath("/Set/Props/Tank")).ComputeAlignedRange()
+    np.testing.assert_allclose([box.GetMin(), box.GetMax()], [[-5, 0, -4], [5, 10, 4]], atol=1e-4)
+
+    surface = UsdGeom.Mesh(stage.GetPrimAtPath("/World/Fluid/Surface"))
+    for f in (0, LAST):
+        pts = np.array(surface.GetPointsAttr().Get(f), np.float64)
+        faces = np.array(surface.GetFaceVertexIndicesAttr().Get(f)).reshape(-1, 3)
+        expected = load_surface(ref["surface"], f)
+        if f == LAST:  # (frame 0: see the axis-aligned contact above)
+            np.testing.assert_allclose(pts, z_to_y(expected.vertices) * 100, atol=1e-3 * L0 * 100)
+        assert signed_volume(pts, faces) == pytest.approx(signed_volume(
+            expected.vertices.astype(np.float64), expected.faces) * 1e6, rel=0.01)  # cm^3
+
+    points = UsdGeom.Points(stage.GetPrimAtPath("/World/Particles"))
+    a = load_particle_frame(ref["particles"], LAST)  # the same emitter order: the same ids
+    ids = np.array(points.GetIdsAttr().Get(LAST))
+    order = np.argsort(ids)[np.argsort(np.argsort(a.id))]
+    x = np.array(points.GetPointsAttr().Get(LAST), np.float64)[order]
+    v = np.array(points.GetVelocitiesAttr().Get(LAST), np.float64)[order]
+    np.testing.assert_allclose(x, z_to_y(a.x) * 100, atol=1e-3 * L0 * 100)  # cm
+    np.testing.assert_allclose(v, z_to_y(a.v) * 100, atol=50e-3 * L0 * 100)  # cm/s
+    np.testing.assert_allclose(np.array(points.GetWidthsAttr().Get(LAST)), L0 * 100, rtol=1e-6)  # diameters, cm
