@@ -72,7 +72,7 @@ def _safe_name(name: str, used: set[str]) -> str:
 class UsdExport(Stage):
     kind = "export"
     name = "usd"
-    version = "2"
+    version = "3"
     Params = UsdParams
     inputs = ("walls", "particles")
     optional_inputs = ("surface",)

@@ -119,7 +119,10 @@ def define_camera(stage: Usd.Stage, path: str, eye: np.ndarray, target: np.ndarr
     camera.CreateVerticalApertureAttr(vertical)
     camera.CreateFocalLengthAttr(vertical / (2 * math.tan(math.radians(view_angle) / 2)))
     distance = float(np.linalg.norm(np.asarray(eye) - np.asarray(target)))
-    camera.CreateClippingRangeAttr(Gf.Vec2f(max(0.01 * distance, 1e-4), 100.0 * distance))
+    distance = distance or 1.0  # eye on its target (a config's mistake): any positive range
+    # relative to the distance, so the same in any units (an absolute floor would be metres in one scene
+    # and millimetres in another)
+    camera.CreateClippingRangeAttr(Gf.Vec2f(0.01 * distance, 100.0 * distance))
     camera.CreateProjectionAttr(UsdGeom.Tokens.perspective)
     return camera
 
