@@ -105,13 +105,15 @@ def ghost_particles(x, vol, dist, origin, inv_h_sdf, radius, out_x, out_vol, kee
     for q in nb.prange(x.shape[0]):
         px, py, pz = x[q, 0], x[q, 1], x[q, 2]
         d, _, _, _ = sdf_sample(dist, origin[0], origin[1], origin[2], inv_h_sdf, px, py, pz)
-        _, ax, ay, az = sdf_sample(dist, origin[0], origin[1], origin[2], inv_h_sdf, px + e, py + e, pz + e)
-        _, bx, by, bz = sdf_sample(dist, origin[0], origin[1], origin[2], inv_h_sdf, px - e, py - e, pz - e)
-        nx, ny, nz = ax + bx, ay + by, az + bz
-        norm = math.sqrt(nx * nx + ny * ny + nz * nz)  # 2 off ridges, 0 between two opposite walls
-        keep[q] = (d < radius) and (d > 0.0) and (norm > 0.5)
-        if norm > 0.0:
-            nx, ny, nz = nx / norm, ny / norm, nz / norm
+        nx = ny = nz = norm = 0.0
+        if 0.0 < d < radius:  # most particles are farther from a wall: one sample
+            _, ax, ay, az = sdf_sample(dist, origin[0], origin[1], origin[2], inv_h_sdf, px + e, py + e, pz + e)
+            _, bx, by, bz = sdf_sample(dist, origin[0], origin[1], origin[2], inv_h_sdf, px - e, py - e, pz - e)
+            nx, ny, nz = ax + bx, ay + by, az + bz
+            norm = math.sqrt(nx * nx + ny * ny + nz * nz)  # 2 off ridges, 0 between two opposite walls
+            if norm > 0.0:
+                nx, ny, nz = nx / norm, ny / norm, nz / norm
+        keep[q] = norm > 0.5
         out_x[q, 0] = px - 2.0 * d * nx
         out_x[q, 1] = py - 2.0 * d * ny
         out_x[q, 2] = pz - 2.0 * d * nz
