@@ -211,6 +211,10 @@ def test_a_centimetre_y_up_studio_set_comes_back_in_centimetres_y_up(runs):
     box = cache.ComputeWorldBound(stage.GetPrimAtPath("/Set/Props/Tank")).ComputeAlignedRange()
     np.testing.assert_allclose([box.GetMin(), box.GetMax()], [[-5, 0, -4], [5, 10, 4]], atol=1e-4)
 
+    camera = UsdGeom.Camera(stage.GetPrimAtPath("/World/Camera"))
+    assert camera.GetHorizontalApertureAttr().Get() == pytest.approx(36.0)  # tenths of a cm: a 36 mm film back
+    assert camera.GetCamera(0).GetFieldOfView(Gf.Camera.FOVVertical) == pytest.approx(30.0)
+
     surface = UsdGeom.Mesh(stage.GetPrimAtPath("/World/Fluid/Surface"))
     for f in (0, LAST):
         pts = np.array(surface.GetPointsAttr().Get(f), np.float64)

@@ -165,7 +165,7 @@ class UsdExport(Stage):
             xf.GetPrim().GetReferences().AddReference(rel)
         eye, target, up, view_angle = shot_camera(walls, scene.units, ctx.scene["camera"], ctx.resolve, "export.usd")
         ul.define_camera(root, "/World/Camera", ul.apply(to_target, eye[None])[0], ul.apply(to_target, target[None])[0],
-                         ul.apply_linear(to_target, up[None])[0], view_angle, params.camera_aspect)
+                         ul.apply_linear(to_target, up[None])[0], view_angle, params.camera_aspect, mpu)
         root.GetRootLayer().Save()
         progress.advance()
 
