@@ -42,3 +42,20 @@ def test_centimetre_scene_moves_like_the_metre_scene(tmp_path, solver):
     np.testing.assert_allclose(b.x[order_b] / 100, a.x[order_a], atol=1e-3 * L0)
     np.testing.assert_allclose(b.v[order_b] / 100, a.v[order_a], atol=1e-3)
     np.testing.assert_allclose(b.rho[order_b], a.rho[order_a], rtol=1e-4)  # kg/m^3 either way
+
+
+def test_mesh_emitter_file_in_other_units_is_converted(tmp_path):
+    """A mesh emitter's file in centimetres (meters_per_unit: 0.01) fills the same region of a metre
+    scene as a box emitter does, like a wall file in other units."""
+    import trimesh
+
+    from pipeline.scene import Fluid
+    from stages.simulate.emitters import emit
+
+    trimesh.creation.box(bounds=[[0, 0, 0], [10, 6, 8]]).export(tmp_path / "block_cm.stl")
+    fluid = Fluid.model_validate({"spacing": L0, "emitters": [{"mesh": "block_cm.stl", "meters_per_unit": 0.01}]})
+    box = Fluid.model_validate({"spacing": L0, "emitters": [{"box": {"min": [0, 0, 0], "max": [0.1, 0.06, 0.08]}}]})
+    x, _ = emit(fluid.emitters, L0, lambda p: tmp_path / p, meters_per_unit=1.0)
+    y, _ = emit(box.emitters, L0, lambda p: tmp_path / p, meters_per_unit=1.0)
+    assert len(y) == 5 * 3 * 4
+    np.testing.assert_allclose(np.sort(x, axis=0), np.sort(y, axis=0), atol=1e-9)
