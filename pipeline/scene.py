@@ -149,6 +149,7 @@ class SphereSpec(Model):
 
 class MeshEmitter(Emitter, Placement):
     mesh: InputFile = Field(description="fill the interior of this closed mesh file (relative to the config)")
+    meters_per_unit: float | None = Field(None, gt=0, description="the file's units if not the scene's")
 
 
 SphereEmitter.model_rebuild()

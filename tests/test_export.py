@@ -103,7 +103,9 @@ def test_round_trip_points_topology_time_and_metrics(tmp_path):
         np.testing.assert_allclose(np.array(points.GetWidthsAttr().Get(f)), 0.05, rtol=1e-6)  # diameters
     walls = UsdGeom.Mesh(stage.GetPrimAtPath("/World/Walls/tank"))
     assert len(walls.GetFaceVertexCountsAttr().Get()) == 12
-    assert UsdGeom.Camera(stage.GetPrimAtPath("/World/Camera"))
+    camera = UsdGeom.Camera(stage.GetPrimAtPath("/World/Camera"))
+    # lens and film back are in tenths of a scene unit: a 36 mm film back is 0.72 tenths of half a metre
+    assert camera.GetHorizontalApertureAttr().Get() == pytest.approx(0.72)
 
     # the published folder is self-contained: moved elsewhere, every sample still reads
     moved = tmp_path / "published" / "usd"

@@ -14,10 +14,11 @@ L0 = 0.02
 SCENE = {"scene": {"name": "t", "frames": {"fps": 10, "count": 2}}}
 
 
-def particles(folder, frames: list[np.ndarray]):
+def particles(folder, frames: list[np.ndarray], mpu: float = 1.0):
+    """Particle frames ``frames`` in scene units of ``mpu`` metres (spacing L0 metres; mass kg)."""
     m = lattice_mass(1000.0, L0, 2 * L0)
-    ParticleMeta(spacing=L0, mass=m, density=1000.0, support=2 * L0, fps=10, frame_count=len(frames),
-                 up_axis="Z", meters_per_unit=1.0, solver="test").save(folder)
+    ParticleMeta(spacing=L0 / mpu, mass=m, density=1000.0, support=2 * L0 / mpu, fps=10, frame_count=len(frames),
+                 up_axis="Z", meters_per_unit=mpu, solver="test").save(folder)
     for i, x in enumerate(frames):
         n = len(x)
         save_particle_frame(folder, i, ParticleFrame(x=x, v=np.zeros((n, 3)), rho=np.full(n, 1000.0),
@@ -45,6 +46,23 @@ def test_sphere_of_particles_gives_closed_sphere_and_right_volume(tmp_path):
     # an empty frame gives an empty mesh, not an error
     empty = load_surface(out, 1)
     assert len(empty.vertices) == 0 and len(empty.faces) == 0
+
+
+def test_centimetre_and_millimetre_scenes_enclose_the_metre_scenes_volume(tmp_path):
+    """Particle volumes m / rho are m^3; the stage must use them in scene units^3 (issue 16: a cm scene
+    had Phi ~ 1e-6 everywhere and an empty surface)."""
+    x = lattice([-0.2, -0.2, -0.2], [0.2, 0.2, 0.2], L0)
+    x = x[np.linalg.norm(x, axis=1) < 0.15]
+    volumes = {}
+    for mpu in (1.0, 0.01, 0.001):
+        (tmp_path / f"p{mpu}").mkdir()
+        src = particles(tmp_path / f"p{mpu}", [x / mpu], mpu)
+        mesh = load_surface(run_stage(MarchingCubes, tmp_path / f"s{mpu}", scene=SCENE, inputs={"particles": src},
+                                      frames=(0,)), 0)
+        assert len(mesh.faces) > 1000
+        volumes[mpu] = signed_volume(mesh.vertices.astype(np.float64), mesh.faces) * mpu ** 3  # m^3
+    assert abs(volumes[1.0] / (len(x) * L0 ** 3) - 1) < 0.05
+    assert abs(volumes[0.01] / volumes[1.0] - 1) < 0.01 and abs(volumes[0.001] / volumes[1.0] - 1) < 0.01
 
 
 def test_wall_term_puts_the_raw_surface_on_the_walls(tmp_path):

@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from pipeline.testing import run_stage
 from stages.common.formats import ParticleMeta, load_particle_frame
 from stages.common.sdf import box_interior_sdf, grid_from_function
+from stages.simulate.dfsph import DFSPHSimulate
+from stages.simulate.mps import MPSSimulate
 from stages.simulate.sph import SPHSimulate
 
 L0 = 0.02  # metres
@@ -16,20 +19,21 @@ def scene(mpu: float) -> dict:
     s = 1.0 / mpu  # metres -> scene units
     return {"scene": {"name": "t", "frames": {"fps": 50, "count": 6}, "units": {"up_axis": "Z", "meters_per_unit": mpu}},
             "fluid": {"spacing": L0 * s, "emitters": [{"box": {"min": [0, 0, 0], "max": [0.12 * s, 0.2 * s, 0.2 * s]}}]},
-            "effects": {"gravity": {}, "viscosity": {"mu": 0.01}}}
+            "effects": {"gravity": {}, "viscosity": {"mu": 0.001}}}
 
 
-def run(tmp_path, mpu: float):
+def run(tmp_path, mpu: float, solver=SPHSimulate):
     s = 1.0 / mpu
     hi = np.array([0.3, 0.2, 0.4]) * s
     (tmp_path / f"sdf{mpu}").mkdir()
     grid_from_function(box_interior_sdf([0, 0, 0], hi), [0, 0, 0], hi, L0 * s / 2).save(tmp_path / f"sdf{mpu}")
-    return run_stage(SPHSimulate, tmp_path / f"out{mpu}", scene=scene(mpu), params={"threads": 1},
+    return run_stage(solver, tmp_path / f"out{mpu}", scene=scene(mpu), params={"threads": 1},
                      inputs={"sdf": tmp_path / f"sdf{mpu}"})
 
 
-def test_centimetre_scene_moves_like_the_metre_scene(tmp_path):
-    metres, cm = run(tmp_path, 1.0), run(tmp_path, 0.01)
+@pytest.mark.parametrize("solver", [SPHSimulate, DFSPHSimulate, MPSSimulate], ids=lambda s: s.name)
+def test_centimetre_scene_moves_like_the_metre_scene(tmp_path, solver):
+    metres, cm = run(tmp_path, 1.0, solver), run(tmp_path, 0.01, solver)
     assert ParticleMeta.load(cm).spacing == ParticleMeta.load(metres).spacing * 100
     a, b = load_particle_frame(metres, 5), load_particle_frame(cm, 5)
     order_a, order_b = np.argsort(a.id), np.argsort(b.id)
@@ -38,3 +42,20 @@ def test_centimetre_scene_moves_like_the_metre_scene(tmp_path):
     np.testing.assert_allclose(b.x[order_b] / 100, a.x[order_a], atol=1e-3 * L0)
     np.testing.assert_allclose(b.v[order_b] / 100, a.v[order_a], atol=1e-3)
     np.testing.assert_allclose(b.rho[order_b], a.rho[order_a], rtol=1e-4)  # kg/m^3 either way
+
+
+def test_mesh_emitter_file_in_other_units_is_converted(tmp_path):
+    """A mesh emitter's file in centimetres (meters_per_unit: 0.01) fills the same region of a metre
+    scene as a box emitter does, like a wall file in other units."""
+    import trimesh
+
+    from pipeline.scene import Fluid
+    from stages.simulate.emitters import emit
+
+    trimesh.creation.box(bounds=[[0, 0, 0], [10, 6, 8]]).export(tmp_path / "block_cm.stl")
+    fluid = Fluid.model_validate({"spacing": L0, "emitters": [{"mesh": "block_cm.stl", "meters_per_unit": 0.01}]})
+    box = Fluid.model_validate({"spacing": L0, "emitters": [{"box": {"min": [0, 0, 0], "max": [0.1, 0.06, 0.08]}}]})
+    x, _ = emit(fluid.emitters, L0, lambda p: tmp_path / p, meters_per_unit=1.0)
+    y, _ = emit(box.emitters, L0, lambda p: tmp_path / p, meters_per_unit=1.0)
+    assert len(y) == 5 * 3 * 4
+    np.testing.assert_allclose(np.sort(x, axis=0), np.sort(y, axis=0), atol=1e-9)

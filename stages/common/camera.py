@@ -69,7 +69,7 @@ def shot_camera(walls: WallMesh, units, cam, resolve: Callable[[str], Path], who
         if len(walls.vertices):
             lo, hi = walls.vertices.min(axis=0), walls.vertices.max(axis=0)
         else:
-            lo, hi = np.full(3, -1.0), np.full(3, 1.0)
+            lo, hi = np.full(3, -1.0 / units.meters_per_unit), np.full(3, 1.0 / units.meters_per_unit)  # +-1 m
         eye, centre, up = auto_camera(lo, hi, units.up_axis, view_angle)
     if cam.focal_point is not None:
         centre = np.asarray(cam.focal_point, float)

@@ -1,12 +1,20 @@
 """Artifact file formats shared between stages (internal; studio-facing output is OpenUSD).
 
+Units contract: every artifact is in the scene's units and up axis (``scene.units``): positions,
+lengths, spacings, support radii in scene units, velocities in scene units per second. Physical
+material quantities stay SI in every artifact: density kg/m^3, mass kg, pressure Pa (and, in the
+config, viscosity Pa s, gravity m/s^2). The solvers work wholly in SI (simulate/driver.py converts
+lengths in and out). A quantity mixing the two, the particle volume m / rho, is converted in one
+place: ``ParticleMeta.volume`` gives it in scene units^3.
+
 simulate  -> ``particles`` artifact folder:
     meta.json                 ParticleMeta (spacing, mass, rho0, fps, frame count, units, solver stats)
-    frames/00000.npz ...      one file per output frame: x (N,3) f32, v (N,3) f32, rho (N,) f32,
-                              p (N,) f32, id (N,) i32   (N may change between frames)
+    frames/00000.npz ...      one file per output frame: x (N,3) f32 scene units, v (N,3) f32 scene
+                              units/s, rho (N,) f32 kg/m^3, p (N,) f32 Pa, id (N,) i32
+                              (N may change between frames)
     particles.usdc            the same frames as time-sampled UsdGeom.Points (studio-facing)
 surface_extract / wall_snap -> per-frame artifact folders, each with
-    surface_00012.npz         vertices (V,3) f32, faces (F,3) i32, normals (V,3) f32
+    surface_00012.npz         vertices (V,3) f32 scene units, faces (F,3) i32, normals (V,3) f32
 mesh_import -> ``walls`` artifact folder:
     walls.npz                 vertices (V,3) f64 world space, scene units; faces (F,3) i32;
                               wall_id (F,) i32 (index into walls.json)
@@ -30,15 +38,20 @@ FRAMES_DIR = "frames"
 @dataclass
 class ParticleMeta:
     spacing: float  # particle spacing l0, scene units
-    mass: float  # particle mass, kg
+    mass: float  # particle mass, kg (SI: the solver's lattice mass)
     density: float  # rest density rho0, kg/m^3
     support: float  # kernel support radius h, scene units
     fps: float
     frame_count: int
     up_axis: str
-    meters_per_unit: float
+    meters_per_unit: float  # metres per scene unit of every length in the artifact
     solver: str
     stats: dict[str, Any] = field(default_factory=dict)
+
+    def volume(self, rho: np.ndarray | float) -> np.ndarray:
+        """Particle volume m / rho in scene units^3, for densities ``rho`` in kg/m^3 (m / rho is in m^3;
+        a consumer that mixes it with positions and radii in scene units needs it in scene units^3)."""
+        return self.mass / (np.asarray(rho, np.float64) * self.meters_per_unit ** 3)
 
     def save(self, folder: Path) -> None:
         (Path(folder) / META_FILE).write_text(json.dumps(asdict(self), indent=2, sort_keys=True))
@@ -50,10 +63,10 @@ class ParticleMeta:
 
 @dataclass
 class ParticleFrame:
-    x: np.ndarray
-    v: np.ndarray
-    rho: np.ndarray
-    p: np.ndarray
+    x: np.ndarray  # (N, 3) positions, scene units (SI inside a solver)
+    v: np.ndarray  # (N, 3) velocities, scene units/s (SI inside a solver)
+    rho: np.ndarray  # (N,) density, kg/m^3
+    p: np.ndarray  # (N,) pressure, Pa
     id: np.ndarray
 
     def __len__(self) -> int:

@@ -72,7 +72,7 @@ def _safe_name(name: str, used: set[str]) -> str:
 class UsdExport(Stage):
     kind = "export"
     name = "usd"
-    version = "2"
+    version = "3"
     Params = UsdParams
     inputs = ("walls", "particles")
     optional_inputs = ("surface",)
@@ -161,7 +161,7 @@ class UsdExport(Stage):
             xf.GetPrim().GetReferences().AddReference(rel)
         eye, target, up, view_angle = shot_camera(walls, scene.units, ctx.scene["camera"], ctx.resolve, "export.usd")
         ul.define_camera(root, "/World/Camera", ul.apply(to_target, eye[None])[0], ul.apply(to_target, target[None])[0],
-                         ul.apply_linear(to_target, up[None])[0], view_angle, params.camera_aspect)
+                         ul.apply_linear(to_target, up[None])[0], view_angle, params.camera_aspect, mpu)
         root.GetRootLayer().Save()
         progress.advance()
 

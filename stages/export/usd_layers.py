@@ -107,19 +107,25 @@ def bind(prim: Usd.Prim, material: UsdShade.Material) -> None:
 
 
 def define_camera(stage: Usd.Stage, path: str, eye: np.ndarray, target: np.ndarray, up: np.ndarray,
-                  view_angle: float, aspect: float) -> UsdGeom.Camera:
-    """A camera at ``eye`` looking at ``target`` with a vertical field of view ``view_angle`` (degrees)."""
+                  view_angle: float, aspect: float, meters_per_unit: float) -> UsdGeom.Camera:
+    """A camera at ``eye`` looking at ``target`` with a vertical field of view ``view_angle`` (degrees).
+
+    UsdGeomCamera measures lens and filmback in tenths of a scene unit (millimetres only on a
+    centimetre stage), so the 36 mm film back is authored as 0.036 m / (0.1 ``meters_per_unit`` m)."""
     camera = UsdGeom.Camera.Define(stage, path)
     view = Gf.Matrix4d().SetLookAt(Gf.Vec3d(*map(float, eye)), Gf.Vec3d(*map(float, target)),
                                    Gf.Vec3d(*map(float, up)))
     camera.AddTransformOp().Set(view.GetInverse())
-    horizontal = 36.0  # a 35 mm still frame; only the focal length / aperture ratio sets the view angle
+    horizontal = 0.36 / meters_per_unit  # a 35 mm still frame (36 mm wide) in tenths of a scene unit
     vertical = horizontal / aspect
     camera.CreateHorizontalApertureAttr(horizontal)
     camera.CreateVerticalApertureAttr(vertical)
     camera.CreateFocalLengthAttr(vertical / (2 * math.tan(math.radians(view_angle) / 2)))
     distance = float(np.linalg.norm(np.asarray(eye) - np.asarray(target)))
-    camera.CreateClippingRangeAttr(Gf.Vec2f(max(0.01 * distance, 1e-4), 100.0 * distance))
+    distance = distance or 1.0  # eye on its target (a config's mistake): any positive range
+    # relative to the distance, so the same in any units (an absolute floor would be metres in one scene
+    # and millimetres in another)
+    camera.CreateClippingRangeAttr(Gf.Vec2f(0.01 * distance, 100.0 * distance))
     camera.CreateProjectionAttr(UsdGeom.Tokens.perspective)
     return camera
 

@@ -101,7 +101,7 @@ def polydata(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray | None
 class PyvistaRender(Stage):
     kind = "render"
     name = "pyvista"
-    version = "2"
+    version = "3"
     Params = RenderParams
     inputs = ("walls",)
     optional_inputs = ("surface", "particles")

@@ -111,7 +111,7 @@ def prepare(ctx: Context, inputs: Mapping[str, Artifact], who: str) -> Setup:
     l0 = fluid.spacing
     mpu = scene.units.meters_per_unit
     up = up_vector(scene.units.up_axis)
-    x, v = emit(fluid.emitters, l0, ctx.resolve)
+    x, v = emit(fluid.emitters, l0, ctx.resolve, mpu)
     x, v, dropped = drop_inside_walls(x, v, sdf, l0, ctx.log)
     if len(x) == 0:
         raise StageError(f"{who}: the emitters produced no particles in the fluid region "

@@ -24,7 +24,7 @@ def lattice(lo, hi, l0: float) -> np.ndarray:
     return np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1)
 
 
-def _mesh_points(em: MeshEmitter, l0: float, resolve: Callable[[str], Path]) -> np.ndarray:
+def _mesh_points(em: MeshEmitter, l0: float, resolve: Callable[[str], Path], meters_per_unit: float) -> np.ndarray:
     import open3d as o3d
     import trimesh
 
@@ -37,7 +37,10 @@ def _mesh_points(em: MeshEmitter, l0: float, resolve: Callable[[str], Path]) -> 
         raise StageError(f"fluid emitter mesh {path}: cannot read it ({exc})") from None
     if len(mesh.faces) == 0:
         raise StageError(f"fluid emitter mesh {path}: has no triangles")
-    v = apply_placement(mesh.vertices, em)
+    v = np.asarray(mesh.vertices, np.float64)
+    if em.meters_per_unit is not None:  # the file's units -> the scene's, as for a wall file
+        v = v * (em.meters_per_unit / meters_per_unit)
+    v = apply_placement(v, em)
     pts = lattice(v.min(axis=0), v.max(axis=0) + l0, l0)
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)), o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)))
@@ -45,8 +48,9 @@ def _mesh_points(em: MeshEmitter, l0: float, resolve: Callable[[str], Path]) -> 
     return pts[inside]
 
 
-def emit(emitters, l0: float, resolve: Callable[[str], Path]) -> tuple[np.ndarray, np.ndarray]:
-    """Positions (N, 3) and velocities (N, 3) of every emitter, in emitter order."""
+def emit(emitters, l0: float, resolve: Callable[[str], Path], meters_per_unit: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Positions (N, 3) and velocities (N, 3) of every emitter, in emitter order, in scene units
+    (``meters_per_unit``: the scene's, for mesh files in other units)."""
     xs, vs = [], []
     for em in emitters:
         if isinstance(em, BoxEmitter):
@@ -57,7 +61,7 @@ def emit(emitters, l0: float, resolve: Callable[[str], Path]) -> tuple[np.ndarra
             pts = lattice(c - r, c + r + l0, l0)
             pts = pts[np.linalg.norm(pts - c, axis=1) <= r]
         elif isinstance(em, MeshEmitter):
-            pts = _mesh_points(em, l0, resolve)
+            pts = _mesh_points(em, l0, resolve, meters_per_unit)
         else:  # pragma: no cover - the scene model admits only these
             raise StageError(f"unknown emitter {type(em).__name__}")
         xs.append(pts)

@@ -95,13 +95,28 @@ def order_and_chunks(x: np.ndarray, grid_lo: np.ndarray, h: float, radius: float
 def ghost_particles(x, vol, dist, origin, inv_h_sdf, radius, out_x, out_vol, keep):
     """Mirror images x_j - 2 d_j n_j of the particles within ``radius`` of a wall (d, n from the SDF
     sampler): the wall's share of the density (PHYSICS.md (11)-(12), (17)-(18)) carried by the fluid
-    that is actually there, so Phi stays about 1 up to the wall instead of falling to 0.5 on it."""
+    that is actually there, so Phi stays about 1 up to the wall instead of falling to 0.5 on it.
+
+    n is the mean of the sampler's normals a thousandth of an SDF cell either side of the particle: the
+    trilinear gradient is one-sided at a node, and on a ridge of d (a tank's edge seen from inside) one
+    side gives zero, so a particle exactly on a node (an emitter lattice next to a wall) got an image
+    or none by the last bit of its position, i.e. by the scene's units. Both sides agree off ridges."""
+    e = 1e-3 / inv_h_sdf
     for q in nb.prange(x.shape[0]):
-        d, nx, ny, nz = sdf_sample(dist, origin[0], origin[1], origin[2], inv_h_sdf, x[q, 0], x[q, 1], x[q, 2])
-        keep[q] = (d < radius) and (d > 0.0) and (nx * nx + ny * ny + nz * nz > 0.5)
-        out_x[q, 0] = x[q, 0] - 2.0 * d * nx
-        out_x[q, 1] = x[q, 1] - 2.0 * d * ny
-        out_x[q, 2] = x[q, 2] - 2.0 * d * nz
+        px, py, pz = x[q, 0], x[q, 1], x[q, 2]
+        d, _, _, _ = sdf_sample(dist, origin[0], origin[1], origin[2], inv_h_sdf, px, py, pz)
+        nx = ny = nz = norm = 0.0
+        if 0.0 < d < radius:  # most particles are farther from a wall: one sample
+            _, ax, ay, az = sdf_sample(dist, origin[0], origin[1], origin[2], inv_h_sdf, px + e, py + e, pz + e)
+            _, bx, by, bz = sdf_sample(dist, origin[0], origin[1], origin[2], inv_h_sdf, px - e, py - e, pz - e)
+            nx, ny, nz = ax + bx, ay + by, az + bz
+            norm = math.sqrt(nx * nx + ny * ny + nz * nz)  # 2 off ridges, 0 between two opposite walls
+            if norm > 0.0:
+                nx, ny, nz = nx / norm, ny / norm, nz / norm
+        keep[q] = norm > 0.5
+        out_x[q, 0] = px - 2.0 * d * nx
+        out_x[q, 1] = py - 2.0 * d * ny
+        out_x[q, 2] = pz - 2.0 * d * nz
         out_vol[q] = vol[q]
 
 

@@ -42,7 +42,8 @@ class MarchingCubesParams(Params):
 
 def extract(x: np.ndarray, vol: np.ndarray, l0: float, params: MarchingCubesParams,
             sdf: SDFGrid | None = None, timings: dict | None = None) -> SurfaceMesh:
-    """The iso-surface Phi = iso of the particles ``x`` (N, 3) with volumes ``vol`` (N,) = m / rho.
+    """The iso-surface Phi = iso of the particles ``x`` (N, 3) with volumes ``vol`` (N,) = m / rho, all in
+    one length unit (the scene's: ``ParticleMeta.volume``), as ``l0``.
 
     ``sdf`` (optional) brings in the wall term; ``timings`` (optional) receives seconds per step."""
     import pyvista as pv
@@ -58,7 +59,10 @@ def extract(x: np.ndarray, vol: np.ndarray, l0: float, params: MarchingCubesPara
     x = np.asarray(x, np.float64)
     vol = np.asarray(vol, np.float64)
     pad = R + 2.0 * h  # the surface is within R of a particle; two more cells keep it off the grid's edge
-    grid_lo = x.min(axis=0) - pad
+    # a quarter cell off the particle lattice: an emitter box filling a tank's corner puts its first
+    # particles l0/2 from the walls, which would put grid nodes exactly on the walls, where Phi' = iso
+    # up to rounding and the topology of the contact depended on the last bit (so on the scene's units)
+    grid_lo = x.min(axis=0) - pad - 0.25 * h
     shape = np.ceil((x.max(axis=0) + pad - grid_lo) / h).astype(np.int64) + 1  # (nx, ny, nz)
     if sdf is not None and params.wall_term:
         gx = np.empty_like(x)
@@ -99,7 +103,7 @@ def extract(x: np.ndarray, vol: np.ndarray, l0: float, params: MarchingCubesPara
 class MarchingCubes(Stage):
     kind = "surface_extract"
     name = "marching_cubes"
-    version = "2"
+    version = "3"
     Params = MarchingCubesParams
     inputs = ("particles",)
     optional_inputs = ("sdf",)
@@ -113,7 +117,7 @@ class MarchingCubes(Stage):
         meta = ParticleMeta.load(folder)
         pf = load_particle_frame(folder, frame)
         rho = np.maximum(pf.rho.astype(np.float64), 0.5 * meta.density)  # isolated splashes: no blow-up
-        vol = meta.mass / rho
+        vol = meta.volume(rho)  # scene units^3, like x and the kernel radius (m / rho alone is m^3)
         sdf = SDFGrid.load(inputs["sdf"].frame(frame)) if inputs.get("sdf") is not None else None
         timings: dict = {}
         mesh = extract(pf.x, vol, meta.spacing, params, sdf=sdf, timings=timings)
