@@ -71,7 +71,39 @@ class _Lines:
         return self.file
 
 
-def _walk(node: yaml.Node, path: tuple, lines: _Lines) -> None:
+# Limits that keep a hostile file cheap: YAML aliases can make a 1 KB file expand to billions of
+# nodes ("billion laughs") and deep nesting overflows Python's recursion. A real config has a few
+# hundred nodes and a depth under 10.
+MAX_DEPTH = 64
+MAX_NODES = 100_000
+
+
+class _Loader(yaml.SafeLoader):
+    """SafeLoader that refuses nesting deeper than MAX_DEPTH while composing (before any recursion
+    can overflow); the expanded size is bounded by _walk."""
+
+    def __init__(self, stream: str, file: str) -> None:
+        super().__init__(stream)
+        self._file = file
+        self._depth = 0
+
+    def compose_node(self, parent, index):  # noqa: ANN001 - PyYAML's signature
+        self._depth += 1
+        try:
+            if self._depth > MAX_DEPTH:
+                mark = self.peek_event().start_mark
+                raise ConfigError(f"{self._file}:{mark.line + 1}: nested more than {MAX_DEPTH} levels deep; "
+                                  f"a config is a few levels of mappings and lists")
+            return super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
+
+
+def _walk(node: yaml.Node, path: tuple, lines: _Lines, budget: list[int]) -> None:
+    budget[0] -= 1
+    if budget[0] < 0:  # aliases expand: count nodes as the data will be seen, not as written
+        raise ConfigError(f"{lines.file}:{node.start_mark.line + 1}: the config expands to more than {MAX_NODES} "
+                          f"values (YAML aliases repeated inside aliases?)")
     lines.lines[path] = node.start_mark.line + 1
     if isinstance(node, yaml.MappingNode):
         seen: set = set()
@@ -81,33 +113,42 @@ def _walk(node: yaml.Node, path: tuple, lines: _Lines) -> None:
             if k.value in seen:
                 raise ConfigError(f"{lines.file}:{k.start_mark.line + 1}: {_dotted(path + (k.value,))}: duplicate key")
             seen.add(k.value)
-            _walk(v, path + (k.value,), lines)
+            _walk(v, path + (k.value,), lines, budget)
             lines.lines[path + (k.value,)] = k.start_mark.line + 1  # the key's line reads best
     elif isinstance(node, yaml.SequenceNode):
         for i, v in enumerate(node.value):
-            _walk(v, path + (i,), lines)
+            _walk(v, path + (i,), lines, budget)
 
 
 def _dotted(path: tuple) -> str:
     return ".".join(str(p) for p in path)
 
 
-def _parse_yaml(text: str, file: str) -> tuple[dict, _Lines]:
-    lines = _Lines(file)
+def safe_yaml(text: str, file: str) -> tuple[Any, yaml.Node | None]:
+    """Parse YAML safely with the depth limit; returns the data and its node tree (None when empty)."""
+    loader = _Loader(text, file)
     try:
-        node = yaml.compose(text, Loader=yaml.SafeLoader)
-        data = yaml.safe_load(text)
+        node = loader.get_single_node()
+        data = loader.construct_document(node) if node is not None else None
     except yaml.MarkedYAMLError as e:
         mark = e.problem_mark or e.context_mark
         line = f":{mark.line + 1}" if mark is not None else ""
         raise ConfigError(f"{file}{line}: not valid YAML: {e.problem or e.context}") from None
     except yaml.YAMLError as e:
         raise ConfigError(f"{file}: not valid YAML: {str(e).splitlines()[0]}") from None
+    finally:
+        loader.dispose()
+    return data, node
+
+
+def _parse_yaml(text: str, file: str) -> tuple[dict, _Lines]:
+    lines = _Lines(file)
+    data, node = safe_yaml(text, file)
     if node is None or data is None:
         raise ConfigError(f"{file}: the config is empty; expected a mapping with 'scene', 'fluid', 'outputs'...")
     if not isinstance(data, dict):
         raise ConfigError(f"{file}:1: top level: expected a mapping of sections, got {type(data).__name__}")
-    _walk(node, (), lines)
+    _walk(node, (), lines, [MAX_NODES])
     return data, lines
 
 
@@ -125,8 +166,10 @@ def apply_override(data: dict, assignment: str, lines: _Lines) -> None:
     if parts[0] not in TOP_LEVEL:
         raise ConfigError(f"--set {key}: unknown section {parts[0]!r}; expected one of {', '.join(TOP_LEVEL)} or a stage kind")
     try:
-        value = yaml.safe_load(text) if text.strip() else None
-    except yaml.YAMLError:
+        value = safe_yaml(text, f"--set {key}")[0] if text.strip() else None
+    except ConfigError as e:
+        if "nested more than" in str(e):
+            raise
         value = text
     node: Any = data
     path: tuple = ()
@@ -157,6 +200,8 @@ def _first_error(err: ValidationError, prefix: tuple, lines: _Lines) -> ConfigEr
     for i, p in enumerate(loc):
         if isinstance(p, str) and i > 0 and isinstance(loc[i - 1], int) and p in {"builtin", "file", "usd", "box", "sphere", "mesh"}:
             continue
+        if isinstance(p, str) and (p in {"float", "int", "str", "bool"} or p.startswith("tuple[")):
+            continue  # pydantic's union member tags (scale: float | Vec3)
         clean.append(p)
     loc = tuple(clean)
     msg = e["msg"]

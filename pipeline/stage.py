@@ -27,9 +27,10 @@ SCENE_SECTIONS: tuple[str, ...] = ("scene", "walls", "fluid", "effects", "camera
 
 
 class Params(BaseModel):
-    """Base of every stage's parameter model: unknown keys are errors, values validated on assignment."""
+    """Base of every stage's parameter model: unknown keys are errors, NaN/inf are errors, values
+    validated on assignment."""
 
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
 
 
 class StageError(Exception):
