@@ -75,17 +75,32 @@ class _Lines:
 # nodes ("billion laughs") and deep nesting overflows Python's recursion. A real config has a few
 # hundred nodes and a depth under 10.
 MAX_DEPTH = 64
-MAX_NODES = 100_000
+MAX_NODES = 20_000
 
 
 class _Loader(yaml.SafeLoader):
-    """SafeLoader that refuses nesting deeper than MAX_DEPTH while composing (before any recursion
-    can overflow); the expanded size is bounded by _walk."""
+    """SafeLoader that refuses nesting deeper than MAX_DEPTH already in the scanner (PyYAML's scanner
+    is quadratic in the flow depth) and while composing (before any recursion can overflow); the
+    expanded size is checked before the tree is walked."""
 
     def __init__(self, stream: str, file: str) -> None:
         super().__init__(stream)
         self._file = file
         self._depth = 0
+
+    def _too_deep(self) -> None:
+        raise ConfigError(f"{self._file}:{self.line + 1}: nested more than {MAX_DEPTH} levels deep; "
+                          f"a config is a few levels of mappings and lists")
+
+    def fetch_flow_collection_start(self, token_class):  # noqa: ANN001 - PyYAML's signature
+        if self.flow_level >= MAX_DEPTH:
+            self._too_deep()
+        super().fetch_flow_collection_start(token_class)
+
+    def add_indent(self, column):  # noqa: ANN001
+        if len(self.indents) >= MAX_DEPTH:
+            self._too_deep()
+        return super().add_indent(column)
 
     def compose_node(self, parent, index):  # noqa: ANN001 - PyYAML's signature
         self._depth += 1
@@ -99,11 +114,17 @@ class _Loader(yaml.SafeLoader):
             self._depth -= 1
 
 
-def _walk(node: yaml.Node, path: tuple, lines: _Lines, budget: list[int]) -> None:
-    budget[0] -= 1
-    if budget[0] < 0:  # aliases expand: count nodes as the data will be seen, not as written
-        raise ConfigError(f"{lines.file}:{node.start_mark.line + 1}: the config expands to more than {MAX_NODES} "
-                          f"values (YAML aliases repeated inside aliases?)")
+def _expanded_size(node: yaml.Node, memo: dict[int, int]) -> int:
+    """How many values the data has once aliases are expanded (each shared node counted once per use)."""
+    n = memo.get(id(node))
+    if n is None:
+        children = node.value if isinstance(node, yaml.SequenceNode) else (
+            [v for _, v in node.value] if isinstance(node, yaml.MappingNode) else [])
+        n = memo[id(node)] = 1 + sum(_expanded_size(c, memo) for c in children)
+    return n
+
+
+def _walk(node: yaml.Node, path: tuple, lines: _Lines) -> None:
     lines.lines[path] = node.start_mark.line + 1
     if isinstance(node, yaml.MappingNode):
         seen: set = set()
@@ -113,11 +134,11 @@ def _walk(node: yaml.Node, path: tuple, lines: _Lines, budget: list[int]) -> Non
             if k.value in seen:
                 raise ConfigError(f"{lines.file}:{k.start_mark.line + 1}: {_dotted(path + (k.value,))}: duplicate key")
             seen.add(k.value)
-            _walk(v, path + (k.value,), lines, budget)
+            _walk(v, path + (k.value,), lines)
             lines.lines[path + (k.value,)] = k.start_mark.line + 1  # the key's line reads best
     elif isinstance(node, yaml.SequenceNode):
         for i, v in enumerate(node.value):
-            _walk(v, path + (i,), lines, budget)
+            _walk(v, path + (i,), lines)
 
 
 def _dotted(path: tuple) -> str:
@@ -148,7 +169,10 @@ def _parse_yaml(text: str, file: str) -> tuple[dict, _Lines]:
         raise ConfigError(f"{file}: the config is empty; expected a mapping with 'scene', 'fluid', 'outputs'...")
     if not isinstance(data, dict):
         raise ConfigError(f"{file}:1: top level: expected a mapping of sections, got {type(data).__name__}")
-    _walk(node, (), lines, [MAX_NODES])
+    if _expanded_size(node, {}) > MAX_NODES:
+        raise ConfigError(f"{file}: the config expands to more than {MAX_NODES} values "
+                          f"(YAML aliases repeated inside aliases?)")
+    _walk(node, (), lines)
     return data, lines
 
 
