@@ -21,7 +21,7 @@ from .scene import SceneConfig
 from .stage import STAGE_KINDS, Params, Stage
 
 CONFIG_VERSION = 1
-TOP_LEVEL = ("config_version", "scene", "walls", "fluid", "effects", "camera", "stages", "outputs")
+TOP_LEVEL = ("config_version", "scene", "walls", "fluid", "effects", "camera", "stages", "outputs", "allow_large")
 OUTPUT_NAMES = ("walls", "sdf", "particles", "raw_surface", "surface", "frames", "movie", "usd")
 
 
@@ -39,6 +39,7 @@ class Config:
     stages: dict[str, StageChoice]  # every kind the config names or that has a default
     outputs: tuple[str, ...]
     raw: dict[str, Any] = field(repr=False, default_factory=dict)
+    allow_large: bool = False  # run even when the plan's memory estimate exceeds the available memory
 
     @property
     def name(self) -> str:
@@ -296,6 +297,9 @@ def load_config(path: str | Path, registry: Registry, overrides: list[str] | tup
         if o not in OUTPUT_NAMES:
             raise ConfigError(f"{lines.where(('outputs', i))}: outputs.{i}: unknown output {o!r}; expected one of {', '.join(OUTPUT_NAMES)}")
 
+    allow_large = data.get("allow_large", False)
+    if not isinstance(allow_large, bool):
+        raise ConfigError(f"{lines.where(('allow_large',))}: allow_large: expected true or false, got {allow_large!r}")
     stages_raw = data.get("stages") or {}
     if not isinstance(stages_raw, dict):
         raise ConfigError(f"{lines.where(('stages',))}: stages: expected a mapping of stage kind to settings")
@@ -311,7 +315,8 @@ def load_config(path: str | Path, registry: Registry, overrides: list[str] | tup
                 stages[kind] = _stage_params(kind, {}, registry, lines)
             except ConfigError:
                 continue  # a default that cannot load only matters if the graph needs it
-    return Config(path=path.resolve(), scene=scene, stages=stages, outputs=tuple(dict.fromkeys(outputs)), raw=data)
+    return Config(path=path.resolve(), scene=scene, stages=stages, outputs=tuple(dict.fromkeys(outputs)), raw=data,
+                  allow_large=allow_large)
 
 
 def dump_model(value: Any) -> Any:

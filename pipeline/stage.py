@@ -120,6 +120,12 @@ class Stage:
         """Files outside the cache that this stage reads; their content goes into the key."""
         return []
 
+    def estimate(self, ctx: Context, params: Params) -> dict[str, float] | None:
+        """The size of this stage's work from the config alone, before anything runs (no inputs yet):
+        any of ``particles``, ``sdf_nodes``, ``steps``, ``memory_bytes`` (peak, this stage). None or a
+        missing key when unknown (e.g. walls from a file whose bounds are not read yet)."""
+        return None
+
     def frame_count(self, ctx: Context, params: Params, inputs: Mapping[str, Artifact]) -> int | None:
         """For whole-run stages whose output has frames: how many (None when not framed)."""
         return None

@@ -44,6 +44,7 @@ from pydantic import Field, field_validator
 from pipeline.stage import Artifact, Context, Params, Stage, StageError
 from stages.common.formats import WallMesh
 from stages.common.sdf import SDFGrid
+from stages.common.sizes import sdf_estimate
 
 from .mesh_distance import band_distance, inside_votes
 
@@ -220,6 +221,11 @@ class Open3dBake(Stage):
     reads = ("scene", "fluid")
     default = True
     description = "narrow-band SDF on a grid (exact distance near the walls, sign by grid-line ray votes)"
+
+    def estimate(self, ctx: Context, params: Params) -> dict | None:
+        s = ctx.scene
+        pad = params.margin if s["scene"].domain is not None else params.band + params.margin
+        return sdf_estimate(s["scene"], s.get("walls") or [], s["fluid"], params.cell, pad)
 
     def run(self, ctx: Context, inputs: Mapping[str, Artifact], params: Params) -> None:
         fluid = ctx.scene["fluid"]
