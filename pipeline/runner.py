@@ -339,9 +339,11 @@ def _execute(p: Plan, out_dir: Path, force: frozenset[str], executor: Executor |
             _run_branches(graph, order, lambda k: run_node(k, bars), finish)
     report.stages = [reports[k] for k in order]
     try:
-        report.outputs = publish(graph, artifacts, out_dir, p.frames)
-        report.seconds = time.perf_counter() - t_start
-        write_run_json(report, out_dir)
+        # two runs publishing into one folder (the same config run twice) take turns
+        with cache.lock(hash_key({"publish": str(out_dir)}), f"publish into {out_dir}"):
+            report.outputs = publish(graph, artifacts, out_dir, p.frames)
+            report.seconds = time.perf_counter() - t_start
+            write_run_json(report, out_dir)
     except OSError as exc:
         raise _outside(f"publish into {out_dir}", exc, cache) from exc
     return report
