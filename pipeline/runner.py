@@ -139,18 +139,25 @@ class FrameJob:
     fault_log: str | None = None  # the run's log: faulthandler writes native crashes of workers there
 
 
-_worker_fault_log: object | None = None
+_worker_fault_log: tuple[str, Any] | None = None  # (path, open file) in a worker process
 
 
 def _enable_faulthandler(path: str | None) -> None:
+    """In a worker process, send faulthandler's output to the current run's log (in this process, as
+    with the inline executor, execute() has done it already)."""
     global _worker_fault_log
-    if path is None or _worker_fault_log is not None:
+    if path is None or (_worker_fault_log is None and faulthandler.is_enabled()):
+        return
+    if _worker_fault_log is not None and _worker_fault_log[0] == path:
         return
     try:
-        _worker_fault_log = open(path, "a")
-        faulthandler.enable(_worker_fault_log)
+        fh = open(path, "a")
     except OSError:
-        _worker_fault_log = False  # no log (disk full): the work goes on
+        return  # no log (disk full): the work goes on
+    faulthandler.enable(fh)
+    if _worker_fault_log is not None:
+        _worker_fault_log[1].close()
+    _worker_fault_log = (path, fh)
 
 
 def run_frame_job(job: FrameJob) -> tuple[int, str, float, bool]:
@@ -307,12 +314,17 @@ def _execute(p: Plan, out_dir: Path, force: frozenset[str], executor: Executor |
         with guard:
             inputs = {name: artifacts[name] for name, _ in node.inputs}
         t0 = time.perf_counter()
-        if node.per_frame:
-            sr, frames = _run_per_frame(p, node, key, inputs, runnable, forced, executor, bars, fault_log)
-            made = {out: Artifact(name=out, key=key, frames=frames) for out in node.cls.outputs}
-        else:
-            sr, path = _run_whole(p, node, key, inputs, runnable, forced, bars)
-            made = {out: Artifact(name=out, key=key, path=path) for out in node.cls.outputs}
+        try:
+            if node.per_frame:
+                sr, frames = _run_per_frame(p, node, key, inputs, runnable, forced, executor, bars, fault_log)
+                made = {out: Artifact(name=out, key=key, frames=frames) for out in node.cls.outputs}
+            else:
+                sr, path = _run_whole(p, node, key, inputs, runnable, forced, bars)
+                made = {out: Artifact(name=out, key=key, path=path) for out in node.cls.outputs}
+        except PipelineError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - the engine's own work for this stage (lock, cache folders)
+            raise _fail(node, key, config, exc, cache) from exc
         if sr.status != "cached":
             sr.seconds = time.perf_counter() - t0
         return sr, made
