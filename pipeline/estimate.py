@@ -68,11 +68,11 @@ def check_size(p: Any, *, allow_large: bool = False) -> dict[str, dict[str, floa
                  f"~{int(est['steps']):,} steps" if "steps" in est else "",
                  f"~{_human(est['memory_bytes'])}" if "memory_bytes" in est else ""]
         parts.append(f"{kind}: " + ", ".join(x for x in shown if x))
-    log.info("plan size: %s", "; ".join(parts))
     peak_kind, peak = max(((k, e.get("memory_bytes", 0.0)) for k, e in sizes.items()), key=lambda t: t[1])
     avail = available_memory()
     if avail is not None and peak > avail and not allow_large:
         raise ConfigError(f"{p.config.path}: stage {peak_kind} would need about {_human(peak)} of memory "
                           f"({'; '.join(parts)}) but {_human(avail)} is available; make fluid.spacing or the "
                           f"scene smaller, or run anyway with --yes (config: allow_large: true)")
+    log.info("plan size: %s", "; ".join(parts))  # a refusal carries the numbers in its one line
     return sizes

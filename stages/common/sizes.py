@@ -23,7 +23,7 @@ def emitted_particles(fluid) -> float | None:
     n = 0.0
     for em in fluid.emitters:
         if hasattr(em, "box"):
-            n += float(np.prod(np.floor((np.asarray(em.box.max) - np.asarray(em.box.min)) / l0) + 1))
+            n += float(np.prod(np.floor((np.asarray(em.box.max) - np.asarray(em.box.min)) / l0 + 1e-9)))  # as emitters.lattice
         elif hasattr(em, "sphere"):
             n += 4.0 / 3.0 * math.pi * (em.sphere.radius / l0) ** 3
         else:
