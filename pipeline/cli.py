@@ -40,9 +40,16 @@ def _guard(fn):
         except KeyboardInterrupt:
             click.echo("interrupted; the cache holds only finished entries (unfinished ones are swept by the next run)",
                        err=True)
+            # a stage may still run in a thread (a simulation): exit now instead of waiting for it, after
+            # multiprocessing's own exit clean-up (the stopped pool's semaphores, no warnings)
+            try:
+                import multiprocessing.util
+
+                multiprocessing.util._exit_function()
+            except Exception:  # noqa: BLE001 - best effort before a hard exit
+                pass
             sys.stderr.flush()
             sys.stdout.flush()
-            # a stage may still run in a thread (a simulation): exit now instead of waiting for it
             os._exit(130)
         except click.exceptions.Exit:
             raise

@@ -2,6 +2,7 @@
 importing numba, VTK or open3d (the reliability tests launch it dozens of times)."""
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 
@@ -19,6 +20,20 @@ def _toy_registry(cls, group: str = "pipeline.stages") -> Registry:
 
 
 Registry.from_entry_points = classmethod(_toy_registry)
+
+if os.environ.get("TOY_SEGV_FRAME"):  # a native crash (as VTK or numba may have) in one frame's job
+    import faulthandler
+
+    import toy_stages
+
+    _run_frame = toy_stages.ToyRender.run_frame
+
+    def _crashing(self, ctx, inputs, params, frame):
+        if frame == int(os.environ["TOY_SEGV_FRAME"]):
+            faulthandler._sigsegv()
+        return _run_frame(self, ctx, inputs, params, frame)
+
+    toy_stages.ToyRender.run_frame = _crashing
 
 if __name__ == "__main__":
     from pipeline.cli import main
