@@ -56,8 +56,6 @@ def _atomic_write(path: Path, text: str) -> None:
     try:
         with open(tmp, "w") as fh:
             fh.write(text)
-            fh.flush()
-            os.fsync(fh.fileno())
         os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
