@@ -282,11 +282,14 @@ def execute(p: Plan, *, out_dir: Path, force: frozenset[str] = frozenset(), exec
         fault_fh = open(fault_log, "w")
     except OSError as exc:
         raise _outside(f"cache {cache.root}", exc, cache) from exc
+    was_enabled = faulthandler.is_enabled()
     faulthandler.enable(fault_fh)
     try:
         return _execute(p, out_dir, force, executor, progress, str(fault_log))
     finally:
         faulthandler.disable()
+        if was_enabled:  # e.g. pytest's or PYTHONFAULTHANDLER's, to stderr
+            faulthandler.enable()
         fault_fh.close()
         try:
             if fault_log.stat().st_size == 0:

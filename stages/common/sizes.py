@@ -1,6 +1,7 @@
 """Sizes of a run from the config alone (before any stage runs), for the stages' ``estimate`` hooks:
 particle counts of the emitters, the box the SDF grid covers, and the simulation's step count and
-memory. Estimates, not promises: mesh emitters and walls from files are unknown until loaded."""
+memory. Estimates, not promises: mesh emitters, and the walls' bounds when scene.domain is not set,
+are unknown until loaded."""
 from __future__ import annotations
 
 import math
@@ -37,28 +38,17 @@ def _fluid_extent(fluid) -> float:
     return max(ext, default=fluid.spacing)
 
 
-def scene_box(scene, walls) -> tuple[np.ndarray, np.ndarray] | None:
-    """scene.domain, or the union of the built-in walls' boxes; None when a wall comes from a file."""
+def scene_box(scene) -> tuple[np.ndarray, np.ndarray] | None:
+    """scene.domain, the box the SDF grid and the simulation cover; None when the walls' bounds decide
+    (they are known only once mesh_import has run)."""
     if scene.domain is not None:
         return np.asarray(scene.domain.min, float), np.asarray(scene.domain.max, float)
-    if not walls or any(not hasattr(w, "builtin") for w in walls):
-        return None
-    from stages.common.placement import placement_matrix
-    from stages.mesh_import.builtin import _bounds
-
-    pts = []
-    for w in walls:
-        lo, hi = _bounds(w, scene.units.up_axis)
-        corners = np.array([[(lo, hi)[i][0], (lo, hi)[j][1], (lo, hi)[k][2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
-        m = placement_matrix(corners, w)
-        pts.append(corners @ m[:3, :3].T + m[:3, 3])
-    pts = np.concatenate(pts)
-    return pts.min(axis=0), pts.max(axis=0)
+    return None
 
 
-def sdf_estimate(scene, walls, fluid, cell: float, pad_l0: float) -> dict | None:
-    """Nodes and memory of an SDF grid of spacing ``cell * l0`` over the scene box padded by ``pad_l0``."""
-    box = scene_box(scene, walls)
+def sdf_estimate(scene, fluid, cell: float, pad_l0: float) -> dict | None:
+    """Nodes and memory of an SDF grid of spacing ``cell * l0`` over scene.domain padded by ``pad_l0``."""
+    box = scene_box(scene)
     if box is None or fluid is None:
         return None
     l0 = fluid.spacing
@@ -77,7 +67,7 @@ def simulate_estimate(ctx, cfl: float, sound_factor: float | None, support: floa
     if n is None:
         return None
     out: dict = {"particles": n, "memory_bytes": n * BYTES_PER_PARTICLE * (support / 2.0) ** 3}
-    box = scene_box(scene, ctx.scene.get("walls") or [])
+    box = scene_box(scene)
     if box is not None:
         out["memory_bytes"] += float(np.prod(np.ceil((box[1] - box[0]) / (0.5 * fluid.spacing)) + 1)) * 4
     mpu = scene.units.meters_per_unit

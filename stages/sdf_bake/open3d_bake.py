@@ -223,9 +223,8 @@ class Open3dBake(Stage):
     description = "narrow-band SDF on a grid (exact distance near the walls, sign by grid-line ray votes)"
 
     def estimate(self, ctx: Context, params: Params) -> dict | None:
-        s = ctx.scene
-        pad = params.margin if s["scene"].domain is not None else params.band + params.margin
-        return sdf_estimate(s["scene"], s.get("walls") or [], s["fluid"], params.cell, pad)
+        # the grid covers scene.domain padded by the margin (without a domain: the walls', unknown yet)
+        return sdf_estimate(ctx.scene["scene"], ctx.scene["fluid"], params.cell, params.margin)
 
     def run(self, ctx: Context, inputs: Mapping[str, Artifact], params: Params) -> None:
         fluid = ctx.scene["fluid"]

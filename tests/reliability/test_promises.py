@@ -176,3 +176,25 @@ def test_sweep_removes_only_provably_dead_tmp_folders(tmp_path):
 def test_relative_cache_is_made_absolute(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     assert Cache(Path("rel")).root == tmp_path / "rel"
+
+
+def test_size_estimate_is_the_same_in_metres_and_millimetres():
+    """The simulate and sdf_bake estimates of one scene described in m and in mm agree."""
+    from stages.sdf_bake.open3d_bake import Open3dBake
+    from stages.simulate.sph import SPHSimulate
+    from pipeline.stage import Context
+    from pipeline.testing import scene_sections
+
+    def sizes(k: float, mpu: float) -> tuple[dict, dict]:
+        sc = scene_sections({
+            "scene": {"name": "x", "units": {"meters_per_unit": mpu}, "frames": {"fps": 30, "count": 30},
+                      "domain": {"min": [0, 0, 0], "max": [2 * k, 1 * k, 1 * k]}},
+            "fluid": {"spacing": 0.05 * k, "emitters": [{"box": {"min": [0, 0, 0], "max": [0.5 * k, 0.5 * k, 0.5 * k]}}]},
+            "effects": {"gravity": {"g": 9.81}}})
+        ctx = Context(out_dir=Path("."), scene=sc, config_dir=Path("."), frames=(0,), log=None)
+        return (SPHSimulate().estimate(ctx, SPHSimulate.Params()), Open3dBake().estimate(ctx, Open3dBake.Params()))
+
+    (sim_m, sdf_m), (sim_mm, sdf_mm) = sizes(1.0, 1.0), sizes(1000.0, 0.001)
+    assert sim_m["particles"] == sim_mm["particles"] == 1000
+    assert sim_m["steps"] == pytest.approx(sim_mm["steps"], rel=1e-9) and sim_m["steps"] > 30
+    assert sdf_m["sdf_nodes"] == sdf_mm["sdf_nodes"] > 0
