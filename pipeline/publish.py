@@ -36,7 +36,7 @@ class OutputRefused(PipelineError):
 def read_record(out_dir: Path) -> dict[str, list[str]]:
     path = out_dir / RECORD
     if not path.exists():
-        return {}
+        return _record_from_old_run_json(out_dir)
     try:
         data = json.loads(path.read_text())
         published = data["published"]
@@ -45,6 +45,21 @@ def read_record(out_dir: Path) -> dict[str, list[str]]:
     except (OSError, ValueError, KeyError, TypeError, AssertionError):
         raise OutputRefused(f"{path}: the record of what the pipeline published here is unreadable; "
                             f"move the folder away or remove the record to publish here again") from None
+
+
+def _record_from_old_run_json(out_dir: Path) -> dict[str, list[str]]:
+    """A folder published before the record existed: its run.json (the pipeline's report, naming this
+    folder and the outputs it published there) is the proof of what is ours."""
+    try:
+        report = json.loads((out_dir / "run.json").read_text())
+        outputs = report["outputs"]
+        if Path(report["out"]).resolve() != out_dir.resolve() or not {"config", "stages"} <= set(report):
+            return {}
+        owned = {name: _files(out_dir / name) for name, where in outputs.items()
+                 if Path(where).resolve() == (out_dir / name).resolve() and (out_dir / name).is_dir()}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return {}
+    return {**owned, "run.json": ["run.json"]}
 
 
 def _write_record(out_dir: Path, published: dict[str, list[str]]) -> None:

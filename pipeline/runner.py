@@ -12,6 +12,7 @@ import logging
 import os
 import threading
 import shutil
+import sys
 import time
 import traceback
 from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
@@ -288,8 +289,11 @@ def execute(p: Plan, *, out_dir: Path, force: frozenset[str] = frozenset(), exec
         return _execute(p, out_dir, force, executor, progress, str(fault_log))
     finally:
         faulthandler.disable()
-        if was_enabled:  # e.g. pytest's or PYTHONFAULTHANDLER's, to stderr
-            faulthandler.enable()
+        if was_enabled:  # e.g. pytest's or PYTHONFAULTHANDLER's, to the real stderr
+            try:
+                faulthandler.enable(sys.__stderr__)
+            except (AttributeError, ValueError, OSError):
+                pass
         fault_fh.close()
         try:
             if fault_log.stat().st_size == 0:
@@ -526,7 +530,10 @@ def run(config_path: str | Path, *, registry: Registry | None = None, overrides:
     out = Path(os.path.abspath(out_dir)) if out_dir else default_out_dir(config)
     check_out_dir(out, [n for n in graph.outputs] + ["run.json"])
     try:
-        p = plan(config, graph, cache, frames)
+        try:
+            p = plan(config, graph, cache, frames)
+        except OSError as exc:  # an input file that exists but cannot be read (permissions, I/O)
+            raise StageFailed(f"cannot read input file {exc.filename}: {exc.strerror or exc}", user_error=True) from None
         check_size(p, allow_large=allow_large or config.allow_large)
         return execute(p, out_dir=out, force=frozenset(force), executor=executor, progress=progress)
     except (PipelineError, KeyboardInterrupt, SystemExit):

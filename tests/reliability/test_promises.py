@@ -91,7 +91,8 @@ def test_published_folders_are_replaced_others_kept_and_user_additions_protected
     out.mkdir()
     (out / "walls").mkdir()
     (out / "walls" / "tank.obj").write_text("v 0 0 0")  # shares the folder, not an output name
-    assert _run(cfg, "--out", out, "--cache", tmp_path / "c").exit_code == 0
+    r = _run(cfg, "--out", out, "--cache", tmp_path / "c")
+    assert r.exit_code == 0, r.output
     record = json.loads((out / ".pipeline-published.json").read_text())["published"]
     assert set(record) == {"frames", "usd", "run.json"}
     # a second run with other settings replaces what it published, and only that
@@ -198,3 +199,18 @@ def test_size_estimate_is_the_same_in_metres_and_millimetres():
     assert sim_m["particles"] == sim_mm["particles"] == 1000
     assert sim_m["steps"] == pytest.approx(sim_mm["steps"], rel=1e-9) and sim_m["steps"] > 30
     assert sdf_m["sdf_nodes"] == sdf_mm["sdf_nodes"] > 0
+
+
+def test_folder_published_before_the_record_existed_is_still_ours(tmp_path, toy_registry):
+    """An output folder from before the record (only run.json) can be replaced; a user's folder beside
+    it still cannot."""
+    cfg = write_config(tmp_path)
+    out = tmp_path / "o"
+    assert _run(cfg, "--out", out, "--cache", tmp_path / "c").exit_code == 0
+    (out / ".pipeline-published.json").unlink()
+    assert _run(cfg, "--out", out, "--cache", tmp_path / "c", "--set", "render.width=8").exit_code == 0
+    assert "render 8" in (out / "frames" / "frame_00000.txt").read_text()
+    (out / ".pipeline-published.json").unlink()
+    (out / "run.json").unlink()
+    err = _one_line_exit(_run(cfg, "--out", out, "--cache", tmp_path / "c"), 2)
+    assert "did not create" in err
