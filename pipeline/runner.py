@@ -10,22 +10,22 @@ from __future__ import annotations
 import faulthandler
 import logging
 import os
-import threading
 import shutil
 import sys
+import threading
 import time
 import traceback
 from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
 from .cache import Cache, file_sha256, hash_key, owner_tag
 from .config import Config, dump_model, load_config
 from .errors import CacheMissError, ConfigError, FrameError, PipelineError, StageFailed
+from .estimate import check_size
 from .executors import Executor, make_executor
 from .graph import Graph, Node, build_graph
-from .estimate import check_size
 from .publish import check_out_dir, publish, write_run_json
 from .registry import Registry
 from .stage import Artifact, Context, Progress, Stage, StageError
