@@ -135,3 +135,46 @@ def test_enospc_at_every_write_site(tmp_path, monkeypatch):
             shutil.rmtree(folder)
     print(f"ENOSPC fault points: {2 * len(sites)} tried ({len(sites)} write sites x disk stays full / frees up), "
           f"{survived} survived ({handled} handled without failing: a failed hard link falls back to a copy)")
+
+
+def _mount_tmpfs(where: Path, inodes: int) -> bool:
+    where.mkdir(parents=True, exist_ok=True)
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size=4m,nr_inodes={inodes}", "tmpfs", str(where)],
+                       capture_output=True)
+    return r.returncode == 0
+
+
+def test_real_small_filesystem_runs_out_of_space(tmp_path, monkeypatch):
+    """A real tmpfs with few inodes: the run stops with exit 1 and one line wherever the disk fills up,
+    and after the filesystem grows the same run completes with the uninterrupted result."""
+    monkeypatch.setattr(Registry, "from_entry_points", classmethod(_toy_registry))
+    ref = tmp_path / "ref"
+    assert _run(ref, monkeypatch, None).exit_code == 0
+    disk = tmp_path / "disk"
+    if os.geteuid() != 0 or not _mount_tmpfs(disk, 8):
+        pytest.skip("cannot mount a tmpfs here (needs root); the injected ENOSPC test covers every write site")
+    failed = 0
+    try:
+        for inodes in (8, 16, 24, 32, 40, 48, 56):
+            subprocess.run(["umount", str(disk)], check=True)
+            assert _mount_tmpfs(disk, inodes)
+            r = _run(disk / "run", monkeypatch, None)
+            if r.exit_code == 0:
+                continue
+            failed += 1
+            err = r.stderr.strip()
+            assert r.exit_code == 1 and len(err.splitlines()) == 1, f"{inodes} inodes: {r.output}"
+            assert "No space left on device" in err, err
+            if (disk / "run" / "cache").exists():
+                assert_consistent(disk / "run" / "cache", disk / "run" / "out")
+            # a bigger disk: the same cache and output folder (copied with their times) complete the run
+            bigger = tmp_path / f"bigger{inodes}"
+            shutil.copytree(disk / "run", bigger, symlinks=True)
+            r = _run(bigger, monkeypatch, None)
+            assert r.exit_code == 0, f"{inodes} inodes, recovery: {r.output}"
+            assert tree(bigger / "out", skip=("run.json",)) == tree(ref / "out", skip=("run.json",))
+            assert entries(bigger / "cache") == entries(ref / "cache")
+    finally:
+        subprocess.run(["umount", "-l", str(disk)], capture_output=True)
+    assert failed >= 5, f"only {failed} sizes ran out of space"
+    print(f"tmpfs: {failed} fill-up points tried and survived")
