@@ -30,8 +30,9 @@ def test_kill_9_at_20_random_points_then_resume_is_byte_identical(tmp_path):
     cache, out = tmp_path / "cache", tmp_path / "out"
     rng = random.Random(15)
     env = cli_env()
-    killed = 0
-    for _ in range(KILLS):
+    killed = attempts = 0
+    while killed < KILLS and attempts < 3 * KILLS:
+        attempts += 1
         # the whole process group (the run and its pool workers) dies at once, as on a crash or OOM kill
         proc = subprocess.Popen(cli_cmd(*_run_args(cfg, cache, out)), env=env, start_new_session=True,
                                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -40,16 +41,15 @@ def test_kill_9_at_20_random_points_then_resume_is_byte_identical(tmp_path):
             os.killpg(proc.pid, signal.SIGKILL)
             killed += 1
         proc.wait()
-        # a run that was killed before it got going leaves the cache for the next to continue; the
-        # random point may also fall after the run finished, which a later point covers again
+        # a point after the run finished (resumed runs are shorter) does not count: start afresh
         if proc.returncode == 0:
             for d in (cache, out):
                 shutil.rmtree(d, ignore_errors=True)
-    assert killed >= KILLS // 2, f"only {killed} of {KILLS} points fell inside a run"
+    assert killed == KILLS, f"only {killed} of {attempts} points fell inside a run"
 
     r = run_cli(*_run_args(cfg, cache, out))
     assert r.returncode == 0, r.stderr
     assert_consistent(cache, out)
     assert tree(out, skip=("run.json",)) == tree(tmp_path / "ref_out", skip=("run.json",))
     assert entries(cache) == entries(tmp_path / "ref_cache")
-    print(f"kill -9 points: {KILLS} tried, {killed} inside a run, all survived (run {span:.1f} s)")
+    print(f"kill -9 points: {killed} inside a run ({attempts} tried), all survived (run {span:.1f} s)")

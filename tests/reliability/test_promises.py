@@ -15,15 +15,9 @@ from click.testing import CliRunner
 
 from pipeline.cache import TMP_MAX_AGE, Cache, owner_tag
 from pipeline.cli import main
-from pipeline.config import load_config
-from pipeline.graph import build_graph
 from pipeline.registry import Registry
-try:  # plan() moves to pipeline.keys in the keys work; either place works here
-    from pipeline.keys import plan
-except ImportError:
-    from pipeline.runner import plan
 from rel_helpers import TESTS, assert_consistent, write_config
-from toy_stages import TOY_STAGES
+from toy_stages import TOY_STAGES, ToySimulate
 
 BAD = sorted((TESTS / "bad_configs").glob("*.yaml"))
 
@@ -134,18 +128,34 @@ def test_malformed_config_with_default_paths_creates_nothing(path, tmp_path, toy
     assert seconds < 5, f"{path.name}: {seconds:.1f} s"  # loose: hostile YAML must not hang
 
 
-def test_size_refusal_lifted_by_yes(tmp_path):
-    """The absurd config is refused by its estimate; with allow_large the estimate no longer stops it."""
-    from pipeline.estimate import check_size
-    from pipeline.errors import ConfigError
+class HugeToySimulate(ToySimulate):
+    """The toy simulation with an estimate far beyond any machine's memory."""
 
-    cfg = load_config(TESTS / "bad_configs" / "48_absurd_particles.yaml", Registry.from_entry_points())
-    p = plan(cfg, build_graph(cfg), Cache(tmp_path / "c"))
-    with pytest.raises(ConfigError, match="particles"):
-        check_size(p)
-    sizes = check_size(p, allow_large=True)
-    assert sizes["simulate"]["particles"] == pytest.approx(2e5 * 2e5 * 2e5, rel=1e-6)
-    assert not (tmp_path / "c").exists()
+    name = "huge"
+
+    def estimate(self, ctx, params):
+        return {"particles": 1e15, "memory_bytes": 1e18}
+
+
+def test_size_refusal_then_yes_and_allow_large(tmp_path, monkeypatch):
+    def make(cls, group: str = "pipeline.stages") -> Registry:
+        reg = cls()
+        for stage in TOY_STAGES + (HugeToySimulate,):
+            reg.add(stage)
+        return reg
+
+    monkeypatch.setattr(Registry, "from_entry_points", classmethod(make))
+    cfg = write_config(tmp_path)
+    cfg.write_text(cfg.read_text().replace("use: toy, steps", "use: huge, steps"))
+    err = _one_line_exit(_run(cfg), 2)
+    assert "stage simulate would need about" in err and "1,000,000,000,000,000 particles" in err, err
+    assert "--yes" in err and sorted(p.name for p in tmp_path.iterdir()) == [cfg.name]  # nothing created
+    r = _run(cfg, "--yes")
+    assert r.exit_code == 0, r.output
+    shutil.rmtree(tmp_path / ".pipeline")
+    cfg.write_text("allow_large: true\n" + cfg.read_text())
+    r = _run(cfg, "--set", "render.width=9")
+    assert r.exit_code == 0, r.output
 
 
 def test_sweep_removes_only_provably_dead_tmp_folders(tmp_path):
