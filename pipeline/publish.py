@@ -170,7 +170,11 @@ def publish(graph: Graph, artifacts: dict[str, Artifact], out_dir: Path, frames:
             if target.exists():
                 trash = out_dir / f"{TMP_PREFIX}old-{name}.{owner_tag()}.{uuid.uuid4().hex[:8]}"
                 os.replace(target, trash)
-                os.replace(staging, target)
+                try:
+                    os.replace(staging, target)
+                except BaseException:
+                    os.replace(trash, target)  # the old folder back: nothing half-replaced
+                    raise
                 shutil.rmtree(trash, ignore_errors=True)
             else:
                 os.replace(staging, target)

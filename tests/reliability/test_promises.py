@@ -224,3 +224,23 @@ def test_folder_published_before_the_record_existed_is_still_ours(tmp_path, toy_
     (out / "run.json").unlink()
     err = _one_line_exit(_run(cfg, "--out", out, "--cache", tmp_path / "c"), 2)
     assert "did not create" in err
+
+
+def test_failed_replacement_keeps_the_old_published_folder(tmp_path, toy_registry, monkeypatch):
+    cfg = write_config(tmp_path)
+    out = tmp_path / "o"
+    assert _run(cfg, "--out", out, "--cache", tmp_path / "c").exit_code == 0
+    before = (out / "frames" / "frame_00000.txt").read_text()
+    real_replace = os.replace
+
+    def failing(src, dst, *a, **k):
+        if Path(dst) == out / "frames" and ".pipeline-tmp.frames" in str(src):
+            raise OSError(28, "No space left on device", str(dst))
+        return real_replace(src, dst, *a, **k)
+
+    monkeypatch.setattr(os, "replace", failing)
+    err = _one_line_exit(_run(cfg, "--out", out, "--cache", tmp_path / "c", "--set", "render.width=7"), 1)
+    monkeypatch.setattr(os, "replace", real_replace)
+    assert err.startswith("error: publish into") and "No space left on device" in err
+    assert (out / "frames" / "frame_00000.txt").read_text() == before
+    assert_consistent(tmp_path / "c", out)
