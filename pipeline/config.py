@@ -79,6 +79,10 @@ MAX_DEPTH = 64
 MAX_NODES = 20_000
 
 
+class _TooDeep(ConfigError):
+    """Nesting beyond MAX_DEPTH (never read as a plain string in --set values)."""
+
+
 class _Loader(yaml.SafeLoader):
     """SafeLoader that refuses nesting deeper than MAX_DEPTH already in the scanner (PyYAML's scanner
     is quadratic in the flow depth) and while composing (before any recursion can overflow); the
@@ -90,7 +94,7 @@ class _Loader(yaml.SafeLoader):
         self._depth = 0
 
     def _too_deep(self) -> None:
-        raise ConfigError(f"{self._file}:{self.line + 1}: nested more than {MAX_DEPTH} levels deep; "
+        raise _TooDeep(f"{self._file}:{self.line + 1}: nested more than {MAX_DEPTH} levels deep; "
                           f"a config is a few levels of mappings and lists")
 
     def fetch_flow_collection_start(self, token_class):  # noqa: ANN001 - PyYAML's signature
@@ -107,9 +111,7 @@ class _Loader(yaml.SafeLoader):
         self._depth += 1
         try:
             if self._depth > MAX_DEPTH:
-                mark = self.peek_event().start_mark
-                raise ConfigError(f"{self._file}:{mark.line + 1}: nested more than {MAX_DEPTH} levels deep; "
-                                  f"a config is a few levels of mappings and lists")
+                self._too_deep()
             return super().compose_node(parent, index)
         finally:
             self._depth -= 1
@@ -192,9 +194,9 @@ def apply_override(data: dict, assignment: str, lines: _Lines) -> None:
         raise ConfigError(f"--set {key}: unknown section {parts[0]!r}; expected one of {', '.join(TOP_LEVEL)} or a stage kind")
     try:
         value = safe_yaml(text, f"--set {key}")[0] if text.strip() else None
-    except ConfigError as e:
-        if "nested more than" in str(e):
-            raise
+    except _TooDeep:
+        raise
+    except ConfigError:
         value = text
     node: Any = data
     path: tuple = ()
