@@ -7,14 +7,22 @@ looks finished. A lock file per key serialises concurrent runs computing the sam
 finds the winner's entry and uses it. An entry whose files do not match its manifest is a miss and is
 rebuilt (files whose size and mtime match the manifest are trusted, like git's index; others are
 re-hashed).
+
+Temporary folders are named ``<key>.<host>-<pid>-<start>.<random>``: the sweep removes one only when its
+writer is provably dead (same host and that process gone, or older than ``TMP_MAX_AGE``), so a run on
+host A never removes a folder a worker on host B is still writing into a shared cache. The lock file
+of a key records who holds it; a run waiting for it says so and gives up after ``lock_timeout``.
 """
 from __future__ import annotations
 
 import fcntl
 import hashlib
 import json
+import logging
 import os
+import re
 import shutil
+import socket
 import time
 import uuid
 from contextlib import contextmanager
@@ -22,8 +30,62 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator
 
+from .errors import StageFailed
+
 KEY_SCHEMA = 1
 MANIFEST = "manifest.json"
+# a temporary folder or file whose writer runs on another host is swept only after this age (seconds;
+# env PIPELINE_TMP_MAX_AGE): no simulation step or frame job runs that long without finishing
+TMP_MAX_AGE = float(os.environ.get("PIPELINE_TMP_MAX_AGE", 7 * 24 * 3600))
+# how long a run waits for another run's lock on a key before giving up (seconds; --lock-timeout,
+# env PIPELINE_LOCK_TIMEOUT)
+LOCK_TIMEOUT = float(os.environ.get("PIPELINE_LOCK_TIMEOUT", 3600))
+
+log = logging.getLogger("pipeline")
+
+
+class LockTimeout(StageFailed):
+    """Another run held a key's lock longer than the lock timeout (exit 1, one line)."""
+
+    def __init__(self, message: str) -> None:
+        super().__init__(message, user_error=False)
+
+
+# -- who wrote a temporary file: host, pid, start time ------------------------------------------------
+_HOST = re.sub(r"[^A-Za-z0-9-]", "-", socket.gethostname())[:64] or "host"
+_STARTED = int(time.time())
+
+
+def owner_tag() -> str:
+    """``<host>-<pid>-<start>`` of this process, for names of temporary files and folders (no dots)."""
+    return f"{_HOST}-{os.getpid()}-{_STARTED}"
+
+
+def parse_owner_tag(name: str) -> tuple[str, int, int] | None:
+    """(host, pid, start) from a name ``<anything>.<host>-<pid>-<start>.<random>``, or None."""
+    parts = name.split(".")
+    if len(parts) < 3:
+        return None
+    m = re.fullmatch(r"(.+)-(\d+)-(\d+)", parts[-2])
+    return (m.group(1), int(m.group(2)), int(m.group(3))) if m else None
+
+
+def owner_is_dead(host: str, pid: int, started: int, *, mtime: float | None = None,
+                  max_age: float | None = None) -> bool:
+    """True only when the writer certainly no longer runs: on this host and its pid is gone (or reused
+    by a later process), or the file is older than ``max_age`` (default TMP_MAX_AGE) wherever it ran."""
+    max_age = TMP_MAX_AGE if max_age is None else max_age
+    newest = max(started, mtime or 0.0)
+    if time.time() - newest > max_age:
+        return True
+    if host != _HOST:
+        return False
+    if pid == os.getpid():
+        return started != _STARTED
+    if not _alive(pid):
+        return True
+    began = _process_start(pid)
+    return began is not None and began > started + 2  # the pid now belongs to a later process
 
 
 def canonical_json(value: Any) -> str:
@@ -52,8 +114,10 @@ class Entry:
 
 
 class Cache:
-    def __init__(self, root: Path) -> None:
-        self.root = Path(root)
+    def __init__(self, root: Path, lock_timeout: float | None = None) -> None:
+        # absolute, so worker processes (other cwd, other host) see the same folder
+        self.root = Path(os.path.abspath(root))
+        self.lock_timeout = LOCK_TIMEOUT if lock_timeout is None else float(lock_timeout)
 
     # -- paths -----------------------------------------------------------------------------------
     def entry_dir(self, kind: str, key: str) -> Path:
@@ -93,18 +157,44 @@ class Cache:
 
     # -- writing ---------------------------------------------------------------------------------
     @contextmanager
-    def lock(self, key: str) -> Iterator[None]:
+    def lock(self, key: str, what: str = "") -> Iterator[None]:
+        """Hold the key's lock; while another run holds it, say who (pid, host, since when) and give
+        up with LockTimeout after ``lock_timeout`` seconds."""
         lock_dir = self.root / "locks"
         lock_dir.mkdir(parents=True, exist_ok=True)
-        with open(lock_dir / f"{key}.lock", "a+") as fh:
-            fcntl.flock(fh, fcntl.LOCK_EX)
+        path = lock_dir / f"{key}.lock"
+        with open(path, "a+") as fh:
+            t0 = time.monotonic()
+            told = False
+            while True:
+                try:
+                    fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    break
+                except BlockingIOError:
+                    pass
+                waited = time.monotonic() - t0
+                if waited >= self.lock_timeout:
+                    raise LockTimeout(f"{what or 'key ' + key[:12]}: gave up after {waited:.0f} s waiting for the "
+                                      f"cache lock held by {_holder(path)} (--lock-timeout)")
+                if not told:
+                    log.warning("%s: waiting for the cache lock held by %s (gives up after %.0f s)",
+                                what or "key " + key[:12], _holder(path), self.lock_timeout)
+                    told = True
+                time.sleep(min(0.2, max(0.0, self.lock_timeout - waited)))
+            try:
+                fh.seek(0)
+                fh.truncate()
+                fh.write(json.dumps({"pid": os.getpid(), "host": socket.gethostname(), "since": time.time()}))
+                fh.flush()
+            except OSError:
+                pass  # the holder's record is a courtesy to waiting runs; a full disk must not block the work
             try:
                 yield
             finally:
                 fcntl.flock(fh, fcntl.LOCK_UN)
 
     def new_tmp(self, key: str) -> Path:
-        tmp = self.root / "tmp" / f"{key}.{os.getpid()}.{uuid.uuid4().hex[:8]}"
+        tmp = self.root / "tmp" / f"{key}.{owner_tag()}.{uuid.uuid4().hex[:8]}"
         tmp.mkdir(parents=True)
         return tmp
 
@@ -120,7 +210,7 @@ class Cache:
         final = self.entry_dir(kind, key)
         final.parent.mkdir(parents=True, exist_ok=True)
         if final.exists():  # a damaged entry (caller holds the key's lock): move it aside first
-            trash = self.root / "tmp" / f"damaged.{key}.{uuid.uuid4().hex[:8]}"
+            trash = self.root / "tmp" / f"damaged-{key}.{owner_tag()}.{uuid.uuid4().hex[:8]}"
             os.replace(final, trash)
             shutil.rmtree(trash, ignore_errors=True)
         os.replace(tmp, final)
@@ -130,17 +220,24 @@ class Cache:
         shutil.rmtree(tmp, ignore_errors=True)
 
     def sweep_tmp(self) -> int:
-        """Remove temporary folders left by processes that no longer run (killed runs)."""
+        """Remove temporary folders whose writer is provably dead (killed runs); see owner_is_dead."""
         removed = 0
         tmp_root = self.root / "tmp"
         if not tmp_root.is_dir():
             return 0
         for d in tmp_root.iterdir():
-            parts = d.name.split(".")
-            pid = int(parts[1]) if len(parts) >= 3 and parts[1].isdigit() else None
-            if pid is not None and _alive(pid):
+            try:
+                mtime = d.lstat().st_mtime
+            except OSError:
                 continue
-            shutil.rmtree(d, ignore_errors=True)
+            owner = parse_owner_tag(d.name)
+            dead = owner_is_dead(*owner, mtime=mtime) if owner else time.time() - mtime > TMP_MAX_AGE
+            if not dead:
+                continue
+            if d.is_dir() and not d.is_symlink():
+                shutil.rmtree(d, ignore_errors=True)
+            else:
+                d.unlink(missing_ok=True)
             removed += 1
         return removed
 
@@ -148,7 +245,7 @@ class Cache:
         path = self.entry_dir(kind, key)
         if not path.exists():
             return False
-        trash = self.root / "tmp" / f"removed.{key}.{uuid.uuid4().hex[:8]}"
+        trash = self.root / "tmp" / f"removed-{key}.{owner_tag()}.{uuid.uuid4().hex[:8]}"
         trash.parent.mkdir(parents=True, exist_ok=True)
         os.replace(path, trash)
         shutil.rmtree(trash, ignore_errors=True)
@@ -168,9 +265,35 @@ class Cache:
     def write_state(self, config_path: Path, state: dict[str, Any]) -> None:
         path = self.state_path(config_path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(f".{os.getpid()}.tmp")
-        tmp.write_text(json.dumps(state, indent=1, sort_keys=True))
-        os.replace(tmp, path)
+        tmp = self.root / "tmp" / f"state-{path.stem}.{owner_tag()}.{uuid.uuid4().hex[:8]}"
+        tmp.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            tmp.write_text(json.dumps(state, indent=1, sort_keys=True))
+            os.replace(tmp, path)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+
+
+def _holder(lock_file: Path) -> str:
+    try:
+        info = json.loads(lock_file.read_text())
+        since = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(float(info["since"])))
+        return f"pid {info['pid']} on {info['host']} since {since}"
+    except (OSError, ValueError, KeyError, TypeError):
+        return "another run"
+
+
+def _process_start(pid: int) -> float | None:
+    """Wall-clock start time of a local process (Linux /proc), or None when unknown."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+        ticks = int(stat.rsplit(")", 1)[1].split()[19])
+        btime = next(int(line.split()[1]) for line in Path("/proc/stat").read_text().splitlines()
+                     if line.startswith("btime"))
+        return btime + ticks / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError, StopIteration):
+        return None
 
 
 def _alive(pid: int) -> bool:

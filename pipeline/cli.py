@@ -29,21 +29,42 @@ def _setup_logging(verbose: int, quiet: bool) -> None:
 
 
 def _guard(fn):
-    """Map pipeline errors to a one-line message and their exit code (2 for user mistakes)."""
+    """Map every error to one line and an exit code: 2 for user mistakes, 1 for failures (the library
+    saves tracebacks under the cache's logs/), 130 for Ctrl-C."""
 
     def wrapper(*args, **kwargs):
         try:
             return fn(*args, **kwargs)
         except PipelineError as e:
-            click.echo(f"error: {e}", err=True)
+            click.echo(f"error: {_one_line(e)}", err=True)
             sys.exit(e.exit_code)
         except KeyboardInterrupt:
-            click.echo("interrupted; the cache holds only finished entries", err=True)
-            sys.exit(130)
+            click.echo("interrupted; the cache holds only finished entries (unfinished ones are swept by the next run)",
+                       err=True)
+            # a stage may still run in a thread (a simulation): exit now instead of waiting for it, after
+            # multiprocessing's own exit clean-up (the stopped pool's semaphores, no warnings)
+            try:
+                import multiprocessing.util
+
+                multiprocessing.util._exit_function()
+            except Exception:  # noqa: BLE001 - best effort before a hard exit
+                pass
+            sys.stderr.flush()
+            sys.stdout.flush()
+            os._exit(130)
+        except click.exceptions.Exit:
+            raise
+        except Exception as e:  # noqa: BLE001 - outside the library's contract: still one line
+            click.echo(f"error: {type(e).__name__}: {_one_line(e)}", err=True)
+            sys.exit(1)
 
     wrapper.__name__ = fn.__name__
     wrapper.__doc__ = fn.__doc__
     return wrapper
+
+
+def _one_line(e: BaseException) -> str:
+    return " ".join(str(e).split())
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -73,10 +94,16 @@ frames_opt = click.option("--frames", help="Frames for per-frame stages: START:E
 @click.option("--workers", type=click.IntRange(1, 256), default=1, show_default=True, help="Local worker processes for per-frame stages.")
 @click.option("--executor", type=click.Choice(["auto", "inline", "processes", "dask"]), default="auto", show_default=True)
 @click.option("--scheduler", help="Dask scheduler address for --executor dask, e.g. tcp://host:8786.")
+@click.option("--lock-timeout", type=click.FloatRange(0), default=None, metavar="SECONDS",
+              help="Give up waiting for another run's lock on a cache entry after this long "
+                   "(default 3600, or env PIPELINE_LOCK_TIMEOUT).")
+@click.option("--yes", "allow_large", is_flag=True,
+              help="Run even if the plan's memory estimate exceeds the available memory (config: allow_large: true).")
 @click.option("-v", "--verbose", count=True, help="More logging.")
 @click.option("-q", "--quiet", is_flag=True, help="Only warnings and errors; no progress bars.")
 @_guard
-def run(config, overrides, cache_dir, frames, out_dir, only, from_, until, force, workers, executor, scheduler, verbose, quiet):
+def run(config, overrides, cache_dir, frames, out_dir, only, from_, until, force, workers, executor, scheduler,
+        lock_timeout, allow_large, verbose, quiet):
     """Run every stage the config's outputs need (cached stages are not run again)."""
     from .executors import make_executor
 
@@ -85,9 +112,12 @@ def run(config, overrides, cache_dir, frames, out_dir, only, from_, until, force
     try:
         report = runner.run(config, overrides=tuple(overrides), cache_dir=cache_dir, out_dir=out_dir, only=only,
                             from_=from_, until=until, force=tuple(force), frames=runner.parse_frames(frames),
-                            executor=ex, progress=not quiet and sys.stderr.isatty())
-    finally:
-        ex.close()
+                            executor=ex, progress=not quiet and sys.stderr.isatty(), lock_timeout=lock_timeout,
+                            allow_large=allow_large)
+    except BaseException:
+        ex.abort()  # stop the workers now (Ctrl-C, a failed frame): do not wait for queued or running jobs
+        raise
+    ex.close()
     if not quiet:
         for s in report.stages:
             extra = f"  {s.frames_ran}/{s.frames_total} frames computed" if s.frames_total else ""

@@ -21,7 +21,7 @@ from .scene import SceneConfig
 from .stage import STAGE_KINDS, Params, Stage
 
 CONFIG_VERSION = 1
-TOP_LEVEL = ("config_version", "scene", "walls", "fluid", "effects", "camera", "stages", "outputs")
+TOP_LEVEL = ("config_version", "scene", "walls", "fluid", "effects", "camera", "stages", "outputs", "allow_large")
 OUTPUT_NAMES = ("walls", "sdf", "particles", "raw_surface", "surface", "frames", "movie", "usd")
 
 
@@ -39,6 +39,7 @@ class Config:
     stages: dict[str, StageChoice]  # every kind the config names or that has a default
     outputs: tuple[str, ...]
     raw: dict[str, Any] = field(repr=False, default_factory=dict)
+    allow_large: bool = False  # run even when the plan's memory estimate exceeds the available memory
 
     @property
     def name(self) -> str:
@@ -71,6 +72,61 @@ class _Lines:
         return self.file
 
 
+# Limits that keep a hostile file cheap: YAML aliases can make a 1 KB file expand to billions of
+# nodes ("billion laughs") and deep nesting overflows Python's recursion. A real config has a few
+# hundred nodes and a depth under 10.
+MAX_DEPTH = 64
+MAX_NODES = 20_000
+
+
+class _TooDeep(ConfigError):
+    """Nesting beyond MAX_DEPTH (never read as a plain string in --set values)."""
+
+
+class _Loader(yaml.SafeLoader):
+    """SafeLoader that refuses nesting deeper than MAX_DEPTH already in the scanner (PyYAML's scanner
+    is quadratic in the flow depth) and while composing (before any recursion can overflow); the
+    expanded size is checked before the tree is walked."""
+
+    def __init__(self, stream: str, file: str) -> None:
+        super().__init__(stream)
+        self._file = file
+        self._depth = 0
+
+    def _too_deep(self) -> None:
+        raise _TooDeep(f"{self._file}:{self.line + 1}: nested more than {MAX_DEPTH} levels deep; "
+                          f"a config is a few levels of mappings and lists")
+
+    def fetch_flow_collection_start(self, token_class):  # noqa: ANN001 - PyYAML's signature
+        if self.flow_level >= MAX_DEPTH:
+            self._too_deep()
+        super().fetch_flow_collection_start(token_class)
+
+    def add_indent(self, column):  # noqa: ANN001
+        if len(self.indents) >= MAX_DEPTH:
+            self._too_deep()
+        return super().add_indent(column)
+
+    def compose_node(self, parent, index):  # noqa: ANN001 - PyYAML's signature
+        self._depth += 1
+        try:
+            if self._depth > MAX_DEPTH:
+                self._too_deep()
+            return super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
+
+
+def _expanded_size(node: yaml.Node, memo: dict[int, int]) -> int:
+    """How many values the data has once aliases are expanded (each shared node counted once per use)."""
+    n = memo.get(id(node))
+    if n is None:
+        children = node.value if isinstance(node, yaml.SequenceNode) else (
+            [v for _, v in node.value] if isinstance(node, yaml.MappingNode) else [])
+        n = memo[id(node)] = 1 + sum(_expanded_size(c, memo) for c in children)
+    return n
+
+
 def _walk(node: yaml.Node, path: tuple, lines: _Lines) -> None:
     lines.lines[path] = node.start_mark.line + 1
     if isinstance(node, yaml.MappingNode):
@@ -92,21 +148,33 @@ def _dotted(path: tuple) -> str:
     return ".".join(str(p) for p in path)
 
 
-def _parse_yaml(text: str, file: str) -> tuple[dict, _Lines]:
-    lines = _Lines(file)
+def safe_yaml(text: str, file: str) -> tuple[Any, yaml.Node | None]:
+    """Parse YAML safely with the depth limit; returns the data and its node tree (None when empty)."""
+    loader = _Loader(text, file)
     try:
-        node = yaml.compose(text, Loader=yaml.SafeLoader)
-        data = yaml.safe_load(text)
+        node = loader.get_single_node()
+        data = loader.construct_document(node) if node is not None else None
     except yaml.MarkedYAMLError as e:
         mark = e.problem_mark or e.context_mark
         line = f":{mark.line + 1}" if mark is not None else ""
         raise ConfigError(f"{file}{line}: not valid YAML: {e.problem or e.context}") from None
     except yaml.YAMLError as e:
         raise ConfigError(f"{file}: not valid YAML: {str(e).splitlines()[0]}") from None
+    finally:
+        loader.dispose()
+    return data, node
+
+
+def _parse_yaml(text: str, file: str) -> tuple[dict, _Lines]:
+    lines = _Lines(file)
+    data, node = safe_yaml(text, file)
     if node is None or data is None:
         raise ConfigError(f"{file}: the config is empty; expected a mapping with 'scene', 'fluid', 'outputs'...")
     if not isinstance(data, dict):
         raise ConfigError(f"{file}:1: top level: expected a mapping of sections, got {type(data).__name__}")
+    if _expanded_size(node, {}) > MAX_NODES:
+        raise ConfigError(f"{file}: the config expands to more than {MAX_NODES} values "
+                          f"(YAML aliases repeated inside aliases?)")
     _walk(node, (), lines)
     return data, lines
 
@@ -125,8 +193,10 @@ def apply_override(data: dict, assignment: str, lines: _Lines) -> None:
     if parts[0] not in TOP_LEVEL:
         raise ConfigError(f"--set {key}: unknown section {parts[0]!r}; expected one of {', '.join(TOP_LEVEL)} or a stage kind")
     try:
-        value = yaml.safe_load(text) if text.strip() else None
-    except yaml.YAMLError:
+        value = safe_yaml(text, f"--set {key}")[0] if text.strip() else None
+    except _TooDeep:
+        raise
+    except ConfigError:
         value = text
     node: Any = data
     path: tuple = ()
@@ -157,6 +227,8 @@ def _first_error(err: ValidationError, prefix: tuple, lines: _Lines) -> ConfigEr
     for i, p in enumerate(loc):
         if isinstance(p, str) and i > 0 and isinstance(loc[i - 1], int) and p in {"builtin", "file", "usd", "box", "sphere", "mesh"}:
             continue
+        if isinstance(p, str) and (p in {"float", "int", "str", "bool"} or p.startswith("tuple[")):
+            continue  # pydantic's union member tags (scale: float | Vec3)
         clean.append(p)
     loc = tuple(clean)
     msg = e["msg"]
@@ -227,6 +299,9 @@ def load_config(path: str | Path, registry: Registry, overrides: list[str] | tup
         if o not in OUTPUT_NAMES:
             raise ConfigError(f"{lines.where(('outputs', i))}: outputs.{i}: unknown output {o!r}; expected one of {', '.join(OUTPUT_NAMES)}")
 
+    allow_large = data.get("allow_large", False)
+    if not isinstance(allow_large, bool):
+        raise ConfigError(f"{lines.where(('allow_large',))}: allow_large: expected true or false, got {allow_large!r}")
     stages_raw = data.get("stages") or {}
     if not isinstance(stages_raw, dict):
         raise ConfigError(f"{lines.where(('stages',))}: stages: expected a mapping of stage kind to settings")
@@ -242,7 +317,8 @@ def load_config(path: str | Path, registry: Registry, overrides: list[str] | tup
                 stages[kind] = _stage_params(kind, {}, registry, lines)
             except ConfigError:
                 continue  # a default that cannot load only matters if the graph needs it
-    return Config(path=path.resolve(), scene=scene, stages=stages, outputs=tuple(dict.fromkeys(outputs)), raw=data)
+    return Config(path=path.resolve(), scene=scene, stages=stages, outputs=tuple(dict.fromkeys(outputs)), raw=data,
+                  allow_large=allow_large)
 
 
 def dump_model(value: Any) -> Any:

@@ -26,3 +26,15 @@ class StageFailed(PipelineError):
     def __init__(self, message: str, *, user_error: bool) -> None:
         super().__init__(message)
         self.exit_code = 2 if user_error else 1
+
+
+class FrameError(Exception):
+    """A per-frame job failed (raised in the worker, picklable): the frame, a one-line cause, the
+    worker's traceback, and whether it was the input's fault."""
+
+    def __init__(self, frame: int, cause: str, traceback: str, user_error: bool) -> None:
+        super().__init__(frame, cause, traceback, user_error)
+        self.frame, self.cause, self.traceback, self.user_error = frame, cause, traceback, user_error
+
+    def __str__(self) -> str:
+        return f"frame {self.frame}: {self.cause}"

@@ -7,6 +7,7 @@ whichever executor ran it. Time stepping of one simulation never goes through an
 from __future__ import annotations
 
 import os
+import signal
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from multiprocessing import get_context
 from typing import Any, Callable, Iterable, Iterator, Protocol
@@ -19,6 +20,10 @@ class Executor(Protocol):
 
     def close(self) -> None: ...
 
+    def abort(self) -> None:
+        """Stop now (Ctrl-C or a failure): cancel queued jobs and stop running ones without waiting.
+        A stopped job leaves at most a temporary folder that the next run sweeps."""
+
 
 class InlineExecutor:
     name = "inline"
@@ -30,11 +35,17 @@ class InlineExecutor:
     def close(self) -> None:
         pass
 
+    def abort(self) -> None:
+        pass
+
 
 def _init_worker(threads: int) -> None:
     # each worker gets its share of the cores for numba, set before numba is imported
     os.environ["NUMBA_NUM_THREADS"] = str(threads)
     os.environ.setdefault("OMP_NUM_THREADS", str(threads))
+    # Ctrl-C reaches the whole process group: the parent decides and stops the workers (abort), so a
+    # worker never dies mid-commit on its own or prints its own traceback
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 class ProcessExecutor:
@@ -60,6 +71,17 @@ class ProcessExecutor:
     def close(self) -> None:
         self._pool.shutdown(wait=True, cancel_futures=True)
 
+    def abort(self) -> None:
+        procs = list((getattr(self._pool, "_processes", None) or {}).values())
+        self._pool.shutdown(wait=False, cancel_futures=True)
+        for proc in procs:
+            if proc.is_alive():
+                proc.terminate()
+        for proc in procs:
+            proc.join(timeout=2)
+            if proc.is_alive():
+                proc.kill()
+
 
 class DaskExecutor:
     """Jobs on a Dask distributed cluster (``--executor dask --scheduler tcp://host:8786``); the cache
@@ -80,11 +102,23 @@ class DaskExecutor:
         from distributed import as_completed as dask_completed
 
         futures = self._client.map(fn, list(jobs), pure=False)
-        for fut in dask_completed(futures):
-            yield fut.result()
+        self._futures = futures
+        try:
+            for fut in dask_completed(futures):
+                yield fut.result()
+        finally:
+            self._client.cancel([f for f in futures if not f.done()])
 
     def close(self) -> None:
         self._client.close()
+
+    def abort(self) -> None:
+        # a task already running on a worker finishes (Dask cannot stop it) and commits a valid entry
+        # under its key's lock; nothing else is started
+        try:
+            self._client.cancel(getattr(self, "_futures", []))
+        finally:
+            self._client.close(timeout=2)
 
 
 def make_executor(kind: str, workers: int = 1, scheduler: str | None = None) -> Executor:

@@ -4,24 +4,27 @@ Status and clean are in pipeline.status.
 """
 from __future__ import annotations
 
+import faulthandler
 import logging
 import os
-import threading
 import shutil
+import sys
+import threading
 import time
 import traceback
-import uuid
 from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-from .cache import Cache
+from .cache import Cache, hash_key, owner_tag
 from .config import Config, load_config
-from .errors import CacheMissError, ConfigError, PipelineError, StageFailed
+from .errors import CacheMissError, ConfigError, FrameError, PipelineError, StageFailed
+from .estimate import check_size
 from .executors import Executor, make_executor
 from .graph import Graph, Node, build_graph
 from .keys import Plan, context, frame_key, plan, record_resume, resume_source
+from .publish import check_out_dir, publish, write_run_json
 from .registry import Registry
 from .reads import FRAMES, SceneReads
 from .stage import Artifact, Context, Progress, Stage, StageError
@@ -73,13 +76,49 @@ class FrameJob:
     stage_key: str
     frame: int
     force: bool
+    lock_timeout: float | None = None
+    fault_log: str | None = None  # the run's log: faulthandler writes native crashes of workers there
+
+
+_worker_fault_log: tuple[str, Any] | None = None  # (path, open file) in a worker process
+
+
+def _enable_faulthandler(path: str | None) -> None:
+    """In a worker process, send faulthandler's output to the current run's log (in this process, as
+    with the inline executor, execute() has done it already)."""
+    global _worker_fault_log
+    if path is None or (_worker_fault_log is None and faulthandler.is_enabled()):
+        return
+    if _worker_fault_log is not None and _worker_fault_log[0] == path:
+        return
+    try:
+        fh = open(path, "a")
+    except OSError:
+        return  # no log (disk full): the work goes on
+    faulthandler.enable(fh)
+    if _worker_fault_log is not None:
+        _worker_fault_log[1].close()
+    _worker_fault_log = (path, fh)
 
 
 def run_frame_job(job: FrameJob) -> tuple[int, str, float, bool]:
-    """Compute one frame's entry unless it is cached; returns (frame, entry path, seconds, ran)."""
-    cache = Cache(Path(job.cache_root))
+    """Compute one frame's entry unless it is cached; returns (frame, entry path, seconds, ran).
+    Any failure comes back as FrameError naming the frame (with the worker's traceback)."""
+    try:
+        return _frame_job(job)
+    except (KeyboardInterrupt, SystemExit):
+        raise
+    except BaseException as exc:  # noqa: BLE001 - re-raised with the frame, picklable
+        user = isinstance(exc, StageError) or (isinstance(exc, PipelineError) and exc.exit_code == 2)
+        raise FrameError(job.frame, f"{type(exc).__name__}: {exc}" if not user else str(exc),
+                         "".join(traceback.format_exception(exc)), user) from None
+
+
+def _frame_job(job: FrameJob) -> tuple[int, str, float, bool]:
+    _enable_faulthandler(job.fault_log)
+    cache = Cache(Path(job.cache_root), lock_timeout=job.lock_timeout)
     key = frame_key(job.stage_key, job.frame)
-    with cache.lock(key):
+    with cache.lock(key, f"stage {job.stage_cls.qualname()} frame {job.frame}"):
         hit = None if job.force else cache.lookup(job.kind, key)
         if hit is not None:
             return job.frame, str(hit.path), float(hit.manifest.get("seconds", 0.0)), False
@@ -127,28 +166,87 @@ class _Progress:
         return Progress(lambda amount: self._bar.advance(task, amount))
 
 
+def write_log(cache: Cache, name: str, text: str) -> str:
+    """Save a traceback under the cache's logs/; returns where, or why it could not be saved."""
+    log_file = cache.root / "logs" / f"{name}.log"
+    try:
+        log_file.parent.mkdir(parents=True, exist_ok=True)
+        log_file.write_text(text)
+    except OSError as e:
+        try:
+            log_file.unlink(missing_ok=True)
+        except OSError:
+            pass
+        return f"no log saved: {e.strerror or e}"
+    return f"traceback in {log_file}"
+
+
 def _fail(node: Node, key: str, config: Config, exc: BaseException, cache: Cache) -> StageFailed:
+    if isinstance(exc, FrameError):
+        where = f"stage {node.label} frame {exc.frame}"
+        if exc.user_error:
+            return StageFailed(f"{where}: {exc.cause}", user_error=True)
+        saved = write_log(cache, f"{node.kind}-{key[:12]}-frame{exc.frame}", exc.traceback)
+        return StageFailed(f"{where} failed (key {key[:12]}, config {config.path.name}): {exc.cause} ({saved})",
+                           user_error=False)
     if isinstance(exc, StageError):
         return StageFailed(f"stage {node.label}: {exc}", user_error=True)
     if isinstance(exc, PipelineError):
         return StageFailed(f"stage {node.label}: {exc}", user_error=exc.exit_code == 2)
-    log_dir = cache.root / "logs"
-    log_dir.mkdir(parents=True, exist_ok=True)
-    log_file = log_dir / f"{node.kind}-{key[:12]}.log"
-    log_file.write_text("".join(traceback.format_exception(exc)))
+    if type(exc).__name__ == "BrokenProcessPool":
+        exc_text = "a worker process died (killed, out of memory or a native crash; faulthandler output in the run log)"
+    else:
+        exc_text = f"{type(exc).__name__}: {exc}"
+    saved = write_log(cache, f"{node.kind}-{key[:12]}", "".join(traceback.format_exception(exc)))
     return StageFailed(f"stage {node.label} failed (key {key[:12]}, config {config.path.name}): "
-                       f"{type(exc).__name__}: {exc} (traceback in {log_file})", user_error=False)
+                       f"{exc_text} ({saved})", user_error=False)
+
+
+def _outside(what: str, exc: BaseException, cache: Cache) -> StageFailed:
+    """An error outside a stage's own work (publishing, saving state): exit 1, one line, a log."""
+    saved = write_log(cache, f"{what.split()[0]}-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}",
+                      "".join(traceback.format_exception(exc)))
+    return StageFailed(f"{what}: {type(exc).__name__}: {exc} ({saved})", user_error=False)
 
 
 def execute(p: Plan, *, out_dir: Path, force: frozenset[str] = frozenset(), executor: Executor | None = None,
             progress: bool = False) -> RunReport:
     """Run the plan. Inline, stages go one by one in dependency order; with a pool executor, independent
     branches (e.g. render frames and export) are driven concurrently by threads of this process while
-    their per-frame jobs run in the pool's worker processes."""
+    their per-frame jobs run in the pool's worker processes. faulthandler writes native crashes (VTK,
+    numba) of this process and of the workers into the run's log under the cache's logs/."""
+    cache = p.cache
+    try:
+        cache.root.mkdir(parents=True, exist_ok=True)
+        cache.sweep_tmp()
+        (cache.root / "logs").mkdir(exist_ok=True)
+        fault_log = cache.root / "logs" / f"run-{time.strftime('%Y%m%d-%H%M%S')}-{owner_tag()}.log"
+        fault_fh = open(fault_log, "w")
+    except OSError as exc:
+        raise _outside(f"cache {cache.root}", exc, cache) from exc
+    was_enabled = faulthandler.is_enabled()
+    faulthandler.enable(fault_fh)
+    try:
+        return _execute(p, out_dir, force, executor, progress, str(fault_log))
+    finally:
+        faulthandler.disable()
+        if was_enabled:  # e.g. pytest's or PYTHONFAULTHANDLER's, to the real stderr
+            try:
+                faulthandler.enable(sys.__stderr__)
+            except (AttributeError, ValueError, OSError):
+                pass
+        fault_fh.close()
+        try:
+            if fault_log.stat().st_size == 0:
+                fault_log.unlink()
+        except OSError:
+            pass
+
+
+def _execute(p: Plan, out_dir: Path, force: frozenset[str], executor: Executor | None, progress: bool,
+             fault_log: str) -> RunReport:
     config, graph, cache = p.config, p.graph, p.cache
     t_start = time.perf_counter()
-    cache.root.mkdir(parents=True, exist_ok=True)
-    cache.sweep_tmp()
     report = RunReport(config=str(config.path), scene=config.name, cache=str(cache.root), out=str(out_dir))
     artifacts: dict[str, Artifact] = {}
     reports: dict[str, StageReport] = {}
@@ -164,12 +262,17 @@ def execute(p: Plan, *, out_dir: Path, force: frozenset[str] = frozenset(), exec
         with guard:
             inputs = {name: artifacts[name] for name, _ in node.inputs}
         t0 = time.perf_counter()
-        if node.per_frame:
-            sr, frames = _run_per_frame(p, node, key, inputs, runnable, forced, executor, bars)
-            made = {out: Artifact(name=out, key=key, frames=frames) for out in node.cls.outputs}
-        else:
-            sr, path = _run_whole(p, node, key, inputs, runnable, forced, bars)
-            made = {out: Artifact(name=out, key=key, path=path) for out in node.cls.outputs}
+        try:
+            if node.per_frame:
+                sr, frames = _run_per_frame(p, node, key, inputs, runnable, forced, executor, bars, fault_log)
+                made = {out: Artifact(name=out, key=key, frames=frames) for out in node.cls.outputs}
+            else:
+                sr, path = _run_whole(p, node, key, inputs, runnable, forced, bars)
+                made = {out: Artifact(name=out, key=key, path=path) for out in node.cls.outputs}
+        except PipelineError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - the engine's own work for this stage (lock, cache folders)
+            raise _fail(node, key, config, exc, cache) from exc
         if sr.status != "cached":
             sr.seconds = time.perf_counter() - t0
         return sr, made
@@ -181,7 +284,10 @@ def execute(p: Plan, *, out_dir: Path, force: frozenset[str] = frozenset(), exec
             reports[kind] = sr
             state[kind] = {"key": sr.key, "components": p.components[kind], "seconds": sr.seconds,
                            "status": sr.status, "time": time.time()}
-            cache.write_state(config.path, state)
+            try:
+                cache.write_state(config.path, state)
+            except OSError as exc:
+                raise _outside(f"stage {graph.nodes[kind].label}: saving the cache state", exc, cache) from exc
         log.debug("%-16s %-16s %s  %s", kind, sr.implementation, sr.key[:12], sr.status)
 
     order = graph.order()
@@ -192,9 +298,14 @@ def execute(p: Plan, *, out_dir: Path, force: frozenset[str] = frozenset(), exec
         else:
             _run_branches(graph, order, lambda k: run_node(k, bars), finish)
     report.stages = [reports[k] for k in order]
-    report.outputs = publish(graph, artifacts, out_dir, p.frames)
-    report.seconds = time.perf_counter() - t_start
-    write_run_json(report, out_dir)
+    try:
+        # two runs publishing into one folder (the same config run twice) take turns
+        with cache.lock(hash_key({"publish": str(out_dir)}), f"publish into {out_dir}"):
+            report.outputs = publish(graph, artifacts, out_dir, p.frames)
+            report.seconds = time.perf_counter() - t_start
+            write_run_json(report, out_dir)
+    except OSError as exc:
+        raise _outside(f"publish into {out_dir}", exc, cache) from exc
     return report
 
 
@@ -204,7 +315,8 @@ def _run_branches(graph: Graph, order: list[str], run_node: Callable, finish: Ca
     done: set[str] = set()
     remaining = list(order)
     error: BaseException | None = None
-    with ThreadPoolExecutor(max_workers=len(order)) as threads:
+    threads = ThreadPoolExecutor(max_workers=len(order))
+    try:
         running: dict[Any, str] = {}
         while remaining or running:
             if error is None:
@@ -222,6 +334,12 @@ def _run_branches(graph: Graph, order: list[str], run_node: Callable, finish: Ca
                     done.add(kind)
                 except BaseException as exc:  # noqa: BLE001 - re-raised below
                     error = error or exc
+    except BaseException:
+        # Ctrl-C: do not wait for a stage running in a thread (a simulation can take hours); its
+        # temporary folder is swept once this process is gone
+        threads.shutdown(wait=False, cancel_futures=True)
+        raise
+    threads.shutdown(wait=True)
     if error is not None:
         raise error
 
@@ -237,7 +355,7 @@ def _run_whole(p: Plan, node: Node, key: str, inputs: dict[str, Artifact], runna
     if not runnable:
         raise CacheMissError(f"stage {node.label} is not cached (key {key[:12]}) and the selection does not run it; "
                              f"run without --only/--from first")
-    with cache.lock(key):
+    with cache.lock(key, f"stage {node.label}"):
         hit = None if forced else cache.lookup(node.kind, key)  # another run may have made it meanwhile
         if hit is not None:
             sr.seconds = float(hit.manifest.get("seconds", 0.0))
@@ -267,7 +385,7 @@ def _run_whole(p: Plan, node: Node, key: str, inputs: dict[str, Artifact], runna
 
 
 def _run_per_frame(p: Plan, node: Node, key: str, inputs: dict[str, Artifact], runnable: bool, forced: bool,
-                   executor: Executor, bars: _Progress) -> tuple[StageReport, dict[int, Path]]:
+                   executor: Executor, bars: _Progress, fault_log: str | None = None) -> tuple[StageReport, dict[int, Path]]:
     cache, config = p.cache, p.config
     sr = StageReport(node.kind, node.cls.name, node.cls.version, key, "cached", frames_total=len(p.frames))
     frames: dict[int, Path] = {}
@@ -287,7 +405,8 @@ def _run_per_frame(p: Plan, node: Node, key: str, inputs: dict[str, Artifact], r
     scene = SceneReads(config.sections(), node.cls.reads)
     jobs = [FrameJob(cache_root=str(cache.root), kind=node.kind, stage_cls=node.cls, params=node.params,
                      scene=scene, config_dir=str(config.dir), frames=p.frames,
-                     inputs=inputs, stage_key=key, frame=f, force=forced) for f in todo]
+                     inputs=inputs, stage_key=key, frame=f, force=forced, lock_timeout=cache.lock_timeout,
+                     fault_log=fault_log) for f in todo]
     bar = bars.make(f"{node.kind} frames", len(jobs))
     try:
         for frame, path, _seconds, ran in executor.map_unordered(run_frame_job, jobs):
@@ -300,51 +419,6 @@ def _run_per_frame(p: Plan, node: Node, key: str, inputs: dict[str, Artifact], r
         raise _fail(node, key, config, exc, cache) from exc
     sr.status = "forced" if forced else "ran"
     return sr, dict(sorted(frames.items()))
-
-
-# -- outputs ---------------------------------------------------------------------------------------
-def _link_or_copy(src: Path, dst: Path) -> None:
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        os.link(src, dst)
-    except OSError:
-        shutil.copy2(src, dst)
-
-
-def publish(graph: Graph, artifacts: dict[str, Artifact], out_dir: Path, frames: tuple[int, ...]) -> dict[str, str]:
-    """Copy (hard-link) each wanted artifact into ``out_dir/<name>/``, replacing the old folder whole."""
-    published: dict[str, str] = {}
-    out_dir.mkdir(parents=True, exist_ok=True)
-    for name in graph.outputs:
-        art = artifacts.get(name)
-        if art is None:
-            continue
-        staging = out_dir / f".{name}.{os.getpid()}.{uuid.uuid4().hex[:6]}"
-        sources = [art.path] if art.path is not None else [art.frames[f] for f in frames if f in art.frames]
-        for src_dir in sources:
-            for f in src_dir.rglob("*"):
-                if f.is_file() and f.name != "manifest.json":
-                    _link_or_copy(f, staging / f.relative_to(src_dir))
-        staging.mkdir(exist_ok=True)
-        target = out_dir / name
-        if target.exists():
-            trash = out_dir / f".old.{name}.{uuid.uuid4().hex[:6]}"
-            os.replace(target, trash)
-            os.replace(staging, target)
-            shutil.rmtree(trash, ignore_errors=True)
-        else:
-            os.replace(staging, target)
-        published[name] = str(target)
-    return published
-
-
-def write_run_json(report: RunReport, out_dir: Path) -> None:
-    import json
-
-    out_dir.mkdir(parents=True, exist_ok=True)
-    tmp = out_dir / f".run.json.{os.getpid()}"
-    tmp.write_text(json.dumps(asdict(report), indent=1))
-    os.replace(tmp, out_dir / "run.json")
 
 
 # -- library entry points ------------------------------------------------------------------------
@@ -385,15 +459,29 @@ def run(config_path: str | Path, *, registry: Registry | None = None, overrides:
         cache_dir: str | Path | None = None, out_dir: str | Path | None = None, only: str | None = None,
         from_: str | None = None, until: str | None = None, force: tuple[str, ...] = (),
         frames: tuple[int, ...] | None = None, executor: Executor | None = None,
-        progress: bool = False) -> RunReport:
-    """Run what the config's outputs need; returns the report (also written to out/run.json)."""
+        progress: bool = False, lock_timeout: float | None = None, allow_large: bool = False) -> RunReport:
+    """Run what the config's outputs need; returns the report (also written to out/run.json).
+
+    Refuses (exit 2, nothing written) an output folder holding things the pipeline did not publish
+    where it would write, and a plan whose memory estimate exceeds the available memory unless
+    ``allow_large`` (or the config's ``allow_large: true``)."""
     registry = registry or Registry.from_entry_points()
     config = load_config(config_path, registry, overrides)
     graph = select(build_graph(config), only, from_, until)
     for f in force:
         if f != "all" and f not in graph.nodes:
             raise ConfigError(f"--force {f}: not a stage this run includes ({', '.join(graph.order())})")
-    cache = Cache(Path(cache_dir) if cache_dir else default_cache_dir(config))
-    p = plan(config, graph, cache, frames)
-    out = Path(out_dir) if out_dir else default_out_dir(config)
-    return execute(p, out_dir=out, force=frozenset(force), executor=executor, progress=progress)
+    cache = Cache(Path(cache_dir) if cache_dir else default_cache_dir(config), lock_timeout=lock_timeout)
+    out = Path(os.path.abspath(out_dir)) if out_dir else default_out_dir(config)
+    check_out_dir(out, [n for n in graph.outputs] + ["run.json"])
+    try:
+        try:
+            p = plan(config, graph, cache, frames)
+        except OSError as exc:  # an input file that exists but cannot be read (permissions, I/O)
+            raise StageFailed(f"cannot read input file {exc.filename}: {exc.strerror or exc}", user_error=True) from None
+        check_size(p, allow_large=allow_large or config.allow_large)
+        return execute(p, out_dir=out, force=frozenset(force), executor=executor, progress=progress)
+    except (PipelineError, KeyboardInterrupt, SystemExit):
+        raise
+    except Exception as exc:  # noqa: BLE001 - anything else is still one line, exit 1, and a log
+        raise _outside("pipeline", exc, cache) from exc

@@ -29,7 +29,8 @@ OptionalInputFile = Annotated[Union[str, None], INPUT_FILE]
 
 
 class Model(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    # NaN/inf are never a valid placement, velocity, centre, size or spacing: one line naming the field
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
 def _finite(v: Vec3) -> Vec3:
@@ -63,7 +64,9 @@ class Domain(Model):
 
 
 class Scene(Model):
-    name: str = Field(pattern=r"^[A-Za-z0-9_.-]{1,64}$", description="scene name; also the output folder name")
+    # a plain folder name: no separators, no leading dot (so never '.', '..' or a hidden staging name)
+    name: str = Field(pattern=r"^[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}$",
+                      description="scene name; also the output folder name (letters, digits, _ . -; not starting with '.')")
     units: Units = Field(default_factory=Units)
     frames: Frames = Field(default_factory=Frames)
     domain: Domain | None = Field(None, description="simulation domain; default: the walls' bounds")

@@ -28,9 +28,10 @@ SCENE_SECTIONS: tuple[str, ...] = ("scene", "walls", "fluid", "effects", "camera
 
 
 class Params(BaseModel):
-    """Base of every stage's parameter model: unknown keys are errors, values validated on assignment."""
+    """Base of every stage's parameter model: unknown keys are errors, NaN/inf are errors, values
+    validated on assignment."""
 
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
 
 
 class StageError(Exception):
@@ -145,6 +146,12 @@ class Stage:
         """Files outside the cache that this stage reads beyond the config's ``InputFile`` fields (which the
         engine finds itself), e.g. the layers a USD file composes; their content goes into the key."""
         return []
+
+    def estimate(self, ctx: Context, params: Params) -> dict[str, float] | None:
+        """The size of this stage's work from the config alone, before anything runs (no inputs yet):
+        any of ``particles``, ``sdf_nodes``, ``steps``, ``memory_bytes`` (peak, this stage). None or a
+        missing key when unknown (e.g. walls from a file whose bounds are not read yet)."""
+        return None
 
     def frame_count(self, ctx: Context, params: Params, inputs: Mapping[str, Artifact]) -> int | None:
         """For whole-run stages whose output has frames: how many (None when not framed)."""

@@ -176,7 +176,7 @@ def test_y_up_cm_asset_gives_a_y_up_cm_fluid_layer_that_lines_up(studio):
     np.testing.assert_allclose(lo, [-100, 0, -50], atol=1e-4)
     np.testing.assert_allclose(hi, [100, 100, 50], atol=1e-4)
 
-    fluid = Usd.Stage.Open(str(tmp_path / "shot" / "fluid.usdc"))  # the fluid layer alone
+    fluid = Usd.Stage.Open(str(out / "shot" / "fluid.usdc"))  # the fluid layer alone, inside the usd folder
     assert UsdGeom.GetStageUpAxis(fluid) == "Y" and UsdGeom.GetStageMetersPerUnit(fluid) == 0.01
     for s in (stage, fluid):
         mesh = UsdGeom.Mesh(s.GetPrimAtPath("/World/Fluid/Surface"))

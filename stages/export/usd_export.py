@@ -17,11 +17,11 @@ asset and can be sublayered straight into the shot.
 from __future__ import annotations
 
 import shutil
-from pathlib import Path
+from pathlib import Path, PurePosixPath, PureWindowsPath
 from typing import Literal, Mapping
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from pipeline.stage import Artifact, Context, Params, Stage, StageError
 from stages.common.camera import shot_camera
@@ -30,6 +30,17 @@ from stages.common.formats import ParticleMeta, WallMesh, load_particle_frame, l
 from . import usd_layers as ul
 
 
+def _inside_path(v: str | None) -> str | None:
+    """A relative path that stays inside the artifact folder (no absolute path, no '..', a USD suffix)."""
+    if v is None:
+        return v
+    p = PurePosixPath(v.replace("\\", "/"))
+    if not v.strip() or p.is_absolute() or PureWindowsPath(v).drive or any(part in ("..", "") for part in p.parts) \
+            or p.parts[0] == ".":
+        raise ValueError("expected a relative path inside the usd output folder, e.g. layers/fluid.usdc")
+    if p.suffix.lower() not in (".usd", ".usda", ".usdc"):
+        raise ValueError("expected a .usd, .usda or .usdc file name")
+    return p.as_posix()
 
 
 class UsdParams(Params):
@@ -39,10 +50,13 @@ class UsdParams(Params):
         "auto", description="frame of the written layers: the scene's units/up axis, or the studio asset's "
         "(auto: the asset's when a wall came from a USD asset)")
     fluid_layer_path: str | None = Field(
-        None, description="also write the fluid layer alone to this path (relative to the config file)")
+        None, description="also write the fluid layer alone to this path inside the published usd folder "
+        "(relative, e.g. layers/fluid.usdc; the pipeline writes only inside its cache and output folder)")
     usdz: bool = Field(False, description="also package everything as scene.usdz")
     camera_aspect: float = Field(16 / 9, gt=0, description="the USD camera's image width / height "
                                  "(the view itself is the scene's camera section)")
+
+    _fluid_layer_inside = field_validator("fluid_layer_path")(_inside_path)
 
 
 USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
@@ -170,7 +184,10 @@ class UsdExport(Stage):
             ctx.log.warning("export.usd: USD compliance: %s", line)
 
         if params.fluid_layer_path and params.surface:
-            target = ctx.resolve(params.fluid_layer_path)
+            target = out / params.fluid_layer_path  # inside the entry: published with it, atomically
+            if target.exists():
+                raise StageError(f"export.usd: fluid_layer_path {params.fluid_layer_path} is a file the export "
+                                 f"itself writes; choose another name")
             target.parent.mkdir(parents=True, exist_ok=True)
             Sdf.Layer.FindOrOpen(str(out / "fluid_surface.usdc")).Export(str(target))
             ctx.log.info("fluid layer written to %s", target)

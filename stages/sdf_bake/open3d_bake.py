@@ -44,6 +44,7 @@ from pydantic import Field, field_validator
 from pipeline.stage import Artifact, Context, Params, Stage, StageError
 from stages.common.formats import WallMesh
 from stages.common.sdf import SDFGrid
+from stages.common.sizes import sdf_estimate
 
 from .mesh_distance import band_distance, inside_votes
 
@@ -220,6 +221,10 @@ class Open3dBake(Stage):
     reads = ("fluid.spacing", "scene.domain")
     default = True
     description = "narrow-band SDF on a grid (exact distance near the walls, sign by grid-line ray votes)"
+
+    def estimate(self, ctx: Context, params: Params) -> dict | None:
+        # the grid covers scene.domain padded by the margin (without a domain: the walls', unknown yet)
+        return sdf_estimate(ctx.scene["scene"], ctx.scene["fluid"], params.cell, params.margin)
 
     def run(self, ctx: Context, inputs: Mapping[str, Artifact], params: Params) -> None:
         fluid = ctx.scene["fluid"]

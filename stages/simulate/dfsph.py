@@ -57,6 +57,7 @@ from pydantic import Field
 from pipeline.stage import Artifact, Context, Params, Stage
 from stages.common.formats import ParticleFrame
 from stages.common.sdf import SDFGrid
+from stages.common.sizes import simulate_estimate
 
 from . import dfsph_kernels as D
 from . import sph_kernels as K
@@ -320,6 +321,9 @@ class DFSPHSimulate(Stage):
 
     def frame_count(self, ctx: Context, params: Params, inputs: Mapping[str, Artifact]) -> int | None:
         return ctx.scene["scene"].frames.count
+
+    def estimate(self, ctx: Context, params: Params) -> dict | None:
+        return simulate_estimate(ctx, params.cfl, None, params.support)
 
     def run(self, ctx: Context, inputs: Mapping[str, Artifact], params: DFSPHParams) -> None:
         set_threads(params.threads or getattr(ctx, "threads", None))

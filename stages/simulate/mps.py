@@ -39,6 +39,7 @@ from pydantic import Field
 from pipeline.stage import Artifact, Context, Params, Stage, StageError
 from stages.common.formats import ParticleFrame
 from stages.common.sdf import SDFGrid
+from stages.common.sizes import simulate_estimate
 
 from . import mps_kernels as K
 from .driver import SolverBase, drive, prepare, set_threads
@@ -286,6 +287,9 @@ class MPSSimulate(Stage):
 
     def frame_count(self, ctx: Context, params: Params, inputs: Mapping[str, Artifact]) -> int | None:
         return ctx.scene["scene"].frames.count
+
+    def estimate(self, ctx: Context, params: Params) -> dict | None:
+        return simulate_estimate(ctx, params.cfl, None, 2.0)
 
     def run(self, ctx: Context, inputs: Mapping[str, Artifact], params: MPSParams) -> None:
         set_threads(params.threads or getattr(ctx, "threads", None))

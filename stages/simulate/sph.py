@@ -13,6 +13,7 @@ from pydantic import Field
 from pipeline.stage import Artifact, Context, Params, Stage
 from stages.common.formats import ParticleFrame
 from stages.common.sdf import SDFGrid
+from stages.common.sizes import simulate_estimate
 
 from . import sph_kernels as K
 from .driver import SolverBase, drive, prepare, set_threads
@@ -293,6 +294,9 @@ class SPHSimulate(Stage):
 
     def frame_count(self, ctx: Context, params: Params, inputs: Mapping[str, Artifact]) -> int | None:
         return ctx.scene["scene"].frames.count
+
+    def estimate(self, ctx: Context, params: Params) -> dict | None:
+        return simulate_estimate(ctx, params.cfl, 10.0, params.support)
 
     def run(self, ctx: Context, inputs: Mapping[str, Artifact], params: SPHParams) -> None:
         set_threads(params.threads or getattr(ctx, "threads", None))

@@ -1,0 +1,197 @@
+"""Publishing a run's artifacts into its output folder, touching only what the pipeline put there.
+
+The output folder keeps a record of what the pipeline published, ``.pipeline-published.json``: each
+published name (``frames``, ``usd``, ``run.json``...) with the files it held. A name is replaced only
+when the record lists it and it holds no file the record does not list; anything else in the folder
+(a user's ``walls/`` folder, notes, renders) is never replaced or removed: the run stops with exit 2
+instead, before any stage runs. Every write goes to a ``.pipeline-tmp.*`` name first and is renamed
+into place; the record lists the union of old and new files while a replacement is under way, so a
+run killed at any point leaves a folder the next run can still replace. ``.pipeline-tmp.*`` entries
+left by a killed run are removed when their process is provably dead (see ``cache.owner_is_dead``).
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import uuid
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any, Iterable
+
+from .cache import owner_is_dead, owner_tag, parse_owner_tag
+from .errors import PipelineError
+from .graph import Graph
+from .stage import Artifact
+
+RECORD = ".pipeline-published.json"
+TMP_PREFIX = ".pipeline-tmp."
+
+
+class OutputRefused(PipelineError):
+    """The output folder holds something the pipeline did not publish where it would write (exit 2)."""
+
+
+# -- the record ------------------------------------------------------------------------------------
+def read_record(out_dir: Path) -> dict[str, list[str]]:
+    path = out_dir / RECORD
+    if not path.exists():
+        return _record_from_old_run_json(out_dir)
+    try:
+        data = json.loads(path.read_text())
+        published = data["published"]
+        assert isinstance(published, dict)
+        return {str(k): [str(f) for f in v] for k, v in published.items()}
+    except (OSError, ValueError, KeyError, TypeError, AssertionError):
+        raise OutputRefused(f"{path}: the record of what the pipeline published here is unreadable; "
+                            f"move the folder away or remove the record to publish here again") from None
+
+
+def _record_from_old_run_json(out_dir: Path) -> dict[str, list[str]]:
+    """A folder published before the record existed: its run.json (the pipeline's report, naming this
+    folder and the outputs it published there) is the proof of what is ours."""
+    try:
+        report = json.loads((out_dir / "run.json").read_text())
+        outputs = report["outputs"]
+        if Path(report["out"]).resolve() != out_dir.resolve() or not {"config", "stages"} <= set(report):
+            return {}
+        owned = {name: _files(out_dir / name) for name, where in outputs.items()
+                 if Path(where).resolve() == (out_dir / name).resolve() and (out_dir / name).is_dir()}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return {}
+    return {**owned, "run.json": ["run.json"]}
+
+
+def _write_record(out_dir: Path, published: dict[str, list[str]]) -> None:
+    _atomic_write(out_dir / RECORD, json.dumps({"version": 1, "published": published}, indent=1, sort_keys=True))
+
+
+def _atomic_write(path: Path, text: str) -> None:
+    tmp = path.parent / f"{TMP_PREFIX}{path.name}.{owner_tag()}.{uuid.uuid4().hex[:8]}"
+    try:
+        with open(tmp, "w") as fh:
+            fh.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def _files(path: Path) -> list[str]:
+    if path.is_dir() and not path.is_symlink():
+        return sorted(f.relative_to(path).as_posix() for f in path.rglob("*") if not f.is_dir() or f.is_symlink())
+    return [path.name]
+
+
+# -- the promise -------------------------------------------------------------------------------------
+def check_out_dir(out_dir: Path, names: Iterable[str]) -> None:
+    """Raise OutputRefused (exit 2) unless every name the run will publish can be written: absent, or
+    published by the pipeline and holding only files it published."""
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise OutputRefused(f"output folder {out_dir} is a file, not a folder; choose another --out")
+    if not out_dir.is_dir():
+        return
+    record = read_record(out_dir)
+    for name in names:
+        target = out_dir / name
+        if not target.exists() and not target.is_symlink():
+            continue
+        if name not in record:
+            what = "folder" if target.is_dir() else "file"
+            raise OutputRefused(f"{target}: a {what} the pipeline did not create is in the way of output {name!r}; "
+                                f"move it away or choose another --out (nothing was changed)")
+        if target.is_symlink() or (name != "run.json") != target.is_dir():
+            raise OutputRefused(f"{target}: not what the pipeline published here; move it away or choose another --out")
+        foreign = sorted(set(_files(target)) - set(record[name]))
+        if foreign:
+            raise OutputRefused(f"{target / foreign[0]}: a file the pipeline did not publish is inside output {name!r}; "
+                                f"move it away (nothing was changed)")
+
+
+def sweep_out_dir(out_dir: Path) -> None:
+    """Remove ``.pipeline-tmp.*`` entries whose writer is provably dead (a killed run's staging)."""
+    if not out_dir.is_dir():
+        return
+    for p in out_dir.iterdir():
+        if not p.name.startswith(TMP_PREFIX):
+            continue
+        owner = parse_owner_tag(p.name[len(TMP_PREFIX):])
+        if owner is None or not owner_is_dead(*owner, mtime=_mtime(p)):
+            continue
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p, ignore_errors=True)
+        else:
+            p.unlink(missing_ok=True)
+
+
+def _mtime(p: Path) -> float | None:
+    try:
+        return p.lstat().st_mtime
+    except OSError:
+        return None
+
+
+# -- publishing --------------------------------------------------------------------------------------
+def _link_or_copy(src: Path, dst: Path) -> None:
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copy2(src, dst)
+
+
+def publish(graph: Graph, artifacts: dict[str, Artifact], out_dir: Path, frames: tuple[int, ...]) -> dict[str, str]:
+    """Copy (hard-link) each wanted artifact into ``out_dir/<name>/``, replacing the old folder whole,
+    and only if the pipeline published it (``check_out_dir``)."""
+    out_dir = Path(out_dir)
+    names = [n for n in graph.outputs if artifacts.get(n) is not None]
+    check_out_dir(out_dir, names)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    sweep_out_dir(out_dir)
+    record = read_record(out_dir)
+    staged: dict[str, Path] = {}
+    try:
+        for name in names:
+            art = artifacts[name]
+            staging = out_dir / f"{TMP_PREFIX}{name}.{owner_tag()}.{uuid.uuid4().hex[:8]}"
+            staging.mkdir()
+            staged[name] = staging
+            sources = [art.path] if art.path is not None else [art.frames[f] for f in frames if f in art.frames]
+            for src_dir in sources:
+                for f in src_dir.rglob("*"):
+                    if f.is_file() and f.name != "manifest.json":
+                        _link_or_copy(f, staging / f.relative_to(src_dir))
+        new = {name: _files(staging) for name, staging in staged.items()}
+        # while replacing, the record lists old and new files: a kill here leaves a folder we still own
+        _write_record(out_dir, {**record, **{n: sorted(set(record.get(n, [])) | set(fs)) for n, fs in new.items()}})
+        for name, staging in staged.items():
+            target = out_dir / name
+            if target.exists():
+                trash = out_dir / f"{TMP_PREFIX}old-{name}.{owner_tag()}.{uuid.uuid4().hex[:8]}"
+                os.replace(target, trash)
+                try:
+                    os.replace(staging, target)
+                except BaseException:
+                    os.replace(trash, target)  # the old folder back: nothing half-replaced
+                    raise
+                shutil.rmtree(trash, ignore_errors=True)
+            else:
+                os.replace(staging, target)
+        _write_record(out_dir, {**record, **new})
+    finally:
+        for staging in staged.values():
+            if staging.exists():
+                shutil.rmtree(staging, ignore_errors=True)
+    return {name: str(out_dir / name) for name in staged}
+
+
+def write_run_json(report: Any, out_dir: Path) -> None:
+    """Write the run's report as ``run.json`` (atomically) and record it as published."""
+    out_dir = Path(out_dir)
+    check_out_dir(out_dir, ["run.json"])
+    out_dir.mkdir(parents=True, exist_ok=True)
+    record = read_record(out_dir)
+    if "run.json" not in record:
+        _write_record(out_dir, {**record, "run.json": ["run.json"]})
+    _atomic_write(out_dir / "run.json", json.dumps(asdict(report), indent=1))

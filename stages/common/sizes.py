@@ -1,0 +1,82 @@
+"""Sizes of a run from the config alone (before any stage runs), for the stages' ``estimate`` hooks:
+particle counts of the emitters, the box the SDF grid covers, and the simulation's step count and
+memory. Estimates, not promises: mesh emitters, and the walls' bounds when scene.domain is not set,
+are unknown until loaded."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+# memory per particle of the solvers' arrays, neighbour lists and wall maps (README: under 1 KB per
+# particle measured for WCSPH at 20k-100k); bytes per SDF node while baking (float32 distance, the
+# sign and exact-distance work arrays)
+BYTES_PER_PARTICLE = 1024
+BYTES_PER_SDF_NODE = 24
+
+
+def emitted_particles(fluid) -> float | None:
+    """Particles the emitters make on the l0 lattice (before those inside walls are dropped); None when
+    a mesh emitter makes it unknown."""
+    if fluid is None:
+        return None
+    l0 = fluid.spacing
+    n = 0.0
+    for em in fluid.emitters:
+        if hasattr(em, "box"):
+            n += float(np.prod(np.floor((np.asarray(em.box.max) - np.asarray(em.box.min)) / l0 + 1e-9)))  # as emitters.lattice
+        elif hasattr(em, "sphere"):
+            n += 4.0 / 3.0 * math.pi * (em.sphere.radius / l0) ** 3
+        else:
+            return None
+    return n
+
+
+def _fluid_extent(fluid) -> float:
+    ext = [float(np.max(np.asarray(em.box.max) - np.asarray(em.box.min))) if hasattr(em, "box") else 2 * em.sphere.radius
+           for em in fluid.emitters]
+    return max(ext, default=fluid.spacing)
+
+
+def scene_box(scene) -> tuple[np.ndarray, np.ndarray] | None:
+    """scene.domain, the box the SDF grid and the simulation cover; None when the walls' bounds decide
+    (they are known only once mesh_import has run)."""
+    if scene.domain is not None:
+        return np.asarray(scene.domain.min, float), np.asarray(scene.domain.max, float)
+    return None
+
+
+def sdf_estimate(scene, fluid, cell: float, pad_l0: float) -> dict | None:
+    """Nodes and memory of an SDF grid of spacing ``cell * l0`` over scene.domain padded by ``pad_l0``."""
+    box = scene_box(scene)
+    if box is None or fluid is None:
+        return None
+    l0 = fluid.spacing
+    h = cell * l0
+    nodes = float(np.prod(np.ceil((box[1] - box[0] + 2 * pad_l0 * l0) / h) + 1))
+    return {"sdf_nodes": nodes, "memory_bytes": nodes * BYTES_PER_SDF_NODE}
+
+
+def simulate_estimate(ctx, cfl: float, sound_factor: float | None, support: float = 2.0) -> dict | None:
+    """Particles, steps and memory of a simulation. The step follows the solvers' limits: dt = cfl l0 /
+    (v + c) with the reference speed v = sqrt(2 g H) (+ the fastest emitter) and the sound speed
+    c = sound_factor v (weakly compressible; None for incompressible solvers), over count / fps seconds.
+    The SDF grid read by the solver is counted too (cell 0.5 l0, as sdf_bake's default)."""
+    scene, fluid, effects = ctx.scene["scene"], ctx.scene["fluid"], ctx.scene.get("effects")
+    n = emitted_particles(fluid)
+    if n is None:
+        return None
+    out: dict = {"particles": n, "memory_bytes": n * BYTES_PER_PARTICLE * (support / 2.0) ** 3}
+    box = scene_box(scene)
+    if box is not None:
+        out["memory_bytes"] += float(np.prod(np.ceil((box[1] - box[0]) / (0.5 * fluid.spacing)) + 1)) * 4
+    mpu = scene.units.meters_per_unit
+    v = max((float(np.linalg.norm(em.velocity)) for em in fluid.emitters), default=0.0) * mpu
+    if effects is not None and effects.gravity is not None:
+        height = float(np.max(box[1] - box[0])) if box is not None else _fluid_extent(fluid)
+        v = max(v, math.sqrt(2.0 * effects.gravity.g * height * mpu))
+    if v > 0:
+        speed = v * (1.0 + (sound_factor or 0.0))
+        dt = cfl * fluid.spacing * mpu / speed
+        out["steps"] = scene.frames.count / scene.frames.fps / dt
+    return out

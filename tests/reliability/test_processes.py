@@ -1,0 +1,145 @@
+"""Real processes: concurrent runs sharing a cache, waiting for a lock, Ctrl-C with a process pool, and
+a native crash in a pool worker."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+from pipeline.cache import Cache
+from rel_helpers import assert_consistent, cli_cmd, cli_env, run_cli, write_config
+
+
+def _lines(path: Path) -> int:
+    return len(path.read_text().split()) if path.exists() else 0
+
+
+def _start(*args: str, env: dict | None = None) -> subprocess.Popen:
+    return subprocess.Popen(cli_cmd(*args), env=cli_env(env), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, start_new_session=True)
+
+
+def test_two_concurrent_runs_of_the_same_config(tmp_path):
+    cfg = write_config(tmp_path, count=4, sim_sleep=0.5)
+    procs = [_start("run", str(cfg), "--workers", "2", "-q") for _ in range(2)]
+    for p in procs:
+        _, err = p.communicate(timeout=120)
+        assert p.returncode == 0, err
+    # each entry was computed once: the second run waited for the first one's lock and used its entry
+    assert _lines(tmp_path / "ran_simulate.log") == 1
+    assert _lines(tmp_path / "ran_render.log") == 4
+    out = tmp_path / "out" / "shot"
+    assert len(list((out / "frames").glob("frame_*.txt"))) == 4
+    assert_consistent(tmp_path / ".pipeline", out)
+
+
+def test_two_concurrent_runs_of_different_configs_sharing_a_cache(tmp_path):
+    a = write_config(tmp_path / "a", name="a", steps=3, sim_sleep=0.3)
+    b = write_config(tmp_path / "b", name="b", steps=5, sim_sleep=0.3)
+    cache = tmp_path / "shared"
+    procs = [_start("run", str(c), "--cache", str(cache), "--workers", "2", "-q") for c in (a, b)]
+    for p in procs:
+        _, err = p.communicate(timeout=120)
+        assert p.returncode == 0, err
+    for cfg, dots in ((a, 3), (b, 5)):
+        text = (cfg.parent / "out" / cfg.stem / "usd" / "scene.txt").read_text()
+        assert text.endswith("| sim" + "." * dots), text
+        assert_consistent(cache, cfg.parent / "out" / cfg.stem)
+
+
+def test_lock_wait_names_the_holder_and_gives_up(tmp_path):
+    cfg = write_config(tmp_path)
+    cache = tmp_path / "c"
+    r = run_cli("run", str(cfg), "--cache", str(cache), "-q")
+    assert r.returncode == 0, r.stderr
+    key = next(s["key"] for s in json.loads((tmp_path / "out" / "shot" / "run.json").read_text())["stages"]
+               if s["kind"] == "simulate")
+    with Cache(cache).lock(key):  # this test process holds the simulate entry's lock
+        t0 = time.monotonic()
+        r = run_cli("run", str(cfg), "--cache", str(cache), "--force", "simulate", "--lock-timeout", "1", "-q")
+        waited = time.monotonic() - t0
+    assert r.returncode == 1, r.stderr
+    assert "waiting for the cache lock held by" in r.stderr  # said while waiting
+    err = r.stderr.strip().splitlines()[-1]
+    assert err.startswith("error: "), r.stderr
+    assert f"pid {os.getpid()}" in err and "since" in err and "stage simulate.toy" in err and "gave up" in err, err
+    assert waited < 30
+    assert_consistent(cache)
+
+
+def _interrupt_when(tmp_path: Path, marker: str, *sets: str) -> tuple[subprocess.Popen, float, str]:
+    cfg = write_config(tmp_path, count=4)
+    args = ["run", str(cfg), "--cache", str(tmp_path / "c"), "--workers", "2", "-q"]
+    for s in sets:
+        args += ["--set", s]
+    proc = _start(*args)
+    deadline = time.monotonic() + 60
+    while _lines(tmp_path / marker) == 0:
+        assert proc.poll() is None, proc.communicate()
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    time.sleep(0.3)
+    t0 = time.monotonic()
+    os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C in a terminal does: the whole foreground group
+    _, err = proc.communicate(timeout=30)
+    seconds = time.monotonic() - t0
+    left = _group(proc.pid)
+    for _ in range(20):  # orphans are reaped by init, which may take a moment
+        if not left:
+            break
+        time.sleep(0.1)
+        left = _group(proc.pid)
+    assert not left, f"processes outlived the run: {left}"
+    return proc, seconds, err
+
+
+def _group(pgid: int) -> list[str]:
+    """Live (not zombie) processes of a process group."""
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[2]) == pgid and fields[0] != "Z":
+            out.append(f"{stat.parent.name} {(stat.parent / 'cmdline').read_bytes()[:120]!r}")
+    return out
+
+
+def _resume_is_consistent(tmp_path: Path) -> None:
+    r = run_cli("run", str(tmp_path / "shot.yaml"), "--cache", str(tmp_path / "c"), "-q")
+    assert r.returncode == 0, r.stderr
+    assert_consistent(tmp_path / "c", tmp_path / "out" / "shot")
+
+
+def test_ctrl_c_during_frames_in_worker_processes_stops_quickly(tmp_path):
+    proc, seconds, err = _interrupt_when(tmp_path, "ran_render.log", "render.sleep=30")
+    assert proc.returncode == 130, err
+    assert seconds < 5, f"took {seconds:.1f} s to stop"
+    assert err.strip().splitlines()[-1].startswith("interrupted"), err
+    _resume_is_consistent(tmp_path)
+
+
+def test_ctrl_c_during_a_long_whole_run_stage_stops_quickly(tmp_path):
+    proc, seconds, err = _interrupt_when(tmp_path, "ran_simulate.log", "simulate.sleep=60")
+    assert proc.returncode == 130, err
+    assert seconds < 5, f"took {seconds:.1f} s to stop"
+    _resume_is_consistent(tmp_path)
+
+
+def test_native_crash_in_a_worker_is_one_line_and_leaves_a_trace(tmp_path):
+    cfg = write_config(tmp_path, count=3)
+    cache = tmp_path / "c"
+    r = run_cli("run", str(cfg), "--cache", str(cache), "--workers", "2", "-q", env={"TOY_SEGV_FRAME": "1"})
+    assert r.returncode == 1, r.stderr
+    err = r.stderr.strip()
+    assert len(err.splitlines()) == 1, err
+    assert "stage render.toy" in err and "worker process died" in err, err
+    logs = "".join(p.read_text() for p in (cache / "logs").glob("run-*.log"))
+    assert "Segmentation fault" in logs and "_crashing" in logs, logs
+    _resume = run_cli("run", str(cfg), "--cache", str(cache), "-q")
+    assert _resume.returncode == 0, _resume.stderr
+    assert_consistent(cache, tmp_path / "out" / "shot")

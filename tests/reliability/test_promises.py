@@ -1,0 +1,246 @@
+"""The output-folder promise (only what the pipeline published is ever replaced or removed), the
+malformed-config corpus with default paths (nothing created anywhere), the tmp sweep's host rules, the
+plan-size refusal and --yes."""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from pipeline.cache import TMP_MAX_AGE, Cache, owner_tag
+from pipeline.cli import main
+from pipeline.registry import Registry
+from rel_helpers import TESTS, assert_consistent, write_config
+from toy_stages import TOY_STAGES, ToySimulate
+
+BAD = sorted((TESTS / "bad_configs").glob("*.yaml"))
+
+
+@pytest.fixture
+def toy_registry(monkeypatch):
+    def make(cls, group: str = "pipeline.stages") -> Registry:
+        reg = cls()
+        for stage in TOY_STAGES:
+            reg.add(stage)
+        return reg
+
+    monkeypatch.setattr(Registry, "from_entry_points", classmethod(make))
+
+
+def _run(*args):
+    return CliRunner().invoke(main, ["run", *map(str, args), "-q"])
+
+
+def _one_line_exit(r, code: int) -> str:
+    assert r.exit_code == code, r.output
+    err = r.stderr.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in r.output, err
+    return err
+
+
+def _snapshot(folder: Path) -> dict[str, bytes | None]:
+    return {p.relative_to(folder).as_posix(): (p.read_bytes() if p.is_file() else None) for p in sorted(folder.rglob("*"))}
+
+
+def test_users_folder_in_the_default_out_dir_is_never_replaced(tmp_path, toy_registry):
+    cfg = write_config(tmp_path, name="shot")
+    mine = tmp_path / "out" / "shot" / "frames"
+    mine.mkdir(parents=True)
+    (mine / "my_notes.txt").write_text("keep me")
+    before = _snapshot(tmp_path)
+    err = _one_line_exit(_run(cfg), 2)
+    assert "did not create" in err and str(mine) in err
+    assert _snapshot(tmp_path) == before  # nothing written anywhere: not even the cache
+
+
+def test_users_file_under_out_is_never_replaced(tmp_path, toy_registry):
+    cfg = write_config(tmp_path / "cfg")
+    studio = tmp_path / "project"
+    studio.mkdir()
+    (studio / "usd").write_text("a user's file named like an output")
+    (studio / "walls").mkdir()
+    (studio / "walls" / "tank.obj").write_text("v 0 0 0")
+    before = _snapshot(studio)
+    err = _one_line_exit(_run(cfg, "--out", studio, "--cache", tmp_path / "c"), 2)
+    assert str(studio / "usd") in err
+    assert _snapshot(studio) == before and not (tmp_path / "c").exists()
+
+
+def test_out_dir_that_is_a_file_is_refused(tmp_path, toy_registry):
+    cfg = write_config(tmp_path)
+    (tmp_path / "o").write_text("x")
+    err = _one_line_exit(_run(cfg, "--out", tmp_path / "o", "--cache", tmp_path / "c"), 2)
+    assert "is a file" in err and (tmp_path / "o").read_text() == "x"
+
+
+def test_published_folders_are_replaced_others_kept_and_user_additions_protected(tmp_path, toy_registry):
+    cfg = write_config(tmp_path, count=3)
+    out = tmp_path / "studio"
+    out.mkdir()
+    (out / "walls").mkdir()
+    (out / "walls" / "tank.obj").write_text("v 0 0 0")  # shares the folder, not an output name
+    r = _run(cfg, "--out", out, "--cache", tmp_path / "c")
+    assert r.exit_code == 0, r.output
+    record = json.loads((out / ".pipeline-published.json").read_text())["published"]
+    assert set(record) == {"frames", "usd", "run.json"}
+    # a second run with other settings replaces what it published, and only that
+    assert _run(cfg, "--out", out, "--cache", tmp_path / "c", "--set", "render.width=32").exit_code == 0
+    assert "render 32" in (out / "frames" / "frame_00000.txt").read_text()
+    assert (out / "walls" / "tank.obj").read_text() == "v 0 0 0"
+    assert_consistent(tmp_path / "c", out)
+    # a file the user put inside a published folder makes the next replacement stop, file kept
+    (out / "frames" / "retouched.png").write_text("user work")
+    err = _one_line_exit(_run(cfg, "--out", out, "--cache", tmp_path / "c", "--set", "render.width=16"), 2)
+    assert "retouched.png" in err
+    assert (out / "frames" / "retouched.png").read_text() == "user work"
+    assert "render 32" in (out / "frames" / "frame_00000.txt").read_text()
+
+
+def test_staging_left_by_a_dead_run_is_swept_but_a_users_dotfile_is_not(tmp_path, toy_registry):
+    cfg = write_config(tmp_path)
+    out = tmp_path / "o"
+    assert _run(cfg, "--out", out, "--cache", tmp_path / "c").exit_code == 0
+    dead = out / f".pipeline-tmp.frames.{owner_tag().rsplit('-', 2)[0]}-999999-1.deadbeef"  # pid 999999: gone
+    dead.mkdir()
+    (dead / "frame_00000.txt").write_text("half")
+    (out / ".frames.user").write_text("a user's hidden file")
+    assert _run(cfg, "--out", out, "--cache", tmp_path / "c", "--set", "render.width=8").exit_code == 0
+    assert not dead.exists() and (out / ".frames.user").read_text() == "a user's hidden file"
+
+
+@pytest.mark.parametrize("path", BAD, ids=[p.stem for p in BAD])
+def test_malformed_config_with_default_paths_creates_nothing(path, tmp_path, toy_registry):
+    """Beside the config (default cache and output folders) nothing appears either."""
+    cfg = tmp_path / path.name
+    shutil.copy(path, cfg)
+    t0 = time.perf_counter()
+    r = CliRunner().invoke(main, ["run", str(cfg)])
+    seconds = time.perf_counter() - t0
+    assert r.exit_code == 2, r.output
+    assert len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.output, r.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == [path.name]
+    assert seconds < 5, f"{path.name}: {seconds:.1f} s"  # loose: hostile YAML must not hang
+
+
+class HugeToySimulate(ToySimulate):
+    """The toy simulation with an estimate far beyond any machine's memory."""
+
+    name = "huge"
+
+    def estimate(self, ctx, params):
+        return {"particles": 1e15, "memory_bytes": 1e18}
+
+
+def test_size_refusal_then_yes_and_allow_large(tmp_path, monkeypatch):
+    def make(cls, group: str = "pipeline.stages") -> Registry:
+        reg = cls()
+        for stage in TOY_STAGES + (HugeToySimulate,):
+            reg.add(stage)
+        return reg
+
+    monkeypatch.setattr(Registry, "from_entry_points", classmethod(make))
+    cfg = write_config(tmp_path)
+    cfg.write_text(cfg.read_text().replace("use: toy, steps", "use: huge, steps"))
+    err = _one_line_exit(_run(cfg), 2)
+    assert "stage simulate would need about" in err and "1,000,000,000,000,000 particles" in err, err
+    assert "--yes" in err and sorted(p.name for p in tmp_path.iterdir()) == [cfg.name]  # nothing created
+    r = _run(cfg, "--yes")
+    assert r.exit_code == 0, r.output
+    shutil.rmtree(tmp_path / ".pipeline")
+    cfg.write_text("allow_large: true\n" + cfg.read_text())
+    r = _run(cfg, "--set", "render.width=9")
+    assert r.exit_code == 0, r.output
+
+
+def test_sweep_removes_only_provably_dead_tmp_folders(tmp_path):
+    cache = Cache(tmp_path / "c")
+    tmp = cache.root / "tmp"
+    tmp.mkdir(parents=True)
+    me = owner_tag()
+    host = me.rsplit("-", 2)[0]
+    alive = tmp / f"k1.{me}.aaaa"                                  # this process: running
+    dead_here = tmp / f"k2.{host}-999999-{int(time.time())}.bbbb"  # this host, pid gone
+    other_host = tmp / f"k3.otherhost-{os.getpid()}-{int(time.time())}.cccc"  # may run on host B
+    other_old = tmp / f"k4.otherhost-1-{int(time.time() - TMP_MAX_AGE - 60)}.dddd"  # older than the age
+    older_pid = tmp / f"k5.{host}-1-{int(time.time())}.eeee"       # pid 1 runs, started before: may be it
+    later = subprocess.Popen(["sleep", "30"])                          # a pid alive now, started after
+    reused = tmp / f"k6.{host}-{later.pid}-{int(time.time()) - 100}.ffff"  # the writer's start: pid reused
+    try:
+        for d in (alive, dead_here, other_host, other_old, older_pid, reused):
+            d.mkdir()
+        old = time.time() - TMP_MAX_AGE - 60
+        os.utime(other_old, (old, old))
+        cache.sweep_tmp()
+    finally:
+        later.kill()
+        later.wait()
+    left = {d.name.split(".")[0] for d in tmp.iterdir()}
+    assert left == {"k1", "k3", "k5"}, left
+
+
+def test_relative_cache_is_made_absolute(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert Cache(Path("rel")).root == tmp_path / "rel"
+
+
+def test_size_estimate_is_the_same_in_metres_and_millimetres():
+    """The simulate and sdf_bake estimates of one scene described in m and in mm agree."""
+    from stages.sdf_bake.open3d_bake import Open3dBake
+    from stages.simulate.sph import SPHSimulate
+    from pipeline.stage import Context
+    from pipeline.testing import scene_sections
+
+    def sizes(k: float, mpu: float) -> tuple[dict, dict]:
+        sc = scene_sections({
+            "scene": {"name": "x", "units": {"meters_per_unit": mpu}, "frames": {"fps": 30, "count": 30},
+                      "domain": {"min": [0, 0, 0], "max": [2 * k, 1 * k, 1 * k]}},
+            "fluid": {"spacing": 0.05 * k, "emitters": [{"box": {"min": [0, 0, 0], "max": [0.5 * k, 0.5 * k, 0.5 * k]}}]},
+            "effects": {"gravity": {"g": 9.81}}})
+        ctx = Context(out_dir=Path("."), scene=sc, config_dir=Path("."), frames=(0,), log=None)
+        return (SPHSimulate().estimate(ctx, SPHSimulate.Params()), Open3dBake().estimate(ctx, Open3dBake.Params()))
+
+    (sim_m, sdf_m), (sim_mm, sdf_mm) = sizes(1.0, 1.0), sizes(1000.0, 0.001)
+    assert sim_m["particles"] == sim_mm["particles"] == 1000
+    assert sim_m["steps"] == pytest.approx(sim_mm["steps"], rel=1e-9) and sim_m["steps"] > 30
+    assert sdf_m["sdf_nodes"] == sdf_mm["sdf_nodes"] > 0
+
+
+def test_folder_published_before_the_record_existed_is_still_ours(tmp_path, toy_registry):
+    """An output folder from before the record (only run.json) can be replaced; a user's folder beside
+    it still cannot."""
+    cfg = write_config(tmp_path)
+    out = tmp_path / "o"
+    assert _run(cfg, "--out", out, "--cache", tmp_path / "c").exit_code == 0
+    (out / ".pipeline-published.json").unlink()
+    assert _run(cfg, "--out", out, "--cache", tmp_path / "c", "--set", "render.width=8").exit_code == 0
+    assert "render 8" in (out / "frames" / "frame_00000.txt").read_text()
+    (out / ".pipeline-published.json").unlink()
+    (out / "run.json").unlink()
+    err = _one_line_exit(_run(cfg, "--out", out, "--cache", tmp_path / "c"), 2)
+    assert "did not create" in err
+
+
+def test_failed_replacement_keeps_the_old_published_folder(tmp_path, toy_registry, monkeypatch):
+    cfg = write_config(tmp_path)
+    out = tmp_path / "o"
+    assert _run(cfg, "--out", out, "--cache", tmp_path / "c").exit_code == 0
+    before = (out / "frames" / "frame_00000.txt").read_text()
+    real_replace = os.replace
+
+    def failing(src, dst, *a, **k):
+        if Path(dst) == out / "frames" and ".pipeline-tmp.frames" in str(src):
+            raise OSError(28, "No space left on device", str(dst))
+        return real_replace(src, dst, *a, **k)
+
+    monkeypatch.setattr(os, "replace", failing)
+    err = _one_line_exit(_run(cfg, "--out", out, "--cache", tmp_path / "c", "--set", "render.width=7"), 1)
+    monkeypatch.setattr(os, "replace", real_replace)
+    assert err.startswith("error: publish into") and "No space left on device" in err
+    assert (out / "frames" / "frame_00000.txt").read_text() == before
+    assert_consistent(tmp_path / "c", out)
