@@ -27,7 +27,8 @@ from stages.mesh_import.cleanup import clean_mesh
 from stages.sdf_bake.open3d_bake import bake
 
 ROOT = Path(__file__).resolve().parents[1]
-ASSETS = ROOT.parent / "shared" / "assets"
+ASSETS = next((p / "shared" / "assets" for p in ROOT.parents if (p / "shared" / "assets").is_dir()),
+              ROOT.parent / "shared" / "assets")  # ../shared beside the repository (or a worktree's parents)
 MODELS = {  # name: (path under ASSETS, what it is)
     "dragon_50k": ("dragon/Dragon_50k.obj", "not watertight: 21 components, 16 non-manifold edges, duplicates"),
     "happy_buddha_100k": ("happy_buddha/happy_buddha_100k.obj", "not watertight: 36 components, 50 non-manifold edges"),
