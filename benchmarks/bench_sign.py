@@ -6,7 +6,8 @@ Each model of ../shared/assets (read in place, never copied) is cleaned as mesh_
 as a solid obstacle on a grid about ``size`` nodes along its longest side (cell 0.5 l0, band 4 l0: the
 stage defaults) once with each sign. Reference: the majority of ``ref-rays`` random-direction ray
 parities (open3d) at every band node farther than half a grid spacing from the mesh, and at up to
-20,000 nodes beyond the band. A sign error is a node whose baked sign differs from the reference.
+20,000 nodes beyond the band (a parity reference: like the parity vote it calls the overlap of two
+interpenetrating closed parts outside); for the synthetic overlapping spheres, the exact union. A sign error is a node whose baked sign differs from the reference.
 Times: the sign's share of the bake (numba kernels loaded first). Writes
 benchmarks/results/sign.json and prints a Markdown table.
 """
@@ -36,7 +37,16 @@ MODELS = {  # name: (path under ASSETS, what it is)
     "bunny_closed_60k": ("bunny/bunny_closed_60k.obj", "watertight"),
     "dragon_100k_watertight": ("dragon/dragon_100k_watertight.obj", "watertight, genus 1"),
     "armadillo_50k": ("armadillo/armadillo_50k.obj", "watertight"),
+    "two_spheres_overlapping": (None, "synthetic: two closed spheres that intersect (overlapping parts), analytic reference"),
 }
+SPHERES = ((np.array([-0.2, 0.0, 0.0]), 0.5), (np.array([0.2, 0.05, 0.0]), 0.5))
+
+
+def overlapping_spheres() -> trimesh.Trimesh:
+    """Two closed icospheres that intersect, as one triangle soup (a model built of interpenetrating
+    parts): inside is their union."""
+    parts = [trimesh.creation.icosphere(subdivisions=4, radius=r).apply_translation(c) for c, r in SPHERES]
+    return trimesh.util.concatenate(parts)
 
 
 def reference_inside(tri: np.ndarray, pts: np.ndarray, rays: int, seed: int = 7) -> np.ndarray:
@@ -66,8 +76,8 @@ def main() -> None:
         bake(tiny, np.full(3, -1.0), np.full(3, 1.0), 0.25, 0.5, sign=sign)
     rows = []
     for name in args.models:
-        path = ASSETS / MODELS[name][0]
-        raw = trimesh.load(str(path), force="mesh", process=False)
+        path = MODELS[name][0]
+        raw = overlapping_spheres() if path is None else trimesh.load(str(ASSETS / path), force="mesh", process=False)
         mesh, report = clean_mesh(raw, 1e-7 * float(np.linalg.norm(raw.extents)))
         wm = WallMesh(np.asarray(mesh.vertices), np.asarray(mesh.faces, np.int32), np.zeros(len(mesh.faces), np.int32),
                       [{"name": name, "fluid": "outside", "report": report}])
@@ -89,7 +99,10 @@ def main() -> None:
         idx = np.concatenate([near, far])
         pts = lo + h * np.stack(np.unravel_index(idx, shape), axis=1)
         t0 = time.perf_counter()
-        ref = reference_inside(np.asarray(mesh.vertices)[np.asarray(mesh.faces)], pts, args.ref_rays)
+        if path is None:
+            ref = np.any([np.linalg.norm(pts - c, axis=1) < r for c, r in SPHERES], axis=0)
+        else:
+            ref = reference_inside(np.asarray(mesh.vertices)[np.asarray(mesh.faces)], pts, args.ref_rays)
         ref_s = time.perf_counter() - t0
         row = {"model": name, "what": MODELS[name][1], "faces": int(len(mesh.faces)), "watertight": report["watertight"],
                "grid": list(shape), "band_nodes_checked": int(len(near)), "far_nodes_checked": int(len(far)),

@@ -3,7 +3,6 @@ held by an open bowl, a single-sided USD trough in centimetres and a tilted shee
 against a wall 0.2 l0 thick and against a shell of the default thickness (issue 16)."""
 from __future__ import annotations
 
-import logging
 from pathlib import Path
 
 import numba as nb
@@ -14,12 +13,10 @@ import yaml
 
 import pipeline
 from pipeline import Registry
-from pipeline.testing import run_stage
 from stages.common.formats import ParticleMeta, WallMesh, load_particle_frame
 from stages.common.sdf import DEFAULT_SHELL_THICKNESS, SHELL_R_REP, SHELL_STEP, SDFGrid, min_shell_thickness
-from stages.mesh_import.trimesh_import import TrimeshImport
-from stages.sdf_bake.open3d_bake import Open3dBake
 from stages.simulate.sph_kernels import push_out_of_walls
+from stages.wall_snap.distance import DistanceSnapParams
 
 
 # -- the bound: a particle left at d >= r_rep and moved by one step never ends across the wall ------
@@ -218,3 +215,30 @@ def test_a_10_m_s_jet_does_not_cross_a_thin_wall(wall, tmp_path):
     assert max(f.x[:, 0].max() for f in frames) < x_wall
     assert frames[3].x[:, 0].max() > x_wall - 0.02  # the jet reached the wall
     assert stats["left_domain"] == 0
+
+
+def test_wall_snap_puts_the_surface_on_the_face_of_a_shell_the_fluid_touches():
+    """A drop resting on a horizontal sheet (a shell): its contact vertices end on the shell's upper
+    face, thickness/2 above the mesh, not on the mesh inside the shell; from below, on the lower face."""
+    from stages.common.formats import SurfaceMesh
+    from stages.sdf_bake.open3d_bake import bake
+    from stages.wall_snap.distance import snap_mesh
+
+    l0, z_sheet = 0.02, 0.1
+    t = DEFAULT_SHELL_THICKNESS * l0
+    sheet = trimesh.creation.box(extents=[0.4, 0.4, 1e-9])  # its top face: a single plane of two triangles
+    top = sheet.faces[sheet.triangles_center[:, 2] > 0]
+    walls = WallMesh(np.asarray(sheet.vertices) + [0, 0, z_sheet], np.asarray(top, np.int32), np.zeros(len(top), np.int32),
+                     [{"name": "sheet", "fluid": "both", "shell": t, "report": {"watertight": False}}])
+    grid, _ = bake(walls, np.array([-0.25, -0.25, -0.1]), np.array([0.25, 0.25, 0.3]), 0.5 * l0, 4 * l0)
+    for side in (1.0, -1.0):
+        drop = trimesh.creation.icosphere(subdivisions=3, radius=0.05)
+        drop.apply_translation([0.0, 0.0, z_sheet + side * (t / 2 + 0.05 + 0.3 * l0)])
+        mesh = SurfaceMesh(np.asarray(drop.vertices, np.float32), np.asarray(drop.faces, np.int32),
+                           np.asarray(drop.vertex_normals, np.float32))
+        snapped, report = snap_mesh(mesh, grid, l0, DistanceSnapParams(), walls)
+        z = snapped.vertices[:, 2].astype(np.float64) - z_sheet
+        contact = np.abs(z - side * t / 2) < 0.05 * l0
+        assert contact.sum() >= 10 and report["snapped"] >= contact.sum()
+        assert np.abs(z[contact] - side * t / 2).max() < 1e-3 * l0
+        assert (side * z).min() > t / 2 - 1e-3 * l0  # nothing inside the shell
