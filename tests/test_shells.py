@@ -242,3 +242,13 @@ def test_wall_snap_puts_the_surface_on_the_face_of_a_shell_the_fluid_touches():
         assert contact.sum() >= 10 and report["snapped"] >= contact.sum()
         assert np.abs(z[contact] - side * t / 2).max() < 1e-3 * l0
         assert (side * z).min() > t / 2 - 1e-3 * l0  # nothing inside the shell
+
+
+def test_a_wall_is_a_solid_or_a_shell_not_both(tmp_path):
+    from pipeline.config import ConfigError, load_config
+
+    (tmp_path / "c.yaml").write_text(yaml.safe_dump({
+        "config_version": 1, "scene": {"name": "x"}, "fluid": {"spacing": 0.1, "emitters": [{"box": {"min": [0, 0, 0], "max": [1, 1, 1]}}]},
+        "walls": [{"file": "bowl.obj", "fluid": "inside", "shell": {"thickness": 0.01}}], "outputs": ["sdf"]}))
+    with pytest.raises(ConfigError, match="either a solid"):
+        load_config(tmp_path / "c.yaml", Registry.from_entry_points())
