@@ -181,14 +181,14 @@ def test_a_sheet_tilted_30_degrees_stops_a_falling_block(tmp_path):
     walls, frames, stats = _run(tmp_path, {
         "scene": {"name": "sheet", "frames": {"fps": 20, "count": 9}},
         "walls": [{"builtin": "box_tank", "size": [0.3, 0.4, 0.5]}, {"file": "sheet.obj"}],
-        "fluid": {"spacing": 0.015, "emitters": [{"box": {"min": [-0.06, -0.06, 0.3], "max": [0.06, 0.06, 0.39]}}]},
+        "fluid": {"spacing": 0.02, "emitters": [{"box": {"min": [-0.06, -0.06, 0.3], "max": [0.06, 0.06, 0.4]}}]},
         "effects": {"gravity": {"g": 9.81}, "viscosity": {"mu": 0.001}}})
     assert walls.walls[1]["fluid"] == "both"
     side = [(f.x - c) @ n for f in frames]
-    assert len(frames[0]) > 250
+    assert len(frames[0]) > 150
     assert min(s.min() for s in side) > 0  # nothing ever below the sheet
     assert np.median(side[-1]) < 0.05 < side[0].min()  # the block came down onto it
-    assert frames[-1].x[:, 1].mean() > frames[0].x[:, 1].mean() + 0.03  # and slid down its slope (+y)
+    assert frames[-1].x[:, 1].mean() < frames[0].x[:, 1].mean() - 0.03  # and slid down its slope (-y)
     assert stats["left_domain"] == 0
 
 
@@ -205,7 +205,7 @@ def test_a_10_m_s_jet_does_not_cross_a_thin_wall(wall, tmp_path):
     else:
         _sheet(tmp_path / "wall.obj", [x_wall, 0.1, 0.1], [1.0, 0.0, 0.0], 0.5, n=3)
     walls, frames, stats = _run(tmp_path, {
-        "scene": {"name": "jet", "frames": {"fps": 200, "count": 13}},
+        "scene": {"name": "jet", "frames": {"fps": 200, "count": 9}},
         "walls": [{"builtin": "box_tank", "size": [0.4, 0.2, 0.2], "center": [0.2, 0.1, 0.0]}, {"file": "wall.obj"}],
         "fluid": {"spacing": l0, "emitters": [{"box": {"min": [0.08, 0.07, 0.07], "max": [0.18, 0.13, 0.13]},
                                                "velocity": [10.0, 0.0, 0.0]}]},
