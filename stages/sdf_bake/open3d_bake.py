@@ -66,7 +66,8 @@ class BakeParams(Params):
                                                "along the grid lines, or the generalized winding number (libigl)")
     min_thickness: float | None = Field(None, ge=0, le=10, description="shells and the parts of watertight solids "
                                         "thinner than this (in l0) are baked this thick, so no particle crosses them; "
-                                        "default: the least proven leak-free at this cell (cell + 0.05 l0)")
+                                        "default: the least proven leak-free at this cell for WCSPH and MPS steps "
+                                        "(cell + 0.05 l0); DFSPH at CFL 0.8 needs cell + 0.6 (1.1)")
 
     def min_thickness_l0(self) -> float:
         return min_shell_thickness(self.cell) if self.min_thickness is None else self.min_thickness
