@@ -96,17 +96,40 @@ class BuiltinWall(Placement):
         return v
 
 
-class FileWall(Placement):
+class Shell(Model):
+    """A wall that is its surface thickened on both sides: every point within thickness/2 of the mesh is
+    wall, so an open bowl, a sheet or a single-sided trough holds fluid on either side."""
+
+    thickness: float | None = Field(None, gt=0, description="shell thickness, scene units; default "
+                                    "0.6 fluid spacings (the least sdf_bake proves leak-free at its default cell)")
+
+
+class MeshWall(Placement):
+    """A wall read from a model: a solid (``fluid``: which side is fluid) or a ``shell``. With neither
+    set, mesh_import chooses: a closed mesh is a solid obstacle (fluid outside), an open one (boundary
+    edges) a shell."""
+
+    fluid: Literal["inside", "outside"] | None = Field(
+        None, description="outside: a solid obstacle; inside: a container; default: outside for a closed mesh, "
+        "a shell for an open one")
+    shell: Shell | None = Field(None, description="treat the mesh as a thin shell (fluid on both sides)")
+
+    @model_validator(mode="after")
+    def _solid_or_shell(self) -> "MeshWall":
+        if self.fluid is not None and self.shell is not None:
+            raise ValueError("a wall is either a solid ('fluid: inside/outside') or a 'shell', not both")
+        return self
+
+
+class FileWall(MeshWall):
     file: InputFile = Field(description="OBJ/PLY/STL/OFF/GLB/GLTF path, relative to the config file")
-    fluid: Literal["inside", "outside"] = Field("outside", description="outside: a solid obstacle; inside: a container")
     meters_per_unit: float | None = Field(None, gt=0, description="the file's units if not the scene's")
 
 
-class UsdWall(Placement):
+class UsdWall(MeshWall):
     usd: InputFile = Field(description=".usda/.usdc/.usdz path, relative to the config file")
     prims: list[str] = Field(default_factory=lambda: ["/**"], description="prim paths or glob patterns to use as walls")
     include_invisible: bool = Field(False, description="also use prims whose visibility is 'invisible'")
-    fluid: Literal["inside", "outside"] = Field("outside", description="outside: a solid obstacle; inside: a container")
 
 
 def _kind_by_key(*keys: str):

@@ -18,7 +18,8 @@ surface_extract / wall_snap -> per-frame artifact folders, each with
 mesh_import -> ``walls`` artifact folder:
     walls.npz                 vertices (V,3) f64 world space, scene units; faces (F,3) i32;
                               wall_id (F,) i32 (index into walls.json)
-    walls.json                [{"name", "fluid": "inside"|"outside", "source", "report": {...}}, ...]
+    walls.json                [{"name", "fluid": "inside"|"outside"|"both", "source", "report": {...},
+                              "shell": thickness (scene units; only for a shell, whose fluid is "both")}, ...]
     walls.usdc                the wall meshes as UsdGeom.Mesh prims (studio-facing)
 sdf_bake -> ``sdf`` artifact folder: sdf.npz (see stages/common/sdf.py)
 """
@@ -126,7 +127,13 @@ class WallMesh:
     vertices: np.ndarray  # (V, 3) float64, world space, scene units
     faces: np.ndarray  # (F, 3) int32
     wall_id: np.ndarray  # (F,) int32
-    walls: list[dict[str, Any]]  # per wall: name, fluid ("inside"/"outside"), source, report
+    walls: list[dict[str, Any]]  # per wall: name, fluid ("inside"/"outside"/"both"), source, report, [shell]
+
+    def shell_thickness(self, default: float = 0.0) -> np.ndarray:
+        """(walls,) float64: each wall's shell thickness as imported (scene units; ``default`` where the
+        import left it open), 0 for a solid."""
+        return np.array([0.0 if w.get("fluid") != "both" else default if w.get("shell") is None else float(w["shell"])
+                         for w in self.walls], np.float64)
 
     def save(self, folder: Path) -> None:
         np.savez(Path(folder) / WALLS_FILE, vertices=self.vertices.astype(np.float64),

@@ -15,6 +15,24 @@ import numpy as np
 
 SDF_FILE = "sdf.npz"
 
+# Shells and thin walls against the trilinear grid (tests/test_shells.py proves the bound):
+# the field |d| - t/2 of a wall thinner than a cell is V-shaped, and trilinear sampling flattens the V
+# in the cells the wall cuts: there the gradient can point across the wall, and the eq. 16 push-out
+# then carries a particle through it. A particle left at d >= r_rep by the push-out never starts in
+# such a cell when the cell is no wider than r_rep; one step of length delta brings it into one only if
+# t < cell + 2 (delta - r_rep) (exact for a wall along the grid axes; random orientations in the test
+# need no more). WCSPH moves a particle at most delta = cfl l0 + dt^2 a_max <= 0.4 l0 + 0.125 l0 (the
+# CFL and force limits), so at cell 0.5 l0 and r_rep 0.5 l0 the least safe thickness is 0.55 l0.
+SHELL_STEP = 0.525  # largest particle step per time step the bound is made for, in l0
+SHELL_R_REP = 0.5  # the eq. 16 repulsion distance of the solvers, in l0
+DEFAULT_SHELL_THICKNESS = 0.6  # in l0: above min_shell_thickness at the default cell 0.5
+
+
+def min_shell_thickness(cell: float, step: float = SHELL_STEP, r_rep: float = SHELL_R_REP) -> float:
+    """The thinnest wall (in l0) that a particle cannot cross on a grid of ``cell`` l0, moving at most
+    ``step`` l0 per time step and pushed out to ``r_rep`` l0 (see above); 0 if any wall is safe."""
+    return max(cell + 2.0 * (step - r_rep), 0.0)
+
 
 @dataclass
 class SDFGrid:
@@ -22,6 +40,7 @@ class SDFGrid:
     spacing: float  # node spacing, scene units
     dist: np.ndarray  # (nx, ny, nz) float32, C order
     band: float  # |d| is exact below this, clamped above
+    shell_thickness: np.ndarray | None = None  # (walls,) float64: thickness as baked, 0 for a solid wall
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -33,15 +52,17 @@ class SDFGrid:
 
     def save(self, folder: Path) -> Path:
         path = Path(folder) / SDF_FILE
+        extra = {} if self.shell_thickness is None else {"shell_thickness": np.asarray(self.shell_thickness, np.float64)}
         np.savez(path, origin=self.origin, spacing=np.float64(self.spacing),
-                 dist=np.ascontiguousarray(self.dist, dtype=np.float32), band=np.float64(self.band))
+                 dist=np.ascontiguousarray(self.dist, dtype=np.float32), band=np.float64(self.band), **extra)
         return path
 
     @classmethod
     def load(cls, folder: Path) -> "SDFGrid":
         with np.load(Path(folder) / SDF_FILE) as z:
             return cls(origin=np.asarray(z["origin"], np.float64), spacing=float(z["spacing"]),
-                       dist=np.ascontiguousarray(z["dist"], np.float32), band=float(z["band"]))
+                       dist=np.ascontiguousarray(z["dist"], np.float32), band=float(z["band"]),
+                       shell_thickness=np.asarray(z["shell_thickness"], np.float64) if "shell_thickness" in z else None)
 
     def sample(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Distance (N,) and unit normal (N, 3) at ``points`` (N, 3); convenience wrapper."""

@@ -20,6 +20,7 @@ from pydantic import Field
 from pipeline.scene import BuiltinWall, UsdWall
 from pipeline.stage import Artifact, Context, Params, Stage, StageError
 from stages.common.formats import WallMesh
+from stages.common.sdf import DEFAULT_SHELL_THICKNESS
 
 from .builtin import builtin_mesh
 from .cleanup import clean_mesh
@@ -79,10 +80,10 @@ class TrimeshImport(Stage):
 
     kind = "mesh_import"
     name = "trimesh"
-    version = "2"
+    version = "3"
     Params = ImportParams
     outputs = ("walls",)
-    reads = ("scene.units", "walls")
+    reads = ("scene.units", "walls", "fluid.spacing")  # fluid.spacing: a shell's default thickness
     default = True
     description = "walls from builtin shapes, OBJ/PLY/STL/OFF/GLB/GLTF (trimesh) and USD, cleaned, in world space"
 
@@ -112,15 +113,18 @@ class TrimeshImport(Stage):
             mesh, report = clean_mesh(trimesh.Trimesh(v, f, process=False), params.weld_tolerance * diag)
             if len(mesh.faces) == 0:
                 raise StageError(f"{where}: empty mesh after removing degenerate faces")
+            label = Path(source).stem if not isinstance(w, BuiltinWall) else w.builtin
+            fluid, shell = self._solid_or_shell(ctx, i, label, w, fluid, report)
             if fluid == "inside":
                 mesh.invert()  # container: normals into the fluid, i.e. inwards
             asset_to_scene = extra.pop("asset_to_scene", None)
             report.update(extra)
-            if not report["watertight"]:
+            if not report["watertight"] and shell is None:
                 ctx.log.warning("%s: not watertight (%d boundary edges, %d non-manifold); the SDF sign uses ray voting",
                                 where, report["boundary_edges"], report["non_manifold_edges"])
-            label = Path(source).stem if not isinstance(w, BuiltinWall) else w.builtin
             info.append({"name": _wall_name(i, label), "fluid": fluid, "source": source, "report": report})
+            if fluid == "both":
+                info[-1]["shell"] = shell
             if asset_to_scene is not None:
                 info[-1]["asset_to_scene"] = asset_to_scene
             verts.append(np.asarray(mesh.vertices, np.float64))
@@ -135,6 +139,30 @@ class TrimeshImport(Stage):
         wm.save(ctx.out_dir)
         write_walls_usd(ctx.out_dir / USD_FILE, wm, scene.units.meters_per_unit, scene.units.up_axis)
         ctx.log.info("%d walls, %d triangles", len(info), len(wm.faces))
+
+    @staticmethod
+    def _solid_or_shell(ctx: Context, i: int, label: str, w: Any, fluid: str | None,
+                        report: dict) -> tuple[str, float | None]:
+        """(fluid side, shell thickness in scene units) of wall ``i``: what the config says, else a shell
+        for an open mesh (boundary edges) and a solid obstacle otherwise. A shell's fluid is "both"; its
+        thickness is None when left to sdf_bake's default (no fluid spacing here)."""
+        shell = getattr(w, "shell", None)
+        if fluid is not None and shell is None:
+            return fluid, None
+        spacing = ctx.scene["fluid"].spacing if ctx.scene.get("fluid") is not None else None
+        if shell is not None and shell.thickness is not None:
+            thickness, why = shell.thickness, "shell in the config"
+        else:
+            if shell is None and report["boundary_edges"] == 0:
+                ctx.log.info("wall %d (%s): closed mesh -> solid, fluid outside; set fluid: inside for a container",
+                             i, label)
+                return "outside", None
+            thickness = DEFAULT_SHELL_THICKNESS * spacing if spacing else None  # None: sdf_bake's default
+            why = "shell in the config" if shell is not None else f"open mesh ({report['boundary_edges']} boundary edges)"
+        size = f"{thickness:.4g} ({thickness / spacing:.3g} l0)" if spacing else f"{DEFAULT_SHELL_THICKNESS} l0"
+        tail = "" if shell is not None else "; set fluid: inside/outside to override"
+        ctx.log.info("wall %d (%s): %s -> shell %s thick%s", i, label, why, size, tail)
+        return "both", thickness
 
     def _read(self, ctx: Context, w: Any, params: ImportParams) -> tuple[np.ndarray, np.ndarray, str, str, dict]:
         units = ctx.scene["scene"].units

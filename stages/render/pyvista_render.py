@@ -6,8 +6,10 @@ falling back to OSMesa (libosmesa6) when Mesa's EGL is not installed. Both pass 
 starts faster. Left to itself VTK first tries X and spends seconds timing out on the missing display;
 a VTK_DEFAULT_OPENGL_WINDOW set by the user wins.
 
-Containers (fluid "inside", and mesh_import's open box) are seen from outside, so the faces between
-the camera and the container's centre are drawn faint: the water inside shows.
+Containers (fluid "inside", mesh_import's open box, and shells) are seen from outside, so the faces
+between the camera and the container's centre are drawn faint: the water inside shows. Walls are drawn
+two-sided (no back-face culling, two-sided lighting): an open or single-sided mesh (a shell) shows its
+back faces lit like its front.
 """
 from __future__ import annotations
 
@@ -151,14 +153,16 @@ class PyvistaRender(Stage):
     # -- pieces of the picture -------------------------------------------------------------------
     @staticmethod
     def _add_walls(plotter, walls: WallMesh, eye: np.ndarray, params: RenderParams) -> None:
-        style = dict(color=WALL_RGB, ambient=0.25, diffuse=0.75, specular=0.0, smooth_shading=False)
+        style = dict(color=WALL_RGB, ambient=0.25, diffuse=0.75, specular=0.0, smooth_shading=False, culling=False)
+        plotter.renderer.SetTwoSidedLighting(True)  # VTK's default, made explicit: back faces of shells lit
         for index, info in enumerate(walls.walls):
             faces = walls.faces[walls.wall_id == index]
             if len(faces) == 0:
                 continue
             near = np.zeros(len(faces), bool)
-            # mesh_import builds an open box as a thick solid the fluid is "outside" of; it holds fluid all the same
-            if info.get("fluid", "outside") == "inside" or info.get("source") == "builtin:open_box":
+            # mesh_import builds an open box as a thick solid the fluid is "outside" of; it holds fluid all the
+            # same; a shell (fluid "both": an open bowl, a trough) may hold it too
+            if info.get("fluid", "outside") in ("inside", "both") or info.get("source") == "builtin:open_box":
                 # a container is seen from outside: its near side would hide the fluid
                 used = walls.vertices[np.unique(faces)]
                 near = near_faces(walls.vertices, faces, eye, 0.5 * (used.min(axis=0) + used.max(axis=0)))

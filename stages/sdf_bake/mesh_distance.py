@@ -418,7 +418,7 @@ def _refine(tri, degenerate, normals, spheres, origin, h, dims, dist, ids, layer
 
 
 def band_distance(tri: np.ndarray, origin: np.ndarray, h: float, shape: tuple[int, int, int], band: float,
-                  exact_reach: float, width: int = 2) -> tuple[np.ndarray, dict]:
+                  exact_reach: float, width: int = 2, return_ids: bool = False):
     """Distance from every node of the grid (origin, h, shape) to the triangles ``tri`` (T, 3, 3),
     clamped to ``band``: float64 (nx, ny, nz), and counts.
 
@@ -427,13 +427,15 @@ def band_distance(tri: np.ndarray, origin: np.ndarray, h: float, shape: tuple[in
     the result is always the
     exact distance to some triangle (never below the true distance), and equal to it unless the
     closest triangle of a node is nobody's closest among its neighbours (near the medial axis, where
-    two parts of the wall are about equally far)."""
+    two parts of the wall are about equally far). With ``return_ids`` also the closest triangle of each
+    node (int32 (nx, ny, nz), -1 where none is within the band)."""
     tri = np.ascontiguousarray(tri, np.float64)
     limit = float(band) + 2.0 * h  # nodes a little beyond the band still pass candidates on
     out = np.full(shape, limit, np.float64)
     ids = np.full(shape, -1, np.int32)
     if len(tri) == 0:
-        return np.minimum(out, band), {"exact_nodes": 0, "propagated_nodes": 0}
+        counts = {"exact_nodes": 0, "propagated_nodes": 0}
+        return (np.minimum(out, band), counts, ids) if return_ids else (np.minimum(out, band), counts)
     normals = np.empty((len(tri), 3), np.float64)
     degenerate = np.empty(len(tri), np.bool_)
     triangle_frames(tri, normals, degenerate)
@@ -465,7 +467,8 @@ def band_distance(tri: np.ndarray, origin: np.ndarray, h: float, shape: tuple[in
                 layer, order, starts, seen)
     np.minimum(out, band, out=out)
     n_exact = int(len(exact)) if reach < limit else int(np.count_nonzero(out < band))
-    return out, {"exact_nodes": n_exact, "propagated_nodes": n_prop}
+    counts = {"exact_nodes": n_exact, "propagated_nodes": n_prop}
+    return (out, counts, ids) if return_ids else (out, counts)
 
 
 # -- sign: parity of crossings along grid lines ---------------------------------------------------------

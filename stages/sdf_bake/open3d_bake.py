@@ -39,11 +39,13 @@ from typing import Mapping
 
 import numpy as np
 import open3d as o3d
+from typing import Literal
+
 from pydantic import Field, field_validator
 
 from pipeline.stage import Artifact, Context, Params, Stage, StageError
 from stages.common.formats import WallMesh
-from stages.common.sdf import SDFGrid
+from stages.common.sdf import DEFAULT_SHELL_THICKNESS, SDFGrid, min_shell_thickness
 from stages.common.sizes import sdf_estimate
 
 from .mesh_distance import band_distance, inside_votes
@@ -61,6 +63,15 @@ class BakeParams(Params):
                                "outwards from neighbours (a reach >= band / cell makes the whole band brute force)")
     sign_rays: int = Field(7, ge=1, le=99, description="random rays voting on inside/outside where the six grid-line "
                            "votes tie (odd)")
+    sign: Literal["parity", "winding"] = Field("parity", description="inside/outside of a solid wall: parity votes "
+                                               "along the grid lines, or the generalized winding number (libigl)")
+    min_thickness: float | None = Field(None, ge=0, le=10, description="shells and the parts of watertight solids "
+                                        "thinner than this (in l0) are baked this thick, so no particle crosses them; "
+                                        "default: the least proven leak-free at this cell for WCSPH and MPS steps "
+                                        "(cell + 0.05 l0); DFSPH at CFL 0.8 needs cell + 0.6 (1.1)")
+
+    def min_thickness_l0(self) -> float:
+        return min_shell_thickness(self.cell) if self.min_thickness is None else self.min_thickness
 
     @field_validator("sign_rays")
     @classmethod
@@ -80,8 +91,10 @@ def _raycasting_scene(vertices: np.ndarray, faces: np.ndarray) -> o3d.t.geometry
 class WallField:
     """One wall's exact signed distance (d > 0 on its fluid side) at arbitrary points."""
 
-    def __init__(self, vertices: np.ndarray, faces: np.ndarray, fluid: str, watertight: bool, sign_rays: int):
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, fluid: str, watertight: bool, sign_rays: int,
+                 shell: float = 0.0):
         self.scene = _raycasting_scene(vertices, faces)
+        self.shell = shell  # > 0: the wall is the surface thickened to this (|d| - shell / 2)
         self.fluid_sign = 1.0 if fluid == "outside" else -1.0  # sign of d outside the mesh
         self.rays = 1 if watertight else sign_rays
         self.seconds = {"distance": 0.0, "sign": 0.0}
@@ -109,15 +122,19 @@ class WallField:
         return np.where(2 * inside > k, -self.fluid_sign, self.fluid_sign).astype(np.float32)
 
     def signed(self, pts: np.ndarray) -> np.ndarray:
+        if self.shell > 0:
+            return self.distance(pts) - np.float32(0.5 * self.shell)
         return self.distance(pts) * self.sign(pts)
 
 
-def wall_fields(wm: WallMesh, sign_rays: int) -> list[WallField]:
+def wall_fields(wm: WallMesh, sign_rays: int, shells: np.ndarray | None = None) -> list[WallField]:
+    shells = wm.shell_thickness() if shells is None else shells
     fields = []
     for i, info in enumerate(wm.walls):
         f = wm.faces[wm.wall_id == i]
         if len(f):
-            fields.append(WallField(wm.vertices, f, info["fluid"], bool(info.get("report", {}).get("watertight", False)), sign_rays))
+            fields.append(WallField(wm.vertices, f, info["fluid"], bool(info.get("report", {}).get("watertight", False)),
+                                    sign_rays, float(shells[i])))
     return fields
 
 
@@ -129,33 +146,107 @@ def exact_signed_distance(fields: list[WallField], pts: np.ndarray) -> np.ndarra
     return d
 
 
-def _wall_triangles(wm: WallMesh) -> list[tuple[dict, np.ndarray]]:
-    return [(info, wm.vertices[wm.faces[wm.wall_id == i]]) for i, info in enumerate(wm.walls) if (wm.wall_id == i).any()]
+def winding_inside(tri: np.ndarray, origin: np.ndarray, h: float, shape: tuple[int, int, int],
+                   near: np.ndarray) -> np.ndarray:
+    """Inside/outside of the triangles ``tri`` (T, 3, 3) at every node by the generalized winding number
+    (Jacobson et al. 2013; Barill et al. 2018's fast approximation, libigl): |w| > 1/2 is inside, for
+    either orientation; holes, flipped or duplicated faces and self-intersections move w only near
+    them. Evaluated at the ``near`` (band) nodes and at one node of each connected region of the
+    others: such a region does not touch the wall, so w is the same all over it."""
+    import igl
+    from scipy import ndimage
+
+    labels, n = ndimage.label(~near)
+    flat = labels.reshape(-1)
+    _, first = np.unique(flat, return_index=True)
+    reps = first[flat[first] > 0]  # one node per far region (label 0: the band)
+    idx = np.concatenate([np.flatnonzero(near.reshape(-1)), reps])
+    pts = origin + h * np.stack(np.unravel_index(idx, shape), axis=1).astype(np.float64)
+    faces = np.arange(3 * len(tri), dtype=np.int64).reshape(-1, 3)
+    w = np.abs(igl.fast_winding_number(np.ascontiguousarray(tri.reshape(-1, 3), np.float64), faces, pts)) > 0.5
+    region = np.zeros(n + 1, np.bool_)
+    region[flat[reps]] = w[len(idx) - len(reps):]
+    inside = region[flat]
+    inside[idx[:len(idx) - len(reps)]] = w[:len(idx) - len(reps)]
+    return inside.reshape(shape)
+
+
+def face_thickness(tri: np.ndarray) -> np.ndarray:
+    """Thickness of a closed solid behind each triangle: the first hit of a ray from its centroid along
+    its back side (the solid, by mesh_import's convention that normals face the fluid); inf if none."""
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+    scale = np.abs(tri).max() + 1.0
+    start = tri.mean(axis=1) - 1e-6 * scale * n
+    scene = _raycasting_scene(tri.reshape(-1, 3), np.arange(3 * len(tri), dtype=np.int64).reshape(-1, 3))
+    rays = np.concatenate([start, -n], axis=1).astype(np.float32)
+    return scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(np.float64)
 
 
 def bake_wall(tri: np.ndarray, fluid: str, origin: np.ndarray, h: float, shape: tuple[int, int, int], band: float,
-              exact_reach: float, sign_rays: int, out: np.ndarray, seconds: dict) -> dict:
-    """Fold one wall's narrow-band signed distance (triangles ``tri`` (T, 3, 3)) into ``out`` (min)."""
+              exact_reach: float, sign_rays: int, out: np.ndarray, seconds: dict, shell: float = 0.0,
+              sign: str = "parity", min_thickness: float = 0.0, watertight: bool = False) -> dict:
+    """Fold one wall's narrow-band signed distance (triangles ``tri`` (T, 3, 3)) into ``out`` (min).
+
+    ``shell`` > 0: the wall is the surface thickened to ``shell`` (|d| - shell/2, no inside/outside).
+    Else a solid, signed by ``sign`` ("parity": grid-line votes with open3d rays on ties; "winding":
+    the generalized winding number); a watertight solid's parts thinner than ``min_thickness`` are
+    thickened to it (the faces' thickness by ray, each dilated by half the missing thickness)."""
     t0 = time.perf_counter()
+    if shell > 0:
+        dist, counts = band_distance(tri, origin, h, shape, band, exact_reach * h)
+        np.minimum(out, (dist - 0.5 * shell).astype(np.float32), out=out)
+        seconds["distance"] += time.perf_counter() - t0
+        return {**counts, "sign_ties": 0, "thin_faces": 0}
     dist, counts = band_distance(tri, origin, h, shape, band, exact_reach * h)
     t1 = time.perf_counter()
-    votes = inside_votes(tri, origin, h, shape)
-    inside = votes >= 4
-    tie = np.flatnonzero(votes.reshape(-1) == 3)
-    if len(tie):  # every line through the node crosses a hole: ask open3d's random rays
-        faces = np.arange(3 * len(tri), dtype=np.int64).reshape(-1, 3)
-        field = WallField(tri.reshape(-1, 3), faces, "outside", False, sign_rays)
-        pts = origin + h * np.stack(np.unravel_index(tie, shape), axis=1)
-        inside.reshape(-1)[tie] = field.sign(pts) < 0
+    tie = np.zeros(0, np.int64)
+    if sign == "winding":
+        inside = winding_inside(tri, origin, h, shape, dist < band)
+    else:
+        votes = inside_votes(tri, origin, h, shape)
+        inside = votes >= 4
+        tie = np.flatnonzero(votes.reshape(-1) == 3)
+        if len(tie):  # every line through the node crosses a hole: ask open3d's random rays
+            faces = np.arange(3 * len(tri), dtype=np.int64).reshape(-1, 3)
+            field = WallField(tri.reshape(-1, 3), faces, "outside", False, sign_rays)
+            pts = origin + h * np.stack(np.unravel_index(tie, shape), axis=1)
+            inside.reshape(-1)[tie] = field.sign(pts) < 0
     fluid_sign = np.float32(1.0 if fluid == "outside" else -1.0)  # sign of d outside the mesh
     signed = dist.astype(np.float32)
     signed[inside] *= -1
     if fluid_sign < 0:
         np.negative(signed, out=signed)
+    t2 = time.perf_counter()
+    n_thin = 0
+    if min_thickness > 0 and watertight:
+        grow = 0.5 * (min_thickness - face_thickness(tri))
+        thin = np.flatnonzero(grow > 0)
+        n_thin = len(thin)
+        if n_thin:  # the thin parts' distance minus each closest face's missing half thickness
+            d_thin, _, ids = band_distance(tri[thin], origin, h, shape, band, exact_reach * h, return_ids=True)
+            hit = ids >= 0
+            np.minimum(signed, np.where(hit, d_thin - grow[thin][np.maximum(ids, 0)], band).astype(np.float32),
+                       out=signed)
     np.minimum(out, signed, out=out)
-    seconds["distance"] += t1 - t0
-    seconds["sign"] += time.perf_counter() - t1
-    return {**counts, "sign_ties": int(len(tie))}
+    t3 = time.perf_counter()
+    seconds["distance"] += (t1 - t0) + (t3 - t2)
+    seconds["sign"] += t2 - t1
+    return {**counts, "sign_ties": int(len(tie)), "thin_faces": n_thin}
+
+
+def wall_thicknesses(wm: WallMesh, l0: float, p: "BakeParams", log=None) -> np.ndarray:
+    """(walls,) the thickness each shell is baked with (scene units; 0 for a solid): the imported one,
+    raised to the least thickness that does not leak at this cell (``min_thickness``)."""
+    floor = p.min_thickness_l0() * l0
+    out = wm.shell_thickness(DEFAULT_SHELL_THICKNESS * l0)
+    for i in np.flatnonzero((out > 0) & (out < floor)):
+        if log is not None:
+            log.warning("wall %d (%s): shell %.4g thick is below the least leak-free thickness %.4g "
+                        "(%.3g l0 at cell %.3g l0): baked %.4g thick", i, wm.walls[i]["name"], out[i], floor,
+                        floor / l0, p.cell, floor)
+        out[i] = floor
+    return out
 
 
 def grid_box(wm: WallMesh, domain, l0: float, p: BakeParams) -> tuple[np.ndarray, np.ndarray]:
@@ -169,22 +260,34 @@ def grid_box(wm: WallMesh, domain, l0: float, p: BakeParams) -> tuple[np.ndarray
 
 
 def bake(wm: WallMesh, lo: np.ndarray, hi: np.ndarray, h: float, band: float, exact_reach: float = 4.0,
-         sign_rays: int = 7) -> tuple[SDFGrid, dict]:
+         sign_rays: int = 7, shells: np.ndarray | None = None, sign: str = "parity",
+         min_thickness: float = 0.0) -> tuple[SDFGrid, dict]:
     """Bake the combined field of ``wm`` on the node grid from ``lo`` with spacing ``h`` covering ``hi``
-    (``band`` in scene units, ``exact_reach`` in grid spacings)."""
+    (``band`` in scene units, ``exact_reach`` in grid spacings). ``shells``: per wall the shell thickness
+    to bake (scene units, 0 for a solid; default: as imported); ``min_thickness`` (scene units): thinner
+    parts of watertight solids are thickened to it."""
+    shells = wm.shell_thickness(np.nan) if shells is None else np.asarray(shells, np.float64)
+    if np.isnan(shells).any():
+        raise ValueError("bake: a shell's thickness was left to the default; pass shells (wall_thicknesses)")
     shape = tuple(int(k) for k in np.ceil((np.asarray(hi) - lo) / h).astype(int) + 1)
     if np.prod(shape, dtype=np.int64) > MAX_NODES:
         raise StageError(f"sdf_bake: grid {shape} has more than {MAX_NODES:,} nodes; increase cell or shrink scene.domain")
     t0 = time.perf_counter()
     dist = np.full(shape, band, np.float32)
     seconds = {"distance": 0.0, "sign": 0.0}
-    counts = {"exact_nodes": 0, "propagated_nodes": 0, "sign_ties": 0}
-    for info, tri in _wall_triangles(wm):
-        c = bake_wall(tri, info["fluid"], np.asarray(lo, np.float64), h, shape, band, exact_reach, sign_rays, dist, seconds)
+    counts = {"exact_nodes": 0, "propagated_nodes": 0, "sign_ties": 0, "thin_faces": 0}
+    for i, info in enumerate(wm.walls):
+        tri = wm.vertices[wm.faces[wm.wall_id == i]]
+        if not len(tri):
+            continue
+        c = bake_wall(tri, info["fluid"], np.asarray(lo, np.float64), h, shape, band, exact_reach, sign_rays, dist,
+                      seconds, shell=float(shells[i]), sign=sign, min_thickness=min_thickness,
+                      watertight=bool(info.get("report", {}).get("watertight", False)))
         counts = {k: counts[k] + c[k] for k in counts}
     stats = {"shape": list(shape), "nodes": int(np.prod(shape)), "seconds": time.perf_counter() - t0,
              "distance_seconds": seconds["distance"], "sign_seconds": seconds["sign"], **counts}
-    return SDFGrid(origin=np.asarray(lo, np.float64), spacing=float(h), dist=dist, band=float(band)), stats
+    return SDFGrid(origin=np.asarray(lo, np.float64), spacing=float(h), dist=dist, band=float(band),
+                   shell_thickness=shells), stats
 
 
 def accuracy(grid: SDFGrid, fields: list[WallField], wm: WallMesh, n_points: int = 20000, seed: int = 0) -> dict:
@@ -214,7 +317,7 @@ class Open3dBake(Stage):
 
     kind = "sdf_bake"
     name = "open3d"
-    version = "2"
+    version = "3"
     Params = BakeParams
     inputs = ("walls",)
     outputs = ("sdf",)
@@ -233,8 +336,10 @@ class Open3dBake(Stage):
         l0 = fluid.spacing
         wm = WallMesh.load(inputs["walls"].path)
         lo, hi = grid_box(wm, ctx.scene["scene"].domain, l0, params)
-        grid, stats = bake(wm, lo, hi, params.cell * l0, params.band * l0, params.exact_reach, params.sign_rays)
+        shells = wall_thicknesses(wm, l0, params, ctx.log)
+        grid, stats = bake(wm, lo, hi, params.cell * l0, params.band * l0, params.exact_reach, params.sign_rays,
+                           shells, params.sign, params.min_thickness_l0() * l0)
         grid.save(ctx.out_dir)
-        ctx.log.info("sdf %s nodes, %d exact + %d propagated band nodes, %d tied signs, %.2f s",
-                     "x".join(map(str, stats["shape"])), stats["exact_nodes"], stats["propagated_nodes"],
-                     stats["sign_ties"], stats["seconds"])
+        ctx.log.info("sdf %s nodes, %d exact + %d propagated band nodes, %d tied signs, %d faces of thin parts "
+                     "thickened, %.2f s", "x".join(map(str, stats["shape"])), stats["exact_nodes"],
+                     stats["propagated_nodes"], stats["sign_ties"], stats["thin_faces"], stats["seconds"])

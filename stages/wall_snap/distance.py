@@ -8,7 +8,8 @@ step are below ``tolerance``. Vertices inside a wall (d < 0) are always projecte
 
 The SDF is a trilinear field on a grid: its zero level rounds concave creases and is off the true
 wall by up to about half a grid cell there. With the wall mesh at hand (``exact``), every projected
-vertex finishes on the mesh's exact closest point (open3d), so it lies on the wall itself.
+vertex finishes on the mesh's exact closest point (open3d), so it lies on the wall itself; on a shell
+wall, on the face of the shell the fluid touches (thickness/2 off the mesh, on the vertex's side).
 
 Projection folds the surface where it meets the wall (a strip of marching-cubes triangles standing
 on the wall is pressed flat onto it, a contact line or a crease draws vertices across each other), and
@@ -120,26 +121,43 @@ def undo_flips(before: np.ndarray, after: np.ndarray, faces: np.ndarray, halving
 
 
 class WallProjector:
-    """Closest points of the exact wall mesh and its face normals there (open3d RaycastingScene, built
-    once and queried by every pass of a frame)."""
+    """Closest points of the exact walls and their normals there (open3d RaycastingScene, built once and
+    queried by every pass of a frame). A shell wall (``shells``: per wall its thickness, 0 for a solid)
+    is the set of points within thickness/2 of its mesh: its closest point lies thickness/2 from the
+    mesh's closest point towards the query point, on the face of the shell on the query's side (the
+    fluid's), and its normal points that way."""
 
-    def __init__(self, walls: WallMesh):
+    def __init__(self, walls: WallMesh, shells: np.ndarray | None = None):
         import open3d as o3d
 
         self._o3d = o3d
         self.scene = o3d.t.geometry.RaycastingScene()
         self.scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(walls.vertices, np.float32)),
                                  o3d.core.Tensor(np.ascontiguousarray(walls.faces, np.uint32)))
+        half = 0.5 * np.asarray(walls.shell_thickness() if shells is None else shells, np.float64)
+        self.offset = half[walls.wall_id] if len(half) and half.any() else None  # per face
 
     def __call__(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         q = self._o3d.core.Tensor(np.ascontiguousarray(points, np.float32))
         r = self.scene.compute_closest_points(q)
-        return r["points"].numpy().astype(np.float64), r["primitive_normals"].numpy().astype(np.float64)
+        near = r["points"].numpy().astype(np.float64)
+        normals = r["primitive_normals"].numpy().astype(np.float64)
+        if self.offset is not None:
+            off = self.offset[r["primitive_ids"].numpy().astype(np.int64)]
+            idx = np.flatnonzero(off > 0)
+            away = np.asarray(points, np.float64)[idx] - near[idx]
+            length = np.linalg.norm(away, axis=1)
+            side = np.where(np.einsum("ij,ij->i", away, normals[idx]) < 0, -1.0, 1.0)
+            tiny = length < 1e-9 * (1.0 + np.abs(near[idx]).max(initial=0.0))  # on the mesh: the face's own side
+            direction = np.where(tiny[:, None], side[:, None] * normals[idx], away / np.where(tiny, 1.0, length)[:, None])
+            near[idx] += off[idx, None] * direction
+            normals[idx] = direction
+        return near, normals
 
 
-def closest_points_on(walls: WallMesh, points: np.ndarray) -> np.ndarray:
-    """The exact closest points of ``walls``' triangles to ``points`` (open3d RaycastingScene)."""
-    return WallProjector(walls)(points)[0]
+def closest_points_on(walls: WallMesh, points: np.ndarray, shells: np.ndarray | None = None) -> np.ndarray:
+    """The exact closest points of ``walls`` to ``points`` (open3d RaycastingScene; a shell's face)."""
+    return WallProjector(walls, shells)(points)[0]
 
 
 @nb.njit(cache=True)
@@ -336,7 +354,7 @@ def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapPa
     alive = np.ones(len(f), np.bool_)
     merged: list[tuple[int, int]] = []
     if params.exact and walls is not None and len(walls.faces) and moved.any():
-        project = WallProjector(walls)
+        project = WallProjector(walls, sdf.shell_thickness)  # shells as baked
         near, _ = project(out[moved])
         # only where the SDF step landed on this wall (not on a far one through a thin gap)
         ok = np.linalg.norm(near - out[moved], axis=1) < 1.5 * sdf.spacing
@@ -387,7 +405,7 @@ def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapPa
 class DistanceSnap(Stage):
     kind = "wall_snap"
     name = "distance"
-    version = "6"
+    version = "7"
     Params = DistanceSnapParams
     inputs = ("raw_surface", "sdf", "particles")  # particles: for l0 (band and tolerance are in l0)
     optional_inputs = ("walls",)
