@@ -2,13 +2,13 @@
 from __future__ import annotations
 
 import numpy as np
-import trimesh
 
 from pipeline.scene import Placement
 
 
 def up_axis_matrix(src: str, dst: str) -> np.ndarray:
     """Rotation taking a ``src``-up frame to a ``dst``-up frame (right-handed, +90 deg about X for Y->Z)."""
+    import trimesh  # imported where used: a cached run or `pipeline status` need not load it (~1 s)
     if src == dst:
         return np.eye(4)
     angle = np.pi / 2 if (src, dst) == ("Y", "Z") else -np.pi / 2
@@ -19,6 +19,7 @@ def placement_matrix(vertices: np.ndarray, p: Placement) -> np.ndarray:
     """4x4 matrix (column vectors) of the placement: scale, then rotate about X, Y, Z (degrees), then
     fit into ``p.fit`` (uniform scale, centred on the box of ``vertices`` after rotation), then
     translate. All about the model's own origin."""
+    import trimesh
     m = np.eye(4)
     rx, ry, rz = np.radians(p.rotate)
     m[:3, :3] = trimesh.transformations.euler_matrix(rx, ry, rz, axes="sxyz")[:3, :3] @ np.diag(

@@ -7,7 +7,6 @@ Meshes come out with outward normals of the solid they bound; the caller orients
 from __future__ import annotations
 
 import numpy as np
-import trimesh
 
 from pipeline.scene import BuiltinWall
 
@@ -18,6 +17,7 @@ def _axes(up_axis: str) -> tuple[int, int, int]:
 
 
 def _box(lo: np.ndarray, hi: np.ndarray) -> trimesh.Trimesh:
+    import trimesh  # imported where used: a cached run or `pipeline status` need not load it (~1 s)
     return trimesh.creation.box(bounds=np.stack([lo, hi]))
 
 
@@ -39,6 +39,7 @@ def builtin_mesh(wall: BuiltinWall, up_axis: str, open_box_thickness: float) -> 
     outside that solid: in the box, above the rim and around it ("outside").
     plane: a thick slab below the floor level (solid ground), fluid above it.
     """
+    import trimesh
     a, b, u = _axes(up_axis)
     lo, hi = _bounds(wall, up_axis)
     if wall.builtin == "box_tank":
@@ -71,6 +72,7 @@ def builtin_mesh(wall: BuiltinWall, up_axis: str, open_box_thickness: float) -> 
 def _open_box(lo: np.ndarray, hi: np.ndarray, t: float, axes: tuple[int, int, int]) -> trimesh.Trimesh:
     """A closed, manifold solid: the box [lo, hi] minus its interior shrunk by ``t`` on the sides and
     the floor and open at the top. Built from quads; the winding is made outward afterwards."""
+    import trimesh
     a, b, u = axes
 
     def rect(x0, x1, y0, y1, z):

@@ -4,7 +4,6 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-import trimesh
 
 
 def clean_mesh(mesh: trimesh.Trimesh, weld_tolerance: float) -> tuple[trimesh.Trimesh, dict[str, Any]]:
@@ -14,6 +13,7 @@ def clean_mesh(mesh: trimesh.Trimesh, weld_tolerance: float) -> tuple[trimesh.Tr
     Winding is made consistent per connected piece where the piece is orientable (trimesh), and a
     closed piece is turned outward (positive volume); the caller flips containers afterwards.
     """
+    import trimesh  # imported where used: a cached run or `pipeline status` need not load it (~1 s)
     report: dict[str, Any] = {"vertices_in": int(len(mesh.vertices)), "faces_in": int(len(mesh.faces))}
     m = trimesh.Trimesh(np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64), process=False)
     n_v = len(m.vertices)

@@ -14,7 +14,6 @@ from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
-import trimesh
 from pydantic import Field
 
 from pipeline.scene import BuiltinWall, UsdWall
@@ -38,6 +37,7 @@ class ImportParams(Params):
 
 
 def _read_mesh_file(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    import trimesh  # imported where used: a cached run or `pipeline status` need not load it (~1 s)
     if not path.is_file():
         raise StageError(f"{path}: file not found")
     suffix = path.suffix.lower()
@@ -94,6 +94,7 @@ class TrimeshImport(Stage):
         return [f for w in ctx.scene["walls"] if isinstance(w, UsdWall) for f in usd_dependencies(ctx.resolve(w.usd))]
 
     def run(self, ctx: Context, inputs: Mapping[str, Artifact], params: Params) -> None:
+        import trimesh
         scene = ctx.scene["scene"]
         walls = ctx.scene["walls"]
         verts, faces, ids, info = [], [], [], []

@@ -38,7 +38,6 @@ import time
 from typing import Mapping
 
 import numpy as np
-import open3d as o3d
 from typing import Literal
 
 from pydantic import Field, field_validator
@@ -82,6 +81,7 @@ class BakeParams(Params):
 
 
 def _raycasting_scene(vertices: np.ndarray, faces: np.ndarray) -> o3d.t.geometry.RaycastingScene:
+    import open3d as o3d  # imported where used: a cached run or `pipeline status` need not load it (~1 s)
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(vertices, np.float32)),
                         o3d.core.Tensor(np.ascontiguousarray(faces, np.uint32)))
@@ -100,6 +100,7 @@ class WallField:
         self.seconds = {"distance": 0.0, "sign": 0.0}
 
     def distance(self, pts: np.ndarray) -> np.ndarray:
+        import open3d as o3d
         t0 = time.perf_counter()
         d = self.scene.compute_distance(o3d.core.Tensor(np.ascontiguousarray(pts, np.float32))).numpy()
         self.seconds["distance"] += time.perf_counter() - t0
@@ -109,6 +110,7 @@ class WallField:
         """+-1 by ray parity, majority over ``rays`` fixed random directions (never axis-aligned, so rays
         of symmetric meshes do not run through vertices). open3d's own compute_occupancy(nsamples) was
         not used: it returned the same wrong vote for any nsamples next to holes."""
+        import open3d as o3d
         t0 = time.perf_counter()
         k = rays or self.rays
         dirs = np.random.default_rng(12345).normal(size=(k, 3))
@@ -174,6 +176,7 @@ def winding_inside(tri: np.ndarray, origin: np.ndarray, h: float, shape: tuple[i
 def face_thickness(tri: np.ndarray) -> np.ndarray:
     """Thickness of a closed solid behind each triangle: the first hit of a ray from its centroid along
     its back side (the solid, by mesh_import's convention that normals face the fluid); inf if none."""
+    import open3d as o3d
     n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
     scale = np.abs(tri).max() + 1.0
