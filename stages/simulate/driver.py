@@ -43,6 +43,11 @@ class Solver(Protocol):
     left_domain: int
 
     def advance_to(self, t_end: float) -> int: ...
+    def density_ratio(self, p: np.ndarray) -> np.ndarray | None:
+        """rho / rho0 at pressure p by the solver's equation of state; None for an incompressible solver
+        (hydrostatic_start then leaves the positions as emitted)."""
+        return None
+
     def remove_escaped(self) -> int: ...
     def frame(self) -> ParticleFrame: ...
     def state(self) -> dict: ...
@@ -142,6 +147,11 @@ class SolverBase:
                 self.guard.check(self, dt, last_of_frame=self.t >= t_end)
         return n
 
+    def density_ratio(self, p: np.ndarray) -> np.ndarray | None:
+        """rho / rho0 at pressure p by the solver's equation of state; None for an incompressible solver
+        (hydrostatic_start then leaves the positions as emitted)."""
+        return None
+
     def remove_escaped(self) -> int:
         """Drop particles outside the domain (counted in ``left_domain``); non-finite ones are a
         blow-up, caught by the guard before this."""
@@ -154,6 +164,40 @@ class SolverBase:
             self._resized()
             self.left_domain += gone
         return gone
+
+
+def hydrostatic_start(solver: SolverBase) -> None:
+    """Compress the fluid at rest to its hydrostatic state (PHYSICS.md "Water at rest"): without it a
+    weakly compressible column starts at rho0 with no pressure, falls under gravity by its compression
+    and rings acoustically for seconds (water's viscosity barely damps it). Each vertical lattice column
+    of particles at rest is compressed towards its lowest particle so that the density follows
+    p = rho0 g d, d the depth below the column's top (its top particle + l0 / 2). Moving particles (jets)
+    and incompressible solvers are left as they are."""
+    g = float(np.linalg.norm(solver.gravity))
+    if g == 0.0 or len(solver.x) == 0 or solver.density_ratio(np.zeros(1)) is None:
+        return
+    up = -np.asarray(solver.gravity, float) / g
+    rest = np.flatnonzero(~np.any(solver.v != 0.0, axis=1))
+    if len(rest) == 0:
+        return
+    x = solver.x[rest]
+    height = x @ up
+    flat = x - np.outer(height, up)  # the position in the plane normal to gravity
+    key = np.round(flat / (0.25 * solver.l0)).astype(np.int64)
+    _, column = np.unique(key, axis=0, return_inverse=True)
+    column = column.ravel()
+    order = np.lexsort((height, column))
+    starts = np.flatnonzero(np.r_[True, column[order][1:] != column[order][:-1]])
+    ends = np.r_[starts[1:], len(order)]
+    new_height = height.copy()
+    for a, b in zip(starts, ends):
+        idx = order[a:b]  # one column, bottom to top
+        hz = height[idx]
+        top = hz[-1] + 0.5 * solver.l0
+        mid = 0.5 * (hz[1:] + hz[:-1])  # each gap's mid-height: the gap shrinks by its density ratio
+        shrink = 1.0 / solver.density_ratio(solver.rho0 * g * (top - mid))
+        new_height[idx[1:]] = hz[0] + np.cumsum(np.diff(hz) * shrink)
+    solver.x[rest] += np.outer(new_height - height, up)
 
 
 def ballistic_speed(setup: "Setup", effects=None) -> float:
@@ -268,6 +312,7 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
         progress.advance(start + 1)
     else:
         start = 0
+        hydrostatic_start(solver)
         f0 = to_scene_units(solver.frame(), setup.meters_per_unit)
         write_frame(ctx.out_dir, 0, f0, ckpt_dir)
         _frame_stats(stats, f0, solver)

@@ -255,6 +255,12 @@ class SPHSolver(SolverBase):
         self.steps += 1
         return dt
 
+    def density_ratio(self, p: np.ndarray) -> np.ndarray:
+        """rho / rho0 at pressure p: eq. 5 (linear) or Tait."""
+        if self.eos == K.EOS_LINEAR:
+            return 1.0 + p / (self.rho0 * self.stiffness)
+        return (1.0 + p / self.stiffness) ** (1.0 / 7.0)
+
     def _resized(self) -> None:
         self._scratch.clear()
         self._alloc()
