@@ -25,7 +25,7 @@ from stages.common.formats import ParticleFrame, ParticleMeta
 from stages.common.sdf import SDFGrid
 from stages.common.usd_points import write_points_layer
 
-from .emitters import drop_inside_walls, emit
+from .emitters import drop_inside_walls, drop_overlaps, emit
 from .kernels import count_blown
 from .output import iter_frames, latest_checkpoint, restore_frames, save_checkpoint, write_frame
 
@@ -258,6 +258,7 @@ def prepare(ctx: Context, inputs: Mapping[str, Artifact], who: str) -> Setup:
     mpu = scene.units.meters_per_unit
     up = up_vector(scene.units.up_axis)
     x, v = emit(fluid.emitters, l0, ctx.resolve)
+    x, v, _ = drop_overlaps(x, v, l0, ctx.log)
     x, v, dropped = drop_inside_walls(x, v, sdf, l0, ctx.log)
     if len(x) == 0:
         raise StageError(f"{who}: the emitters produced no particles in the fluid region "

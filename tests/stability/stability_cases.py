@@ -28,7 +28,7 @@ if str(ROOT) not in sys.path:
 
 from stages.common.sdf import SDFGrid, box_interior_sdf, grid_from_function  # noqa: E402
 from stages.simulate.driver import BlowUp, Guard, SPEED_LIMIT, hydrostatic_start  # noqa: E402
-from stages.simulate.emitters import drop_inside_walls, lattice  # noqa: E402
+from stages.simulate.emitters import drop_inside_walls, drop_overlaps, lattice  # noqa: E402
 
 G = 9.81
 RHO0 = 1000.0
@@ -83,6 +83,7 @@ def _walls(fn, lo, hi, l0) -> SDFGrid:
 
 
 def _emit(x, v, sdf, l0):
+    x, v, _ = drop_overlaps(x, v, l0, _Quiet())
     x, v, dropped = drop_inside_walls(x, v, sdf, l0, _Quiet())
     return x, v, dropped
 
