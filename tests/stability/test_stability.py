@@ -44,3 +44,17 @@ def test_case_stays_stable(case, solver):
         # at rest: the mean speed at the end (0.3 s) below 1 cm/s, the free surface where it started
         assert r.mean_speed_end < 0.01, r.speeds
         assert abs(r.surface_drift) < 0.25, r.surface_drift
+
+
+@pytest.mark.parametrize("solver", SOLVERS)
+def test_kilometre_dam_break_is_the_metre_one_scaled(solver):
+    """The dam break 10,000 x larger at the same Froude time (lengths x 1e4, times x 100): the surge
+    front, as a fraction of the tank, and the energy left within a few percent of the metre-sized run
+    (water's viscosity is negligible at both sizes; the millimetre case is not compared because at
+    2 mm it is not: Reynolds number about 300)."""
+    m = run_case("dam_break", solver)
+    km = run_case("kilometres", solver)
+    print(m.row(), m.front, km.row(), km.front)
+    assert m.blowup is None and km.blowup is None
+    assert abs(km.front - m.front) < 0.05, (m.front, km.front)  # one spacing is 0.05 of the tank
+    assert abs(km.energy_ratio - m.energy_ratio) < 0.05, (m.energy_ratio, km.energy_ratio)
