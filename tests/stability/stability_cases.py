@@ -290,11 +290,11 @@ class Result:
         status = ("BLOW-UP CAUGHT" if self.blowup else "ok")
         return (f"{self.case:<21}{self.solver:<7}{self.steps:>7}{100 * self.density_error_max:>9.2f}%"
                 f"{self.inside_walls:>7}{self.escaped:>8}{self.speed_ratio:>9.2f}{self.energy_ratio:>9.3f}"
-                f"{self.wall_seconds:>8.1f}  {status}")
+                f"{self.wall_seconds:>8.1f}{self.mean_speed_end:>9.4f}  {status}")
 
 
 HEADER = (f"{'case':<21}{'solver':<7}{'steps':>7}{'max drho':>10}{'inside':>7}{'escaped':>8}{'v/bound':>9}"
-          f"{'E end/0':>9}{'wall s':>8}")
+          f"{'E end/0':>9}{'wall s':>8}{'v mean':>9}")
 
 
 def _surface(x, up, l0) -> float:
