@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 SYSLIBS := libusb-1.0.so.0 libOSMesa.so.8 libEGL.so.1 libEGL_mesa.so.0 libgbm.so.1 libGL.so.1 libgomp.so.1
 APT_PKGS := libusb-1.0-0 libosmesa6 libegl1 libegl-mesa0 libgl1-mesa-dri libgbm1 libgl1 libgomp1
 
-.PHONY: setup demo test bench clean-cache sys-deps
+.PHONY: setup demo test bench stability clean-cache sys-deps
 
 sys-deps:
 	@missing=""; for lib in $(SYSLIBS); do ldconfig -p | grep -q "$$lib" || missing="$$missing $$lib"; done; \
@@ -35,6 +35,10 @@ test: setup
 
 bench: setup
 	$(BIN)/python benchmarks/run_all.py
+
+# the long stability suite (tests/stability/stability_cases.py), printed as a table
+stability: setup
+	$(BIN)/python tests/stability/stability_cases.py --long
 
 clean-cache:
 	rm -rf configs/.pipeline configs/out

@@ -104,7 +104,7 @@ def test_hydrostatic_pressure_against_rho_g_h():
     sdf = grid_from_function(box_interior_sdf([0, 0, 0], [W, W, 0.22]), [0, 0, 0], [W, W, 0.22], l0 / 2)
     x = lattice([0, 0, 0], [W, W, H], l0)
     s = MPSSolver(x, np.zeros_like(x), np.arange(len(x)), sdf, spacing=l0, rho0=1000.0, params=MPSParams(),
-                  gravity=(0, 0, -G), mu=1.0, v_ref=float(np.sqrt(2 * G * H)))
+                  gravity=(0, 0, -G), mu=0.001, v_ref=float(np.sqrt(2 * G * H)))  # water (issue 17: was 1 Pa s)
     s.advance_to(0.3)
     depths = (4, 8, 12, 15)  # particle layers below the surface, the whole layer (walls included)
     samples = {d: [] for d in depths}

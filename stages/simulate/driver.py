@@ -19,12 +19,14 @@ from typing import Any, Mapping, Protocol
 import numba as nb
 import numpy as np
 
+from pipeline.errors import PipelineError
 from pipeline.stage import Artifact, Context, StageError
 from stages.common.formats import ParticleFrame, ParticleMeta
 from stages.common.sdf import SDFGrid
 from stages.common.usd_points import write_points_layer
 
-from .emitters import drop_inside_walls, emit
+from .emitters import drop_inside_walls, drop_overlaps, emit
+from .kernels import count_blown
 from .output import iter_frames, latest_checkpoint, restore_frames, save_checkpoint, write_frame
 
 
@@ -41,6 +43,11 @@ class Solver(Protocol):
     left_domain: int
 
     def advance_to(self, t_end: float) -> int: ...
+    def density_ratio(self, p: np.ndarray) -> np.ndarray | None:
+        """rho / rho0 at pressure p by the solver's equation of state; None for an incompressible solver
+        (hydrostatic_start then leaves the positions as emitted)."""
+        return None
+
     def remove_escaped(self) -> int: ...
     def frame(self) -> ParticleFrame: ...
     def state(self) -> dict: ...
@@ -48,21 +55,109 @@ class Solver(Protocol):
 
 
 
+# Blow-up detection (SolverBase.advance_to): no particle of a scene can be faster than its ballistic
+# bound (driver.ballistic_speed: the emitters' top speed plus the free fall over the scene's height, plus
+# what wind and an attractor can add) unless the solver created energy or pressure concentrated it (Ritter's
+# dam-break front runs at 1.41 x sqrt(2 g H)); SPEED_LIMIT times that (25 x the largest specific energy
+# the scene can give) is a blow-up, not a splash. (At 3 x, MPS's few spurious impact particles, 3.2 x
+# in the stability suite's dam break, stopped runs that otherwise end well; real blow-ups reach 50-350 x.) A step below DT_FLOOR x l0 / v_bound
+# (a particle at the bound crossing a thousandth of the spacing) means an acceleration of about a million
+# g at the default spacing: the adaptive step is collapsing towards zero and the run would never end.
+SPEED_LIMIT = 5.0
+DT_FLOOR = 1e-3
+
+
+class BlowUp(FloatingPointError):
+    """The solver diverged; ``driver.drive`` turns it into a one-line SimulationDiverged (exit 1)."""
+
+    def __init__(self, what: str, t: float, count: int, cause: str) -> None:
+        super().__init__(f"{what} at t = {t:.5g} s ({count} particles); likely cause: {cause}")
+        self.what, self.t, self.count, self.cause = what, t, count, cause
+
+
+class SimulationDiverged(PipelineError):
+    """A run stopped by the blow-up detection: one line, exit 1 (a failed run, not a malformed file)."""
+
+    exit_code = 1
+
+
+@dataclass
+class Guard:
+    """The blow-up limits of one scene (SI): a speed and a time step floor."""
+    v_bound: float  # the ballistic speed bound, m/s
+    l0: float
+
+    @property
+    def v_limit(self) -> float:
+        return SPEED_LIMIT * self.v_bound
+
+    @property
+    def dt_floor(self) -> float:
+        return DT_FLOOR * self.l0 / self.v_bound
+
+    def check(self, solver: "SolverBase", dt: float, last_of_frame: bool) -> None:
+        if not (dt > 0.0 and math.isfinite(dt)) or (dt < self.dt_floor and not last_of_frame):
+            raise BlowUp(f"the time step fell to {dt:.3g} s, below the floor {self.dt_floor:.3g} s", solver.t,
+                         len(solver.x), self._cause(solver, dt))
+        bad, fast = count_blown(solver.x, solver.v, self.v_limit ** 2)
+        if bad:
+            raise BlowUp("non-finite positions or velocities", solver.t, bad, self._cause(solver, dt))
+        if fast:
+            vmax = float(np.sqrt(np.nanmax(np.einsum("ij,ij->i", solver.v, solver.v))))
+            raise BlowUp(f"speed {vmax:.3g} m/s above {SPEED_LIMIT:g} x the scene's ballistic bound "
+                         f"{self.v_bound:.3g} m/s", solver.t, fast, self._cause(solver, dt))
+
+    def _cause(self, solver: "SolverBase", dt: float) -> str:
+        """The likeliest parameter to change, from the last step against the scene's scales."""
+        c = float(getattr(solver, "c", 0.0) or 0.0)
+        advective = self.l0 / self.v_bound  # a particle at the bound crosses one spacing
+        if c > 0 and dt > 0.4 * self.l0 / c:
+            return (f"the time step ({dt:.3g} s) is above the acoustic limit 0.4 l0 / c = {0.4 * self.l0 / c:.3g} s "
+                    f"(speed of sound {c:.3g} m/s): lower the time step or the cfl")
+        if dt > 0.5 * advective:
+            return (f"the time step ({dt:.3g} s) lets a particle at the bound cross {dt / advective:.2g} spacings: "
+                    "lower the time step or the cfl")
+        mu = float(getattr(solver, "mu", 0.0) or 0.0)
+        nu = mu / solver.rho0 if mu else 0.0
+        if nu and 0.125 * solver.h ** 2 / nu < 10 * self.dt_floor:
+            return (f"the viscosity ({mu:.3g} Pa s) needs steps of {0.125 * solver.h ** 2 / nu:.3g} s at spacing "
+                    f"{self.l0:.3g} m: lower it or coarsen the spacing")
+        what = f"the stiffness (speed of sound {c:.3g} m/s)" if c > 0 else "the pressure solve"
+        return (f"{what} or the spacing ({self.l0:.3g} m) against the walls: particles pushed into each other or "
+                "into a wall faster than the step can follow; try a smaller cfl, a finer spacing or a finer wall "
+                "(SDF) resolution")
+
+
 class SolverBase:
     """The stepping every solver shares. A solver sets ``x``, ``v``, ``id``, ``t``, ``domain`` and
     ``left_domain``, defines ``step(t_end)`` and ``_resized()`` (rebuild its per-particle buffers), and
-    names in ``carried`` its per-particle arrays besides x, v and id that live across steps."""
+    names in ``carried`` its per-particle arrays besides x, v and id that live across steps. With a
+    ``guard`` (set by ``drive``), every step is checked for a blow-up (BlowUp)."""
     carried: tuple[str, ...] = ()
+    guard: Guard | None = None
 
     def advance_to(self, t_end: float) -> int:
         n = 0
         while self.t < t_end:
-            self.step(t_end)
+            try:
+                dt = self.step(t_end)
+            except BlowUp:
+                raise
+            except FloatingPointError as e:  # a solver's own divergence check (dfsph: dt not finite)
+                raise BlowUp(str(e), self.t, len(self.x), "the time step or the stiffness") from e
             n += 1
+            if self.guard is not None:
+                self.guard.check(self, dt, last_of_frame=self.t >= t_end)
         return n
 
+    def density_ratio(self, p: np.ndarray) -> np.ndarray | None:
+        """rho / rho0 at pressure p by the solver's equation of state; None for an incompressible solver
+        (hydrostatic_start then leaves the positions as emitted)."""
+        return None
+
     def remove_escaped(self) -> int:
-        """Drop particles outside the domain (counted in ``left_domain``)."""
+        """Drop particles outside the domain (counted in ``left_domain``); non-finite ones are a
+        blow-up, caught by the guard before this."""
         lo, hi = self.domain
         keep = np.all((self.x >= lo) & (self.x <= hi) & np.isfinite(self.x), axis=1)
         gone = int(len(keep) - keep.sum())
@@ -72,6 +167,60 @@ class SolverBase:
             self._resized()
             self.left_domain += gone
         return gone
+
+
+def hydrostatic_start(solver: SolverBase) -> None:
+    """Compress the fluid at rest to its hydrostatic state (PHYSICS.md "Water at rest"): without it a
+    weakly compressible column starts at rho0 with no pressure, falls under gravity by its compression
+    and rings acoustically for seconds (water's viscosity barely damps it). Each vertical lattice column
+    of particles at rest is compressed towards its lowest particle so that the density follows
+    p = rho0 g d, d the depth below the column's top (its top particle + l0 / 2). Moving particles (jets)
+    and incompressible solvers are left as they are."""
+    g = float(np.linalg.norm(solver.gravity))
+    if g == 0.0 or len(solver.x) == 0 or solver.density_ratio(np.zeros(1)) is None:
+        return
+    up = -np.asarray(solver.gravity, float) / g
+    rest = np.flatnonzero(~np.any(solver.v != 0.0, axis=1))
+    if len(rest) == 0:
+        return
+    x = solver.x[rest]
+    height = x @ up
+    flat = x - np.outer(height, up)  # the position in the plane normal to gravity
+    key = np.round(flat / (0.25 * solver.l0)).astype(np.int64)
+    _, column = np.unique(key, axis=0, return_inverse=True)
+    column = column.ravel()
+    order = np.lexsort((height, column))
+    starts = np.flatnonzero(np.r_[True, column[order][1:] != column[order][:-1]])
+    ends = np.r_[starts[1:], len(order)]
+    new_height = height.copy()
+    for a, b in zip(starts, ends):
+        idx = order[a:b]  # one column, bottom to top
+        hz = height[idx]
+        top = hz[-1] + 0.5 * solver.l0
+        mid = 0.5 * (hz[1:] + hz[:-1])  # each gap's mid-height: the gap shrinks by its density ratio
+        shrink = 1.0 / solver.density_ratio(solver.rho0 * g * (top - mid))
+        new_height[idx[1:]] = hz[0] + np.cumsum(np.diff(hz) * shrink)
+    solver.x[rest] += np.outer(new_height - height, up)
+
+
+def ballistic_speed(setup: "Setup", effects=None) -> float:
+    """The fastest a particle of the scene can move without the solver creating energy (m/s): the
+    emitters' top speed, plus the free fall from the top of the fluid to the bottom of the domain (the
+    walls' box without one), plus the wind's speed and an attractor's escape speed sqrt(2 k / s)."""
+    v0 = float(np.linalg.norm(setup.v, axis=1).max()) if len(setup.v) else 0.0
+    g = float(np.linalg.norm(setup.gravity))
+    lo = setup.domain[0] if setup.domain is not None else setup.sdf.origin
+    hi = setup.domain[1] if setup.domain is not None else setup.sdf.upper
+    corners = np.array([[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1]) for c in (lo[2], hi[2])])
+    height = max(float((setup.x @ setup.up).max() - (corners @ setup.up).min()), setup.spacing)
+    bound = v0 + math.sqrt(2.0 * g * height)
+    if effects is not None:
+        if getattr(effects, "wind_velocity", None) is not None:
+            bound += float(np.linalg.norm(effects.wind_velocity))
+        if getattr(effects, "attractor_point", None) is not None:
+            bound += math.sqrt(2.0 * abs(effects.attractor_k) / effects.attractor_soft)
+    return max(bound, math.sqrt(9.81 * setup.spacing))  # a scene without gravity or motion: never zero
+
 
 @dataclass
 class Setup:
@@ -112,6 +261,7 @@ def prepare(ctx: Context, inputs: Mapping[str, Artifact], who: str) -> Setup:
     mpu = scene.units.meters_per_unit
     up = up_vector(scene.units.up_axis)
     x, v = emit(fluid.emitters, l0, ctx.resolve, mpu)
+    x, v, _ = drop_overlaps(x, v, l0, ctx.log)
     x, v, dropped = drop_inside_walls(x, v, sdf, l0, ctx.log)
     if len(x) == 0:
         raise StageError(f"{who}: the emitters produced no particles in the fluid region "
@@ -170,13 +320,18 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
         progress.advance(start + 1)
     else:
         start = 0
+        hydrostatic_start(solver)
         f0 = to_scene_units(solver.frame(), setup.meters_per_unit)
         write_frame(ctx.out_dir, 0, f0, ckpt_dir)
         _frame_stats(stats, f0, solver)
         progress.advance()
+    solver.guard = Guard(v_bound=ballistic_speed(setup, getattr(solver, "effects", None)), l0=setup.spacing)
     t0 = time.perf_counter()
     for f in range(start + 1, count):
-        solver.advance_to(f / fps)
+        try:
+            solver.advance_to(f / fps)
+        except BlowUp as e:
+            raise SimulationDiverged(_blow_up_line(e, f, solver, solver_name, ckpt_dir)) from e
         gone = solver.remove_escaped()
         if gone:
             ctx.log.warning("frame %d: %d particles left the domain and were removed", f, gone)
@@ -210,6 +365,18 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
     write_points_layer(ctx.out_dir / "particles.usdc", iter_frames(ctx.out_dir, count), spacing=setup.spacing / mpu,
                        up_axis=scene.units.up_axis, meters_per_unit=setup.meters_per_unit, fps=fps, count=count)
     return stats
+
+
+def _blow_up_line(e: BlowUp, frame: int, solver: Solver, solver_name: str, ckpt_dir: Path | None) -> str:
+    """The one-line report of a blow-up; the solver's state is saved beside the checkpoints (a name
+    the resume never picks up) for inspection."""
+    where = "no checkpoint folder to save the state in"
+    if ckpt_dir is not None:
+        ckpt_dir.mkdir(parents=True, exist_ok=True)
+        path = ckpt_dir / f"blowup_{frame:05d}.npz"
+        np.savez(path, **solver.state())
+        where = f"state saved in {path}"
+    return f"the {solver_name} run blew up during frame {frame}: {e} ({where})"
 
 
 def _frame_stats(stats: dict, fr: ParticleFrame, solver: Solver) -> None:

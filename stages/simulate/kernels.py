@@ -100,3 +100,23 @@ def wall_gradient_tables(l0: float, h: float, mass: float, rho0: float, grad_nor
     t_nn[-1] = 0.0
     t_tt[-1] = 0.0
     return t_nn, t_tt
+
+
+# The fastmath flags of the hot kernels: reassociation, contraction and fast reciprocals, but not
+# 'nnan'/'ninf' (full fastmath), which let LLVM assume no NaN or Inf and fold away the checks that
+# catch a blow-up (driver.SolverBase.advance_to).
+FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}  # a set: numba rejects a frozenset
+
+
+@nb.njit(cache=True, parallel=True)
+def count_blown(x, v, v_limit2):
+    """(particles with a non-finite position or velocity, particles faster than sqrt(v_limit2))."""
+    bad = 0
+    fast = 0
+    for i in nb.prange(x.shape[0]):
+        s = x[i, 0] + x[i, 1] + x[i, 2] + v[i, 0] + v[i, 1] + v[i, 2]
+        if not math.isfinite(s):
+            bad += 1
+        elif v[i, 0] * v[i, 0] + v[i, 1] * v[i, 1] + v[i, 2] * v[i, 2] > v_limit2:
+            fast += 1
+    return bad, fast

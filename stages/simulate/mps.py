@@ -70,6 +70,8 @@ class MPSParams(Params):
     collision_distance: float = Field(0.5, ge=0, le=1.0, description="pairs closer than this (in l0) collide")
     restitution: float = Field(0.2, ge=0, le=1.0, description="restitution of the close-pair collision")
     cfl: float = Field(0.2, gt=0, le=0.3, description="dt <= cfl l0 / max(v_max, v_ref)")
+    time_step: float | None = Field(None, gt=0, description="a fixed time step, s, instead of the adaptive one "
+                                    "(stability studies: a step above the stable one stops the run with a blow-up error)")
     r_rep: float = Field(0.5, gt=0, le=1.0, description="eq. 16 wall projection distance, in units of l0")
     cg_tolerance: float = Field(1e-6, gt=0, lt=1, description="CG stops at |r| <= tol |b|")
     cg_max_iterations: int = Field(2000, ge=1, description="CG iteration cap per step")
@@ -208,7 +210,7 @@ class MPSSolver(SolverBase):
     def step(self, t_end: float) -> float:
         """One step towards t_end (never past it); returns dt."""
         self.sort_and_neighbours()
-        dt = step_to(self.t, t_end, self.stable_dt(t_end - self.t))
+        dt = step_to(self.t, t_end, self.p.time_step or self.stable_dt(t_end - self.t))
         if self.mu is not None:
             self._walls(self.x)
             K.predict_viscosity(self.x, self.v, self.offsets, self.nbr, self.re_l, self.lap_coef, self.mu / self.rho0,

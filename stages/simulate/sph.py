@@ -30,6 +30,8 @@ class SPHParams(Params):
     sound_speed: float | None = Field(None, gt=0, description="numerical speed of sound c, m/s; default 10 x the expected "
                                       "top speed (sqrt(2 g H) of the fluid column, or the emitters' speed)")
     cfl: float = Field(0.4, gt=0, le=1.0, description="advective limit dt <= cfl l0 / v_max")
+    time_step: float | None = Field(None, gt=0, description="a fixed time step, s, instead of the adaptive one "
+                                    "(stability studies: a step above the stable one stops the run with a blow-up error)")
     r_rep: float = Field(0.5, gt=0, le=1.0, description="eq. 16 wall repulsion distance, in units of l0")
     clamp_pressure: bool = Field(True, description="clamp negative pressure to 0 (avoids free-surface clumping)")
     checkpoint_every: int = Field(10, ge=1, description="write a checkpoint every this many frames")
@@ -247,12 +249,18 @@ class SPHSolver(SolverBase):
         """One step towards t_end (never past it); returns dt."""
         self.sort_and_density()
         self.forces()
-        dt = step_to(self.t, t_end, self.stable_dt(t_end - self.t))
+        dt = step_to(self.t, t_end, self.p.time_step or self.stable_dt(t_end - self.t))
         K.integrate(self.x, self.v, self.acc, dt, self.sdf.dist, self.sdf.origin, self.sdf_inv,
                     self.p.r_rep * self.l0, 0.5 * self.l0, self.travel, self.d)
         self.t = t_end if dt >= t_end - self.t else self.t + dt
         self.steps += 1
         return dt
+
+    def density_ratio(self, p: np.ndarray) -> np.ndarray:
+        """rho / rho0 at pressure p: eq. 5 (linear) or Tait."""
+        if self.eos == K.EOS_LINEAR:
+            return 1.0 + p / (self.rho0 * self.stiffness)
+        return (1.0 + p / self.stiffness) ** (1.0 / 7.0)
 
     def _resized(self) -> None:
         self._scratch.clear()

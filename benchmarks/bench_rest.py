@@ -1,0 +1,161 @@
+"""Water at rest (issue 17): a 0.3 x 0.2 m tank filled 0.25 m deep at 1.25 cm spacing, gravity and
+water's viscosity (mu = 0.001 Pa s) only; mean and 99th percentile speed at 0.5, 1, 1.5 and 3 s for
+WCSPH (sph), DFSPH and MPS, each from the scene's start as the pipeline makes it, and SPlisHSPlasH's
+DFSPH on the same tank (its own lattice start, volume maps, CFL steps) when pysplishsplash imports:
+
+    .venv/bin/python benchmarks/bench_rest.py [--solvers sph,dfsph,mps,splishsplash] [--until 3]
+                                              [--set sph.wall_gradient=false ...]
+
+Also the hydrostatic pressure error at the end (pressure of the particles 2-8 layers deep, at least
+2 l0 from the side walls, against rho g h of their depth below the mean free surface). Each solver runs in
+its own subprocess (2 threads). Writes benchmarks/results/rest.json."""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+G, RHO0, MU = 9.81, 1000.0, 0.001
+SIZE = (0.3, 0.2)
+DEPTH = 0.25
+L0 = 0.0125
+TANK_H = 0.35
+TIMES = (0.5, 1.0, 1.5, 3.0)
+GL_PRELOAD = "/lib/x86_64-linux-gnu/libGLdispatch.so.0"
+
+
+def tank():
+    from stages.common.sdf import box_interior_sdf, grid_from_function
+    from stages.simulate.emitters import lattice
+    lo, hi = np.array([0.0, 0.0, 0.0]), np.array([SIZE[0], SIZE[1], TANK_H])
+    sdf = grid_from_function(box_interior_sdf(lo, hi), lo, hi, 0.5 * L0)
+    x = lattice([0, 0, 0], [SIZE[0], SIZE[1], DEPTH], L0)
+    return x, sdf
+
+
+def make(solver: str, sets: dict, hydrostatic: bool = True):
+    """The solver on the tank, started as the pipeline starts it (driver.initial_state)."""
+    from stages.simulate.driver import hydrostatic_start
+    x, sdf = tank()
+    v = np.zeros_like(x)
+    g = np.array([0.0, 0.0, -G])
+    vref = math.sqrt(2 * G * DEPTH)
+    ids = np.arange(len(x))
+    if solver == "sph":
+        from stages.simulate.sph import SPHParams, SPHSolver
+        s = SPHSolver(x, v, ids, sdf, spacing=L0, rho0=RHO0, params=SPHParams(**sets), gravity=g, mu=MU, v_ref=vref)
+    elif solver == "dfsph":
+        from stages.simulate.dfsph import DFSPHParams, DFSPHSolver
+        from stages.simulate.effects import EffectConstants
+        s = DFSPHSolver(x, v, ids, sdf, spacing=L0, rho0=RHO0, params=DFSPHParams(**sets), gravity=g,
+                        effects=EffectConstants(mu=MU, wall_viscosity=True))
+    else:
+        from stages.simulate.mps import MPSParams, MPSSolver
+        s = MPSSolver(x, v, ids, sdf, spacing=L0, rho0=RHO0, params=MPSParams(**sets), gravity=g, mu=MU, v_ref=vref)
+    if hydrostatic:
+        hydrostatic_start(s)
+    return s
+
+
+def run_one(solver: str, until: float, sets: dict) -> dict:
+    import numba as nb
+    nb.set_num_threads(min(2, nb.config.NUMBA_NUM_THREADS))
+    s = make(solver, sets, hydrostatic=os.environ.get("REST_LATTICE_START") != "1")
+    rows = []
+    t0 = time.perf_counter()
+    for t in [t for t in TIMES if t <= until + 1e-9]:
+        s.advance_to(t)
+        f = s.frame()
+        sp = np.linalg.norm(f.v, axis=1)
+        rows.append({"t": t, "mean": float(sp.mean()), "p99": float(np.percentile(sp, 99)), "max": float(sp.max()),
+                     "steps": s.steps})
+    f = s.frame()
+    return {"solver": solver, "particles": len(f.x), "rows": rows, "hydrostatic_error": hydrostatic_error(f),
+            "surface_drop_mm": 1e3 * (DEPTH - surface(f.x)), "wall_seconds": time.perf_counter() - t0, "set": sets}
+
+
+def surface(x) -> float:
+    """The free surface: the mean height of the top layer (particles within l0 of the highest) + l0 / 2."""
+    z = x[:, 2]
+    return float(z[z > z.max() - 0.5 * L0].mean() + 0.5 * L0)
+
+
+def hydrostatic_error(f) -> float:
+    z = f.x[:, 2]
+    top = surface(f.x)
+    depth = top - z
+    sel = (depth > 2 * L0) & (depth < 8 * L0)
+    sel &= np.minimum(np.minimum(f.x[:, 0], SIZE[0] - f.x[:, 0]), np.minimum(f.x[:, 1], SIZE[1] - f.x[:, 1])) > 2 * L0
+    return float(f.p[sel].mean() / (RHO0 * G * depth[sel]).mean() - 1.0)
+
+
+def run_splishsplash(until: float) -> dict:
+    """SPlisHSPlasH DFSPH on the same tank, headless (PEERS.md), in its own process."""
+    try:
+        import importlib.util
+        if importlib.util.find_spec("pysplishsplash") is None:
+            return {"skipped": "pysplishsplash is not installed (pip install pysplishsplash)"}
+    except ImportError:
+        return {"skipped": "pysplishsplash is not installed"}
+    script = ROOT / "benchmarks" / "splishsplash_rest.py"
+    env = dict(os.environ, LD_PRELOAD=GL_PRELOAD, STOP_AT=str(until), OMP_NUM_THREADS="2")
+    r = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=env, timeout=3600)
+    if r.returncode != 0:
+        return {"skipped": f"pysplishsplash failed: {r.stderr.strip().splitlines()[-1:]}"}
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--solvers", default="sph,dfsph,mps,splishsplash")
+    ap.add_argument("--until", type=float, default=3.0)
+    ap.add_argument("--set", action="append", default=[], help="SOLVER.PARAM=VALUE")
+    ap.add_argument("--one", help=argparse.SUPPRESS)
+    ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "rest.json"))
+    a = ap.parse_args()
+    sets: dict = {}
+    for kv in a.set:
+        k, v = kv.split("=", 1)
+        solver, param = k.split(".", 1)
+        sets.setdefault(solver, {})[param] = json.loads(v)
+    if a.one:
+        print(json.dumps(run_one(a.one, a.until, sets.get(a.one, {}))))
+        return
+    results = []
+    for solver in a.solvers.split(","):
+        if solver == "splishsplash":
+            res = {"solver": "SPlisHSPlasH DFSPH", **run_splishsplash(a.until)}
+        else:
+            cmd = [sys.executable, __file__, "--one", solver, "--until", str(a.until)] + sum((["--set", s] for s in a.set), [])
+            r = subprocess.run(cmd, capture_output=True, text=True, env=dict(os.environ, PYTHONPATH=str(ROOT)))
+            if r.returncode != 0:
+                res = {"solver": solver, "failed": (r.stderr.strip().splitlines() or ["?"])[-1]}
+            else:
+                res = json.loads(r.stdout.strip().splitlines()[-1])
+        results.append(res)
+        print(table_row(res), flush=True)
+    Path(a.out).write_text(json.dumps(results, indent=1) + "\n")
+
+
+def table_row(res: dict) -> str:
+    if "rows" not in res:
+        return f"{res['solver']:<20} {res.get('skipped') or res.get('failed')}"
+    cells = "  ".join(f"{r['t']:.1f}s {r['mean']:.4f}/{r['p99']:.4f}" for r in res["rows"])
+    extra = ""
+    if "hydrostatic_error" in res:
+        extra = f"  p err {100 * res['hydrostatic_error']:+.1f}%  surface drop {res['surface_drop_mm']:.2f} mm"
+    return f"{res['solver']:<20} mean/p99 m/s: {cells}{extra}"
+
+
+if __name__ == "__main__":
+    main()
