@@ -222,6 +222,7 @@ def test_bulk_particles_skipping_the_sdf_changes_nothing():
     """integrate keeps a lower bound of each particle's wall distance, so particles far from the walls
     skip the SDF samples (eq. 16 test, density wall term): the run is bitwise the run that samples
     every particle every step, here a breaking dam whose particles hit the walls."""
+    from stages.common.sdf import wall_move_limit
     from stages.simulate import sph as S
     from stages.simulate.timestep import step_to
 
@@ -232,7 +233,8 @@ def test_bulk_particles_skipping_the_sdf_changes_nothing():
             self.forces()
             dt = step_to(self.t, t_end, self.stable_dt(t_end - self.t))
             K.integrate(self.x, self.v, self.acc, dt, self.sdf.dist, self.sdf.origin, self.sdf_inv,
-                        self.p.r_rep * self.l0, 0.5 * self.l0, self.travel)  # no bound: every particle tested
+                        self.p.r_rep * self.l0, 0.5 * self.l0, wall_move_limit(self.p.r_rep) * self.l0,
+                        self.travel)  # no bound: every particle tested
             self.t = t_end if dt >= t_end - self.t else self.t + dt
             self.steps += 1
             return dt

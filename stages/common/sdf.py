@@ -28,6 +28,14 @@ SHELL_R_REP = 0.5  # the eq. 16 repulsion distance of the solvers, in l0
 DEFAULT_SHELL_THICKNESS = 0.6  # in l0: above min_shell_thickness at the default cell 0.5
 
 
+def wall_move_limit(r_rep: float) -> float:
+    """The longest move (in l0) between two eq. 16 push-outs to ``r_rep`` l0 that the walls sdf_bake
+    thickens to by default (min_shell_thickness) hold against: the bound above solved for the step.
+    A solver with a small r_rep (DFSPH's 0.2 l0) or long steps (CFL near 1) sub-steps its moves near
+    walls to it; for WCSPH (r_rep 0.5 l0) it is SHELL_STEP, never less than its own steps."""
+    return r_rep + SHELL_STEP - SHELL_R_REP
+
+
 def min_shell_thickness(cell: float, step: float = SHELL_STEP, r_rep: float = SHELL_R_REP) -> float:
     """The thinnest wall (in l0) that a particle cannot cross on a grid of ``cell`` l0, moving at most
     ``step`` l0 per time step and pushed out to ``r_rep`` l0 (see above); 0 if any wall is safe."""

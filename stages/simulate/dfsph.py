@@ -56,7 +56,7 @@ from pydantic import Field
 
 from pipeline.stage import Artifact, Context, Params, Stage
 from stages.common.formats import ParticleFrame
-from stages.common.sdf import SDFGrid
+from stages.common.sdf import SDFGrid, wall_move_limit
 from stages.common.sizes import simulate_estimate
 
 from . import dfsph_kernels as D
@@ -261,7 +261,7 @@ class DFSPHSolver(SolverBase):
         self.solve_error[0] += err
         # x += dt v*, then the eq. 16 clamp along the SDF normal as a safety net (acceleration already in v)
         K.integrate(self.x, self.v, self.zero_acc, dt, self.sdf.dist, self.sdf.origin, self.sdf_inv,
-                    self.p.r_rep * self.l0, 0.5 * self.l0)
+                    self.p.r_rep * self.l0, 0.5 * self.l0, wall_move_limit(self.p.r_rep) * self.l0)
         self.refresh()
         if self.p.divergence_solve:
             it, err = self._solve(dt, divergence=True)

@@ -12,7 +12,7 @@ from pydantic import Field
 
 from pipeline.stage import Artifact, Context, Params, Stage
 from stages.common.formats import ParticleFrame
-from stages.common.sdf import SDFGrid
+from stages.common.sdf import SDFGrid, wall_move_limit
 from stages.common.sizes import simulate_estimate
 
 from . import sph_kernels as K
@@ -251,7 +251,7 @@ class SPHSolver(SolverBase):
         self.forces()
         dt = step_to(self.t, t_end, self.p.time_step or self.stable_dt(t_end - self.t))
         K.integrate(self.x, self.v, self.acc, dt, self.sdf.dist, self.sdf.origin, self.sdf_inv,
-                    self.p.r_rep * self.l0, 0.5 * self.l0, self.travel, self.d)
+                    self.p.r_rep * self.l0, 0.5 * self.l0, wall_move_limit(self.p.r_rep) * self.l0, self.travel, self.d)
         self.t = t_end if dt >= t_end - self.t else self.t + dt
         self.steps += 1
         return dt

@@ -779,11 +779,35 @@ def push_out_of_walls(px, py, pz, vx, vy, vz, sdf, sdf_o, sdf_inv, r_rep, max_co
     return px, py, pz, vx, vy, vz
 
 
+@nb.njit(cache=True, inline="always")
+def move_near_walls(x0, y0, z0, vx, vy, vz, dt, sdf, sdf_o, sdf_inv, r_rep, max_corr, max_move):
+    """x += dt v for a particle near a wall, in sub-steps no longer than ``max_move``, each followed by
+    the eq. 16 push-out: a thin wall or shell on the trilinear SDF grid holds only against moves that
+    short between two push-outs (stages.common.sdf.wall_move_limit). A particle moving less than
+    ``max_move`` takes the single step it always took (bitwise). Returns the new (x, v)."""
+    n = 1
+    step = dt * math.sqrt(vx * vx + vy * vy + vz * vz)
+    if step > max_move:
+        n = int(math.ceil(step / max_move))
+    h = dt / n
+    px = x0
+    py = y0
+    pz = z0
+    for _ in range(n):
+        px += h * vx
+        py += h * vy
+        pz += h * vz
+        px, py, pz, vx, vy, vz = push_out_of_walls(px, py, pz, vx, vy, vz, sdf, sdf_o, sdf_inv, r_rep, max_corr)
+    return px, py, pz, vx, vy, vz
+
+
 @nb.njit(cache=True, parallel=True)
-def integrate(x, v, acc, dt, sdf, sdf_o, sdf_inv, r_rep, max_corr, travel=None, d=None):
+def integrate(x, v, acc, dt, sdf, sdf_o, sdf_inv, r_rep, max_corr, max_move, travel=None, d=None):
     """Symplectic Euler (v += dt a; x += dt v), then the wall pressure of eq. 16 as a position
     correction along the SDF normal for r_iw < r_rep, capped at ``max_corr`` per step, and removal of
-    the velocity component into the wall. ``travel`` (N,), optional: each particle's path length is
+    the velocity component into the wall; near walls the move is split into sub-steps of at most
+    ``max_move``, each pushed out (``move_near_walls``), so fast particles do not tunnel through thin
+    walls and shells. ``travel`` (N,), optional: each particle's path length is
     added to it (how far it can have moved since the Verlet list was built). ``d`` (N,), optional: a
     lower bound of each particle's wall distance before the move; where it stays above r_rep after
     the move, the SDF is not sampled (the eq. 16 test would find nothing: the trilinear SDF changes by
@@ -794,19 +818,17 @@ def integrate(x, v, acc, dt, sdf, sdf_o, sdf_inv, r_rep, max_corr, travel=None, 
         vx = v[i, 0] + dt * acc[i, 0]
         vy = v[i, 1] + dt * acc[i, 1]
         vz = v[i, 2] + dt * acc[i, 2]
-        px = x[i, 0] + dt * vx
-        py = x[i, 1] + dt * vy
-        pz = x[i, 2] + dt * vz
-        if d is not None:
-            step = dt * math.sqrt(vx * vx + vy * vy + vz * vz)
-            if d[i] - 2.0 * step >= r_rep:
-                d[i] -= 2.0 * step
-            else:
-                d[i] = -1.0
-                px, py, pz, vx, vy, vz = push_out_of_walls(px, py, pz, vx, vy, vz, sdf, sdf_o, sdf_inv, r_rep,
-                                                           max_corr)
+        step = dt * math.sqrt(vx * vx + vy * vy + vz * vz)
+        if d is not None and d[i] - 2.0 * step >= r_rep:
+            d[i] -= 2.0 * step
+            px = x[i, 0] + dt * vx
+            py = x[i, 1] + dt * vy
+            pz = x[i, 2] + dt * vz
         else:
-            px, py, pz, vx, vy, vz = push_out_of_walls(px, py, pz, vx, vy, vz, sdf, sdf_o, sdf_inv, r_rep, max_corr)
+            if d is not None:
+                d[i] = -1.0
+            px, py, pz, vx, vy, vz = move_near_walls(x[i, 0], x[i, 1], x[i, 2], vx, vy, vz, dt, sdf, sdf_o, sdf_inv,
+                                                     r_rep, max_corr, max_move)
         if travel is not None:
             ex = px - x[i, 0]
             ey = py - x[i, 1]
