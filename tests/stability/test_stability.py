@@ -23,8 +23,28 @@ def _one_thread():
     nb.set_num_threads(before)
 
 
-@pytest.mark.parametrize("solver", SOLVERS)
-@pytest.mark.parametrize("case", list(CASES))
+# Open defects the suite found (issue 17), kept visible: strict, so a fix turns them into errors to remove.
+KNOWN = {
+    ("rest", "sph"): "not at rest with water's viscosity: the wall density maps do not follow the hydrostatic compression",
+    ("rest", "dfsph"): "not at rest with water's viscosity: the floor layer's pressure and the wall term (dfsph.py)",
+    ("rest", "mps"): "not yet below 1 cm/s at 0.3 s with water's viscosity (decaying: 0.021 m/s mean at 1.5 s)",
+    ("dam_break", "mps"): "single spurious impact particles at 2.9 x the ballistic bound",
+    ("thin_plate", "mps"): "blows up (168 m/s) at a 0.2 l0 plate not thickened by sdf_bake",
+    ("wedge_20deg", "mps"): "blows up (707 m/s) in the 20 degree wedge",
+    ("wedge_20deg", "dfsph"): "6 particles end inside the wall in the 20 degree wedge (push-out to 0.2 l0)",
+    ("kilometres", "dfsph"): "blows up in its first step at kilometre scale",
+}
+
+
+def _cases():
+    for case in CASES:
+        for solver in SOLVERS:
+            why = KNOWN.get((case, solver))
+            yield pytest.param(case, solver, id=f"{case}-{solver}",
+                               marks=[pytest.mark.xfail(strict=True, reason=f"issue 17: {why}")] if why else [])
+
+
+@pytest.mark.parametrize("case, solver", list(_cases()))
 def test_case_stays_stable(case, solver):
     r = run_case(case, solver)
     print(r.row())
@@ -46,7 +66,12 @@ def test_case_stays_stable(case, solver):
         assert abs(r.surface_drift) < 0.25, r.surface_drift
 
 
-@pytest.mark.parametrize("solver", SOLVERS)
+@pytest.mark.parametrize("solver", [
+    "sph",
+    pytest.param("dfsph", marks=pytest.mark.xfail(strict=True, reason="issue 17: dfsph blows up at kilometre scale")),
+    pytest.param("mps", marks=pytest.mark.xfail(strict=True, reason="issue 17: mps keeps 0.77 of the energy at km, "
+                                                                     "0.96 at m, the fronts agree")),
+])
 def test_kilometre_dam_break_is_the_metre_one_scaled(solver):
     """The dam break 10,000 x larger at the same Froude time (lengths x 1e4, times x 100): the surge
     front, as a fraction of the tank, and the energy left within a few percent of the metre-sized run
