@@ -21,3 +21,28 @@ for r in range(len(rings) - 1):
 lines = ["# open hemispherical bowl, radius 1, rim 0.12 wide (configs/assets/make_open_bowl.py)"]
 lines += [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in v] + [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces]
 Path(__file__).with_name("open_bowl.obj").write_text("\n".join(lines) + "\n")
+
+# The same bowl as a studio would hand it over (configs/open_bowl.yaml): a USD set in centimetres,
+# Y up, quads around the rings, under two transformed ancestors (25 cm radius, its bottom 3 cm up).
+from pxr import Gf, Sdf, Usd, UsdGeom  # noqa: E402
+
+stage = Usd.Stage.CreateNew(str(Path(__file__).with_name("open_bowl_set.usda")))
+UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+world = UsdGeom.Xform.Define(stage, "/World")
+world.AddTranslateOp().Set(Gf.Vec3d(0, 3, 0))
+props = UsdGeom.Xform.Define(stage, "/World/Props")
+props.AddScaleOp().Set(Gf.Vec3f(25, 25, 25))
+mesh = UsdGeom.Mesh.Define(stage, "/World/Props/Bowl")
+mesh.CreatePointsAttr([Gf.Vec3f(float(x), float(z), float(-y)) for x, y, z in v])  # Z up -> Y up
+counts, indices = [3] * SEGMENTS, [i for j in range(SEGMENTS) for i in (0, 1 + (j + 1) % SEGMENTS, 1 + j)]
+for r in range(len(rings) - 1):
+    a, b = 1 + r * SEGMENTS, 1 + (r + 1) * SEGMENTS
+    for j in range(SEGMENTS):
+        k = (j + 1) % SEGMENTS
+        counts.append(4)
+        indices += [a + j, a + k, b + k, b + j]
+mesh.CreateFaceVertexCountsAttr(counts)
+mesh.CreateFaceVertexIndicesAttr(indices)
+stage.SetDefaultPrim(world.GetPrim())
+stage.GetRootLayer().Save()
