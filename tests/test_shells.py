@@ -255,3 +255,23 @@ def test_a_wall_is_a_solid_or_a_shell_not_both(tmp_path):
         "walls": [{"file": "bowl.obj", "fluid": "inside", "shell": {"thickness": 0.01}}], "outputs": ["sdf"]}))
     with pytest.raises(ConfigError, match="either a solid"):
         load_config(tmp_path / "c.yaml", Registry.from_entry_points())
+
+
+@pytest.mark.parametrize("cap, expected", [(0.9999, "outside"), (0.6, "both")])
+def test_a_mesh_with_small_holes_stays_a_solid_and_one_with_an_opening_becomes_a_shell(cap, expected, tmp_path):
+    """The automatic choice: a sphere (radius 0.2, l0 0.02) with a scan hole at its top narrower than
+    2 l0 (the faces round its pole, 1.9 l0 wide) is closed but messy, a solid with its inside/outside;
+    with a cap cut off (an opening 23 l0 wide) it is an open vessel, a shell."""
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=0.2)
+    keep = sphere.vertices[sphere.faces].max(axis=1)[:, 2] < cap * 0.2
+    trimesh.Trimesh(sphere.vertices + [0, 0, 0.25], sphere.faces[keep]).export(tmp_path / "vessel.obj")
+    (tmp_path / "scene.yaml").write_text(yaml.safe_dump({
+        "config_version": 1, "scene": {"name": "vessel", "frames": {"fps": 10, "count": 1}},
+        "walls": [{"builtin": "box_tank", "size": [0.6, 0.6, 0.6]}, {"file": "vessel.obj"}],
+        "fluid": {"spacing": 0.02, "emitters": [{"box": {"min": [-0.25, -0.25, 0.0], "max": [-0.21, -0.21, 0.04]}}]},
+        "outputs": ["walls"]}))
+    report = pipeline.run(tmp_path / "scene.yaml", registry=Registry.from_entry_points(), cache_dir=tmp_path / "cache",
+                          out_dir=tmp_path / "out")
+    walls = WallMesh.load(Path(report.outputs["walls"]))
+    assert walls.walls[1]["report"]["boundary_edges"] > 0
+    assert walls.walls[1]["fluid"] == expected, walls.walls[1]["report"]["largest_hole"]

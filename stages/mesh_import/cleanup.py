@@ -31,8 +31,9 @@ def clean_mesh(mesh: trimesh.Trimesh, weld_tolerance: float) -> tuple[trimesh.Tr
     m.remove_unreferenced_vertices()
 
     edges = np.sort(m.edges, axis=1)
-    _, counts = np.unique(edges, axis=0, return_counts=True)
+    unique, counts = np.unique(edges, axis=0, return_counts=True)
     report["boundary_edges"] = int((counts == 1).sum())
+    report["largest_hole"] = _largest_hole(m.vertices, unique[counts == 1])
     report["non_manifold_edges"] = int((counts > 2).sum())
     report["winding_consistent_in"] = bool(m.is_winding_consistent)
     if len(m.faces):
@@ -49,3 +50,23 @@ def clean_mesh(mesh: trimesh.Trimesh, weld_tolerance: float) -> tuple[trimesh.Tr
 
 def _digits(tolerance: float) -> int:
     return int(max(0, np.floor(-np.log10(max(tolerance, 1e-15)))))
+
+
+def _largest_hole(vertices: np.ndarray, boundary: np.ndarray) -> float:
+    """The width (bounding-box diagonal, scene units) of the largest loop of boundary edges: how wide
+    an opening of the mesh is; 0 for a closed mesh."""
+    if len(boundary) == 0:
+        return 0.0
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    ids, inverse = np.unique(boundary, return_inverse=True)
+    inverse = inverse.reshape(boundary.shape)
+    graph = coo_matrix((np.ones(len(boundary)), (inverse[:, 0], inverse[:, 1])), shape=(len(ids), len(ids)))
+    _, label = connected_components(graph, directed=False)
+    pts = np.asarray(vertices)[ids]
+    widest = 0.0
+    for loop in np.unique(label):
+        p = pts[label == loop]
+        widest = max(widest, float(np.linalg.norm(p.max(axis=0) - p.min(axis=0))))
+    return widest

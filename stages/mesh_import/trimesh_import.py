@@ -75,6 +75,11 @@ def _wall_name(i: int, label: str) -> str:
     return f"wall{i}_" + re.sub(r"[^A-Za-z0-9_]", "_", label)[:40]
 
 
+# An opening no wider than this many particle spacings does not make a mesh a shell: a shell's wall
+# region (0.6 l0 thick, plus the push-out distance 0.5 l0 on each side) closes it for the fluid anyway.
+SMALL_HOLE = 2.0
+
+
 class TrimeshImport(Stage):
     """Wall meshes from built-in shapes, mesh files (trimesh) and USD prims."""
 
@@ -145,7 +150,7 @@ class TrimeshImport(Stage):
     def _solid_or_shell(ctx: Context, i: int, label: str, w: Any, fluid: str | None,
                         report: dict) -> tuple[str, float | None]:
         """(fluid side, shell thickness in scene units) of wall ``i``: what the config says, else a shell
-        for an open mesh (boundary edges) and a solid obstacle otherwise. A shell's fluid is "both"; its
+        for an open mesh (an opening wider than SMALL_HOLE l0) and a solid obstacle otherwise. A shell's fluid is "both"; its
         thickness is None when left to sdf_bake's default (no fluid spacing here)."""
         shell = getattr(w, "shell", None)
         if fluid is not None and shell is None:
@@ -157,6 +162,13 @@ class TrimeshImport(Stage):
             if shell is None and report["boundary_edges"] == 0:
                 ctx.log.info("wall %d (%s): closed mesh -> solid, fluid outside; set fluid: inside for a container",
                              i, label)
+                return "outside", None
+            if shell is None and spacing and report["largest_hole"] <= SMALL_HOLE * spacing:
+                # closed but messy (scan holes, stray faces): no fluid passes an opening this narrow
+                # either way, and a solid keeps its inside/outside (the sign vote outvotes the holes)
+                ctx.log.info("wall %d (%s): closed but for small holes (%d boundary edges, widest %.2g l0) -> "
+                             "solid, fluid outside; set fluid: or shell: to override", i, label,
+                             report["boundary_edges"], report["largest_hole"] / spacing)
                 return "outside", None
             thickness = DEFAULT_SHELL_THICKNESS * spacing if spacing else None  # None: sdf_bake's default
             why = "shell in the config" if shell is not None else f"open mesh ({report['boundary_edges']} boundary edges)"
