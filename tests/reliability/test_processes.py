@@ -119,7 +119,10 @@ def test_ctrl_c_during_frames_in_worker_processes_stops_quickly(tmp_path):
     proc, seconds, err = _interrupt_when(tmp_path, "ran_render.log", "render.sleep=30")
     assert proc.returncode == 130, err
     assert seconds < 5, f"took {seconds:.1f} s to stop"
-    assert err.strip().splitlines()[-1].startswith("interrupted"), err
+    # multiprocessing's resource tracker (its own process) may warn afterwards of a semaphore the
+    # terminated pool left behind: Python's noise, not ours (noted in issue 15's closing note)
+    ours = [line for line in err.strip().splitlines() if "resource_tracker" not in line]
+    assert ours[-1].startswith("interrupted"), err
     _resume_is_consistent(tmp_path)
 
 
