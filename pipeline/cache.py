@@ -56,6 +56,15 @@ _HOST = re.sub(r"[^A-Za-z0-9-]", "-", socket.gethostname())[:64] or "host"
 _STARTED = int(time.time())
 
 
+def _restart_clock() -> None:
+    # a forked pool worker is a new writer: its own pid with its own start, not its parent's
+    global _STARTED
+    _STARTED = int(time.time())
+
+
+os.register_at_fork(after_in_child=_restart_clock)
+
+
 def owner_tag() -> str:
     """``<host>-<pid>-<start>`` of this process, for names of temporary files and folders (no dots)."""
     return f"{_HOST}-{os.getpid()}-{_STARTED}"
@@ -284,15 +293,22 @@ def _holder(lock_file: Path) -> str:
         return "another run"
 
 
+def _proc_stat(pid: int) -> list[str] | None:
+    """Fields of /proc/<pid>/stat after the command name (state first), or None when unknown."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return None
+
+
 def _process_start(pid: int) -> float | None:
     """Wall-clock start time of a local process (Linux /proc), or None when unknown."""
     try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-        ticks = int(stat.rsplit(")", 1)[1].split()[19])
+        ticks = int(_proc_stat(pid)[19])
         btime = next(int(line.split()[1]) for line in Path("/proc/stat").read_text().splitlines()
                      if line.startswith("btime"))
         return btime + ticks / os.sysconf("SC_CLK_TCK")
-    except (OSError, ValueError, IndexError, StopIteration):
+    except (OSError, ValueError, IndexError, TypeError, StopIteration):
         return None
 
 
@@ -302,5 +318,8 @@ def _alive(pid: int) -> bool:
     except ProcessLookupError:
         return False
     except PermissionError:
-        return True
-    return True
+        pass
+    # a killed worker whose parent died too stays a zombie where no init reaps orphans (containers):
+    # it answers signals but writes nothing
+    stat = _proc_stat(pid)
+    return not (stat and stat[0] in ("Z", "X"))

@@ -171,8 +171,14 @@ def test_sweep_removes_only_provably_dead_tmp_folders(tmp_path):
     older_pid = tmp / f"k5.{host}-1-{int(time.time())}.eeee"       # pid 1 runs, started before: may be it
     later = subprocess.Popen(["sleep", "30"])                          # a pid alive now, started after
     reused = tmp / f"k6.{host}-{later.pid}-{int(time.time()) - 100}.ffff"  # the writer's start: pid reused
+    # a killed writer nobody reaped (an orphaned pool worker where init does not reap): a zombie answers
+    # kill(pid, 0) but writes nothing more
+    zombie = subprocess.Popen(["true"])
+    time.sleep(0.3)
+    unreaped = tmp / f"k7.{host}-{zombie.pid}-{int(time.time())}.abab"
     try:
-        for d in (alive, dead_here, other_host, other_old, older_pid, reused):
+        assert Path(f"/proc/{zombie.pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z"
+        for d in (alive, dead_here, other_host, other_old, older_pid, reused, unreaped):
             d.mkdir()
         old = time.time() - TMP_MAX_AGE - 60
         os.utime(other_old, (old, old))
@@ -180,8 +186,27 @@ def test_sweep_removes_only_provably_dead_tmp_folders(tmp_path):
     finally:
         later.kill()
         later.wait()
+        zombie.wait()
     left = {d.name.split(".")[0] for d in tmp.iterdir()}
     assert left == {"k1", "k3", "k5"}, left
+
+
+def test_a_forked_worker_tags_its_files_with_its_own_pid_and_start():
+    """A pool worker forked later than its parent is a live writer: a sweep must not read its tag as a
+    reused pid (the parent's start with the worker's pid)."""
+    time.sleep(2.5)  # the parent's tag is at least this old
+    r, w = os.pipe()
+    pid = os.fork()
+    if pid == 0:
+        os.write(w, owner_tag().encode())
+        os._exit(0)
+    os.close(w)
+    tag = os.read(r, 200).decode()
+    os.close(r)
+    os.waitpid(pid, 0)
+    host, child_pid, started = tag.rsplit("-", 2)
+    assert int(child_pid) == pid
+    assert int(started) >= int(owner_tag().rsplit("-", 1)[1]) + 2, (tag, owner_tag())
 
 
 def test_relative_cache_is_made_absolute(tmp_path, monkeypatch):
