@@ -31,9 +31,9 @@ L0, W, G, RHO0, MU = 0.01, 0.1, 9.81, 1000.0, 5.0
 AVERAGE, SAMPLES = 0.2, 100  # each particle's pressure averaged over 0.2 s, 100 samples
 
 
-# WCSPH as configured by default, with the walls' share of the hydrostatic gradient only, and with the
+# WCSPH as configured by default (conservative wall pressure), with the former mirrored wall pressure, with the walls' share of the hydrostatic gradient only, and with the
 # opt-in gradient correction too
-SPH_VARIANTS = {"sph": {}, "sph_wall_gradient": {"wall_gradient": True},
+SPH_VARIANTS = {"sph": {}, "sph_mirrored": {"wall_pressure": "mirrored"}, "sph_wall_gradient": {"wall_gradient": True},
                 "sph_corrected": {"gradient_correction": True, "wall_gradient": True}}
 
 
@@ -82,7 +82,7 @@ def measure(solver: str, layers: int, settle: float) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--solvers", default="sph,sph_wall_gradient,sph_corrected,dfsph,mps")
+    ap.add_argument("--solvers", default="sph,sph_mirrored,sph_wall_gradient,sph_corrected,dfsph,mps")
     ap.add_argument("--layers", type=int, default=44)
     ap.add_argument("--settle", type=float, default=0.8)
     args = ap.parse_args()

@@ -84,9 +84,55 @@ def test_hydrostatic_tank_with_gradient_correction_within_3_percent(params):
     assert max(abs(e) for e in singles.values()) < 0.08, singles
 
 
-@pytest.mark.xfail(strict=True, reason="issue 17, open: with water's viscosity the column does not come to rest "
-                   "(99th percentile 0.13-0.27 m/s after 1 s): the wall density maps do not follow the fluid's "
-                   "hydrostatic compression (README, Stability)")
-@pytest.mark.parametrize("params", [dict(), dict(gradient_correction=True, wall_gradient=True)])
-def test_hydrostatic_tank_comes_to_rest_with_water_viscosity(params):
-    _at_rest(_settled_column(**params))
+def test_hydrostatic_tank_comes_to_rest_with_water_viscosity():
+    """The default (conservative) wall pressure: the column comes to rest with water's viscosity."""
+    _at_rest(_settled_column())
+
+
+@pytest.mark.xfail(strict=True, reason="issue 17, open: the mirrored wall pressure (which the gradient-corrected "
+                   "hydrostatic option is fitted to) is not conservative: the column circulates (99th percentile "
+                   "0.13-0.27 m/s after 1 s)")
+def test_gradient_corrected_tank_comes_to_rest_with_water_viscosity():
+    _at_rest(_settled_column(gradient_correction=True, wall_gradient=True))  # mirrored walls (auto)
+
+
+def _tank_energy_trace(**params):
+    """Total energy (kinetic + gravitational + the compression energy of the linear EOS, clamped at
+    rho0 like the pressure) of a resting tank sampled every 0.05 s over 0.5 s, relative to the start;
+    and the energy scale M g l0."""
+    w, h, l0, c = 0.15, 0.2, 0.0125, None
+    sdf = grid_from_function(box_interior_sdf([0, 0, 0], [w, 0.1, 0.3]), [0, 0, 0], [w, 0.1, 0.3], l0 / 2)
+    x = lattice([0, 0, 0], [w, 0.1, h], l0)
+    s = SPHSolver(x, np.zeros_like(x), np.arange(len(x)), sdf, spacing=l0, rho0=1000.0,
+                  params=SPHParams(threads=None, **params), gravity=(0, 0, -G), mu=0.001,
+                  v_ref=float(np.sqrt(2 * G * h)))
+    hydrostatic_start(s)
+
+    def energy():
+        s.sort_and_density(rebuild=True)
+        r = s.rho / 1000.0
+        e = np.where(r > 1.0, s.c ** 2 * (np.log(np.maximum(r, 1.0)) + 1.0 / r - 1.0), 0.0)  # int p / rho^2 drho
+        return s.mass * (0.5 * (s.v ** 2).sum() + G * s.x[:, 2].sum() + e.sum())
+
+    e0 = energy()
+    trace = []
+    for k in range(1, 11):
+        s.advance_to(0.05 * k)
+        trace.append(energy() - e0)
+    return np.array(trace), s.mass * len(x) * G * l0
+
+
+@pytest.mark.parametrize("params", [
+    dict(),
+    pytest.param(dict(wall_pressure="mirrored"), marks=pytest.mark.xfail(
+        strict=True, reason="issue 17: the mirrored wall pressure does work around closed loops (+0.1 M g l0 in the "
+                            "first 0.05 s), which is why the column circulated")),
+])
+def test_resting_tank_energy_never_grows(params):
+    """Water's viscosity and the artificial viscosity only dissipate, and the pressure forces (the walls'
+    included) are the derivative of the compression energy: the total energy may only fall. Measured with
+    the default: falls monotonically by 0.09 M g l0 over 0.5 s; the mirrored wall gains 0.11 M g l0."""
+    trace, scale = _tank_energy_trace(**params)
+    print("energy - start, in M g l0:", np.round(trace / scale, 4))
+    assert trace.max() < 1e-3 * scale, trace / scale
+    assert np.all(np.diff(trace) < 1e-3 * scale), trace / scale

@@ -46,6 +46,11 @@ class SPHParams(Params):
                                       "force (Bonet and Lok 1999): exact for a linear pressure on any packing")
     wall_gradient: bool = Field(False, description="the walls' share of the hydrostatic pressure gradient "
                                 "(Adami et al. 2012 wall pressure p_w = p + rho g . (x_w - x)): support along side walls")
+    wall_pressure: Literal["auto", "conservative", "mirrored"] = Field("auto", description="the walls' pressure "
+                                 "force: -(p_i / rho_i^2) grad of the wall density (conservative: fluid at rest settles), "
+                                 "or mirrored wall particles at the neighbours' mean pressure (the former form, which "
+                                 "gradient_correction and wall_gradient are fitted to; it circulates at rest); auto: "
+                                 "mirrored with those options, else conservative")
     correction_wall_fade: bool = Field(True, description="fade the correction out within h of a wall (none in the "
                                        "first row): the flat-wall tensor table undercounts edges and corners")
     correction_full: float = Field(0.97, gt=0.9, le=1, description="density ratio rho/rho0 from which the "
@@ -137,7 +142,9 @@ class SPHSolver(SolverBase):
         if effects.adhesion_accel is not None and len(effects.adhesion_accel) != params.table_samples:
             raise ValueError("effects.adhesion_accel must be sampled like the wall tables (table_samples)")
         self.grad_norm = spiky_lattice_factor(self.rho0, self.l0, self.h, self.mass)
-        self.fix_press = self.walls.fix_press / self.grad_norm
+        self.fix_press = self.walls.fix_press / self.grad_norm  # the mirrored wall's table (wall_pressure)
+        self.mirrored_wall = params.wall_pressure == "mirrored" or (
+            params.wall_pressure == "auto" and (params.wall_gradient or params.gradient_correction))
         self.wall_t = None
         if params.wall_gradient or params.gradient_correction:
             self.wall_t = wall_gradient_tables(self.l0, self.h, self.mass, self.rho0, self.grad_norm, params.table_samples)
@@ -227,7 +234,7 @@ class SPHSolver(SolverBase):
         if self.normals is not None:  # Akinci normals: a pass after the density, only with tension
             K.surface_normals(self.x, self.rho, g.starts, g.lo, 1.0 / g.cell, g.dims, self.h, grad_coef, self.mass,
                               self.normals, (self.nbr, self.cnt_in))
-        pressure = (self.pr, grad_coef, self.fix_press, self.p.artificial_viscosity * self.c * self.h)
+        pressure = (self.pr, grad_coef, self.walls.fix_rho, self.p.artificial_viscosity * self.c * self.h)
         correction = None
         if self.lcorr is not None:
             K.gradient_correction(self.x, self.nbr, self.cnt_in, self.inv_rho, self.rho, self.rho0, self.h, grad_coef,
@@ -237,7 +244,8 @@ class SPHSolver(SolverBase):
         K.forces(self.x, self.v, self.rho, self.d, self.nrm, g.starts, g.lo, 1.0 / g.cell, g.dims, self.h, self.mass,
                  self.rho0, self.walls.wmap, self.walls.origin, 1.0 / self.walls.spacing, self.inv_dr, self.gravity,
                  self.acc, pressure, *self.effect_args(), (self.nbr, self.cnt_in), self.inv_rho, correction,
-                 self.wall_t if self.p.wall_gradient else None)
+                 self.wall_t if self.p.wall_gradient else None,
+                 (self.fix_press,) if self.mirrored_wall else None)
 
     def stable_dt(self, dt_max: float) -> float:
         v2, a2 = K.max_speed2_accel2(self.v, self.acc)
