@@ -43,6 +43,10 @@ class StageReport:
     seconds: float = 0.0
     frames_total: int = 0
     frames_ran: int = 0
+    # whole-run stages: the stage's own wall and process CPU seconds without its warm-up (Context.warm_up:
+    # one-off JIT compilation) and without waiting for locks; what a study charges a variant
+    cost_seconds: float = 0.0
+    cpu_seconds: float = 0.0
 
 
 @dataclass
@@ -350,7 +354,7 @@ def _run_whole(p: Plan, node: Node, key: str, inputs: dict[str, Artifact], runna
     sr = StageReport(node.kind, node.cls.name, node.cls.version, key, "cached")
     hit = None if (forced and runnable) else cache.lookup(node.kind, key)
     if hit is not None:
-        sr.seconds = float(hit.manifest.get("seconds", 0.0))
+        _cached_times(sr, hit.manifest)
         return sr, hit.path
     if not runnable:
         raise CacheMissError(f"stage {node.label} is not cached (key {key[:12]}) and the selection does not run it; "
@@ -358,19 +362,22 @@ def _run_whole(p: Plan, node: Node, key: str, inputs: dict[str, Artifact], runna
     with cache.lock(key, f"stage {node.label}"):
         hit = None if forced else cache.lookup(node.kind, key)  # another run may have made it meanwhile
         if hit is not None:
-            sr.seconds = float(hit.manifest.get("seconds", 0.0))
+            _cached_times(sr, hit.manifest)
             return sr, hit.path
         tmp = cache.new_tmp(key)
         resume = p.resume.get(node.kind)
         ctx = context(config, node, tmp, p.frames, checkpoint_dir=cache.checkpoint_dir(key),
                       resume_from=resume_source(cache, node.kind, resume) if resume and not forced else None)
         ctx.make_progress = bars.make
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         try:
             node.cls().run(ctx, inputs, node.params)
             seconds = time.perf_counter() - t0
+            sr.cost_seconds = seconds - ctx.warmup_seconds
+            sr.cpu_seconds = time.process_time() - c0 - ctx.warmup_cpu_seconds
             entry = cache.commit(node.kind, key, tmp, {
                 "stage": node.label, "version": node.cls.version, "seconds": seconds,
+                "cost_seconds": sr.cost_seconds, "cpu_seconds": sr.cpu_seconds,
                 "components": p.components[node.kind]})
         except BaseException as exc:
             cache.discard(tmp)
@@ -382,6 +389,12 @@ def _run_whole(p: Plan, node: Node, key: str, inputs: dict[str, Artifact], runna
             record_resume(cache, node.kind, resume, key)
     sr.status = "forced" if forced else "ran"
     return sr, entry.path
+
+
+def _cached_times(sr: StageReport, manifest: dict) -> None:
+    sr.seconds = float(manifest.get("seconds", 0.0))
+    sr.cost_seconds = float(manifest.get("cost_seconds", sr.seconds))
+    sr.cpu_seconds = float(manifest.get("cpu_seconds", 0.0))
 
 
 def _run_per_frame(p: Plan, node: Node, key: str, inputs: dict[str, Artifact], runnable: bool, forced: bool,
