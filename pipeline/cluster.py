@@ -53,6 +53,8 @@ def connect(scheduler: str | None, workers: int = 1):
         from distributed import Client, LocalCluster
     except ImportError:
         raise PipelineError("--executor dask needs the dask extra: pip install 'fluid-pipeline[dask]'") from None
+    # the scheduler and nanny of a LocalCluster log to this process: their INFO lines are not ours
+    logging.getLogger("distributed").setLevel(max(logging.WARNING, logging.getLogger("distributed").level))
     if scheduler:
         try:
             return Client(scheduler, timeout="20s")
@@ -65,7 +67,7 @@ def connect(scheduler: str | None, workers: int = 1):
     memory = (available_memory() or 0) // workers
     resources = {"threads": threads, **({"memory": memory} if memory else {})}
     cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, resources=resources,
-                           dashboard_address=None, silence_logs=logging.ERROR,
+                           dashboard_address=":0", silence_logs=logging.ERROR,
                            env={"NUMBA_NUM_THREADS": str(threads), "OMP_NUM_THREADS": str(threads),
                                 "NUMBA_THREADING_LAYER": os.environ.get("NUMBA_THREADING_LAYER", "omp")})
     return Client(cluster)
