@@ -158,7 +158,7 @@ def _run_batch(configs, options, executor, workers, scheduler, quiet) -> None:
             v = o.value or {}
             table.add_row(o.label, "[red]failed[/]" if o.error else "[green]ok[/]", f"{o.seconds:.2f}",
                           str(v.get("ran", "")), str(v.get("cached", "")))
-        Console(width=120).print(table)
+        Console(width=max(100, 60 + max(len(o.label) for o in outcomes))).print(table)
     failed = [o for o in outcomes if o.error]
     for o in failed:
         click.echo(f"error: {o.label}: {o.error}", err=True)
