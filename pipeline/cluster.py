@@ -66,7 +66,10 @@ def connect(scheduler: str | None, workers: int = 1):
     threads = max(1, (os.cpu_count() or 1) // workers)
     memory = (available_memory() or 0) // workers
     resources = {"threads": threads, **({"memory": memory} if memory else {})}
+    # memory_limit=0: the nanny would otherwise kill a worker whose simulation passes its share of the
+    # memory; placement by the plan's memory estimate (the "memory" resource) is what keeps them apart
     cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, resources=resources,
+                           memory_limit=0,
                            dashboard_address=":0", silence_logs=logging.ERROR,
                            env={"NUMBA_NUM_THREADS": str(threads), "OMP_NUM_THREADS": str(threads),
                                 "NUMBA_THREADING_LAYER": os.environ.get("NUMBA_THREADING_LAYER", "omp")})
