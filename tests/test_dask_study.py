@@ -4,6 +4,7 @@ cache, and a batch with a broken shot."""
 from __future__ import annotations
 
 import csv
+import json
 import os
 import signal
 import subprocess
@@ -91,6 +92,16 @@ def test_study_on_worker_processes_equals_inline(tmp_path, plugin):
     assert [r.metrics for r in inline] == [r.metrics for r in dask] == [{"error": e} for e in (1.0, 0.5, 0.25)]
     assert all(r.seconds > 0 and r.cpu_seconds >= 0 for r in dask)
     assert_consistent(tmp_path / "c2")
+
+
+def test_cost_column_leaves_out_the_warm_up(tmp_path, plugin):
+    # a 0.6 s warm-up (as a JIT compile) and 0.2 s of simulation: the study charges the simulation
+    path = _study(tmp_path, steps=(2,), sets=("simulate.warm_up=0.6", "simulate.sleep=0.2"))
+    results, out = run_study(path, executor="inline")
+    run = json.loads((out / "variants" / "steps-2" / "run.json").read_text())
+    assert next(s for s in run["stages"] if s["kind"] == "simulate")["seconds"] >= 0.8
+    assert 0.2 <= results[0].seconds < 0.6 and results[0].cpu_seconds < 0.1  # sleeping costs no CPU
+    assert float(list(csv.reader(open(out / "study.csv")))[1][1]) == round(results[0].seconds, 3)
 
 
 def test_worker_killed_mid_simulation_is_retried(tmp_path, plugin, scheduler):
