@@ -87,7 +87,7 @@ def main() -> None:
     done = sum(first["stage_runs"].values())
     result["stage_runs"] = {"without_sharing": naive, "with_sharing": done, "saved": naive - done}
     if len(args.workers) > 1:
-        a, b = args.workers[0], args.workers[-1]
+        a, b = min(args.workers), max(args.workers)
         result["speedup"] = result["runs"][str(a)]["wall_seconds"] / result["runs"][str(b)]["wall_seconds"]
         print(f"speed-up {a} -> {b} worker processes: {result['speedup']:.2f}x")
     print(f"stage runs: {done} instead of {naive} ({naive - done} saved by shared upstream keys)")
