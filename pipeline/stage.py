@@ -148,6 +148,9 @@ class Stage:
     reads: ClassVar[tuple[str, ...]] = ()
     # a read whose growth the stage can continue from a cached shorter run ("scene.frames.count")
     extends: ClassVar[str | None] = None
+    # the first run in a process pays one-off costs a second one does not (numba JIT compilation of its
+    # set-up and stepping kernels): a study first runs it once on a 2-frame copy of the variant, untimed
+    warm_up_run: ClassVar[bool] = False
     per_frame: ClassVar[bool] = False
     default: ClassVar[bool] = False  # the implementation used when the config names none for the kind
     description: ClassVar[str] = ""

@@ -20,9 +20,10 @@ metrics:
 ```
 Variants run through the normal cache, so re-running a study only computes new variants.
 
-The cost column (``<time>_seconds``) is the ``time`` stage's own wall time without its warm-up (one-off
-JIT compilation: Context.warm_up; the simulate stages compile their stepping kernels on a throw-away step)
-and without waiting for locks; ``<time>_cpu_seconds`` beside it is the CPU time of the process that ran
+The cost column (``<time>_seconds``) is the ``time`` stage's own wall time without one-off JIT
+compilation and without waiting for locks: a stage that declares ``warm_up_run`` (the numba solvers) is
+first run once per process on a 2-frame copy of the variant in a throw-away cache, untimed, so every
+variant finds its kernels compiled; a stage's own ``Context.warm_up`` is left out as well; ``<time>_cpu_seconds`` beside it is the CPU time of the process that ran
 the stage (all its threads), which variants running at the same time on shared cores do not inflate as
 they inflate wall time. A cached variant keeps the times of the run that computed it.
 
@@ -36,6 +37,7 @@ import importlib
 import itertools
 import json
 import os
+import tempfile
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from multiprocessing import get_context
@@ -158,12 +160,53 @@ def _sets(study: StudyConfig, overrides: dict[str, Any]) -> tuple[str, ...]:
         + (f"outputs={json.dumps(study.outputs)}",)
 
 
+_warmed: set[str] = set()  # in this process: time stages (implementation and parameters) already warmed up
+
+
+def _warm_up(study: StudyConfig, base: str, sets: tuple[str, ...], cache_dir: str) -> None:
+    """Run the variant's ``time`` stage once in this process on 2 frames in a throw-away cache, if the
+    stage declares ``warm_up_run``, the variant is not cached, and this implementation with these
+    parameters has not run in this process yet."""
+    from . import runner
+    from .cache import Cache
+    from .config import load_config
+    from .errors import PipelineError
+    from .graph import build_graph
+    from .keys import plan
+    from .registry import Registry
+
+    try:
+        config = load_config(base, Registry.from_entry_points(), sets)
+        graph = build_graph(config)
+        node = graph.nodes.get(study.time)
+        if node is None or not node.cls.warm_up_run:
+            return
+        cache = Cache(Path(cache_dir))
+        if cache.lookup(study.time, plan(config, graph, cache).keys[study.time]) is not None:
+            return
+    except (PipelineError, OSError):
+        return  # the variant's own run reports the mistake
+    key = node.label + json.dumps(node.params.model_dump(mode="json"), sort_keys=True)
+    if key in _warmed:
+        return
+    with tempfile.TemporaryDirectory(prefix="pipeline-warm-up.") as tmp:
+        try:
+            runner.run(base, overrides=sets + ("scene.frames.count=2",), cache_dir=Path(tmp) / "cache",
+                       out_dir=Path(tmp) / "out", until=study.time)
+        except PipelineError:
+            return
+    _warmed.add(key)
+
+
 def _run_variant(args: tuple, executor=None, events=None) -> VariantResult:
     study_dict, base, overrides, cache_dir, out_root, study_dir = args
     from . import runner
 
     study = StudyConfig.model_validate(study_dict)
     out = Path(out_root) / "variants" / variant_name(overrides)
+    if events:
+        events({"stage": "warm-up"})
+    _warm_up(study, base, _sets(study, overrides), cache_dir)
     report = runner.run(base, overrides=_sets(study, overrides), cache_dir=cache_dir, out_dir=out,
                         executor=executor, events=events)
     stage = next((s for s in report.stages if s.kind == study.time), None)

@@ -104,6 +104,20 @@ def test_cost_column_leaves_out_the_warm_up(tmp_path, plugin):
     assert float(list(csv.reader(open(out / "study.csv")))[1][1]) == round(results[0].seconds, 3)
 
 
+def test_a_warm_up_run_per_process_before_timing(tmp_path, plugin, monkeypatch):
+    import toy_stages
+
+    monkeypatch.setattr(toy_stages.ToySimulate, "warm_up_run", True)
+    path = _study(tmp_path, sets=("simulate.sleep=0.011",))
+    path.write_text(path.read_text().replace("simulate.steps: [1, 2, 4]", "fluid.spacing: [0.1, 0.2]"))
+    run_study(path, cache_dir=tmp_path / "c", executor="inline")
+    # one untimed 2-frame run of the implementation (same parameters for both variants), then the two
+    assert ran(path, "simulate") == 3
+    assert len(list((tmp_path / "c" / "simulate").glob("*/*/manifest.json"))) == 2  # nothing of it cached
+    run_study(path, cache_dir=tmp_path / "c", executor="inline")
+    assert ran(path, "simulate") == 3  # cached variants need no warm-up
+
+
 def test_worker_killed_mid_simulation_is_retried(tmp_path, plugin, scheduler):
     # each simulation sleeps 2 s in 2 or 3 steps; the first worker seen simulating is killed
     path = _study(tmp_path / "k", steps=(2, 3), sets=("simulate.sleep=2",))
