@@ -22,10 +22,13 @@ Variants run through the normal cache, so re-running a study only computes new v
 
 The cost column (``<time>_seconds``) is the ``time`` stage's own wall time without one-off JIT
 compilation and without waiting for locks: a stage that declares ``warm_up_run`` (the numba solvers) is
-first run once per process on a 2-frame copy of the variant in a throw-away cache, untimed, so every
-variant finds its kernels compiled; a stage's own ``Context.warm_up`` is left out as well; ``<time>_cpu_seconds`` beside it is the CPU time of the process that ran
-the stage (all its threads), which variants running at the same time on shared cores do not inflate as
-they inflate wall time. A cached variant keeps the times of the run that computed it.
+first run once per process on a 2-frame copy of the variant in a throw-away cache (its upstream stages
+recomputed there: a cached 2-frame entry would become the real run's resume source), untimed, so every
+variant finds its kernels compiled; a stage's own ``Context.warm_up`` is left out as well.
+``<time>_cpu_seconds`` beside it is the CPU time of the process that ran the stage (all its threads),
+which variants running at the same time on shared cores inflate much less than wall time (but numba
+threads spinning at barriers on an oversubscribed machine do count). A cached variant keeps the times of
+the run that computed it.
 
 ``--executor dask`` runs each variant as a task on Dask worker processes (pipeline.cluster); variants
 sharing upstream stages compute them once (the cache's per-key lock).
