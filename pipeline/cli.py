@@ -82,7 +82,7 @@ frames_opt = click.option("--frames", help="Frames for per-frame stages: START:E
 
 
 @main.command()
-@config_arg
+@click.argument("configs", nargs=-1, required=True, type=click.Path(path_type=Path))
 @set_opt
 @cache_opt
 @frames_opt
@@ -91,9 +91,13 @@ frames_opt = click.option("--frames", help="Frames for per-frame stages: START:E
 @click.option("--from", "from_", type=KINDS, help="Run this stage and what follows; upstream from cache.")
 @click.option("--until", type=KINDS, help="Run up to and including this stage.")
 @click.option("--force", multiple=True, type=click.Choice(STAGE_KINDS + ("all",)), help="Recompute this stage even if cached.")
-@click.option("--workers", type=click.IntRange(1, 256), default=1, show_default=True, help="Local worker processes for per-frame stages.")
-@click.option("--executor", type=click.Choice(["auto", "inline", "processes", "dask"]), default="auto", show_default=True)
-@click.option("--scheduler", help="Dask scheduler address for --executor dask, e.g. tcp://host:8786.")
+@click.option("--workers", type=click.IntRange(1, 256), default=1, show_default=True,
+              help="Local worker processes for per-frame stages (with --executor dask and no --scheduler: the "
+                   "LocalCluster's worker processes).")
+@click.option("--executor", type=click.Choice(["auto", "inline", "processes", "dask"]), default="auto", show_default=True,
+              help="With several configs and dask, each shot is a task on the cluster.")
+@click.option("--scheduler", help="Dask scheduler address for --executor dask, e.g. tcp://host:8786 "
+                                  "(default: a LocalCluster of --workers processes).")
 @click.option("--lock-timeout", type=click.FloatRange(0), default=None, metavar="SECONDS",
               help="Give up waiting for another run's lock on a cache entry after this long "
                    "(default 3600, or env PIPELINE_LOCK_TIMEOUT).")
@@ -102,12 +106,21 @@ frames_opt = click.option("--frames", help="Frames for per-frame stages: START:E
 @click.option("-v", "--verbose", count=True, help="More logging.")
 @click.option("-q", "--quiet", is_flag=True, help="Only warnings and errors; no progress bars.")
 @_guard
-def run(config, overrides, cache_dir, frames, out_dir, only, from_, until, force, workers, executor, scheduler,
+def run(configs, overrides, cache_dir, frames, out_dir, only, from_, until, force, workers, executor, scheduler,
         lock_timeout, allow_large, verbose, quiet):
-    """Run every stage the config's outputs need (cached stages are not run again)."""
+    """Run every stage the config's outputs need (cached stages are not run again). Several configs are
+    a batch of shots: all run, one summary table at the end, exit 1 if any failed."""
     from .executors import make_executor
 
     _setup_logging(verbose, quiet)
+    if len(configs) > 1:
+        if out_dir is not None:
+            raise PipelineError("--out: with several configs each shot publishes to out/<scene>/ beside its config")
+        _run_batch(configs, dict(overrides=tuple(overrides), cache_dir=cache_dir, frames=runner.parse_frames(frames),
+                                 only=only, from_=from_, until=until, force=tuple(force), lock_timeout=lock_timeout,
+                                 allow_large=allow_large), executor, workers, scheduler, quiet)
+        return
+    config = configs[0]
     ex = make_executor(executor, workers, scheduler)
     try:
         report = runner.run(config, overrides=tuple(overrides), cache_dir=cache_dir, out_dir=out_dir, only=only,
@@ -127,6 +140,31 @@ def run(config, overrides, cache_dir, frames, out_dir, only, from_, until, force
             shown = ", ".join(files[:3]) + (f" ... ({len(files)} files)" if len(files) > 3 else "")
             click.echo(f"  -> {name}: {path}/  [{shown}]")
         click.echo(f"done in {report.seconds:.2f} s; report: {Path(report.out) / 'run.json'}")
+
+
+def _run_batch(configs, options, executor, workers, scheduler, quiet) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    from .batch import run_batch
+    from .live import LiveView
+
+    with LiveView([str(c) for c in configs], enabled=not quiet and sys.stderr.isatty()) as view:
+        outcomes = run_batch(list(configs), options, executor=executor, workers=workers, scheduler=scheduler,
+                             events=view)
+    if not quiet:
+        table = Table("shot", "status", "wall (s)", "stages run", "stages cached")
+        for o in outcomes:
+            v = o.value or {}
+            table.add_row(o.label, "[red]failed[/]" if o.error else "[green]ok[/]", f"{o.seconds:.2f}",
+                          str(v.get("ran", "")), str(v.get("cached", "")))
+        Console(width=max(100, 60 + max(len(o.label) for o in outcomes))).print(table)
+    failed = [o for o in outcomes if o.error]
+    for o in failed:
+        click.echo(f"error: {o.label}: {o.error}", err=True)
+    if failed:
+        click.echo(f"{len(failed)} of {len(outcomes)} shots failed", err=True)
+        sys.exit(1)
 
 
 @main.command()
@@ -186,15 +224,28 @@ def clean(config, cache_dir, stage):
 @click.argument("study", type=click.Path(path_type=Path))
 @cache_opt
 @click.option("--out", "out_dir", type=click.Path(path_type=Path), help="Report folder (default: out/<study>/ beside it).")
-@click.option("--workers", type=click.IntRange(1, 64), default=1, show_default=True, help="Variants run in parallel processes.")
+@click.option("--workers", type=click.IntRange(1, 64), default=1, show_default=True,
+              help="Variants run in parallel processes (with --executor dask and no --scheduler: the "
+                   "LocalCluster's worker processes).")
+@click.option("--executor", type=click.Choice(["auto", "inline", "dask"]), default="auto", show_default=True,
+              help="dask: each variant is a task on Dask worker processes.")
+@click.option("--scheduler", help="Dask scheduler address for --executor dask, e.g. tcp://host:8786.")
 @click.option("-q", "--quiet", is_flag=True)
 @_guard
-def study(study, cache_dir, out_dir, workers, quiet):
+def study(study, cache_dir, out_dir, workers, executor, scheduler, quiet):
     """Run the variants of a study and report accuracy against time (table + plots)."""
-    from .study import run_study
+    from .live import LiveView
+    from .study import load_study, run_study, variant_name, variants
 
     _setup_logging(0, quiet)
-    results, out = run_study(study, cache_dir=cache_dir, out_dir=out_dir, workers=workers)
+
+    if scheduler and executor != "dask":
+        raise PipelineError("--scheduler needs --executor dask")
+    live = not quiet and sys.stderr.isatty() and (executor == "dask" or workers == 1)
+    labels = [variant_name(v) for v in variants(load_study(study.resolve()))] if live else []
+    with LiveView(labels, enabled=live) as view:
+        results, out = run_study(study, cache_dir=cache_dir, out_dir=out_dir, workers=workers, executor=executor,
+                                 scheduler=scheduler, events=view if live else None)
     if not quiet:
         click.echo((out / "study.md").read_text())
     click.echo(f"report: {out / 'study.md'}; plots: {', '.join(p.name for p in sorted(out.glob('*_vs_time.png')))}")

@@ -121,6 +121,31 @@ class DaskExecutor:
             self._client.close(timeout=2)
 
 
+class WorkerDaskExecutor:
+    """Per-frame jobs of a shot that itself runs as a Dask task (pipeline.cluster): the frames fan out to
+    the same cluster, and the shot's task secedes from its worker's thread while they run so that the
+    worker can take frames (or another shot) meanwhile. Used from the task's own thread only."""
+
+    name = "dask-worker"
+
+    def map_unordered(self, fn, jobs):
+        from distributed import as_completed as dask_completed, worker_client
+
+        with worker_client() as client:
+            futures = client.map(fn, list(jobs), pure=False)
+            try:
+                for fut in dask_completed(futures):
+                    yield fut.result()
+            finally:
+                client.cancel([f for f in futures if not f.done()])
+
+    def close(self) -> None:
+        pass
+
+    def abort(self) -> None:
+        pass
+
+
 def make_executor(kind: str, workers: int = 1, scheduler: str | None = None) -> Executor:
     if kind == "dask":
         return DaskExecutor(scheduler)

@@ -43,6 +43,10 @@ class StageReport:
     seconds: float = 0.0
     frames_total: int = 0
     frames_ran: int = 0
+    # whole-run stages: the stage's own wall and process CPU seconds without its warm-up (Context.warm_up:
+    # one-off JIT compilation) and without waiting for locks; what a study charges a variant
+    cost_seconds: float = 0.0
+    cpu_seconds: float = 0.0
 
 
 @dataclass
@@ -139,11 +143,17 @@ def _frame_job(job: FrameJob) -> tuple[int, str, float, bool]:
 
 
 # -- running ---------------------------------------------------------------------------------------
-class _Progress:
-    """Rich progress bars for long stages; silent when quiet or not on a terminal."""
+Events = Callable[[dict], None]
 
-    def __init__(self, enabled: bool) -> None:
+
+class _Progress:
+    """Rich progress bars for long stages; silent when quiet or not on a terminal. With ``events`` (a
+    live view of several shots, pipeline.live), every advance is also sent there as
+    ``{"task": description, "done": n, "total": total}``."""
+
+    def __init__(self, enabled: bool, events: Events | None = None) -> None:
         self._bar = None
+        self._events = events
         if enabled:
             from rich.progress import BarColumn, MofNCompleteColumn, Progress as RichProgress, TextColumn, TimeElapsedColumn
 
@@ -160,10 +170,19 @@ class _Progress:
             self._bar.stop()
 
     def make(self, description: str, total: float) -> Progress:
-        if self._bar is None:
+        if self._bar is None and self._events is None:
             return Progress()
-        task = self._bar.add_task(description, total=total)
-        return Progress(lambda amount: self._bar.advance(task, amount))
+        task = None if self._bar is None else self._bar.add_task(description, total=total)
+        done = [0.0]
+
+        def update(amount: float) -> None:
+            if task is not None:
+                self._bar.advance(task, amount)
+            if self._events is not None:
+                done[0] += amount
+                self._events({"task": description, "done": done[0], "total": total})
+
+        return Progress(update)
 
 
 def write_log(cache: Cache, name: str, text: str) -> str:
@@ -210,7 +229,7 @@ def _outside(what: str, exc: BaseException, cache: Cache) -> StageFailed:
 
 
 def execute(p: Plan, *, out_dir: Path, force: frozenset[str] = frozenset(), executor: Executor | None = None,
-            progress: bool = False) -> RunReport:
+            progress: bool = False, events: Events | None = None) -> RunReport:
     """Run the plan. Inline, stages go one by one in dependency order; with a pool executor, independent
     branches (e.g. render frames and export) are driven concurrently by threads of this process while
     their per-frame jobs run in the pool's worker processes. faulthandler writes native crashes (VTK,
@@ -227,7 +246,7 @@ def execute(p: Plan, *, out_dir: Path, force: frozenset[str] = frozenset(), exec
     was_enabled = faulthandler.is_enabled()
     faulthandler.enable(fault_fh)
     try:
-        return _execute(p, out_dir, force, executor, progress, str(fault_log))
+        return _execute(p, out_dir, force, executor, progress, str(fault_log), events)
     finally:
         faulthandler.disable()
         if was_enabled:  # e.g. pytest's or PYTHONFAULTHANDLER's, to the real stderr
@@ -244,7 +263,7 @@ def execute(p: Plan, *, out_dir: Path, force: frozenset[str] = frozenset(), exec
 
 
 def _execute(p: Plan, out_dir: Path, force: frozenset[str], executor: Executor | None, progress: bool,
-             fault_log: str) -> RunReport:
+             fault_log: str, events: Events | None = None) -> RunReport:
     config, graph, cache = p.config, p.graph, p.cache
     t_start = time.perf_counter()
     report = RunReport(config=str(config.path), scene=config.name, cache=str(cache.root), out=str(out_dir))
@@ -261,6 +280,8 @@ def _execute(p: Plan, out_dir: Path, force: frozenset[str], executor: Executor |
         forced = kind in force or "all" in force
         with guard:
             inputs = {name: artifacts[name] for name, _ in node.inputs}
+        if events is not None:
+            events({"stage": kind})
         t0 = time.perf_counter()
         try:
             if node.per_frame:
@@ -291,8 +312,9 @@ def _execute(p: Plan, out_dir: Path, force: frozenset[str], executor: Executor |
         log.debug("%-16s %-16s %s  %s", kind, sr.implementation, sr.key[:12], sr.status)
 
     order = graph.order()
-    with _Progress(progress) as bars:
-        if executor.name == "inline" or len(order) < 2:
+    with _Progress(progress, events) as bars:
+        # on a Dask worker the stages stay in the task's thread: only it may secede while frames run
+        if executor.name in ("inline", "dask-worker") or len(order) < 2:
             for kind in order:
                 finish(kind, run_node(kind, bars))
         else:
@@ -350,7 +372,7 @@ def _run_whole(p: Plan, node: Node, key: str, inputs: dict[str, Artifact], runna
     sr = StageReport(node.kind, node.cls.name, node.cls.version, key, "cached")
     hit = None if (forced and runnable) else cache.lookup(node.kind, key)
     if hit is not None:
-        sr.seconds = float(hit.manifest.get("seconds", 0.0))
+        _cached_times(sr, hit.manifest)
         return sr, hit.path
     if not runnable:
         raise CacheMissError(f"stage {node.label} is not cached (key {key[:12]}) and the selection does not run it; "
@@ -358,19 +380,22 @@ def _run_whole(p: Plan, node: Node, key: str, inputs: dict[str, Artifact], runna
     with cache.lock(key, f"stage {node.label}"):
         hit = None if forced else cache.lookup(node.kind, key)  # another run may have made it meanwhile
         if hit is not None:
-            sr.seconds = float(hit.manifest.get("seconds", 0.0))
+            _cached_times(sr, hit.manifest)
             return sr, hit.path
         tmp = cache.new_tmp(key)
         resume = p.resume.get(node.kind)
         ctx = context(config, node, tmp, p.frames, checkpoint_dir=cache.checkpoint_dir(key),
                       resume_from=resume_source(cache, node.kind, resume) if resume and not forced else None)
         ctx.make_progress = bars.make
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         try:
             node.cls().run(ctx, inputs, node.params)
             seconds = time.perf_counter() - t0
+            sr.cost_seconds = seconds - ctx.warmup_seconds
+            sr.cpu_seconds = time.process_time() - c0 - ctx.warmup_cpu_seconds
             entry = cache.commit(node.kind, key, tmp, {
                 "stage": node.label, "version": node.cls.version, "seconds": seconds,
+                "cost_seconds": sr.cost_seconds, "cpu_seconds": sr.cpu_seconds,
                 "components": p.components[node.kind]})
         except BaseException as exc:
             cache.discard(tmp)
@@ -382,6 +407,12 @@ def _run_whole(p: Plan, node: Node, key: str, inputs: dict[str, Artifact], runna
             record_resume(cache, node.kind, resume, key)
     sr.status = "forced" if forced else "ran"
     return sr, entry.path
+
+
+def _cached_times(sr: StageReport, manifest: dict) -> None:
+    sr.seconds = float(manifest.get("seconds", 0.0))
+    sr.cost_seconds = float(manifest.get("cost_seconds", sr.seconds))
+    sr.cpu_seconds = float(manifest.get("cpu_seconds", 0.0))
 
 
 def _run_per_frame(p: Plan, node: Node, key: str, inputs: dict[str, Artifact], runnable: bool, forced: bool,
@@ -459,7 +490,8 @@ def run(config_path: str | Path, *, registry: Registry | None = None, overrides:
         cache_dir: str | Path | None = None, out_dir: str | Path | None = None, only: str | None = None,
         from_: str | None = None, until: str | None = None, force: tuple[str, ...] = (),
         frames: tuple[int, ...] | None = None, executor: Executor | None = None,
-        progress: bool = False, lock_timeout: float | None = None, allow_large: bool = False) -> RunReport:
+        progress: bool = False, lock_timeout: float | None = None, allow_large: bool = False,
+        events: Events | None = None) -> RunReport:
     """Run what the config's outputs need; returns the report (also written to out/run.json).
 
     Refuses (exit 2, nothing written) an output folder holding things the pipeline did not publish
@@ -480,7 +512,7 @@ def run(config_path: str | Path, *, registry: Registry | None = None, overrides:
         except OSError as exc:  # an input file that exists but cannot be read (permissions, I/O)
             raise StageFailed(f"cannot read input file {exc.filename}: {exc.strerror or exc}", user_error=True) from None
         check_size(p, allow_large=allow_large or config.allow_large)
-        return execute(p, out_dir=out, force=frozenset(force), executor=executor, progress=progress)
+        return execute(p, out_dir=out, force=frozenset(force), executor=executor, progress=progress, events=events)
     except (PipelineError, KeyboardInterrupt, SystemExit):
         raise
     except Exception as exc:  # noqa: BLE001 - anything else is still one line, exit 1, and a log

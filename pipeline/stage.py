@@ -9,6 +9,7 @@ what goes into the cache key.
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, ClassVar, Mapping
@@ -92,6 +93,10 @@ class Context:
         self.checkpoint_dir = checkpoint_dir
         # read-only: the cached entry of a shorter run of the same shot (Stage.extends), to continue from
         self.resume_from = resume_from
+        # wall and CPU seconds spent in warm_up (one-off work such as JIT compilation), left out of the
+        # stage's cost by the engine
+        self.warmup_seconds = 0.0
+        self.warmup_cpu_seconds = 0.0
 
     @classmethod
     def for_stage(cls, stage_cls: type["Stage"], sections: Mapping[str, Any], *, out_dir: Path, config_dir: Path,
@@ -110,6 +115,16 @@ class Context:
 
     def progress(self, description: str, total: float) -> Progress:
         return self.make_progress(description, total)
+
+    def warm_up(self, fn: Callable[[], Any]) -> Any:
+        """Run ``fn`` (one-off work a second run in this process would not pay, e.g. a throw-away step
+        that JIT-compiles a solver's kernels) and leave its time out of the stage's recorded cost."""
+        w, c = time.perf_counter(), time.process_time()
+        try:
+            return fn()
+        finally:
+            self.warmup_seconds += time.perf_counter() - w
+            self.warmup_cpu_seconds += time.process_time() - c
 
     def resolve(self, path: str | Path) -> Path:
         """A path from the config, relative to the config file's folder."""
@@ -133,6 +148,9 @@ class Stage:
     reads: ClassVar[tuple[str, ...]] = ()
     # a read whose growth the stage can continue from a cached shorter run ("scene.frames.count")
     extends: ClassVar[str | None] = None
+    # the first run in a process pays one-off costs a second one does not (numba JIT compilation of its
+    # set-up and stepping kernels): a study first runs it once on a 2-frame copy of the variant, untimed
+    warm_up_run: ClassVar[bool] = False
     per_frame: ClassVar[bool] = False
     default: ClassVar[bool] = False  # the implementation used when the config names none for the kind
     description: ClassVar[str] = ""

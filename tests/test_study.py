@@ -32,7 +32,7 @@ def test_study_runs_variants_and_reports(toy_config):
     assert [r.overrides["simulate.steps"] for r in results] == [1, 2, 4]
     assert [r.metrics["error"] for r in results] == [1.0, 0.5, 0.25]
     rows = list(csv.reader(open(out / "study.csv")))
-    assert rows[0] == ["simulate.steps", "simulate_seconds", "error"] and len(rows) == 4
+    assert rows[0] == ["simulate.steps", "simulate_seconds", "simulate_cpu_seconds", "error"] and len(rows) == 4
     assert (out / "error_vs_time.png").stat().st_size > 1000
     assert ran(toy_config, "simulate") == 3
     run_study(path)  # cached: nothing recomputed

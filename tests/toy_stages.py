@@ -60,9 +60,12 @@ class ToySimulate(Stage):
         steps: int = Field(3, ge=1)
         sleep: float = Field(0.0, ge=0, description="seconds to sleep mid-write (kill tests)")
         fail: str | None = Field(None, description="'user' raises StageError, 'bug' raises RuntimeError")
+        warm_up: float = Field(0.0, ge=0, description="seconds of one-off warm-up (Context.warm_up), as a JIT compile")
 
     def run(self, ctx, inputs, params):
         _bump(ctx, "simulate")
+        if params.warm_up:
+            ctx.warm_up(lambda: time.sleep(params.warm_up))
         if params.fail == "user":
             raise StageError("the emitter box is empty")
         if params.fail == "bug":

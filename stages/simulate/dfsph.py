@@ -316,6 +316,7 @@ class DFSPHSimulate(Stage):
     inputs = ("sdf",)
     reads = ("scene.units", "scene.domain", "scene.frames.count", "scene.frames.fps", "fluid", "effects")
     extends = "scene.frames.count"  # a longer shot continues from the cached shorter run's last frame
+    warm_up_run = True  # numba: a study compiles the kernels on a short run first (pipeline.study)
     outputs = ("particles",)
     description = "divergence-free SPH (Bender and Koschier 2017) with distance-function walls, numba"
 

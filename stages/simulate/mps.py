@@ -283,6 +283,7 @@ class MPSSimulate(Stage):
     inputs = ("sdf",)
     reads = ("scene.units", "scene.domain", "scene.frames.count", "scene.frames.fps", "fluid", "effects")
     extends = "scene.frames.count"  # a longer shot continues from the cached shorter run's last frame
+    warm_up_run = True  # numba: a study compiles the kernels on a short run first (pipeline.study)
     outputs = ("particles",)
     default = False
     description = "moving particle semi-implicit (Koshizuka and Oka 1996) with distance-function walls, numba CG"

@@ -304,6 +304,7 @@ class SPHSimulate(Stage):
     inputs = ("sdf",)
     reads = ("scene.units", "scene.domain", "scene.frames.count", "scene.frames.fps", "fluid", "effects")
     extends = "scene.frames.count"  # a longer shot continues from the cached shorter run's last frame
+    warm_up_run = True  # numba: a study compiles the kernels on a short run first (pipeline.study)
     outputs = ("particles",)
     default = True
     description = "weakly compressible SPH with distance-function walls (Harada et al. 2007), numba"

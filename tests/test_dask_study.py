@@ -1,0 +1,184 @@
+"""Studies and batches of shots on Dask worker processes (pipeline.cluster), on loopback with the toy
+stages: the same results as inline, a worker killed mid-simulation, two clients sharing a cluster and a
+cache, and a batch with a broken shot."""
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("distributed")
+
+from conftest import REPO, TESTS, TOY_CONFIG, ran, write_toy_plugin  # noqa: E402
+from pipeline.study import run_study  # noqa: E402
+
+sys.path.insert(0, str(TESTS / "reliability"))
+from rel_helpers import assert_consistent, entries, tree, write_config  # noqa: E402
+
+STUDY = """\
+study_version: 1
+name: {name}
+base: toy.yaml
+sweep:
+  simulate.steps: {steps}
+set: {set}
+outputs: {outputs}
+time: simulate
+metrics:
+  - {{name: error, file: particles/stats.json, key: stats.error}}
+"""
+
+
+@pytest.fixture(scope="module")
+def plugin(tmp_path_factory):
+    """The toy stages, importable here and (sys.path is handed to spawned processes) in Dask workers."""
+    root = write_toy_plugin(tmp_path_factory.mktemp("plugin"))
+    saved = list(sys.path)
+    sys.path[:0] = [str(root), str(TESTS)]
+    yield root
+    sys.path[:] = saved
+
+
+@pytest.fixture(scope="module")
+def scheduler(plugin):
+    """A cluster of 2 worker processes shared by the tests that connect to a scheduler address."""
+    from pipeline import cluster
+
+    client = cluster.connect(None, 2)
+    yield client.scheduler.address
+    cluster.close(client)
+
+
+def _study(folder: Path, name: str = "s", steps=(1, 2, 4), sets=(), outputs=("particles",)) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "toy.yaml").write_text(TOY_CONFIG)
+    path = folder / f"{name}.yaml"
+    path.write_text(STUDY.format(name=name, steps=list(steps), set=list(sets), outputs=list(outputs)))
+    return path
+
+
+def _table(out: Path) -> list[list[str]]:
+    """study.csv without its timing columns."""
+    rows = list(csv.reader(open(out / "study.csv")))
+    keep = [i for i, h in enumerate(rows[0]) if not h.endswith("seconds")]
+    return [[r[i] for i in keep] for r in rows]
+
+
+def _env(plugin: Path) -> dict:
+    return dict(os.environ, PYTHONPATH=os.pathsep.join([str(plugin), str(TESTS), str(REPO)]))
+
+
+def test_study_on_worker_processes_equals_inline(tmp_path, plugin):
+    path = _study(tmp_path, outputs=("particles", "frames"))
+    inline, out_inline = run_study(path, cache_dir=tmp_path / "c1", out_dir=tmp_path / "o1", executor="inline")
+    runs_inline = ran(path, "simulate"), ran(path, "render")
+    dask, out_dask = run_study(path, cache_dir=tmp_path / "c2", out_dir=tmp_path / "o2", executor="dask", workers=2)
+    assert (ran(path, "simulate"), ran(path, "render")) == (2 * runs_inline[0], 2 * runs_inline[1]) == (6, 24)
+    # the per-frame stages ran on the worker processes, not here
+    pids = set((tmp_path / "ran_render.log").read_text().split())
+    assert str(os.getpid()) in pids and len(pids) >= 2
+    assert entries(tmp_path / "c1") == entries(tmp_path / "c2") != {}
+    skip = ("run.json", "study.json", "study.csv", "study.md", "error_vs_time.png")
+    assert tree(out_inline, skip) == tree(out_dask, skip)
+    assert _table(out_inline) == _table(out_dask)
+    assert [r.metrics for r in inline] == [r.metrics for r in dask] == [{"error": e} for e in (1.0, 0.5, 0.25)]
+    assert all(r.seconds > 0 and r.cpu_seconds >= 0 for r in dask)
+    assert_consistent(tmp_path / "c2")
+
+
+def test_cost_column_leaves_out_the_warm_up(tmp_path, plugin):
+    # a 0.6 s warm-up (as a JIT compile) and 0.2 s of simulation: the study charges the simulation
+    path = _study(tmp_path, steps=(2,), sets=("simulate.warm_up=0.6", "simulate.sleep=0.2"))
+    results, out = run_study(path, executor="inline")
+    run = json.loads((out / "variants" / "steps-2" / "run.json").read_text())
+    assert next(s for s in run["stages"] if s["kind"] == "simulate")["seconds"] >= 0.8
+    assert 0.2 <= results[0].seconds < 0.6 and results[0].cpu_seconds < 0.1  # sleeping costs no CPU
+    assert float(list(csv.reader(open(out / "study.csv")))[1][1]) == round(results[0].seconds, 3)
+
+
+def test_a_warm_up_run_per_process_before_timing(tmp_path, plugin, monkeypatch):
+    import toy_stages
+
+    monkeypatch.setattr(toy_stages.ToySimulate, "warm_up_run", True)
+    path = _study(tmp_path, sets=("simulate.sleep=0.011",))
+    path.write_text(path.read_text().replace("simulate.steps: [1, 2, 4]", "fluid.spacing: [0.1, 0.2]"))
+    run_study(path, cache_dir=tmp_path / "c", executor="inline")
+    # one untimed 2-frame run of the implementation (same parameters for both variants), then the two
+    assert ran(path, "simulate") == 3
+    assert len(list((tmp_path / "c" / "simulate").glob("*/*/manifest.json"))) == 2  # nothing of it cached
+    run_study(path, cache_dir=tmp_path / "c", executor="inline")
+    assert ran(path, "simulate") == 3  # cached variants need no warm-up
+
+
+def test_worker_killed_mid_simulation_is_retried(tmp_path, plugin, scheduler):
+    # each simulation sleeps 2 s in 2 or 3 steps; the first worker seen simulating is killed
+    path = _study(tmp_path / "k", steps=(2, 3), sets=("simulate.sleep=2",))
+    result = {}
+    thread = threading.Thread(target=lambda: result.update(r=run_study(
+        path, cache_dir=tmp_path / "ck", out_dir=tmp_path / "ok", executor="dask", scheduler=scheduler)))
+    thread.start()
+    log = path.parent / "ran_simulate.log"
+    deadline = time.time() + 60
+    while not (log.exists() and log.read_text().split()) and time.time() < deadline:
+        time.sleep(0.05)
+    time.sleep(0.5)  # mid-write: the entry's temporary folder holds a partial particles.txt
+    victim = int(log.read_text().split()[0])
+    assert victim != os.getpid()
+    os.kill(victim, signal.SIGKILL)
+    thread.join(120)
+    assert not thread.is_alive() and "r" in result
+    results, out = result["r"]
+    assert [r.metrics["error"] for r in results] == [0.5, 1 / 3]
+    assert ran(path, "simulate") == 3  # two variants, one of them started again after the kill
+    assert_consistent(tmp_path / "ck", out)
+    # the same as a run nobody interrupted
+    ref = _study(tmp_path / "ref", steps=(2, 3), sets=("simulate.sleep=2",))
+    run_study(ref, cache_dir=tmp_path / "cref", out_dir=tmp_path / "oref", executor="inline")
+    assert entries(tmp_path / "ck") == entries(tmp_path / "cref")
+    assert _table(out) == _table(tmp_path / "oref")
+
+
+def test_two_clients_with_overlapping_studies_compute_shared_keys_once(tmp_path, plugin, scheduler):
+    folder = tmp_path / "shared"
+    a = _study(folder, "a", steps=(1, 2), sets=("simulate.sleep=0.5",))
+    b = _study(folder, "b", steps=(2, 4), sets=("simulate.sleep=0.5",))
+    cmd = [sys.executable, "-m", "pipeline.cli", "study", "--executor", "dask", "--scheduler", scheduler,
+           "--cache", str(folder / "cache"), "-q"]
+    procs = [subprocess.Popen(cmd + [str(p)], env=_env(plugin), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                              text=True) for p in (a, b)]
+    for p in procs:
+        _, err = p.communicate(timeout=120)
+        assert p.returncode == 0, err
+    # steps 1, 2 and 4: the shared variant (2) and the shared upstream stages ran once
+    assert ran(a, "simulate") == 3 and ran(a, "mesh_import") == 1 and ran(a, "sdf_bake") == 1
+    assert _table(folder / "out" / "a")[1:] == [["1", "1.0"], ["2", "0.5"]]
+    assert _table(folder / "out" / "b")[1:] == [["2", "0.5"], ["4", "0.25"]]
+    assert_consistent(folder / "cache")
+
+
+def test_batch_of_shots_with_a_broken_one(tmp_path, plugin, scheduler):
+    good = [write_config(tmp_path / n, name=n, count=3) for n in ("a", "b")]
+    broken = write_config(tmp_path / "c", name="c", count=3)
+    broken.write_text(broken.read_text().replace("simulate: {use: toy,", "simulate: {use: toy, fail: bug,"))
+    r = subprocess.run([sys.executable, "-m", "pipeline.cli", "run", *map(str, good), str(broken),
+                        "--executor", "dask", "--scheduler", scheduler, "--cache", str(tmp_path / "cache")],
+                       env=_env(plugin), capture_output=True, text=True, timeout=120)
+    assert r.returncode == 1, r.stderr
+    errors = [line for line in r.stderr.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and str(broken) in errors[0] and "RuntimeError: boom" in errors[0], r.stderr
+    assert "Traceback" not in r.stderr
+    table = [line for line in r.stdout.splitlines() if ".yaml" in line]
+    assert len(table) == 3 and "failed" in table[2] and all(" ok " in line for line in table[:2]), r.stdout
+    for cfg in good:
+        out = cfg.parent / "out" / cfg.stem
+        assert len(list((out / "frames").glob("frame_*.txt"))) == 3
+        assert (out / "usd" / "scene.txt").is_file()
+    assert_consistent(tmp_path / "cache")
