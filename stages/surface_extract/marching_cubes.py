@@ -1,6 +1,20 @@
 """surface_extract.marching_cubes: the fluid surface per frame (PHYSICS.md eq. 17-18).
 
-The implicit function Phi of the particles (implicit.py, numba, scattered only onto the grid nodes
+The rule (splashsurf's, with our Poly6 kernel): Phi(x) = sum_j V_j W(|x - x_j|), W the Poly6 kernel
+of support R = 1.7 l0, V_j = m_j / rho_j with rho_j summed by SPH over the same kernel and the
+particles present in the frame (not the solver's density, which a solver may clamp at the free
+surface), surface at Phi = 0.63. Inside the fluid Phi = 1. A lone particle has Phi = W(r) / W(0) =
+(1 - r^2 / R^2)^3: its 0.63 level is a sphere of 0.64 l0 (1.11 l0^3; marching cubes' facets take
+back 10 % at cell 0.25 l0, 37 % at 0.5), so a droplet keeps about its own volume instead of dropping
+below the iso level (with V = m / rho0, R = 2 l0 and iso 0.5 a lone particle's Phi peaked at 0.2 and
+a splash frame lost 13 % of its volume). Small clusters keep 0.74 (a tetrahedron) to 1.0 (three in a
+row) of their volume at cell 0.25. With the same R and iso a flat free surface lies within a few
+hundredths of l0 of half a spacing above the top layer, so a still block keeps its volume (R = 2 l0
+would need iso 0.74 for the droplet and then put a flat surface 0.14 l0 too low; 1.7 is the
+smallest support that keeps a lattice sphere's normals as smooth as before). Only mass ratios enter,
+so it holds in any length unit.
+
+The implicit function (implicit.py, numba, scattered only onto the grid nodes
 inside each particle's kernel sphere) is evaluated on a grid covering the particles plus the kernel
 radius, and its iso-surface Phi = iso is extracted with VTK's flying edges (through pyvista), which
 on this machine takes a few per cent of the frame. The grid is padded, so the surface is closed;
@@ -25,15 +39,16 @@ from stages.common.formats import ParticleMeta, SurfaceMesh, load_particle_frame
 from stages.common.meshes import signed_volume, vertex_normals
 from stages.common.sdf import SDFGrid
 
-from .implicit import cut_by_walls, ghost_particles, order_and_chunks, scatter_implicit
+from .implicit import cut_by_walls, ghost_particles, order_and_chunks, particle_volumes, scatter_implicit
 
 SLABS_PER_CHUNK = 4  # z slabs per parallel task: many tasks for balance, each particle in ~ 2R / (4 h) of them
 
 
 class MarchingCubesParams(Params):
     cell: float = Field(0.5, gt=0.05, le=2.0, description="grid spacing in units of the particle spacing l0")
-    radius: float = Field(2.0, ge=1.0, le=4.0, description="kernel support of each particle's density, in l0")
-    iso: float = Field(0.5, gt=0.0, lt=1.0, description="iso level of Phi (about 1 inside the fluid, 0 outside)")
+    radius: float = Field(1.7, ge=1.0, le=4.0, description="kernel support of each particle's density, in l0")
+    iso: float = Field(0.63, gt=0.0, lt=1.0, description="iso level of Phi (1 inside the fluid, 0 outside); with "
+                       "radius 1.7 a lone particle keeps about l0^3 and a flat surface lies l0/2 above the top layer")
     smoothing_iterations: int = Field(0, ge=0, le=200, description="Taubin smoothing passes (0 = off); "
                                                                    "keeps the volume")
     wall_term: bool = Field(True, description="with an SDF upstream: add the walls' density near them and cut "
@@ -42,7 +57,8 @@ class MarchingCubesParams(Params):
 
 def extract(x: np.ndarray, vol: np.ndarray, l0: float, params: MarchingCubesParams,
             sdf: SDFGrid | None = None, timings: dict | None = None) -> SurfaceMesh:
-    """The iso-surface Phi = iso of the particles ``x`` (N, 3) with volumes ``vol`` (N,) = m / rho, all in
+    """The iso-surface Phi = iso of the particles ``x`` (N, 3) with rest volumes ``vol`` (N,) = m / rho0 (any
+    quantity proportional to the masses: the volumes V_j = m_j / rho_j come from SPH summation), all in
     one length unit (the scene's: ``ParticleMeta.volume``), as ``l0``.
 
     ``sdf`` (optional) brings in the wall term; ``timings`` (optional) receives seconds per step."""
@@ -71,6 +87,7 @@ def extract(x: np.ndarray, vol: np.ndarray, l0: float, params: MarchingCubesPara
         ghost_particles(x, vol, sdf.dist, sdf.origin, 1.0 / sdf.spacing, R, gx, gv, keep)
         x = np.concatenate([x, gx[keep]])
         vol = np.concatenate([vol, gv[keep]])
+    vol = particle_volumes(x, vol, R)  # the mirror images count: the wall carries its share of rho
     order, first, last, bounds = order_and_chunks(x, grid_lo, h, R, shape, SLABS_PER_CHUNK)
     xs = np.ascontiguousarray(x[order])
     vs = np.ascontiguousarray(vol[order])
@@ -103,21 +120,20 @@ def extract(x: np.ndarray, vol: np.ndarray, l0: float, params: MarchingCubesPara
 class MarchingCubes(Stage):
     kind = "surface_extract"
     name = "marching_cubes"
-    version = "3"
+    version = "4"
     Params = MarchingCubesParams
     inputs = ("particles",)
     optional_inputs = ("sdf",)
     outputs = ("raw_surface",)
     per_frame = True
     default = True
-    description = "Phi = sum (m/rho) W scattered onto a grid around the particles, iso-surface by flying edges"
+    description = "Phi = sum (m/rho) W (rho by SPH summation) scattered onto a grid around the particles, iso-surface by flying edges"
 
     def run_frame(self, ctx: Context, inputs: Mapping[str, Artifact], params: MarchingCubesParams, frame: int) -> None:
         folder = inputs["particles"].frame(frame)
         meta = ParticleMeta.load(folder)
         pf = load_particle_frame(folder, frame)
-        rho = np.maximum(pf.rho.astype(np.float64), 0.5 * meta.density)  # isolated splashes: no blow-up
-        vol = meta.volume(rho)  # scene units^3, like x and the kernel radius (m / rho alone is m^3)
+        vol = np.full(len(pf.x), meta.volume(meta.density))  # m / rho0 in scene units^3 (m / rho alone is m^3)
         sdf = SDFGrid.load(inputs["sdf"].frame(frame)) if inputs.get("sdf") is not None else None
         timings: dict = {}
         mesh = extract(pf.x, vol, meta.spacing, params, sdf=sdf, timings=timings)
