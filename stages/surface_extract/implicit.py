@@ -24,18 +24,12 @@ from stages.simulate.neighbours import CellGrid, cell_coords
 MAX_CELLS_PER_PARTICLE = 8  # the volumes' cell grid grows its cells rather than exceed this (far spray)
 
 
-@nb.njit(cache=True, inline="always")
-def poly6(r2, radius):
-    """The Poly6 kernel (eq. 10) of support ``radius`` at squared distance ``r2`` (< radius^2)."""
-    w = radius * radius - r2
-    return 315.0 / (64.0 * math.pi * radius ** 9) * w * w * w
-
-
 @nb.njit(cache=True, parallel=True)
 def _summed_volumes(x, vol, starts, lo, inv_cell, dims, radius, out):
-    """out_i = vol_i / sum_j vol_j W(|x_i - x_j|) over the 27 cells around i (self included)."""
+    """out_i = vol_i / sum_j vol_j W(|x_i - x_j|) (Poly6, eq. 10) over the 27 cells around i (self included)."""
     nx, ny, nz = dims[0], dims[1], dims[2]
     r2max = radius * radius
+    coef = 315.0 / (64.0 * math.pi * radius ** 9)
     for i in nb.prange(x.shape[0]):
         xi, yi, zi = x[i, 0], x[i, 1], x[i, 2]
         cx, cy, cz = cell_coords(xi, yi, zi, lo[0], lo[1], lo[2], inv_cell, nx, ny, nz)
@@ -48,9 +42,10 @@ def _summed_volumes(x, vol, starts, lo, inv_cell, dims, radius, out):
                     dy = yi - x[j, 1]
                     dz = zi - x[j, 2]
                     r2 = dx * dx + dy * dy + dz * dz
-                    if r2 < r2max:
-                        s += vol[j] * poly6(r2, radius)
-        out[i] = vol[i] / s
+                    w = r2max - r2
+                    if w > 0.0:
+                        s += vol[j] * w * w * w
+        out[i] = vol[i] / (coef * s)
 
 
 def particle_volumes(x: np.ndarray, vol: np.ndarray, radius: float) -> np.ndarray:
