@@ -1,6 +1,9 @@
 """One splash frame three ways, side by side: ours isotropic | ours anisotropic | splashsurf smoothed.
 
-    .venv/bin/python benchmarks/surface_anisotropic_figure.py [--particles FOLDER --frame N]
+    .venv/bin/python benchmarks/surface_anisotropic_figure.py [--particles FOLDER --frame N [--label TEXT]]
+
+The committed picture: configs/dam_break.yaml's particles (SPH, 19,683 particles), frame 22 (0.73 s,
+the wave running up the far wall), ``--particles .pipeline/simulate/<key> --frame 22``.
 
 FOLDER: a simulate stage's particles artifact (e.g. the dam break's, from the pipeline cache); without
 it, bench_surface.py's splash_20k set. All three at the same grid (cube 0.25 l0 = 0.5 r). Ours: the
@@ -48,12 +51,13 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--particles", type=Path, help="a particles artifact folder (meta.json + frames)")
     ap.add_argument("--frame", type=int, default=0)
+    ap.add_argument("--label", help="where the particles come from, for the results file")
     args = ap.parse_args()
     if args.particles:
         meta = ParticleMeta.load(args.particles)
         x = load_particle_frame(args.particles, args.frame).x.astype(np.float64) * meta.meters_per_unit
         l0 = meta.spacing * meta.meters_per_unit
-        source = f"{args.particles} frame {args.frame}"
+        source = f"{args.label or args.particles} frame {args.frame}"
     else:
         from bench_surface import L0, splash
 
