@@ -69,6 +69,7 @@ def extract(x: np.ndarray, vol: np.ndarray, l0: float, params: MarchingCubesPara
 
     ``sdf`` (optional) brings in the wall term; ``timings`` (optional) receives seconds per step."""
     import pyvista as pv
+    from vtkmodules.util.numpy_support import vtk_to_numpy
 
     t = {"volumes": 0.0, "phi": 0.0, "contour": 0.0, "finish": 0.0}
     if timings is not None:
@@ -126,7 +127,9 @@ def extract(x: np.ndarray, vol: np.ndarray, l0: float, params: MarchingCubesPara
     if params.smoothing_iterations:
         surf = surf.smooth_taubin(n_iter=params.smoothing_iterations, pass_band=0.1)
     verts = np.asarray(surf.points, np.float64)
-    faces = np.asarray(surf.faces).reshape(-1, 4)[:, 1:].astype(np.int32)
+    # flying edges makes triangles only: the cells' connectivity, without pyvista's legacy (n, i, j, k)
+    # array (building it took a third of a second at 4M triangles)
+    faces = vtk_to_numpy(surf.GetPolys().GetConnectivityArray()).astype(np.int32).reshape(-1, 3)
     if signed_volume(verts, faces) < 0:  # orient outwards (Phi falls off outside the fluid)
         faces = np.ascontiguousarray(faces[:, ::-1])
     normals = vertex_normals(verts, faces)
