@@ -6,20 +6,24 @@ particles present in the frame (not the solver's density, which a solver may cla
 surface), surface at Phi = 0.63. Inside the fluid Phi = 1. A lone particle has Phi = W(r) / W(0) =
 (1 - r^2 / R^2)^3: its 0.63 level is a sphere of 0.64 l0 (1.11 l0^3; marching cubes' facets take
 back 10 % at cell 0.25 l0, 37 % at 0.5), so a droplet keeps about its own volume instead of dropping
-below the iso level (with V = m / rho0, R = 2 l0 and iso 0.5 a lone particle's Phi peaked at 0.2 and
-a splash frame lost 13 % of its volume). Small clusters keep 0.74 (a tetrahedron) to 1.0 (three in a
-row) of their volume at cell 0.25. With the same R and iso a flat free surface lies within a few
-hundredths of l0 of half a spacing above the top layer, so a still block keeps its volume (R = 2 l0
-would need iso 0.74 for the droplet and then put a flat surface 0.14 l0 too low; 1.7 is the
-smallest support that keeps a lattice sphere's normals as smooth as before). Only mass ratios enter,
-so it holds in any length unit.
+below the iso level. Small clusters keep 0.74 (a tetrahedron) to 1.0 (three in a row) of their
+volume at cell 0.25. With the same R and iso a flat free surface lies within a few hundredths of l0
+of half a spacing above the top layer, so a still block keeps its volume (R = 2 l0 would need iso
+0.74 for the droplet and then put a flat surface 0.14 l0 too low; 1.7 is the smallest support that
+keeps a lattice sphere's normals as smooth as before). Only mass ratios enter, so it holds in any
+length unit. Before (R = 2 l0, iso 0.5, V = m / rho with the solver's rho floored at rho0 / 2) a lone
+particle's Phi peaked at 0.2-0.4 and it vanished, while the solver's low densities at the free
+surface inflated the rest: a dam-break frame enclosed 1.01-1.06 N l0^3 (now 0.96-1.01, splashsurf
+0.97-1.02), bench_surface.py's splash with V = l0^3 0.87 (now 1.00).
 
 The implicit function (implicit.py, numba, scattered only onto the grid nodes
 inside each particle's kernel sphere) is evaluated on a grid covering the particles plus the kernel
-radius, and its iso-surface Phi = iso is extracted with VTK's flying edges (through pyvista), which
-on this machine takes a few per cent of the frame. The grid is padded, so the surface is closed;
+radius, and its iso-surface Phi = iso is extracted with VTK's flying edges (through pyvista). The grid is padded, so the surface is closed;
 faces are oriented so that normals point out of the fluid. Optional Taubin smoothing (which keeps
 the volume) is off by default.
+
+With ``anisotropic`` each particle's kernel is an ellipsoid fitted to its neighbours (anisotropic.py,
+Yu and Turk 2013), for smooth sheets and flat surfaces.
 
 With an SDF upstream the wall's share of the density is added near walls (mirror images of the
 particles within R of a wall) and the fluid is cut by the wall (Phi' = iso + min(Phi - iso, d / R)),
