@@ -139,6 +139,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--small", action="store_true", help="20k sets only")
     args = ap.parse_args()
+    load_start = os.getloadavg()[0]  # a shared machine: say how busy it was
     sets = {"block_20k": block(27), "splash_20k": splash(19683)}
     if not args.small:
         sets.update({"block_100k": block(46), "splash_100k": splash(97336)})
@@ -164,7 +165,8 @@ def main() -> None:
     print("wall_snap:", json.dumps(snap))
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     RESULTS.write_text(json.dumps({
-        "machine": {"platform": platform.platform(), "python": platform.python_version(), "cores": os.cpu_count()},
+        "machine": {"platform": platform.platform(), "python": platform.python_version(), "cores": os.cpu_count(),
+                    "load_average_1min_start_end": [round(load_start, 2), round(os.getloadavg()[0], 2)]},
         "settings": {"particle_radius": R_PARTICLE, "l0": L0, "ours": {"radius_l0": MarchingCubesParams().radius, "cell_l0": 0.25,
                                                                   "iso": MarchingCubesParams().iso},
                      "splashsurf": {"smoothing_length_r": 2.0, "cube_size_r": 0.5, "iso": 0.6, "post": "none"},
