@@ -30,9 +30,9 @@ import math
 import numba as nb
 import numpy as np
 
-from stages.simulate.neighbours import CellGrid, cell_coords
+from stages.simulate.neighbours import cell_coords
 
-from .implicit import MAX_CELLS_PER_PARTICLE
+from .implicit import cell_grid
 
 NEIGHBOURHOOD = 1.5  # r_n / R: 2.55 l0 at R = 1.7 l0, about 70 neighbours inside the fluid, 35 on a surface
 N_EPS = 25  # fewer neighbours: isotropic kernel
@@ -40,7 +40,8 @@ K_R = 4.0  # largest / smallest axis
 
 
 @nb.njit(cache=True, inline="always")
-def _weight(r2, rn2, inv_rn3):
+def _weight(r2, inv_rn3):
+    """Yu and Turk's neighbour weight 1 - (r / r_n)^3 (for r < r_n)."""
     r = math.sqrt(r2)
     return 1.0 - r * r2 * inv_rn3
 
@@ -66,7 +67,7 @@ def _means_and_covariance(x, starts, lo, inv_cell, dims, rn, mean, cov, count):
                     r2 = dx * dx + dy * dy + dz * dz
                     if r2 >= rn2:
                         continue
-                    w = _weight(r2, rn2, inv_rn3)
+                    w = _weight(r2, inv_rn3)
                     n += 1
                     sw += w
                     sx += w * dx
@@ -111,7 +112,7 @@ def _weighted_mean_of(x, y, starts, lo, inv_cell, dims, rn, out):
                     r2 = dx * dx + dy * dy + dz * dz
                     if r2 >= rn2:
                         continue
-                    w = _weight(r2, rn2, inv_rn3)
+                    w = _weight(r2, inv_rn3)
                     sw += w
                     sx += w * (y[j, 0] - y[i, 0])
                     sy += w * (y[j, 1] - y[i, 1])
@@ -217,10 +218,7 @@ def anisotropic_kernels(x: np.ndarray, radius: float, smoothing: float = 0.0
     for kernels of support ``radius``, centres smoothed with lambda = ``smoothing`` (module docstring). Finite for any input: a lone particle,
     collinear or coincident particles get the isotropic kernel or a clamped ellipsoid."""
     rn = NEIGHBOURHOOD * radius
-    lo = x.min(axis=0)
-    ext = np.maximum(x.max(axis=0) - lo, rn)
-    cell = max(rn, float(np.prod(ext) / (MAX_CELLS_PER_PARTICLE * len(x))) ** (1.0 / 3.0))
-    grid = CellGrid(lo, lo + ext * (1 + 1e-9), cell)
+    grid = cell_grid(x, rn)
     order = grid.sort(x)
     xs = np.ascontiguousarray(x[order])
     n = len(x)

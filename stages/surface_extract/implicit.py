@@ -48,15 +48,21 @@ def _summed_volumes(x, vol, starts, lo, inv_cell, dims, radius, out):
         out[i] = vol[i] / (coef * s)
 
 
+def cell_grid(x: np.ndarray, radius: float) -> CellGrid:
+    """A cell grid over the particles ``x`` for pair searches within ``radius``: cells of at least
+    ``radius``, grown so that far-flung spray does not make more than MAX_CELLS_PER_PARTICLE cells each."""
+    lo = x.min(axis=0)
+    extent = np.maximum(x.max(axis=0) - lo, radius)
+    cell = max(radius, float(np.prod(extent) / (MAX_CELLS_PER_PARTICLE * len(x))) ** (1.0 / 3.0))
+    return CellGrid(lo, lo + extent * (1 + 1e-9), cell)
+
+
 def particle_volumes(x: np.ndarray, vol: np.ndarray, radius: float) -> np.ndarray:
     """The volume m_i / rho_i each particle occupies, rho_i by SPH summation over the kernel of support
     ``radius`` (self included). ``vol`` is any quantity proportional to the masses (m / rho0): only
     ratios of masses enter, so the result is in the unit of ``x`` cubed. A lone particle gets
     1 / W(0), which makes its own Phi 1 at its centre."""
-    lo = x.min(axis=0)
-    extent = np.maximum(x.max(axis=0) - lo, radius)
-    cell = max(radius, float(np.prod(extent) / (MAX_CELLS_PER_PARTICLE * len(x))) ** (1.0 / 3.0))
-    grid = CellGrid(lo, lo + extent * (1 + 1e-9), cell)
+    grid = cell_grid(x, radius)
     order = grid.sort(x)
     out = np.empty(len(x))
     _summed_volumes(x[order], vol[order], grid.starts, grid.lo, 1.0 / grid.cell, grid.dims, radius, out)
