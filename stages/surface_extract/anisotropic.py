@@ -215,8 +215,9 @@ def _kernel_shapes(cov, count, n_eps, k_r, radius, metric, extent):
 def anisotropic_kernels(x: np.ndarray, radius: float, smoothing: float = 0.0
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Kernel centres (N, 3), kernel metrics (N, 6) and support half extents (N, 3) of particles ``x``
-    for kernels of support ``radius``, centres smoothed with lambda = ``smoothing`` (module docstring). Finite for any input: a lone particle,
-    collinear or coincident particles get the isotropic kernel or a clamped ellipsoid."""
+    for kernels of support ``radius``, centres smoothed with lambda = ``smoothing`` (module docstring).
+    Finite for any input: a lone particle, collinear or coincident particles get the isotropic kernel
+    or a clamped ellipsoid."""
     rn = NEIGHBOURHOOD * radius
     grid = cell_grid(x, rn)
     order = grid.sort(x)

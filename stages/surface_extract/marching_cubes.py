@@ -16,11 +16,11 @@ particle's Phi peaked at 0.2-0.4 and it vanished, while the solver's low densiti
 surface inflated the rest: a dam-break frame enclosed 1.01-1.06 N l0^3 (now 0.96-1.01, splashsurf
 0.97-1.02), bench_surface.py's splash with V = l0^3 0.87 (now 1.00).
 
-The implicit function (implicit.py, numba, scattered only onto the grid nodes
-inside each particle's kernel sphere) is evaluated on a grid covering the particles plus the kernel
-radius, and its iso-surface Phi = iso is extracted with VTK's flying edges (through pyvista). The grid is padded, so the surface is closed;
-faces are oriented so that normals point out of the fluid. Optional Taubin smoothing (which keeps
-the volume) is off by default.
+The implicit function (implicit.py, numba, scattered only onto the grid nodes inside each particle's
+kernel sphere) is evaluated on a grid covering the particles plus the kernel radius, and its
+iso-surface Phi = iso is extracted with VTK's flying edges (through pyvista). The grid is padded, so
+the surface is closed; faces are oriented so that normals point out of the fluid. Optional Taubin
+smoothing (which keeps the volume) is off by default.
 
 With ``anisotropic`` each particle's kernel is an ellipsoid fitted to its neighbours (anisotropic.py,
 Yu and Turk 2013), for smooth sheets and flat surfaces.
@@ -153,7 +153,8 @@ class MarchingCubes(Stage):
     outputs = ("raw_surface",)
     per_frame = True
     default = True
-    description = "Phi = sum (m/rho) W (rho by SPH summation) scattered onto a grid around the particles, iso-surface by flying edges"
+    description = ("Phi = sum (m/rho) W (rho by SPH summation) scattered onto a grid around the particles, "
+                   "iso-surface by flying edges")
 
     def run_frame(self, ctx: Context, inputs: Mapping[str, Artifact], params: MarchingCubesParams, frame: int) -> None:
         folder = inputs["particles"].frame(frame)
