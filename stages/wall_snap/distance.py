@@ -411,7 +411,7 @@ def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapPa
 class DistanceSnap(Stage):
     kind = "wall_snap"
     name = "distance"
-    version = "7"
+    version = "8"
     Params = DistanceSnapParams
     inputs = ("raw_surface", "sdf", "particles")  # particles: for l0 (band and tolerance are in l0)
     optional_inputs = ("walls",)
