@@ -8,9 +8,11 @@ Particle sets (particle radius r, spacing l0 = 2 r, positions as float32 for bot
   splash_20k / splash_100k: a fluid layer on a floor plus a spray cloud above it (droplets of 4-40
                            particles and single particles, seed 1), a stand-in for a dam break's splash.
 Equal resolution: splashsurf with its peers settings (smoothing length 2.0 r, i.e. compact support
-4 r = 2 l0; cube size 0.5 r; iso 0.6; no post-processing); ours with radius 2.0 l0, cell 0.25 l0
-(= 0.5 r), iso 0.5, no smoothing. Our default cell (0.5 l0) is timed as well. Each time is the median
-of ``repeats`` calls after one warm-up call. Both use 2 threads (numba; rayon).
+4 r = 2 l0, cubic spline; cube size 0.5 r; iso 0.6; no post-processing); ours with its defaults (Poly6
+of support 1.7 l0, whose width, the rms distance along an axis 0.51 l0, is within 7 % of splashsurf's
+kernel's 0.55 l0; particle volumes by SPH summation as splashsurf's; iso 0.63), cell 0.25 l0 (= 0.5 r),
+no smoothing. Our default cell (0.5 l0) and our anisotropic option (cell 0.25 l0) are timed as well.
+Each time is the median of ``repeats`` calls after one warm-up call. Both use 2 threads (numba; rayon).
 Volume: enclosed volume of the closed mesh / (N l0^3). Closed: count of boundary edges (0 = closed).
 Wall snap: a fluid block resting in a box tank (analytic SDF on a 0.5 l0 grid, exact finish on the
 tank's mesh); the share of snapped vertices on the wall to 1e-3 l0 (exact distance), and the time.
@@ -84,8 +86,8 @@ def timed(fn, repeats: int):
     return statistics.median(ts), out
 
 
-def ours(x: np.ndarray, cell: float, repeats: int) -> dict:
-    params = MarchingCubesParams(cell=cell, radius=2.0, iso=0.5)
+def ours(x: np.ndarray, cell: float, repeats: int, anisotropic: bool = False) -> dict:
+    params = MarchingCubesParams(cell=cell, anisotropic=anisotropic)
     vol = np.full(len(x), L0 ** 3)
     timings: dict = {}
     t, mesh = timed(lambda: extract(x, vol, L0, params, timings=timings), repeats)
@@ -137,28 +139,36 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--small", action="store_true", help="20k sets only")
     args = ap.parse_args()
+    load_start = os.getloadavg()[0]  # a shared machine: say how busy it was
     sets = {"block_20k": block(27), "splash_20k": splash(19683)}
     if not args.small:
         sets.update({"block_100k": block(46), "splash_100k": splash(97336)})
     rows = []
     print(f"{'set':12s} {'N':>7s} | {'ours s':>7s} {'tris':>8s} {'vol':>6s} {'open':>4s} | "
-          f"{'splashsurf s':>12s} {'tris':>8s} {'vol':>6s} {'open':>4s} | {'ratio':>5s} | {'ours cell 0.5 s':>15s}")
+          f"{'splashsurf s':>12s} {'tris':>8s} {'vol':>6s} {'open':>4s} | {'ratio':>5s} | {'ours cell 0.5 s':>15s} | "
+          f"{'anisotropic s':>13s} {'vol':>6s}")
     for name, x in sets.items():
         a = ours(x, 0.25, args.repeats)
         b = splashsurf(x, args.repeats)
         c = ours(x, 0.5, args.repeats)
+        d = ours(x, 0.25, args.repeats, anisotropic=True)
         ratio = a["s_per_frame"] / b["s_per_frame"]
         rows.append({"set": name, "particles": int(len(x)), "ours_cell_0.25": a, "splashsurf_raw": b,
-                     "ratio_ours_over_splashsurf": round(ratio, 3), "ours_cell_0.5": c})
+                     "ratio_ours_over_splashsurf": round(ratio, 3), "ours_cell_0.5": c,
+                     "ours_anisotropic_cell_0.25": d,
+                     "ratio_anisotropic_over_splashsurf": round(d["s_per_frame"] / b["s_per_frame"], 3)})
         print(f"{name:12s} {len(x):7d} | {a['s_per_frame']:7.3f} {a['triangles']:8d} {a['volume_ratio']:6.3f} "
               f"{a['boundary_edges']:4d} | {b['s_per_frame']:12.3f} {b['triangles']:8d} {b['volume_ratio']:6.3f} "
-              f"{b['boundary_edges']:4d} | {ratio:5.2f} | {c['s_per_frame']:7.3f} ({c['triangles']} tris)", flush=True)
+              f"{b['boundary_edges']:4d} | {ratio:5.2f} | {c['s_per_frame']:7.3f} ({c['triangles']} tris) | "
+              f"{d['s_per_frame']:13.3f} {d['volume_ratio']:6.3f}", flush=True)
     snap = wall_snap_case(args.repeats)
     print("wall_snap:", json.dumps(snap))
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     RESULTS.write_text(json.dumps({
-        "machine": {"platform": platform.platform(), "python": platform.python_version(), "cores": os.cpu_count()},
-        "settings": {"particle_radius": R_PARTICLE, "l0": L0, "ours": {"radius_l0": 2.0, "cell_l0": 0.25, "iso": 0.5},
+        "machine": {"platform": platform.platform(), "python": platform.python_version(), "cores": os.cpu_count(),
+                    "load_average_1min_start_end": [round(load_start, 2), round(os.getloadavg()[0], 2)]},
+        "settings": {"particle_radius": R_PARTICLE, "l0": L0, "ours": {"radius_l0": MarchingCubesParams().radius, "cell_l0": 0.25,
+                                                                  "iso": MarchingCubesParams().iso},
                      "splashsurf": {"smoothing_length_r": 2.0, "cube_size_r": 0.5, "iso": 0.6, "post": "none"},
                      "repeats": args.repeats, "statistic": "median after one warm-up"},
         "sets": rows, "wall_snap": snap}, indent=2))

@@ -67,7 +67,8 @@ def test_centimetre_and_millimetre_scenes_enclose_the_metre_scenes_volume(tmp_pa
 
 def test_wall_term_puts_the_raw_surface_on_the_walls(tmp_path):
     """With the SDF upstream, the fluid's contact with the walls lies on them already (mirror particles
-    carry the wall's share of Phi, and the fluid is cut at d = 0); without it the surface floats off."""
+    carry the wall's share of Phi, and the fluid is cut at d = 0); without it the surface crosses the walls
+    (the summed volumes of the outer layer put it about l0/2 out, give or take) and rounds the tank's edges."""
     from stages.common.sdf import box_interior_sdf, grid_from_function
 
     lo, hi = np.zeros(3), np.array([0.2, 0.2, 0.2])
@@ -88,7 +89,8 @@ def test_wall_term_puts_the_raw_surface_on_the_walls(tmp_path):
         d = exact(v)
         contact_line = (v[:, 2] > 4 * L0) & (d < 1.5 * L0)  # where the free surface (z = 5 l0) meets a side wall
         results[name] = (float(d[contact_line].min()), signed_volume(v, mesh.faces) / (len(x) * L0**3), float(d.min()))
-    # measured: contact line 0 vs 0.2 l0 off the wall; volume 0.986 vs 0.933 of N l0^3
-    assert results["wall"][0] < 0.01 * L0 and results["none"][0] > 0.1 * L0
-    assert abs(results["wall"][1] - 1.0) < 0.03 and results["none"][1] < 0.95
+    # measured: contact line 0 vs -0.06 l0 (in the wall); volume 0.973 vs 0.945 of N l0^3 (the flat top
+    # 0.07 l0 low on this exact lattice, 1.3 % of 5 layers)
+    assert abs(results["wall"][0]) < 0.01 * L0 and results["none"][0] < -0.02 * L0
+    assert abs(results["wall"][1] - 1.0) < 0.03 and results["none"][1] < results["wall"][1] - 0.01
     assert results["wall"][2] > -1e-3 * L0  # the cut keeps the surface out of the walls

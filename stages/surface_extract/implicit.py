@@ -1,8 +1,10 @@
 """The particles' implicit function on a grid (PHYSICS.md eq. 17-18), numba.
 
-Phi(x) = sum_j (m / rho_j) W(|x - x_j|) with the Poly6 kernel (eq. 10) of support R, so Phi is about
-1 inside the fluid and 0 outside. Scattered per particle over the grid nodes inside its kernel
-sphere only (about 4.2 R^3 / h^3 nodes, against 27 R^3 / h^3 for a gather over neighbour cells).
+Phi(x) = sum_j V_j W(|x - x_j|) with the Poly6 kernel W (eq. 10) of support R,
+and V_j = m_j / rho_j with rho_j the SPH summation sum_k m_k W(|x_j - x_k|) over the same kernel
+(``particle_volumes``), so Phi is 1 wherever the particles are evenly spread, whatever their
+spacing, and 0 outside. Scattered per particle over the grid nodes inside its kernel sphere only (about
+4.2 R^3 / h^3 nodes, against 27 R^3 / h^3 for a gather over neighbour cells).
 The grid's z slabs are split into chunks, one chunk per parallel task, and every particle adds only
 into the slabs of the chunk at hand, so each node is written by one thread, in particle order:
 deterministic, no atomics.
@@ -17,6 +19,56 @@ import numba as nb
 import numpy as np
 
 from stages.common.sdf import sdf_sample
+from stages.simulate.neighbours import CellGrid, cell_coords
+
+MAX_CELLS_PER_PARTICLE = 8  # the volumes' cell grid grows its cells rather than exceed this (far spray)
+
+
+@nb.njit(cache=True, parallel=True)
+def _summed_volumes(x, vol, starts, lo, inv_cell, dims, radius, out):
+    """out_i = vol_i / sum_j vol_j W(|x_i - x_j|) (Poly6, eq. 10) over the 27 cells around i (self included)."""
+    nx, ny, nz = dims[0], dims[1], dims[2]
+    r2max = radius * radius
+    coef = 315.0 / (64.0 * math.pi * radius ** 9)
+    for i in nb.prange(x.shape[0]):
+        xi, yi, zi = x[i, 0], x[i, 1], x[i, 2]
+        cx, cy, cz = cell_coords(xi, yi, zi, lo[0], lo[1], lo[2], inv_cell, nx, ny, nz)
+        s = 0.0
+        for kz in range(max(cz - 1, 0), min(cz + 2, nz)):
+            for ky in range(max(cy - 1, 0), min(cy + 2, ny)):
+                base = (kz * ny + ky) * nx
+                for j in range(starts[base + max(cx - 1, 0)], starts[base + min(cx + 1, nx - 1) + 1]):
+                    dx = xi - x[j, 0]
+                    dy = yi - x[j, 1]
+                    dz = zi - x[j, 2]
+                    r2 = dx * dx + dy * dy + dz * dz
+                    w = r2max - r2
+                    if w > 0.0:
+                        s += vol[j] * w * w * w
+        out[i] = vol[i] / (coef * s)
+
+
+def cell_grid(x: np.ndarray, radius: float) -> CellGrid:
+    """A cell grid over the particles ``x`` for pair searches within ``radius``: cells of at least
+    ``radius``, grown so that far-flung spray does not make more than MAX_CELLS_PER_PARTICLE cells each."""
+    lo = x.min(axis=0)
+    extent = np.maximum(x.max(axis=0) - lo, radius)
+    cell = max(radius, float(np.prod(extent) / (MAX_CELLS_PER_PARTICLE * len(x))) ** (1.0 / 3.0))
+    return CellGrid(lo, lo + extent * (1 + 1e-9), cell)
+
+
+def particle_volumes(x: np.ndarray, vol: np.ndarray, radius: float) -> np.ndarray:
+    """The volume m_i / rho_i each particle occupies, rho_i by SPH summation over the kernel of support
+    ``radius`` (self included). ``vol`` is any quantity proportional to the masses (m / rho0): only
+    ratios of masses enter, so the result is in the unit of ``x`` cubed. A lone particle gets
+    1 / W(0), which makes its own Phi 1 at its centre."""
+    grid = cell_grid(x, radius)
+    order = grid.sort(x)
+    out = np.empty(len(x))
+    _summed_volumes(x[order], vol[order], grid.starts, grid.lo, 1.0 / grid.cell, grid.dims, radius, out)
+    result = np.empty(len(x))
+    result[order] = out
+    return result
 
 
 @nb.njit(cache=True, parallel=True, fastmath=True)

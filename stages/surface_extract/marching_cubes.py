@@ -1,11 +1,29 @@
 """surface_extract.marching_cubes: the fluid surface per frame (PHYSICS.md eq. 17-18).
 
-The implicit function Phi of the particles (implicit.py, numba, scattered only onto the grid nodes
-inside each particle's kernel sphere) is evaluated on a grid covering the particles plus the kernel
-radius, and its iso-surface Phi = iso is extracted with VTK's flying edges (through pyvista), which
-on this machine takes a few per cent of the frame. The grid is padded, so the surface is closed;
-faces are oriented so that normals point out of the fluid. Optional Taubin smoothing (which keeps
-the volume) is off by default.
+The rule (splashsurf's, with our Poly6 kernel): Phi(x) = sum_j V_j W(|x - x_j|), W the Poly6 kernel
+of support R = 1.7 l0, V_j = m_j / rho_j with rho_j summed by SPH over the same kernel and the
+particles present in the frame (not the solver's density, which a solver may clamp at the free
+surface), surface at Phi = 0.63. Inside the fluid Phi = 1. A lone particle has Phi = W(r) / W(0) =
+(1 - r^2 / R^2)^3: its 0.63 level is a sphere of 0.64 l0 (1.11 l0^3; marching cubes' facets take
+back 10 % at cell 0.25 l0, 37 % at 0.5), so a droplet keeps about its own volume instead of dropping
+below the iso level. Small clusters keep 0.74 (a tetrahedron) to 1.0 (three in a row) of their
+volume at cell 0.25. With the same R and iso a flat free surface lies within a few hundredths of l0
+of half a spacing above the top layer, so a still block keeps its volume (R = 2 l0 would need iso
+0.74 for the droplet and then put a flat surface 0.14 l0 too low; 1.7 is the smallest support that
+keeps a lattice sphere's normals as smooth as before). Only mass ratios enter, so it holds in any
+length unit. Before (R = 2 l0, iso 0.5, V = m / rho with the solver's rho floored at rho0 / 2) a lone
+particle's Phi peaked at 0.2-0.4 and it vanished, while the solver's low densities at the free
+surface inflated the rest: a dam-break frame enclosed 1.01-1.06 N l0^3 (now 0.96-1.01, splashsurf
+0.97-1.02), bench_surface.py's splash with V = l0^3 0.87 (now 1.00).
+
+The implicit function (implicit.py, numba, scattered only onto the grid nodes inside each particle's
+kernel sphere) is evaluated on a grid covering the particles plus the kernel radius, and its
+iso-surface Phi = iso is extracted with VTK's flying edges (through pyvista). The grid is padded, so
+the surface is closed; faces are oriented so that normals point out of the fluid. Optional Taubin
+smoothing (which keeps the volume) is off by default.
+
+With ``anisotropic`` each particle's kernel is an ellipsoid fitted to its neighbours (anisotropic.py,
+Yu and Turk 2013), for smooth sheets and flat surfaces.
 
 With an SDF upstream the wall's share of the density is added near walls (mirror images of the
 particles within R of a wall) and the fluid is cut by the wall (Phi' = iso + min(Phi - iso, d / R)),
@@ -25,30 +43,39 @@ from stages.common.formats import ParticleMeta, SurfaceMesh, load_particle_frame
 from stages.common.meshes import signed_volume, vertex_normals
 from stages.common.sdf import SDFGrid
 
-from .implicit import cut_by_walls, ghost_particles, order_and_chunks, scatter_implicit
+from .anisotropic import anisotropic_kernels, scatter_anisotropic
+from .implicit import cut_by_walls, ghost_particles, order_and_chunks, particle_volumes, scatter_implicit
 
 SLABS_PER_CHUNK = 4  # z slabs per parallel task: many tasks for balance, each particle in ~ 2R / (4 h) of them
 
 
 class MarchingCubesParams(Params):
     cell: float = Field(0.5, gt=0.05, le=2.0, description="grid spacing in units of the particle spacing l0")
-    radius: float = Field(2.0, ge=1.0, le=4.0, description="kernel support of each particle's density, in l0")
-    iso: float = Field(0.5, gt=0.0, lt=1.0, description="iso level of Phi (about 1 inside the fluid, 0 outside)")
+    radius: float = Field(1.7, ge=1.0, le=4.0, description="kernel support of each particle's density, in l0")
+    iso: float = Field(0.63, gt=0.0, lt=1.0, description="iso level of Phi (1 inside the fluid, 0 outside); with "
+                       "radius 1.7 a lone particle keeps about l0^3 and a flat surface lies l0/2 above the top layer")
     smoothing_iterations: int = Field(0, ge=0, le=200, description="Taubin smoothing passes (0 = off); "
                                                                    "keeps the volume")
+    anisotropic: bool = Field(False, description="anisotropic kernels (Yu and Turk 2013) stretched along the "
+                                                "neighbours' spread: smoother sheets and flat surfaces")
+    anisotropic_smoothing: float = Field(0.0, ge=0.0, le=1.0, description="with anisotropic: Yu and Turk's lambda "
+                                         "(0.9 in their paper) smoothing the kernels' centres; it sinks flat "
+                                         "surfaces (a still block loses 5 % at 0.9)")
     wall_term: bool = Field(True, description="with an SDF upstream: add the walls' density near them and cut "
                                               "the fluid at d = 0, so the surface meets the walls")
 
 
 def extract(x: np.ndarray, vol: np.ndarray, l0: float, params: MarchingCubesParams,
             sdf: SDFGrid | None = None, timings: dict | None = None) -> SurfaceMesh:
-    """The iso-surface Phi = iso of the particles ``x`` (N, 3) with volumes ``vol`` (N,) = m / rho, all in
+    """The iso-surface Phi = iso of the particles ``x`` (N, 3) with rest volumes ``vol`` (N,) = m / rho0 (any
+    quantity proportional to the masses: the volumes V_j = m_j / rho_j come from SPH summation), all in
     one length unit (the scene's: ``ParticleMeta.volume``), as ``l0``.
 
     ``sdf`` (optional) brings in the wall term; ``timings`` (optional) receives seconds per step."""
     import pyvista as pv
+    from vtkmodules.util.numpy_support import vtk_to_numpy
 
-    t = {"phi": 0.0, "contour": 0.0, "finish": 0.0}
+    t = {"volumes": 0.0, "phi": 0.0, "contour": 0.0, "finish": 0.0}
     if timings is not None:
         timings.update(t)
     if len(x) == 0:
@@ -64,6 +91,7 @@ def extract(x: np.ndarray, vol: np.ndarray, l0: float, params: MarchingCubesPara
     # up to rounding and the topology of the contact depended on the last bit (so on the scene's units)
     grid_lo = x.min(axis=0) - pad - 0.25 * h
     shape = np.ceil((x.max(axis=0) + pad - grid_lo) / h).astype(np.int64) + 1  # (nx, ny, nz)
+    n_real = len(x)
     if sdf is not None and params.wall_term:
         gx = np.empty_like(x)
         gv = np.empty_like(vol)
@@ -71,11 +99,24 @@ def extract(x: np.ndarray, vol: np.ndarray, l0: float, params: MarchingCubesPara
         ghost_particles(x, vol, sdf.dist, sdf.origin, 1.0 / sdf.spacing, R, gx, gv, keep)
         x = np.concatenate([x, gx[keep]])
         vol = np.concatenate([vol, gv[keep]])
-    order, first, last, bounds = order_and_chunks(x, grid_lo, h, R, shape, SLABS_PER_CHUNK)
+    vol = particle_volumes(x, vol, R)  # the mirror images count: the wall carries its share of rho
+    reach = R
+    if params.anisotropic:
+        x, metric, extent = anisotropic_kernels(x, R, params.anisotropic_smoothing)  # centres, ellipsoids
+        real = slice(0, n_real)
+        grid_lo = (x[real] - extent[real]).min(axis=0) - 2.25 * h
+        shape = np.ceil(((x[real] + extent[real]).max(axis=0) + 2.0 * h - grid_lo) / h).astype(np.int64) + 1
+        reach = float(extent[:, 2].max())
+    t_vol = time.perf_counter()
+    order, first, last, bounds = order_and_chunks(x, grid_lo, h, reach, shape, SLABS_PER_CHUNK)
     xs = np.ascontiguousarray(x[order])
     vs = np.ascontiguousarray(vol[order])
     phi = np.zeros((shape[2], shape[1], shape[0]), np.float32)
-    scatter_implicit(xs, vs, first, last, bounds, grid_lo, 1.0 / h, R, phi)
+    if params.anisotropic:
+        scatter_anisotropic(xs, vs, np.ascontiguousarray(metric[order]), np.ascontiguousarray(extent[order]),
+                            first, last, bounds, grid_lo, 1.0 / h, R, phi)
+    else:
+        scatter_implicit(xs, vs, first, last, bounds, grid_lo, 1.0 / h, R, phi)
     if sdf is not None and params.wall_term:
         cut_by_walls(phi, grid_lo, h, params.iso, R, sdf.dist, sdf.origin, 1.0 / sdf.spacing)
     t1 = time.perf_counter()
@@ -90,37 +131,40 @@ def extract(x: np.ndarray, vol: np.ndarray, l0: float, params: MarchingCubesPara
     if params.smoothing_iterations:
         surf = surf.smooth_taubin(n_iter=params.smoothing_iterations, pass_band=0.1)
     verts = np.asarray(surf.points, np.float64)
-    faces = np.asarray(surf.faces).reshape(-1, 4)[:, 1:].astype(np.int32)
+    # flying edges makes triangles only: the cells' connectivity, without pyvista's legacy (n, i, j, k)
+    # array (building it took a third of a second at 4M triangles)
+    faces = vtk_to_numpy(surf.GetPolys().GetConnectivityArray()).astype(np.int32).reshape(-1, 3)
     if signed_volume(verts, faces) < 0:  # orient outwards (Phi falls off outside the fluid)
         faces = np.ascontiguousarray(faces[:, ::-1])
     normals = vertex_normals(verts, faces)
     t3 = time.perf_counter()
     if timings is not None:
-        timings.update({"phi": t1 - t0, "contour": t2 - t1, "finish": t3 - t2})
+        timings.update({"volumes": t_vol - t0, "phi": t1 - t_vol, "contour": t2 - t1, "finish": t3 - t2})
     return SurfaceMesh(verts.astype(np.float32), faces, normals.astype(np.float32))
 
 
 class MarchingCubes(Stage):
     kind = "surface_extract"
     name = "marching_cubes"
-    version = "3"
+    version = "4"
     Params = MarchingCubesParams
     inputs = ("particles",)
     optional_inputs = ("sdf",)
     outputs = ("raw_surface",)
     per_frame = True
     default = True
-    description = "Phi = sum (m/rho) W scattered onto a grid around the particles, iso-surface by flying edges"
+    description = ("Phi = sum (m/rho) W (rho by SPH summation) scattered onto a grid around the particles, "
+                   "iso-surface by flying edges")
 
     def run_frame(self, ctx: Context, inputs: Mapping[str, Artifact], params: MarchingCubesParams, frame: int) -> None:
         folder = inputs["particles"].frame(frame)
         meta = ParticleMeta.load(folder)
         pf = load_particle_frame(folder, frame)
-        rho = np.maximum(pf.rho.astype(np.float64), 0.5 * meta.density)  # isolated splashes: no blow-up
-        vol = meta.volume(rho)  # scene units^3, like x and the kernel radius (m / rho alone is m^3)
+        vol = np.full(len(pf.x), meta.volume(meta.density))  # m / rho0 in scene units^3 (m / rho alone is m^3)
         sdf = SDFGrid.load(inputs["sdf"].frame(frame)) if inputs.get("sdf") is not None else None
         timings: dict = {}
         mesh = extract(pf.x, vol, meta.spacing, params, sdf=sdf, timings=timings)
-        ctx.log.debug("frame %d: %d particles -> %d triangles (phi %.3f s, contour %.3f s, finish %.3f s)",
-                      frame, len(pf.x), len(mesh.faces), timings["phi"], timings["contour"], timings["finish"])
+        ctx.log.debug("frame %d: %d particles -> %d triangles (volumes %.3f s, phi %.3f s, contour %.3f s, "
+                      "finish %.3f s)", frame, len(pf.x), len(mesh.faces), timings["volumes"], timings["phi"],
+                      timings["contour"], timings["finish"])
         save_surface(ctx.out_dir, frame, mesh)

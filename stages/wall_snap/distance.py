@@ -55,9 +55,15 @@ class DistanceSnapParams(Params):
                                              "the surface closed; exact only)")
 
 
+ON_WALL = 0.01  # l0: a raw vertex this close to d = 0 lies on the surface_extract wall cut: a contact vertex
+
+
 @nb.njit(cache=True, parallel=True)
-def snap(v, normals, dist, origin, inv_h, band, only_contact, tol, iterations, out, moved):
-    """Project each vertex within ``band`` of a wall (or inside it) onto d = 0 (eq. 19).
+def snap(v, normals, dist, origin, inv_h, band, only_contact, on_wall, tol, iterations, out, moved):
+    """Project each vertex within ``band`` of a wall (or inside it) onto d = 0 (eq. 19). With
+    ``only_contact``, a vertex whose normal does not face the wall is left alone unless it is within
+    ``on_wall`` of d = 0 (the wall cut's contact line, where the free surface's normal turns up but the
+    trilinear d = 0 may lie a few hundredths of l0 inside a curved wall).
 
     First step x - d(x) n(x) (eq. 19), then secant steps on t -> d(x - t n(x)) along the same line.
     ``moved`` is set for the vertices that were projected."""
@@ -71,7 +77,7 @@ def snap(v, normals, dist, origin, inv_h, band, only_contact, tol, iterations, o
         out[p, 2] = z
         d0, nx, ny, nz = sdf_sample(dist, ox, oy, oz, inv_h, x, y, z)
         ok = d0 < band and (nx != 0.0 or ny != 0.0 or nz != 0.0)
-        if ok and only_contact and d0 > 0.0:
+        if ok and only_contact and d0 > on_wall:
             # the surface normal points out of the fluid; in the contact region it points into the wall
             ok = normals[p, 0] * nx + normals[p, 1] * ny + normals[p, 2] * nz < 0.0
         moved[p] = ok
@@ -347,7 +353,7 @@ def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapPa
     out = np.empty_like(v)
     moved = np.zeros(len(v), np.bool_)
     snap(v, mesh.normals.astype(np.float64), sdf.dist, sdf.origin, 1.0 / sdf.spacing, params.band * l0,
-         params.only_contact, params.tolerance * l0, params.iterations, out, moved)
+         params.only_contact, ON_WALL * l0, params.tolerance * l0, params.iterations, out, moved)
     counts["snapped"] = int(moved.sum())
     f = mesh.faces.copy()
     n_ref = face_normals(v, f)
@@ -405,7 +411,7 @@ def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapPa
 class DistanceSnap(Stage):
     kind = "wall_snap"
     name = "distance"
-    version = "7"
+    version = "8"
     Params = DistanceSnapParams
     inputs = ("raw_surface", "sdf", "particles")  # particles: for l0 (band and tolerance are in l0)
     optional_inputs = ("walls",)
