@@ -70,11 +70,17 @@ from .sph import BrickWallMaps, SPHSolver
 from .timestep import stable_dt, step_to
 
 
+# the default largest step: 5 ms, set for the PEERS dam break at 2 cm spacing; Froude-scaled for coarser ones
+DT_MAX_REF, L0_REF = 0.005, 0.02
+
+
 class DFSPHParams(Params):
     support: float = Field(2.0, ge=1.5, le=4.0, description="kernel support radius h in units of the spacing l0")
     cfl: float = Field(0.8, gt=0, le=1.0, description="advective limit dt <= cfl l0 / v_max (0.8: the PEERS dam "
                        "break keeps a mean density error of 0.08 %, 0.05 % at 0.5, in 25 % fewer steps)")
-    dt_max: float = Field(0.005, gt=0, description="largest time step, s (also capped by the frame interval)")
+    dt_max: float | None = Field(None, gt=0, description="largest time step, s (also capped by the frame interval); "
+                                 "default 5 ms at spacings up to 2 cm, Froude-scaled above (5 ms sqrt(l0 / 2 cm)): a "
+                                 "scene 10,000 x larger runs the same steps at 100 x their length")
     max_density_error: float = Field(0.001, gt=0, le=0.05, description="constant-density solve: stop when the "
                                      "average predicted compression is below this fraction of rho0")
     max_divergence_error: float = Field(0.001, gt=0, le=0.05, description="divergence solve: stop when the average "
@@ -113,6 +119,9 @@ class DFSPHSolver(SolverBase):
         self.p = params
         self.l0 = float(spacing)
         self.h = params.support * self.l0
+        # an absolute 5 ms cap held a kilometre-wide scene to 1/100 of its Froude-scaled step, and steps that
+        # short blow up (tests/stability: test_dfsph_survives_a_step_far_below_the_stable_one, not diagnosed)
+        self.dt_max = params.dt_max or DT_MAX_REF * math.sqrt(max(self.l0, L0_REF) / L0_REF)
         self.rho0 = float(rho0)
         self.mode = {"spiky": D.SPIKY, "poly6": D.POLY6, "spline": D.SPLINE}[params.gradient]
         if self.mode == D.SPLINE:  # one kernel for the density and its gradient, walls included
@@ -216,7 +225,7 @@ class DFSPHSolver(SolverBase):
         v2, a2 = K.max_speed2_accel2(self.v, self.acc)
         nu = self.mu / self.rho0 if self.mu > 0 else None
         return stable_dt(l0=self.l0, h=self.h, v_max=math.sqrt(v2), a_max=math.sqrt(a2), cfl=self.p.cfl,
-                         sound_speed=None, nu=nu, dt_max=min(dt_max, self.p.dt_max, self.effects.dt_limit))
+                         sound_speed=None, nu=nu, dt_max=min(dt_max, self.dt_max, self.effects.dt_limit))
 
     def _solve(self, dt: float, divergence: bool) -> tuple[int, float]:
         """Projected, relaxed Jacobi iterations of the constant-density (or divergence-free) solve from

@@ -33,7 +33,6 @@ KNOWN = {
     ("thin_plate", "mps"): "blows up (168 m/s) at a 0.2 l0 plate not thickened by sdf_bake",
     ("wedge_20deg", "mps"): "blows up (707 m/s) in the 20 degree wedge",
     ("wedge_20deg", "dfsph"): "6 particles end inside the wall in the 20 degree wedge (push-out to 0.2 l0)",
-    ("kilometres", "dfsph"): "blows up in its first step at kilometre scale",
 }
 
 
@@ -69,7 +68,7 @@ def test_case_stays_stable(case, solver):
 
 @pytest.mark.parametrize("solver", [
     "sph",
-    pytest.param("dfsph", marks=pytest.mark.xfail(strict=True, reason="issue 17: dfsph blows up at kilometre scale")),
+    "dfsph",
     pytest.param("mps", marks=pytest.mark.xfail(strict=True, reason="issue 17: mps keeps 0.77 of the energy at km, "
                                                                      "0.96 at m, the fronts agree")),
 ])
@@ -84,3 +83,22 @@ def test_kilometre_dam_break_is_the_metre_one_scaled(solver):
     assert m.blowup is None and km.blowup is None
     assert abs(km.front - m.front) < 0.05, (m.front, km.front)  # one spacing is 0.05 of the tank
     assert abs(km.energy_ratio - m.energy_ratio) < 0.05, (m.energy_ratio, km.energy_ratio)
+
+
+@pytest.mark.xfail(strict=True, reason="issue 17: DFSPH blows up when its step is held 100 x below the stable one "
+                   "(20 m/s after 629 steps, at metre and kilometre scale alike; not diagnosed: likely the eq. 16 "
+                   "clamp's position jumps, read by the density solve as compression to remove within one short step); the default cap is now Froude-scaled, so only a user's "
+                   "dt_max that small meets it")
+def test_dfsph_survives_a_step_far_below_the_stable_one(monkeypatch):
+    """The metre dam break with dt_max 0.05 ms (the kilometre scene's former 5 ms cap, Froude-scaled)."""
+    import stability_cases as S
+
+    def short_steps():
+        scene = S.dam_break()
+        scene.params = {"dfsph": {"dt_max": 5e-5}}
+        return scene
+
+    monkeypatch.setitem(S.CASES, "dam_break", short_steps)
+    monkeypatch.setitem(S.SHORT, "dam_break", 0.04)
+    r = S.run_case("dam_break", "dfsph")
+    assert r.blowup is None, r.blowup
