@@ -30,6 +30,7 @@ import numpy as np
 from stages.common.sdf import box_interior_sdf, grid_from_function
 from stages.simulate.dfsph import DFSPHParams, DFSPHSolver
 from stages.simulate.emitters import lattice
+from stages.simulate.mps import MPSParams, MPSSolver
 from stages.simulate.sph import SPHParams, SPHSolver
 
 PEERS = Path(__file__).resolve().parents[2] / "shared" / "peers"
@@ -45,16 +46,20 @@ def make_sdf():
     return grid_from_function(box_interior_sdf(lo, hi), lo, hi, L0 / 2)
 
 
-def make_solver(kind: str, sdf=None):
-    l0 = L0
-    sdf = make_sdf() if sdf is None else sdf
-    x = lattice([-1.5, -1.0, 0.0], [-0.5, 0.0, 1.0], l0)
+def solver(kind: str, x, sdf, v_ref: float):
+    """Our solver ``kind`` (sph, dfsph, mps; default parameters) on particles x, at rest."""
+    kw = dict(spacing=L0, rho0=1000.0, gravity=(0, 0, -G), mu=MU)
     ids = np.arange(len(x))
     if kind == "dfsph":
-        return DFSPHSolver(x, np.zeros_like(x), ids, sdf, spacing=l0, rho0=1000.0, params=DFSPHParams(),
-                           gravity=(0, 0, -G), mu=MU)
-    return SPHSolver(x, np.zeros_like(x), ids, sdf, spacing=l0, rho0=1000.0, params=SPHParams(),
-                     gravity=(0, 0, -G), mu=MU, v_ref=math.sqrt(2 * G * 1.0))
+        return DFSPHSolver(x, np.zeros_like(x), ids, sdf, params=DFSPHParams(), **kw)
+    if kind == "mps":
+        return MPSSolver(x, np.zeros_like(x), ids, sdf, params=MPSParams(), v_ref=v_ref, **kw)
+    return SPHSolver(x, np.zeros_like(x), ids, sdf, params=SPHParams(), v_ref=v_ref, **kw)
+
+
+def make_solver(kind: str, sdf=None):
+    sdf = make_sdf() if sdf is None else sdf
+    return solver(kind, lattice([-1.5, -1.0, 0.0], [-0.5, 0.0, 1.0], L0), sdf, math.sqrt(2 * G * 1.0))
 
 
 def warm_up(kind: str) -> None:
@@ -62,13 +67,7 @@ def warm_up(kind: str) -> None:
     Python objects) before the memory is traced, so the peak is the solver's own."""
     lo, hi = np.array([0.0, 0.0, 0.0]), np.array([0.3, 0.3, 0.3])
     sdf = grid_from_function(box_interior_sdf(lo, hi), lo, hi, L0 / 2)
-    x = lattice([0.0, 0.0, 0.0], [0.15, 0.15, 0.15], L0)
-    if kind == "dfsph":
-        s = DFSPHSolver(x, np.zeros_like(x), np.arange(len(x)), sdf, spacing=L0, rho0=1000.0, params=DFSPHParams(),
-                        gravity=(0, 0, -G), mu=MU)
-    else:
-        s = SPHSolver(x, np.zeros_like(x), np.arange(len(x)), sdf, spacing=L0, rho0=1000.0, params=SPHParams(),
-                      gravity=(0, 0, -G), mu=MU, v_ref=1.0)
+    s = solver(kind, lattice([0.0, 0.0, 0.0], [0.15, 0.15, 0.15], L0), sdf, 1.0)
     s.step(1.0 / 30)
     s.frame()
 
