@@ -1,0 +1,162 @@
+"""The whole shot (issue 20): the demo's dam break (configs/dam_break.yaml: 19,683 particles, 2 s, 60 frames at
+960 x 540) end to end, ours beside the peer pipeline a user would assemble, in one run.
+
+    python benchmarks/bench_shot.py [--solvers sph,dfsph] [--no-peer] [--frames 60]
+
+Ours: `pipeline run configs/dam_break.yaml` (simulate, surface, wall snap, render, movie, USD) in a fresh
+process with a fresh cache, warm: a 2-frame run of the same config first compiles (numba's cache=True) and
+starts everything once. Per stage: the seconds the run's report (out/run.json) gives; total: the command's
+wall time. One run per solver (``--solvers``: the config's stages.simulate.use is overridden, its CFL number
+kept per solver's default).
+
+Peer: SPlisHSPlasH DFSPH (volume maps, CFL steps at our DFSPH's CFL number, largest step and tolerances;
+set-up incl. its volume maps counted: the user waits for it) writing each frame's positions, then pysplashsurf
+per frame (smoothing length 2 r, cube 0.5 r, iso 0.6, normals; no smoothing passes: its fastest surface),
+then the same pyvista render stage and ffmpeg movie stage with the same walls and camera. No wall snap and
+no USD for the peer (it has neither). Writes benchmarks/results/shot.json with the ratio peer / ours and
+the goal of issue 20 (ours <= 30 s and >= 2x ahead of the peer)."""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(HERE))
+
+from bench_peers import run_splishsplash  # noqa: E402
+
+CONFIG = ROOT / "configs" / "dam_break.yaml"
+ENV = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+
+
+def pipeline_run(tmp: Path, name: str, sets: list[str]) -> tuple[float, dict]:
+    """`pipeline run` with a fresh cache in a fresh process: (wall seconds, out/run.json)."""
+    out, cache = tmp / f"out_{name}", tmp / f"cache_{name}"
+    cmd = [sys.executable, "-m", "pipeline.cli", "run", str(CONFIG), "--cache", str(cache), "--out", str(out)]
+    for s in sets:
+        cmd += ["--set", s]
+    t0 = time.perf_counter()
+    r = subprocess.run(cmd, env=ENV, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    if r.returncode != 0:
+        raise SystemExit(f"pipeline run failed ({name}): {r.stderr.strip()[-800:]}")
+    return wall, json.loads((out / "run.json").read_text())
+
+
+def run_ours(tmp: Path, solver: str, frames: int) -> dict:
+    sets = [f"stages.simulate.use={solver}"]
+    if frames != 60:
+        sets.append(f"scene.frames.count={frames}")
+    warm, _ = pipeline_run(tmp, f"warm_{solver}", [f"stages.simulate.use={solver}", "scene.frames.count=2"])
+    wall, rep = pipeline_run(tmp, solver, sets)
+    stages = {s["kind"]: round(s["seconds"], 3) for s in rep["stages"]}
+    print(f"ours ({solver}): {wall:.1f} s  {stages}  (warm-up run {warm:.1f} s)", flush=True)
+    return {"solver": solver, "total_s": wall, "stages": stages, "warm_up_run_s": warm,
+            "frames": frames, "report_seconds": rep.get("seconds")}
+
+
+def scene_dict() -> dict:
+    import yaml
+    return yaml.safe_load(CONFIG.read_text())
+
+
+def run_peer(tmp: Path, frames: int) -> dict:
+    import pysplashsurf as ps
+
+    from pipeline.testing import run_stage
+    from stages.common.formats import SurfaceMesh, save_surface
+    from stages.mesh_import.trimesh_import import TrimeshImport  # the walls as our pipeline makes them
+    from stages.movie.ffmpeg_movie import FfmpegMovie
+    from stages.render.pyvista_render import PyvistaRender
+    from stages.simulate.dfsph import DFSPHParams
+
+    cfg = scene_dict()
+    cfg["scene"]["frames"]["count"] = frames
+    fps = cfg["scene"]["frames"]["fps"]
+    l0 = cfg["fluid"]["spacing"]
+    box = cfg["fluid"]["emitters"][0]["box"]
+    dp = DFSPHParams()
+    times = {}
+    t0 = time.perf_counter()
+    sim = run_splishsplash({"tank_lo": [-1.5, -1.0, 0.0], "tank_hi": [1.5, 1.0, 1.2], "fluid_lo": box["min"],
+                            "fluid_hi": box["max"], "spacing": l0, "method": "dfsph", "stop": (frames - 1) / fps + 1e-6,
+                            "fps": fps, "viscosity": cfg["effects"]["viscosity"]["mu"], "cfl_factor": dp.cfl / 0.4,
+                            "dt_max": dp.dt_max, "max_error": 100 * dp.max_density_error,
+                            "max_error_v": 100 * dp.max_divergence_error, "frames_dir": str(tmp / "peer_x")})
+    times["simulate"] = time.perf_counter() - t0
+    if "skipped" in sim:
+        return {"skipped": sim["skipped"]}
+    sim.pop("frames", None)
+    print(f"peer simulate {times['simulate']:.1f} s (set-up {sim['setup_s']:.1f} s, {sim['steps']} steps)", flush=True)
+    surf = tmp / "peer_surface"
+    surf.mkdir()
+    t0 = time.perf_counter()
+    tris = []
+    for k in range(frames):
+        x = np.load(tmp / "peer_x" / f"frame_{k:04d}.npy")
+        res = ps.reconstruction_pipeline(x, particle_radius=l0 / 2, smoothing_length=2.0, cube_size=0.5,
+                                         iso_surface_threshold=0.6, rest_density=1000.0, compute_normals=True)
+        mesh = res.mesh
+        v = np.asarray(mesh.vertices, np.float32)
+        f = np.asarray(mesh.triangles, np.int32)
+        n = np.asarray(getattr(res, "vertex_normals", None) if getattr(res, "vertex_normals", None) is not None
+                       else np.zeros_like(v), np.float32)
+        save_surface(surf, k, SurfaceMesh(v, f, n))
+        tris.append(len(f))
+    times["surface"] = time.perf_counter() - t0
+    print(f"peer surface {times['surface']:.1f} s ({np.mean(tris):.0f} triangles per frame)", flush=True)
+    walls = tmp / "peer_walls"
+    run_stage(TrimeshImport, walls, scene=cfg, params={}, config_dir=CONFIG.parent)
+    render = cfg["stages"].get("render", {})
+    params = {k: v for k, v in render.items() if k != "use"}
+    t0 = time.perf_counter()
+    run_stage(PyvistaRender, tmp / "peer_frames", scene=cfg, params=params,
+              inputs={"walls": walls, "surface": surf}, config_dir=CONFIG.parent)
+    times["render"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    run_stage(FfmpegMovie, tmp / "peer_movie", scene=cfg, inputs={"frames": tmp / "peer_frames"})
+    times["movie"] = time.perf_counter() - t0
+    total = sum(times.values())
+    print(f"peer total {total:.1f} s  {({k: round(v, 1) for k, v in times.items()})}", flush=True)
+    return {"total_s": total, "stages": times, "splishsplash": sim, "surface_triangles_mean": float(np.mean(tris))}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--solvers", default="sph,dfsph")
+    ap.add_argument("--no-peer", action="store_true")
+    ap.add_argument("--frames", type=int, default=60)
+    a = ap.parse_args()
+    res = {"scene": "configs/dam_break.yaml (19,683 particles, 960 x 540)", "frames": a.frames,
+           "command": " ".join(sys.argv), "load_average_1min_start": os.getloadavg()[0], "ours": {}}
+    with tempfile.TemporaryDirectory(prefix="shot_") as tmp:
+        for solver in a.solvers.split(","):
+            res["ours"][solver] = run_ours(Path(tmp), solver, a.frames)
+        if not a.no_peer:
+            res["peer"] = run_peer(Path(tmp), a.frames)
+    best = min(res["ours"], key=lambda k: res["ours"][k]["total_s"])
+    res["best_solver"] = best
+    goal = {"ours_s": res["ours"][best]["total_s"], "time_goal_s": 30.0,
+            "time_met": res["ours"][best]["total_s"] <= 30.0}
+    if "peer" in res and "skipped" not in res["peer"]:
+        goal["peer_over_ours"] = res["peer"]["total_s"] / res["ours"][best]["total_s"]
+        goal["ratio_goal"] = 2.0
+        goal["ratio_met"] = goal["peer_over_ours"] >= 2.0
+    res["goal"] = goal
+    res["load_average_1min_end"] = os.getloadavg()[0]
+    print("goal:", json.dumps(goal))
+    (HERE / "results" / "shot.json").write_text(json.dumps(res, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
