@@ -72,10 +72,12 @@ def warm_up(kind: str) -> None:
     s.frame()
 
 
-def run_ours(kind: str, sim_time: float) -> dict:
+def run_ours(kind: str, sim_time: float, trace_memory: bool = True) -> dict:
+    """``trace_memory`` False: no tracemalloc (it slows the Python side of a step), no bytes_per_particle."""
     sdf = make_sdf()  # the sdf_bake stage's artifact: not counted in the solver's memory
     warm_up(kind)
-    tracemalloc.start()
+    if trace_memory:
+        tracemalloc.start()
     s = make_solver(kind, sdf)
     s.step(1.0 / 30)  # first step: numba cache load / compile, excluded
     t_start, steps0 = s.t, s.steps
@@ -90,14 +92,16 @@ def run_ours(kind: str, sim_time: float) -> dict:
         wall += time.perf_counter() - t0
         rho = s.rho if kind == "dfsph" else s.frame().rho  # dfsph's density is current after a step
         err.append(float(np.maximum(rho / 1000.0 - 1.0, 0.0).mean()))
-    _, peak = tracemalloc.get_traced_memory()
-    tracemalloc.stop()
+    peak = 0.0
+    if trace_memory:
+        _, peak = tracemalloc.get_traced_memory()
+        tracemalloc.stop()
     steps = s.steps - steps0
     simulated = s.t - t_start
     out = {"solver": kind, "particles": len(s.x), "simulated_s": simulated, "steps": steps,
            "wall_s": wall, "wall_s_per_simulated_s": wall / simulated, "ms_per_step": 1e3 * wall / steps,
            "mean_dt": simulated / steps, "density_error_mean": float(np.mean(err)),
-           "density_error_max": float(np.max(err)), "bytes_per_particle": peak / len(s.x),
+           "density_error_max": float(np.max(err)), "bytes_per_particle": peak / len(s.x) if trace_memory else None,
            "left_domain": s.left_domain}
     if kind == "dfsph":
         out["mean_density_iterations"] = (s.iterations[0] - it0[0]) / steps

@@ -98,7 +98,7 @@ def main() -> None:
            "note": "one run on a shared 2-core machine; SPlisHSPlasH starts 1.5 l0 off the walls "
                    "(splishsplash_run.py), ours at l0/2", "ours": {}, "splishsplash": {}}
     for kind in a.solvers.split(","):
-        r = bench_dfsph.run_ours(kind, a.sim_time)
+        r = bench_dfsph.run_ours(kind, a.sim_time, trace_memory=False)
         res["ours"][kind] = r
         print(f"ours {kind:6s} {r['wall_s_per_simulated_s']:7.2f} wall s/sim s  {r['ms_per_step']:6.1f} ms/step  "
               f"dt {1e3 * r['mean_dt']:.2f} ms  density error mean {100 * r['density_error_mean']:.3f} % "
