@@ -70,6 +70,19 @@ def peer_point(method: str, spacing: float, base: dict, metric: dict) -> dict:
             "stepping_s": r["wall_s"], **r}
 
 
+def read_study_md(path: Path) -> list[dict]:
+    """The rows of a study.md table as study.json results (overrides, seconds, metrics)."""
+    rows = [ln.strip().strip("|").split("|") for ln in path.read_text().splitlines() if ln.startswith("|")]
+    head = [c.strip() for c in rows[0]]
+    out = []
+    for r in rows[2:]:
+        cells = dict(zip(head, (c.strip() for c in r)))
+        out.append({"overrides": {"fluid.spacing": float(cells["fluid.spacing"]), "simulate.use": cells["simulate.use"]},
+                    "seconds": float(cells["simulate_seconds"]),
+                    "metrics": {k: float(v) for k, v in cells.items() if k in ("surge_front_error", "density_error")}})
+    return out
+
+
 def plot(ours: list[dict], peers: list[dict], out: Path) -> None:
     os.environ.setdefault("MPLBACKEND", "Agg")
     import matplotlib.pyplot as plt
@@ -103,13 +116,17 @@ def plot(ours: list[dict], peers: list[dict], out: Path) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--study-json", type=Path, help="a finished accuracy_vs_time study.json (else run the study)")
+    ap.add_argument("--ours-md", type=Path, help="our points from a study.md table instead (e.g. the committed "
+                    "benchmarks/results/accuracy_vs_time.md: measured on another day, so the times compare loosely)")
     ap.add_argument("--methods", default="dfsph,wcsph")
     a = ap.parse_args()
     study = yaml.safe_load(STUDY.read_text())
     base = yaml.safe_load((STUDY.parent / study["base"]).read_text())
     metric = next(m for m in study["metrics"] if m["name"] == "surge_front_error")
     load0 = os.getloadavg()[0]
-    if a.study_json:
+    if a.ours_md:
+        ours = read_study_md(a.ours_md)
+    elif a.study_json:
         ours = json.loads(a.study_json.read_text())["results"]
     else:
         from pipeline.study import run_study
