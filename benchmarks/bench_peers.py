@@ -38,11 +38,18 @@ import bench_dfsph  # noqa: E402  (the scene and our timing loop)
 GL_PRELOAD = "/lib/x86_64-linux-gnu/libGLdispatch.so.0"
 
 
-def run_splishsplash(job: dict, timeout: float = 3600) -> dict:
-    """One splishsplash_run.py job in its own process (PEERS.md: LD_PRELOAD, 2 OpenMP threads)."""
+def run_splishsplash(job: dict, timeout: float = 3600, cache: bool = True) -> dict:
+    """One splishsplash_run.py job in its own process (PEERS.md: LD_PRELOAD, 2 OpenMP threads). ``cache``:
+    SPlisHSPlasH keeps its volume maps for the same tank and spacing in a folder under the system's temp dir
+    (set-up, not timed: only for comparisons that exclude set-up)."""
+    import hashlib
     import importlib.util
     if importlib.util.find_spec("pysplishsplash") is None:
         return {"skipped": "pysplishsplash is not installed (optional extra 'peers')"}
+    if cache:
+        geometry = json.dumps([job["tank_lo"], job["tank_hi"], job["spacing"], job.get("map_cell")])
+        job = dict(job, cache_dir=str(Path(tempfile.gettempdir()) / "splishsplash_cache"
+                                      / hashlib.sha1(geometry.encode()).hexdigest()[:12]))
     with tempfile.NamedTemporaryFile("w", suffix=".json", delete=False) as fh:
         json.dump(job, fh)
     env = dict(os.environ, OMP_NUM_THREADS="2", LD_PRELOAD=GL_PRELOAD)
