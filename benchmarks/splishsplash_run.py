@@ -26,7 +26,9 @@ Prints one line RESULT {...}: particles, steps, wall seconds of stepping (set-up
 and the time spent here sampling frames excluded), ms per step, simulated seconds, and per frame the time,
 the mean over particles of max(rho / rho0 - 1, 0) from SPlisHSPlasH's own density field (computed at the
 start of its last step, its boundary volume included) and the fluid's extent (min, max per axis, our frame).
-Wall set-up is reported separately (setup_s)."""
+Wall set-up is reported separately (setup_s). Also the process's CPU seconds (all threads) of the same steps:
+steadier than wall time when other work shares the cores (run with OMP_WAIT_POLICY=PASSIVE, so that waiting
+threads do not spin)."""
 import json
 import math
 import os
@@ -98,7 +100,7 @@ def main() -> None:
     frames_dir = job.get("frames_dir")
     if frames_dir:
         os.makedirs(frames_dir, exist_ok=True)
-    state = {"next": 0, "sampling": [], "stamps": [], "t": []}
+    state = {"next": 0, "sampling": [], "stamps": [], "t": [], "cpu": [], "cpu_sampling": []}
     rows = []
 
     def sample(k: int) -> None:
@@ -114,11 +116,13 @@ def main() -> None:
     def on_step():
         now = time.perf_counter()
         state["stamps"].append(now)
+        state["cpu"].append(time.process_time())
         state["t"].append(tm.getTime())
         while state["next"] * (1.0 / fps) <= tm.getTime() + 1e-9:
             sample(state["next"])
             state["next"] += 1
         state["sampling"].append(time.perf_counter() - now)
+        state["cpu_sampling"].append(time.process_time() - state["cpu"][-1])
 
     sample(0)
     state["next"] = 1
@@ -133,9 +137,11 @@ def main() -> None:
     k = min(5, (len(st) - 1) // 10)
     wall = st[-1] - st[k] - sum(state["sampling"][k:-1])
     steps = len(st) - 1 - k
+    cpu = state["cpu"][-1] - state["cpu"][k] - sum(state["cpu_sampling"][k:-1])
     simulated = state["t"][-1] - state["t"][k]
     res = {"method": job["method"], "particles": int(fm.numActiveParticles()), "steps": steps,
            "setup_s": t_init + (st[0] - t1), "warm_up_steps_excluded": k + 1, "wall_s": wall, "ms_per_step": 1e3 * wall / max(steps, 1),
+           "cpu_ms_per_step": 1e3 * cpu / max(steps, 1), "cpu_s_per_simulated_s": cpu / simulated if simulated > 0 else None,
            "simulated_s": simulated, "mean_dt": simulated / max(steps, 1),
            "wall_s_per_simulated_s": wall / simulated if simulated > 0 else None, "frames": rows,
            "density_error_mean": float(np.mean([r["density_error"] for r in rows[1:]])) if len(rows) > 1 else None,
