@@ -43,6 +43,13 @@ def summarise(results: list[dict]) -> dict:
     return out
 
 
+def halving(x: float | None) -> str:
+    """A time factor per halving of the error; above 100x the error is flat (or rising) over these runs."""
+    if x is None:
+        return "-"
+    return f"x{x:.1f}" if x <= 100 else "none (flat or rising)"
+
+
 def plot(summary: dict, path: Path) -> None:
     os.environ.setdefault("MPLBACKEND", "Agg")
     import matplotlib.pyplot as plt
@@ -53,8 +60,8 @@ def plot(summary: dict, path: Path) -> None:
             pts = [(t, e) for t, e in zip(row["seconds"], row[m]) if e is not None and e > 0]
             if not pts:
                 continue
-            order, halving = row.get(f"{m}_order"), row.get(f"{m}_time_per_halving")
-            tag = f"{solver}: order {order:.2f}, x{halving:.1f} time per halving" if order is not None else solver
+            order, per_halving = row.get(f"{m}_order"), row.get(f"{m}_time_per_halving")
+            tag = f"{solver}: order {order:.2f}, time per halving {halving(per_halving)}" if order is not None else solver
             ax.loglog([p[0] for p in pts], [p[1] for p in pts], "o-", label=tag)
         ax.set_xlabel("simulate wall time (s), 2 cores")
         ax.set_ylabel(label)
@@ -72,12 +79,13 @@ def markdown(summary: dict) -> str:
     for solver, row in summary.items():
         for h, t, e1, e2 in zip(row["spacing"], row["seconds"], row["front_speed_error"], row["distance_to_finest"]):
             lines.append(f"| {solver} | {h:.4g} | {t:.1f} | {e1:.3f} | {e2:.4f} |")
-    lines += ["", "| solver | order (front speed) | time x per halving (front speed) | order (distance) | "
-              "time x per halving (distance) |", "|---|---|---|---|---|"]
+    lines += ["", "| solver | observed order (front speed) | time per halving (front speed) | observed order (distance) | "
+              "time per halving (distance) |", "|---|---|---|---|---|"]
     for solver, row in summary.items():
         cells = [row.get(k) for k in ("front_speed_error_order", "front_speed_error_time_per_halving",
                                       "distance_to_finest_order", "distance_to_finest_time_per_halving")]
-        lines.append(f"| {solver} | " + " | ".join("-" if c is None else f"{c:.2f}" for c in cells) + " |")
+        lines.append(f"| {solver} | " + " | ".join("-" if c is None else (f"{c:.2f}" if i % 2 == 0 else halving(c))
+                                                   for i, c in enumerate(cells)) + " |")
     return "\n".join(lines) + "\n"
 
 

@@ -65,11 +65,12 @@ def summary_rows() -> list[tuple[str, str, str, str, str, str]]:
     c = _load("convergence.json")
     if c:
         for solver, row in c.items():
-            if "front_speed_error_time_per_halving" in row:
-                rows.append((f"convergence {solver}: front speed error order, time x per halving",
-                             f"{row['front_speed_error_order']:.2f}, x{row['front_speed_error_time_per_halving']:.1f}",
-                             "-", "-", "error falls with cost",
-                             "yes" if row["front_speed_error"][-1] < row["front_speed_error"][0] else "no"))
+            for m, what in (("distance_to_finest", "distance to finest"), ("front_speed_error", "front speed vs Ritter")):
+                if f"{m}_order" in row:
+                    x = row[f"{m}_time_per_halving"]
+                    rows.append((f"convergence {solver}: {what}: observed order, time per halving of the error",
+                                 f"{row[f'{m}_order']:.2f}, " + (f"x{x:.1f}" if x <= 100 else "none"), "-", "-",
+                                 "error falls with cost", "yes" if x <= 100 else "no"))
     return rows
 
 
