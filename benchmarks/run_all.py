@@ -34,13 +34,15 @@ def summary_rows() -> list[tuple[str, str, str, str, str, str]]:
         best = r["equal_accuracy"][g["best_solver"]]
         rows.append((f"dam break {label}: wall s / simulated s at equal density error ({g['best_solver']} vs "
                      f"SPlisHSPlasH DFSPH)", f"{best['ours_wall_s_per_sim_s']:.2f}",
-                     f"{best['peer_dfsph_at_equal_error']:.2f}", f"{g['best_ratio']:.2f}", "<= 0.5",
+                     f"{best['peer_dfsph_at_equal_error']:.2f}",
+                     f"{g['best_ratio']:.2f}" + (f" (CPU {g['best_cpu_ratio']:.2f})" if "best_cpu_ratio" in g else ""), "<= 0.5",
                      "yes" if g["ratio_met"] else "no"))
         if "step_ratio_dfsph" in g:
             peer = next(v for k, v in r["splishsplash"].items() if k.startswith("DFSPH") and "ms_per_step" in v
                         and abs(v["job"]["max_error"] - 0.1) < 1e-9)
             rows.append((f"dam break {label}: DFSPH ms per step, same tolerance", f"{r['ours']['dfsph']['ms_per_step']:.1f}",
-                         f"{peer['ms_per_step']:.1f}", f"{g['step_ratio_dfsph']:.2f}", "<= 1", "yes" if g["step_met"] else "no"))
+                         f"{peer['ms_per_step']:.1f}", f"{g['step_ratio_dfsph']:.2f}"
+                         + (f" (CPU {g['step_cpu_ratio_dfsph']:.2f})" if "step_cpu_ratio_dfsph" in g else ""), "<= 1", "yes" if g["step_met"] else "no"))
     s = _load("shot.json")
     if s and "goal" in s:
         g = s["goal"]
@@ -48,7 +50,8 @@ def summary_rows() -> list[tuple[str, str, str, str, str, str]]:
                      "yes" if g["time_met"] else "no"))
         if "peer_over_ours" in g:
             rows.append(("whole shot vs SPlisHSPlasH + splashsurf + our renderer, s", f"{g['ours_s']:.1f}",
-                         f"{s['peer']['total_s']:.1f}", f"{g['peer_over_ours']:.2f}x ahead", ">= 2x ahead",
+                         f"{s['peer']['total_s']:.1f}", f"{g['peer_over_ours']:.2f}x ahead"
+                         + (f" (CPU {g['peer_over_ours_cpu']:.2f}x)" if "peer_over_ours_cpu" in g else ""), ">= 2x ahead",
                          "yes" if g["ratio_met"] else "no"))
     p = _load("peers_accuracy.json")
     if p:
