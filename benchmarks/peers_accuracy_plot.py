@@ -82,6 +82,11 @@ def read_study_md(path: Path) -> list[dict]:
     return out
 
 
+def blew_up(r: dict) -> bool:
+    """A surge front error above 100 % (the front more than twice the experiment's): the fluid left the tank."""
+    return r.get("surge_front_error", 0.0) > 1.0
+
+
 def plot(ours: list[dict], peers: list[dict], out: Path) -> None:
     os.environ.setdefault("MPLBACKEND", "Agg")
     import matplotlib.pyplot as plt
@@ -94,10 +99,14 @@ def plot(ours: list[dict], peers: list[dict], out: Path) -> None:
             ax.plot([p[0] for p in pts], [p[1] for p in pts], "o-", label=f"ours: {solver}")
     for method, colour in (("dfsph", "black"), ("wcsph", "grey")):
         pts = sorted((r["seconds"], r["surge_front_error"]) for r in peers
-                     if r["method"] == method and "surge_front_error" in r)
+                     if r["method"] == method and "surge_front_error" in r and not blew_up(r))
         if pts:
             ax.plot([p[0] for p in pts], [p[1] for p in pts], "s--", color=colour,
                     label=f"SPlisHSPlasH {method.upper()} (stepping, set-up excluded)")
+    bad = [f"{r['method'].upper()} l0 = {r['spacing']}" for r in peers if blew_up(r)]
+    if bad:
+        ax.text(0.02, 0.02, "SPlisHSPlasH left the tank (not plotted): " + ", ".join(bad), transform=ax.transAxes,
+                fontsize=6)
     ax.set_xscale("log")
     ax.set_xlabel("simulate wall time (s), 2 cores")
     ax.set_ylabel("surge front RMS error vs Martin & Moyce (T <= 3)")
@@ -116,7 +125,14 @@ def main() -> None:
     ap.add_argument("--ours-md", type=Path, help="our points from a study.md table instead (e.g. the committed "
                     "benchmarks/results/accuracy_vs_time.md: measured on another day, so the times compare loosely)")
     ap.add_argument("--methods", default="dfsph,wcsph")
+    ap.add_argument("--replot", action="store_true", help="only redraw the figure from peers_accuracy.json")
     a = ap.parse_args()
+    if a.replot:
+        res = json.loads((HERE / "results" / "peers_accuracy.json").read_text())
+        ours = [{"overrides": {"fluid.spacing": r["spacing"], "simulate.use": r["solver"]}, "seconds": r["seconds"],
+                 "metrics": {"surge_front_error": r["surge_front_error"]}} for r in res["ours"]]
+        plot(ours, res["splishsplash"], HERE / "results" / "images" / "accuracy_vs_time_peers.png")
+        return
     study = yaml.safe_load(STUDY.read_text())
     base = yaml.safe_load((STUDY.parent / study["base"]).read_text())
     metric = next(m for m in study["metrics"] if m["name"] == "surge_front_error")

@@ -60,7 +60,10 @@ def summary_rows() -> list[tuple[str, str, str, str, str, str]]:
             o = next((r for r in p["ours"] if r["solver"] == solver and r["spacing"] == fine), None)
             q = next((r for r in p["splishsplash"] if r["method"] == method and r["spacing"] == fine
                       and "surge_front_error" in r), None)
-            if o and q:
+            if o and q and q["surge_front_error"] > 1.0:
+                rows.append((f"Martin & Moyce l0 = {fine}: {solver} vs SPlisHSPlasH {method.upper()}, s (surge error)",
+                             f"{o['seconds']:.1f} ({o['surge_front_error']:.3f})", "left the tank", "-", "-", "-"))
+            elif o and q:
                 rows.append((f"Martin & Moyce l0 = {fine}: {solver} vs SPlisHSPlasH {method.upper()}, s (surge error)",
                              f"{o['seconds']:.1f} ({o['surge_front_error']:.3f})",
                              f"{q['seconds']:.1f} ({q['surge_front_error']:.3f})", f"{o['seconds'] / q['seconds']:.2f}",
