@@ -3,11 +3,10 @@
 
     python benchmarks/bench_shot.py [--solvers sph,dfsph] [--no-peer] [--frames 60]
 
-Ours: `pipeline run configs/dam_break.yaml` (simulate, surface, wall snap, render, movie, USD) in a fresh
-process with a fresh cache, warm: a 2-frame run of the same config first compiles (numba's cache=True) and
-starts everything once. Per stage: the seconds the run's report (out/run.json) gives; total: the command's
-wall time. One run per solver (``--solvers``: the config's stages.simulate.use is overridden, its CFL number
-kept per solver's default).
+Ours: `pipeline run configs/dam_break.yaml` (dam_break_dfsph.yaml for dfsph: the same scene; simulate, surface,
+wall snap, render, movie, USD) in a fresh process with a fresh cache, warm: a 2-frame run of the same config
+first compiles (numba's cache=True) and starts everything once (``--no-warm-up``: the caches are compiled). Per stage: the seconds the run's report (out/run.json) gives; total: the command's
+wall time. One run per solver (``--solvers``).
 
 Peer: SPlisHSPlasH DFSPH (volume maps, CFL steps at our DFSPH's CFL number, largest step and tolerances;
 set-up incl. its volume maps counted: the user waits for it) writing each frame's positions, then pysplashsurf
@@ -38,6 +37,8 @@ sys.path.insert(0, str(HERE))
 from bench_peers import run_splishsplash  # noqa: E402
 
 CONFIG = ROOT / "configs" / "dam_break.yaml"
+# the demo's scene per solver (dam_break.yaml sets WCSPH's own options: eos, cfl 0.4)
+CONFIGS = {"sph": CONFIG, "dfsph": ROOT / "configs" / "dam_break_dfsph.yaml"}
 # waiting OpenMP threads sleep (both sides), so that CPU seconds measure work on a shared machine
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 ENV = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
@@ -48,10 +49,10 @@ def children_cpu() -> float:
     return r.ru_utime + r.ru_stime
 
 
-def pipeline_run(tmp: Path, name: str, sets: list[str]) -> tuple[float, dict]:
+def pipeline_run(tmp: Path, name: str, sets: list[str], config: Path = CONFIG) -> tuple[float, dict]:
     """`pipeline run` with a fresh cache in a fresh process: (wall seconds, out/run.json)."""
     out, cache = tmp / f"out_{name}", tmp / f"cache_{name}"
-    cmd = [sys.executable, "-m", "pipeline.cli", "run", str(CONFIG), "--cache", str(cache), "--out", str(out)]
+    cmd = [sys.executable, "-m", "pipeline.cli", "run", str(config), "--cache", str(cache), "--out", str(out)]
     for s in sets:
         cmd += ["--set", s]
     t0, c0 = time.perf_counter(), children_cpu()
@@ -64,14 +65,15 @@ def pipeline_run(tmp: Path, name: str, sets: list[str]) -> tuple[float, dict]:
     return wall, rep
 
 
-def run_ours(tmp: Path, solver: str, frames: int) -> dict:
-    sets = [f"stages.simulate.use={solver}"]
-    if frames != 60:
-        sets.append(f"scene.frames.count={frames}")
-    warm, _ = pipeline_run(tmp, f"warm_{solver}", [f"stages.simulate.use={solver}", "scene.frames.count=2"])
-    wall, rep = pipeline_run(tmp, solver, sets)
+def run_ours(tmp: Path, solver: str, frames: int, warm_up: bool = True) -> dict:
+    config = CONFIGS[solver]
+    sets = [f"scene.frames.count={frames}"] if frames != 60 else []
+    warm = None
+    if warm_up:
+        warm, _ = pipeline_run(tmp, f"warm_{solver}", ["scene.frames.count=2"], config)
+    wall, rep = pipeline_run(tmp, solver, sets, config)
     stages = {s["kind"]: round(s["seconds"], 3) for s in rep["stages"]}
-    print(f"ours ({solver}): {wall:.1f} s (CPU {rep['cpu_s']:.1f} s)  {stages}  (warm-up run {warm:.1f} s)", flush=True)
+    print(f"ours ({solver}): {wall:.1f} s (CPU {rep['cpu_s']:.1f} s)  {stages}  (warm-up run {warm} s)", flush=True)
     return {"solver": solver, "total_s": wall, "cpu_s": rep["cpu_s"], "stages": stages, "warm_up_run_s": warm,
             "frames": frames, "report_seconds": rep.get("seconds")}
 
@@ -150,12 +152,13 @@ def main() -> None:
     ap.add_argument("--solvers", default="sph,dfsph")
     ap.add_argument("--no-peer", action="store_true")
     ap.add_argument("--frames", type=int, default=60)
+    ap.add_argument("--no-warm-up", action="store_true", help="numba's caches are already compiled (a previous run)")
     a = ap.parse_args()
     res = {"scene": "configs/dam_break.yaml (19,683 particles, 960 x 540)", "frames": a.frames,
            "command": " ".join(sys.argv), "load_average_1min_start": os.getloadavg()[0], "ours": {}}
     with tempfile.TemporaryDirectory(prefix="shot_") as tmp:
         for solver in a.solvers.split(","):
-            res["ours"][solver] = run_ours(Path(tmp), solver, a.frames)
+            res["ours"][solver] = run_ours(Path(tmp), solver, a.frames, not a.no_warm_up)
         if not a.no_peer:
             res["peer"] = run_peer(Path(tmp), a.frames)
     best = min(res["ours"], key=lambda k: res["ours"][k]["total_s"])
