@@ -30,6 +30,7 @@ import numpy as np
 from stages.common.sdf import box_interior_sdf, grid_from_function
 from stages.simulate.dfsph import DFSPHParams, DFSPHSolver
 from stages.simulate.emitters import lattice
+from stages.simulate.mps import MPSParams, MPSSolver
 from stages.simulate.sph import SPHParams, SPHSolver
 
 PEERS = Path(__file__).resolve().parents[2] / "shared" / "peers"
@@ -45,16 +46,20 @@ def make_sdf():
     return grid_from_function(box_interior_sdf(lo, hi), lo, hi, L0 / 2)
 
 
-def make_solver(kind: str, sdf=None):
-    l0 = L0
-    sdf = make_sdf() if sdf is None else sdf
-    x = lattice([-1.5, -1.0, 0.0], [-0.5, 0.0, 1.0], l0)
+def solver(kind: str, x, sdf, v_ref: float):
+    """Our solver ``kind`` (sph, dfsph, mps; default parameters) on particles x, at rest."""
+    kw = dict(spacing=L0, rho0=1000.0, gravity=(0, 0, -G), mu=MU)
     ids = np.arange(len(x))
     if kind == "dfsph":
-        return DFSPHSolver(x, np.zeros_like(x), ids, sdf, spacing=l0, rho0=1000.0, params=DFSPHParams(),
-                           gravity=(0, 0, -G), mu=MU)
-    return SPHSolver(x, np.zeros_like(x), ids, sdf, spacing=l0, rho0=1000.0, params=SPHParams(),
-                     gravity=(0, 0, -G), mu=MU, v_ref=math.sqrt(2 * G * 1.0))
+        return DFSPHSolver(x, np.zeros_like(x), ids, sdf, params=DFSPHParams(), **kw)
+    if kind == "mps":
+        return MPSSolver(x, np.zeros_like(x), ids, sdf, params=MPSParams(), v_ref=v_ref, **kw)
+    return SPHSolver(x, np.zeros_like(x), ids, sdf, params=SPHParams(), v_ref=v_ref, **kw)
+
+
+def make_solver(kind: str, sdf=None):
+    sdf = make_sdf() if sdf is None else sdf
+    return solver(kind, lattice([-1.5, -1.0, 0.0], [-0.5, 0.0, 1.0], L0), sdf, math.sqrt(2 * G * 1.0))
 
 
 def warm_up(kind: str) -> None:
@@ -62,43 +67,43 @@ def warm_up(kind: str) -> None:
     Python objects) before the memory is traced, so the peak is the solver's own."""
     lo, hi = np.array([0.0, 0.0, 0.0]), np.array([0.3, 0.3, 0.3])
     sdf = grid_from_function(box_interior_sdf(lo, hi), lo, hi, L0 / 2)
-    x = lattice([0.0, 0.0, 0.0], [0.15, 0.15, 0.15], L0)
-    if kind == "dfsph":
-        s = DFSPHSolver(x, np.zeros_like(x), np.arange(len(x)), sdf, spacing=L0, rho0=1000.0, params=DFSPHParams(),
-                        gravity=(0, 0, -G), mu=MU)
-    else:
-        s = SPHSolver(x, np.zeros_like(x), np.arange(len(x)), sdf, spacing=L0, rho0=1000.0, params=SPHParams(),
-                      gravity=(0, 0, -G), mu=MU, v_ref=1.0)
+    s = solver(kind, lattice([0.0, 0.0, 0.0], [0.15, 0.15, 0.15], L0), sdf, 1.0)
     s.step(1.0 / 30)
     s.frame()
 
 
-def run_ours(kind: str, sim_time: float) -> dict:
+def run_ours(kind: str, sim_time: float, trace_memory: bool = True) -> dict:
+    """``trace_memory`` False: no tracemalloc (it slows the Python side of a step), no bytes_per_particle."""
     sdf = make_sdf()  # the sdf_bake stage's artifact: not counted in the solver's memory
     warm_up(kind)
-    tracemalloc.start()
+    if trace_memory:
+        tracemalloc.start()
     s = make_solver(kind, sdf)
     s.step(1.0 / 30)  # first step: numba cache load / compile, excluded
     t_start, steps0 = s.t, s.steps
     if kind == "dfsph":
         it0 = list(s.iterations)
     err = []
-    wall = 0.0
+    wall = cpu = 0.0  # cpu: the process's CPU seconds (all threads), steadier than wall time on a busy machine
     frames = max(1, round(sim_time * 30))
     for f in range(1, frames + 1):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         s.advance_to(t_start + f / 30)
         wall += time.perf_counter() - t0
+        cpu += time.process_time() - c0
         rho = s.rho if kind == "dfsph" else s.frame().rho  # dfsph's density is current after a step
         err.append(float(np.maximum(rho / 1000.0 - 1.0, 0.0).mean()))
-    _, peak = tracemalloc.get_traced_memory()
-    tracemalloc.stop()
+    peak = 0.0
+    if trace_memory:
+        _, peak = tracemalloc.get_traced_memory()
+        tracemalloc.stop()
     steps = s.steps - steps0
     simulated = s.t - t_start
     out = {"solver": kind, "particles": len(s.x), "simulated_s": simulated, "steps": steps,
            "wall_s": wall, "wall_s_per_simulated_s": wall / simulated, "ms_per_step": 1e3 * wall / steps,
+           "cpu_s_per_simulated_s": cpu / simulated, "cpu_ms_per_step": 1e3 * cpu / steps,
            "mean_dt": simulated / steps, "density_error_mean": float(np.mean(err)),
-           "density_error_max": float(np.max(err)), "bytes_per_particle": peak / len(s.x),
+           "density_error_max": float(np.max(err)), "bytes_per_particle": peak / len(s.x) if trace_memory else None,
            "left_domain": s.left_domain}
     if kind == "dfsph":
         out["mean_density_iterations"] = (s.iterations[0] - it0[0]) / steps

@@ -25,9 +25,7 @@ def surge_front(out_dir: Path, *, column_width: float, back_wall: float, axis: s
     frame, the front being the fluid's furthest extent along ``axis`` (per-frame stats of the simulate
     stage: the outermost particle centre, plus half a spacing for the particle's own extent).
     ``column_width`` a and ``back_wall`` are in scene units."""
-    meta = json.loads((Path(out_dir) / "particles" / "meta.json").read_text())
-    ext = np.asarray(meta["stats"]["extent_max"], float)[:, AXES[axis]] + 0.5 * float(meta["spacing"])
-    t = np.arange(len(ext)) / float(meta["fps"])
+    t, ext, meta = front_history(out_dir, axis=axis)
     a_m = column_width * float(meta.get("meters_per_unit", 1.0))
     return t * math.sqrt(2.0 * g / a_m), (ext - back_wall) / column_width
 
@@ -44,3 +42,110 @@ def surge_front_error(out_dir: Path, *, study_dir: Path | None = None, reference
         raise ValueError(f"{out_dir}: the simulation ends at T = {T[-1]:.2f}, before the first reference point")
     z = np.interp(ref[:, 0], T, Z)
     return float(np.sqrt(np.mean(((z - ref[:, 1]) / ref[:, 1]) ** 2)))
+
+
+# --- Metrics the solvers converge to (issue 20): analytic references and the finest run of a study ----------
+
+
+def front_history(out_dir: Path, *, axis: str = "x") -> tuple[np.ndarray, np.ndarray, dict]:
+    """Per frame: time (s) and the fluid's furthest extent along ``axis`` (scene units: the outermost
+    particle centre plus half a spacing), and the particle meta."""
+    meta = json.loads((Path(out_dir) / "particles" / "meta.json").read_text())
+    ext = np.asarray(meta["stats"]["extent_max"], float)[:, AXES[axis]] + 0.5 * float(meta["spacing"])
+    return np.arange(len(ext)) / float(meta["fps"]), ext, meta
+
+
+def front_speed(t: np.ndarray, front: np.ndarray, t_min: float, t_max: float) -> float:
+    """Least-squares slope of the front position over t_min <= t <= t_max (at least two frames)."""
+    sel = (t >= t_min - 1e-9) & (t <= t_max + 1e-9)
+    if sel.sum() < 2:
+        raise ValueError(f"front speed: fewer than two frames in {t_min} <= t <= {t_max} s")
+    return float(np.polyfit(t[sel], front[sel], 1)[0])
+
+
+def front_speed_error(out_dir: Path, *, study_dir: Path | None = None, column_height: float, axis: str = "x",
+                      t_min: float = 0.1, t_max: float = 0.2, g: float = 9.81) -> float:
+    """|u / (2 sqrt(g H)) - 1|: the dam-break front speed u fitted over [t_min, t_max] s against Ritter's
+    shallow-water front speed for a column H high (``column_height``, scene units). Ritter's is the inviscid
+    shallow-water limit: the Euler (and a real) front approaches it from below, so this error falls with
+    resolution towards a floor of some ten per cent, not to zero (README "Convergence")."""
+    t, front, meta = front_history(out_dir, axis=axis)
+    mpu = float(meta.get("meters_per_unit", 1.0))
+    u = front_speed(t, front, t_min, t_max) * mpu
+    return abs(u / (2.0 * math.sqrt(g * column_height * mpu)) - 1.0)
+
+
+def hydrostatic_pressure_error(out_dir: Path, *, study_dir: Path | None = None, frames: int = 5,
+                               min_depth: float = 2.0, max_depth: float = 8.0, wall_margin: float = 2.0,
+                               g: float = 9.81) -> float:
+    """|sum p / sum rho0 g d - 1| over the last ``frames`` frames, for the particles between ``min_depth`` and
+    ``max_depth`` spacings below the free surface (the mean height of the top layer plus half a spacing) and at
+    least ``wall_margin`` spacings inside the fluid's horizontal extent: the settled pressure against rho0 g d."""
+    from stages.common.formats import load_particle_frame
+    folder = Path(out_dir) / "particles"
+    meta = json.loads((folder / "meta.json").read_text())
+    l0, mpu, rho0 = float(meta["spacing"]), float(meta.get("meters_per_unit", 1.0)), float(meta["density"])
+    up = AXES[str(meta.get("up_axis", "Z")).lower()]
+    side = [a for a in range(3) if a != up]
+    n = int(meta["frame_count"])
+    num = den = 0.0
+    for k in range(max(0, n - frames), n):
+        f = load_particle_frame(folder, k)
+        x = np.asarray(f.x, float)
+        z = x[:, up]
+        top = z[z > z.max() - 0.5 * l0].mean() + 0.5 * l0
+        depth = top - z
+        sel = (depth > min_depth * l0) & (depth < max_depth * l0)
+        for a in side:
+            sel &= (x[:, a] > x[:, a].min() + wall_margin * l0) & (x[:, a] < x[:, a].max() - wall_margin * l0)
+        num += float(np.asarray(f.p, float)[sel].sum())
+        den += float((rho0 * g * depth[sel] * mpu).sum())
+    if den <= 0:
+        raise ValueError(f"{out_dir}: no particles between {min_depth} and {max_depth} spacings deep")
+    return abs(num / den - 1.0)
+
+
+def finest_variant(out_dir: Path, finest: dict) -> Path:
+    """The study variant folder beside ``out_dir`` whose swept values ``finest`` (last part of the override
+    path -> value, e.g. {spacing: 0.015625}) replace this one's: names are "key-value" joined by "_"."""
+    out_dir = Path(out_dir)
+    parts = out_dir.name.split("_")
+    for key, value in finest.items():
+        parts = [f"{key}-{value}" if p.startswith(f"{key}-") else p for p in parts]
+    return out_dir.parent / "_".join(parts)
+
+
+def distance_to_finest(out_dir: Path, *, study_dir: Path | None = None, finest: dict, column_width: float,
+                       axis: str = "x") -> float:
+    """RMS over frames of the surge-front position's distance to the same solver's finest run of the study,
+    over the column width a: the self-convergence error (0 for the finest run itself). The finest run must
+    have run first: list the finest value first in the study's sweep."""
+    ref = finest_variant(out_dir, finest)
+    if not (ref / "particles" / "meta.json").is_file():
+        raise ValueError(f"distance_to_finest: the finest run {ref} has not run yet: list the finest value first "
+                         f"in the study's sweep")
+    _, f0, _ = front_history(out_dir, axis=axis)
+    _, f1, _ = front_history(ref, axis=axis)
+    n = min(len(f0), len(f1))
+    return float(np.sqrt(np.mean((f0[:n] - f1[:n]) ** 2)) / column_width)
+
+
+def observed_order(spacings, errors) -> float:
+    """Observed order of convergence p of error ~ C spacing^p: least-squares slope in log-log (positive
+    errors only; at least two)."""
+    h, e = np.asarray(spacings, float), np.asarray(errors, float)
+    ok = e > 0
+    if ok.sum() < 2:
+        raise ValueError("observed order: needs at least two positive errors")
+    return float(np.polyfit(np.log(h[ok]), np.log(e[ok]), 1)[0])
+
+
+def cost_per_halving(seconds, errors) -> float:
+    """The factor the wall time grows by for each halving of the error, from a least-squares fit
+    error ~ C seconds^-s: 2^(1/s)."""
+    t, e = np.asarray(seconds, float), np.asarray(errors, float)
+    ok = (e > 0) & (t > 0)
+    if ok.sum() < 2:
+        raise ValueError("cost per halving: needs at least two positive (time, error) points")
+    s = -float(np.polyfit(np.log(t[ok]), np.log(e[ok]), 1)[0])
+    return float(2.0 ** (1.0 / s)) if s > 0 else math.inf
