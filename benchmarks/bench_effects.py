@@ -26,15 +26,15 @@ from stages.simulate.effects import compile_effects
 from stages.simulate.emitters import lattice
 from stages.simulate.kernels import spiky_grad_coef
 from stages.simulate.sph import SPHParams, SPHSolver
-from stages.simulate.wall_maps import map_sample
-from stages.simulate.wall_tables import table_lookup
+from stages.simulate.sph_kernels import _wall_z as wall_z
 
 
 @nb.njit(cache=True, parallel=True, fastmath=True)  # built like sph_kernels.forces
 def reference_forces_pressure(x, v, p, d, nbr, cnt, inv_rho, h, spiky_coef, mass,
-                              wmap, wo, winv, fix_press, inv_dr, gravity, av, acc):
-    """Hand-written pressure (eq. 6, 8, Monaghan av) + gravity + wall pressure over the solver's neighbour
-    list (the pairs r < h first in each row, cnt of them): no other code at all."""
+                              wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, gravity, av, acc):
+    """Hand-written pressure (eq. 6, 8, Monaghan av) + gravity + the conservative wall pressure
+    -(p_i / rho_i^2) grad Z over the solver's neighbour list (the pairs r < h first in each row, cnt of
+    them): no other code but the wall density lookup (sph_kernels._wall_z)."""
     h2 = h * h
     gx0 = gravity[0]
     gy0 = gravity[1]
@@ -52,8 +52,6 @@ def reference_forces_pressure(x, v, p, d, nbr, cnt, inv_rho, h, spiky_coef, mass
         ax = 0.0
         ay = 0.0
         az = 0.0
-        sp = 0.0
-        sw = 1e-300
         near_wall = d[i] < h
         for jj in range(cnt[i]):
             j = nbr[i, jj]
@@ -61,11 +59,6 @@ def reference_forces_pressure(x, v, p, d, nbr, cnt, inv_rho, h, spiky_coef, mass
             dy = yi - x[j, 1]
             dz = zi - x[j, 2]
             r2 = dx * dx + dy * dy + dz * dz
-            if near_wall and r2 < h2:
-                q = h2 - r2
-                q = q * q * q
-                sp += p[j] * q
-                sw += q
             if r2 < h2 and r2 > 1e-24:
                 r = math.sqrt(r2)
                 hr = h - r
@@ -81,11 +74,18 @@ def reference_forces_pressure(x, v, p, d, nbr, cnt, inv_rho, h, spiky_coef, mass
         ay = ay * c + gy0
         az = az * c + gz0
         if near_wall:
-            pw = max(pi, sp / sw)
-            cw = (pi + pw) * inv_rhoi * table_lookup(fix_press, d[i], inv_dr)
-            ax += cw * map_sample(wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 1)
-            ay += cw * map_sample(wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 2)
-            az += cw * map_sample(wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 3)
+            e = 0.5 / winv
+            ce = 0.5 / e
+            zx = ce * (wall_z(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, xi + e, yi, zi)
+                       - wall_z(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, xi - e, yi, zi))
+            zy = ce * (wall_z(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, xi, yi + e, zi)
+                       - wall_z(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, xi, yi - e, zi))
+            zz = ce * (wall_z(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, xi, yi, zi + e)
+                       - wall_z(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, xi, yi, zi - e))
+            cw = -pi * inv_rhoi * inv_rhoi
+            ax += cw * zx
+            ay += cw * zy
+            az += cw * zz
         acc[i, 0] = ax
         acc[i, 1] = ay
         acc[i, 2] = az
@@ -97,7 +97,8 @@ class ReferenceSolver(SPHSolver):
     def forces(self) -> None:
         reference_forces_pressure(self.x, self.v, self.pr, self.d, self.nbr, self.cnt_in, self.inv_rho,
                                   self.h, spiky_grad_coef(self.h) / self.grad_norm, self.mass, self.walls.maps,
-                                  self.walls.origin, 1.0 / self.walls.spacing, self.fix_press, self.inv_dr,
+                                  self.walls.origin, 1.0 / self.walls.spacing, self.walls.fix_rho, self.inv_dr,
+                                  self.sdf.dist, self.sdf.origin, self.sdf_inv,
                                   self.gravity, self.p.artificial_viscosity * self.c * self.h, self.acc)
 
 

@@ -234,7 +234,8 @@ class SPHSolver(SolverBase):
         if self.normals is not None:  # Akinci normals: a pass after the density, only with tension
             K.surface_normals(self.x, self.rho, g.starts, g.lo, 1.0 / g.cell, g.dims, self.h, grad_coef, self.mass,
                               self.normals, (self.nbr, self.cnt_in))
-        pressure = (self.pr, grad_coef, self.walls.fix_rho, self.p.artificial_viscosity * self.c * self.h)
+        pressure = (self.pr, grad_coef, self.walls.fix_rho, self.p.artificial_viscosity * self.c * self.h,
+                    self.sdf.dist, self.sdf.origin, self.sdf_inv)
         correction = None
         if self.lcorr is not None:
             K.gradient_correction(self.x, self.nbr, self.cnt_in, self.inv_rho, self.rho, self.rho0, self.h, grad_coef,

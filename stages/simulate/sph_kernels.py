@@ -27,9 +27,10 @@ one machine-code build per effect set on disk, so an absent effect costs nothing
              maps (wall_maps.py dense array, or the bricked (index, bricks, shape) of sph.BrickWallMaps)
              and inv_dr their tables' 1/dr; gravity (3,) m/s^2 (always added;
              zeros without the effect); acc (N,3) output, m/s^2 (overwritten).
-    pressure   (p, grad_coef, fix_rho, av): p (N,) Pa; grad_coef the Spiky gradient coefficient
-               (eq. 8, divided by the lattice factor); fix_rho the wall density's flat-wall factor (the
-               wall force is -(p_i / rho_i^2) grad of the wall density); av = alpha c h,
+    pressure   (p, grad_coef, fix_rho, av, sdf, sdf_o, sdf_inv): p (N,) Pa; grad_coef the Spiky gradient
+               coefficient (eq. 8, divided by the lattice factor); fix_rho the wall density's flat-wall
+               factor and the SDF grid (dist, origin, 1/spacing): the wall force is -(p_i / rho_i^2) grad of
+               the wall density Z_rho fix_rho(d); av = alpha c h,
                Monaghan's artificial viscosity (part of the WCSPH pressure term). None: no pressure
                at all (DFSPH calls it this way for the non-pressure accelerations).
     viscosity  (mu, lap_coef, fix_vis): Pa s, eq. 9 coefficient, the Z_vis table (zeros = no wall term).
@@ -60,7 +61,7 @@ from stages.common.sdf import sdf_sample
 from .kernels import FASTMATH
 from .neighbours import cell_coords
 from .wall_maps import _quadrature_at, map_sample
-from .wall_tables import table_lookup, table_slope
+from .wall_tables import table_lookup
 
 EOS_LINEAR = 0
 EOS_TAIT = 1
@@ -218,85 +219,6 @@ def brick_sample_1234(index, bricks, shape, ox, oy, oz, inv_h, x, y, z):
     return out1, out2, out3, out4
 
 
-@nb.njit(cache=True, inline="always")
-def _trilinear_grad(m000, m100, m010, m110, m001, m101, m011, m111, tx, ty, tz, inv_h):
-    """The exact gradient of _trilinear's interpolant (per unit length: times the node rate inv_h)."""
-    sx = ((1.0 - ty) * (1.0 - tz) * (m100 - m000) + ty * (1.0 - tz) * (m110 - m010)
-          + (1.0 - ty) * tz * (m101 - m001) + ty * tz * (m111 - m011))
-    sy = ((1.0 - tx) * (1.0 - tz) * (m010 - m000) + tx * (1.0 - tz) * (m110 - m100)
-          + (1.0 - tx) * tz * (m011 - m001) + tx * tz * (m111 - m101))
-    sz = ((1.0 - tx) * (1.0 - ty) * (m001 - m000) + tx * (1.0 - ty) * (m101 - m100)
-          + (1.0 - tx) * ty * (m011 - m010) + tx * ty * (m111 - m110))
-    return sx * inv_h, sy * inv_h, sz * inv_h
-
-
-@nb.njit(cache=True, inline="always")
-def _inside(shape, ox, oy, oz, inv_h, x, y, z):
-    """The clamped lookup is constant outside the node box: no gradient there."""
-    fx = (x - ox) * inv_h
-    fy = (y - oy) * inv_h
-    fz = (z - oz) * inv_h
-    return (0.0 <= fx <= shape[0] - 1.000001 and 0.0 <= fy <= shape[1] - 1.000001
-            and 0.0 <= fz <= shape[2] - 1.000001)
-
-
-@nb.njit(cache=True, inline="always")
-def brick_sample_0grad4(index, bricks, shape, ox, oy, oz, inv_h, x, y, z):
-    """Channel 0 (Z_rho) with its gradient, and channel 4 (Z_vis), the brick slots looked up once."""
-    i, j, k, tx, ty, tz = _cell(shape, ox, oy, oz, inv_h, x, y, z)
-    s000 = _slot(index, i, j, k)
-    s100 = _slot(index, i + 1, j, k)
-    s010 = _slot(index, i, j + 1, k)
-    s110 = _slot(index, i + 1, j + 1, k)
-    s001 = _slot(index, i, j, k + 1)
-    s101 = _slot(index, i + 1, j, k + 1)
-    s011 = _slot(index, i, j + 1, k + 1)
-    s111 = _slot(index, i + 1, j + 1, k + 1)
-    m000 = _at(bricks, s000, i, j, k, 0)
-    m100 = _at(bricks, s100, i + 1, j, k, 0)
-    m010 = _at(bricks, s010, i, j + 1, k, 0)
-    m110 = _at(bricks, s110, i + 1, j + 1, k, 0)
-    m001 = _at(bricks, s001, i, j, k + 1, 0)
-    m101 = _at(bricks, s101, i + 1, j, k + 1, 0)
-    m011 = _at(bricks, s011, i, j + 1, k + 1, 0)
-    m111 = _at(bricks, s111, i + 1, j + 1, k + 1, 0)
-    z0 = _trilinear(m000, m100, m010, m110, m001, m101, m011, m111, tx, ty, tz)
-    gx = gy = gz = 0.0
-    if _inside(shape, ox, oy, oz, inv_h, x, y, z):
-        gx, gy, gz = _trilinear_grad(m000, m100, m010, m110, m001, m101, m011, m111, tx, ty, tz, inv_h)
-    z4 = _trilinear(_at(bricks, s000, i, j, k, 4), _at(bricks, s100, i + 1, j, k, 4),
-                    _at(bricks, s010, i, j + 1, k, 4), _at(bricks, s110, i + 1, j + 1, k, 4),
-                    _at(bricks, s001, i, j, k + 1, 4), _at(bricks, s101, i + 1, j, k + 1, 4),
-                    _at(bricks, s011, i, j + 1, k + 1, 4), _at(bricks, s111, i + 1, j + 1, k + 1, 4), tx, ty, tz)
-    return z0, gx, gy, gz, z4
-
-
-@nb.njit(cache=True, inline="always")
-def dense_sample_0grad4(maps, ox, oy, oz, inv_h, x, y, z):
-    """brick_sample_0grad4 of the dense (nx, ny, nz, 5) map."""
-    shape = (maps.shape[0], maps.shape[1], maps.shape[2])
-    i, j, k, tx, ty, tz = _cell(shape, ox, oy, oz, inv_h, x, y, z)
-    z0 = map_sample(maps, ox, oy, oz, inv_h, x, y, z, 0)
-    gx = gy = gz = 0.0
-    if _inside(shape, ox, oy, oz, inv_h, x, y, z):
-        gx, gy, gz = _trilinear_grad(maps[i, j, k, 0], maps[i + 1, j, k, 0], maps[i, j + 1, k, 0],
-                                     maps[i + 1, j + 1, k, 0], maps[i, j, k + 1, 0], maps[i + 1, j, k + 1, 0],
-                                     maps[i, j + 1, k + 1, 0], maps[i + 1, j + 1, k + 1, 0], tx, ty, tz, inv_h)
-    return z0, gx, gy, gz, map_sample(maps, ox, oy, oz, inv_h, x, y, z, 4)
-
-
-def wall_sample_0grad4(wmap, ox, oy, oz, inv_h, x, y, z):
-    """Z_rho, its gradient (3) and Z_vis of the wall map at (x, y, z), either form of ``wmap``."""
-
-
-@overload(wall_sample_0grad4)
-def _wall_sample_0grad4(wmap, ox, oy, oz, inv_h, x, y, z):
-    if isinstance(wmap, types.Array):
-        return lambda wmap, ox, oy, oz, inv_h, x, y, z: dense_sample_0grad4(wmap, ox, oy, oz, inv_h, x, y, z)
-    return lambda wmap, ox, oy, oz, inv_h, x, y, z: brick_sample_0grad4(wmap[0], wmap[1], wmap[2], ox, oy, oz, inv_h,
-                                                                        x, y, z)
-
-
 def wall_sample_1234(wmap, ox, oy, oz, inv_h, x, y, z):
     """Channels 1-4 of the wall map at (x, y, z), either form of ``wmap``."""
 
@@ -323,6 +245,13 @@ def _wall_sample(wmap, ox, oy, oz, inv_h, x, y, z, c):
         return lambda wmap, ox, oy, oz, inv_h, x, y, z, c: map_sample(wmap, ox, oy, oz, inv_h, x, y, z, c)
     return lambda wmap, ox, oy, oz, inv_h, x, y, z, c: brick_sample(wmap[0], wmap[1], wmap[2], ox, oy, oz, inv_h,
                                                                     x, y, z, c)
+
+
+@nb.njit(cache=True, inline="always")
+def _wall_z(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, x, y, z):
+    """The wall's share of the density at (x, y, z), Z_rho fix_rho(d) (as _walls_and_pressure adds it)."""
+    dw, _, _, _ = sdf_sample(sdf, sdf_o[0], sdf_o[1], sdf_o[2], sdf_inv, x, y, z)
+    return wall_sample(wmap, wo[0], wo[1], wo[2], winv, x, y, z, 0) * table_lookup(fix_rho, dw, inv_dr)
 
 
 @nb.njit(cache=True, inline="always")
@@ -605,7 +534,7 @@ def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, wmap, w
     gy0 = gravity[1]
     gz0 = gravity[2]
     if pressure is not None:
-        p, grad_coef, fix_rho, av = pressure
+        p, grad_coef, fix_rho, av, sdf, sdf_o, sdf_inv = pressure
     if viscosity is not None:
         mu, lap_coef, fix_vis = viscosity
     if tension is not None:
@@ -752,9 +681,9 @@ def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, wmap, w
                         ux -= kij * (nxi - normals[j, 0])
                         uy -= kij * (nyi - normals[j, 1])
                         uz -= kij * (nzi - normals[j, 2])
-        z0 = zx = zy = zz = w4 = 0.0
-        if near_wall:  # the wall map's Z_rho with its gradient and Z_vis in one lookup
-            z0, zx, zy, zz, w4 = wall_sample_0grad4(wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi)
+        w4 = 0.0
+        if near_wall:  # the wall map's Z_vis
+            w4 = wall_sample(wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 4)
         if pressure is not None:
             c = mass * grad_coef * inv_rhoi
             ax = ax * c + gx0
@@ -776,12 +705,22 @@ def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, wmap, w
                     wy = cw * w2
                     wz = cw * w3
                 else:
-                    fr = table_lookup(fix_rho, d[i], inv_dr)
-                    dfr = table_slope(fix_rho, d[i], inv_dr) * z0
+                    # grad Z by central differences of Z = Z_rho fix_rho(d) half a map node apart: continuous
+                    # in x, where the trilinear interpolants' own gradients (the map's, the SDF's normal) jump
+                    # at node planes, and lattice particles sit on them (rounding then chose the side: a scene
+                    # in mm ran differently from the same scene in m)
+                    e = 0.5 / winv
+                    ce = 0.5 / e
+                    zx = ce * (_wall_z(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, xi + e, yi, zi)
+                               - _wall_z(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, xi - e, yi, zi))
+                    zy = ce * (_wall_z(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, xi, yi + e, zi)
+                               - _wall_z(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, xi, yi - e, zi))
+                    zz = ce * (_wall_z(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, xi, yi, zi + e)
+                               - _wall_z(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, xi, yi, zi - e))
                     cw = -pi * inv_rhoi * inv_rhoi
-                    wx = cw * (fr * zx + dfr * nrm[i, 0])
-                    wy = cw * (fr * zy + dfr * nrm[i, 1])
-                    wz = cw * (fr * zz + dfr * nrm[i, 2])
+                    wx = cw * zx
+                    wy = cw * zy
+                    wz = cw * zz
                 if wall_gradient is not None:
                     # -T_wall g, T_wall = t_nn n n^T + t_tt (I - n n^T) along the SDF normal
                     tnn = table_lookup(wall_gradient[0], d[i], inv_dr)

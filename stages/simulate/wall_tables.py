@@ -69,13 +69,3 @@ def table_lookup(table, r, inv_dr):
     t = f - i
     return table[i] + (table[i + 1] - table[i]) * t
 
-
-@nb.njit(cache=True, inline="always")
-def table_slope(table, r, inv_dr):
-    """d/dr of table_lookup's interpolant (0 where it is clamped)."""
-    n = table.shape[0]
-    f = r * inv_dr
-    if f <= 0.0 or f >= n - 1:
-        return 0.0
-    i = int(f)
-    return (table[i + 1] - table[i]) * inv_dr
