@@ -508,7 +508,8 @@ def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, wmap, w
            correction=None, wall_gradient=None, mirrored_wall=None):
     """Acceleration of every particle: gravity plus the declared effects (module docstring). Pressure
     eq. 6, 8 (+ Monaghan av) and the wall pressure -(p_i / rho_i^2) grad Z of the wall density Z (or the
-    mirrored form, ``mirrored_wall``); viscosity eq. 7, 9 and the wall term eq. 13-15; tension, adhesion, friction, wind, attractor as in PHYSICS.md "Effects".
+    mirrored form, ``mirrored_wall``); viscosity eq. 7, 9 and the wall term eq. 13-15; tension, adhesion,
+    friction, wind, attractor as in PHYSICS.md "Effects".
 
     ``neighbours`` = (nbr, cnt_in) from ``density_verlet`` at the same positions: the pairs r < h are
     taken from the list instead of the 9 cell rows (the same sums to rounding).
@@ -694,7 +695,7 @@ def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, wmap, w
                 # share of the density, Z(x) = Z_rho(x) fix_rho(d(x)) (eq. 11-12): a = -(p_i / rho_i^2) grad Z.
                 # Conservative, so a resting tank settles (with viscosity) instead of circulating: a wall
                 # force along another direction or with another pressure (the Spiky sums of the map with the
-                # neighbours' mean pressure) did work around closed loops, +1 % heavy at edges
+                # neighbours' mean pressure) did work around closed loops (README, Water at rest)
                 if mirrored_wall is not None:
                     # the former form: the wall as mirrored particles of pressure p_w = max(p_i, the
                     # neighbours' Shepard mean) along the map's Spiky direction (not conservative; kept
