@@ -68,7 +68,7 @@ def test_pair_forces_conserve_momentum_without_walls():
                        1.0, zeros, 7 / h, sdf.dist, sdf.origin, 1 / sdf.spacing, K.EOS_LINEAR, 100.0, False, rho, p, d, nrm)
     normals = np.zeros((n, 3))
     K.surface_normals(x, rho, grid.starts, grid.lo, 1 / grid.cell, grid.dims, h, spiky_grad_coef(h), m, normals)
-    pressure = (p, spiky_grad_coef(h), zeros, 0.5)
+    pressure = (p, spiky_grad_coef(h), zeros, 0.5, sdf.dist, sdf.origin, 1 / sdf.spacing)
     viscosity = (0.01, visc_lap_coef(h), zeros)
     tension = (0.05, normals, cohesion_coef(h))
     for pr, vis, ten in ((pressure, None, None), (pressure, viscosity, None), (None, None, tension),
@@ -368,6 +368,13 @@ def test_gradient_correction_makes_the_pressure_gradient_exact_on_a_disordered_p
     assert np.abs(L0[full] - [1, 1, 1, 0, 0, 0]).max() < 1e-9
 
 
+def _box_sdf(grid):
+    """A box SDF over the cell grid: the pressure term's SDF (its walls are out of reach: d = 1 m is passed)."""
+    sdf = grid_from_function(box_interior_sdf(grid.lo, grid.lo + grid.cell * grid.dims), grid.lo,
+                             grid.lo + grid.cell * grid.dims, grid.cell)
+    return sdf.dist, sdf.origin, 1 / sdf.spacing
+
+
 def test_corrected_pair_forces_conserve_momentum():
     """0.5 (L_i + L_j) grad W_ij keeps the pair force antisymmetric: the internal forces sum to zero."""
     x, nbr, cnt, rho, inv_rho, d, nrm, grid, m, l0, h = _jittered_block(jitter=0.3)
@@ -381,7 +388,8 @@ def test_corrected_pair_forces_conserve_momentum():
     no_walls = np.zeros((2, 2, 2, 5), np.float32)
     acc = np.zeros((n, 3))
     K.forces(x, v, rho, np.full(n, 1.0), nrm, grid.starts, grid.lo, 1 / grid.cell, grid.dims, h, m, 1000.0, no_walls,
-             np.zeros(3), 1.0, 7 / h, np.zeros(3), acc, (p, gc, zeros, 0.5), None, None, None, None, None, None,
+             np.zeros(3), 1.0, 7 / h, np.zeros(3), acc, (p, gc, zeros, 0.5, *_box_sdf(grid)), None, None, None,
+             None, None, None,
              (nbr, cnt), inv_rho, (L,))
     total = (m * acc).sum(axis=0)
     assert np.abs(total).max() < 1e-10 * (m * np.abs(acc)).sum()
