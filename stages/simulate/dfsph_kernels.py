@@ -37,20 +37,11 @@ from stages.common.sdf import sdf_sample
 
 from .dfsph_walls import spline_f, spline_w
 from .neighbours import cell_coords
-from .sph_kernels import wall_sample, wall_sample_1234
+from .sph_kernels import wall_density, wall_sample_1234
 from .wall_tables import table_lookup
 
 SPIKY, POLY6, SPLINE = 0, 1, 2  # the ``gradient`` modes of density_alpha_neighbours
 WALL_MIRROR = 1.0  # the wall's share of the pressure acceleration counts kappa_i once (see above)
-
-
-@nb.njit(cache=True, inline="always")
-def _wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, x, y, z):
-    """Z_rho at a point (eq. 12): the 3D wall map times the flat-wall factor at the SDF distance."""
-    dw, _, _, _ = sdf_sample(sdf, sdf_o[0], sdf_o[1], sdf_o[2], sdf_inv, x, y, z)
-    if dw >= h:
-        return 0.0
-    return wall_sample(wmap, wo[0], wo[1], wo[2], winv, x, y, z, 0) * table_lookup(fix_rho, dw, inv_dr)
 
 
 @nb.njit(cache=True, parallel=True)
@@ -139,7 +130,7 @@ def density_alpha_neighbours(x, starts, lo, inv_cell, dims, h, poly6_coef, grad_
         pz = 0.0
         if spiky:
             if dw < h:  # only particles within h of a wall have wall terms
-                zw = _wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi, zi)
+                zw = wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi, zi)
                 # Psi = sum_wall m grad_i W_iw with the fluid's (normalised) Spiky gradient: the map's
                 # wall direction G = (m / rho0) sum -grad W times the flat-wall factor, so Psi cancels the
                 # fluid's S_i on the rest lattice at a floor, in edges and in corners alike (grad Z_rho
@@ -151,16 +142,16 @@ def density_alpha_neighbours(x, starts, lo, inv_cell, dims, h, poly6_coef, grad_
                 py = c * g2
                 pz = c * g3
         elif dw < h + fd:
-            zw = _wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi, zi)
+            zw = wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi, zi)
             # Poly6: Psi = grad Z_rho by central differences of the same function the density uses, so
             # the solver's predicted density change matches the real one, edges and corners included
             c = 0.5 / fd
-            px = c * (_wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi + fd, yi, zi)
-                      - _wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi - fd, yi, zi))
-            py = c * (_wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi + fd, zi)
-                      - _wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi - fd, zi))
-            pz = c * (_wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi, zi + fd)
-                      - _wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi, zi - fd))
+            px = c * (wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi + fd, yi, zi)
+                      - wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi - fd, yi, zi))
+            py = c * (wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi + fd, zi)
+                      - wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi - fd, zi))
+            pz = c * (wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi, zi + fd)
+                      - wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi, zi - fd))
         psi[i, 0] = px
         psi[i, 1] = py
         psi[i, 2] = pz

@@ -248,9 +248,12 @@ def _wall_sample(wmap, ox, oy, oz, inv_h, x, y, z, c):
 
 
 @nb.njit(cache=True, inline="always")
-def _wall_z(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, x, y, z):
-    """The wall's share of the density at (x, y, z), Z_rho fix_rho(d) (as _walls_and_pressure adds it)."""
+def wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, x, y, z):
+    """Z_rho at a point (eq. 12): the 3D wall map times the flat-wall factor at the SDF distance (the wall
+    term _walls_and_pressure adds; DFSPH's density and the WCSPH wall force differentiate it)."""
     dw, _, _, _ = sdf_sample(sdf, sdf_o[0], sdf_o[1], sdf_o[2], sdf_inv, x, y, z)
+    if dw >= h:
+        return 0.0
     return wall_sample(wmap, wo[0], wo[1], wo[2], winv, x, y, z, 0) * table_lookup(fix_rho, dw, inv_dr)
 
 
@@ -712,12 +715,12 @@ def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, wmap, w
                     # in mm ran differently from the same scene in m)
                     e = 0.5 / winv
                     ce = 0.5 / e
-                    zx = ce * (_wall_z(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, xi + e, yi, zi)
-                               - _wall_z(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, xi - e, yi, zi))
-                    zy = ce * (_wall_z(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, xi, yi + e, zi)
-                               - _wall_z(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, xi, yi - e, zi))
-                    zz = ce * (_wall_z(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, xi, yi, zi + e)
-                               - _wall_z(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, xi, yi, zi - e))
+                    zx = ce * (wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi + e, yi, zi)
+                               - wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi - e, yi, zi))
+                    zy = ce * (wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi + e, zi)
+                               - wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi - e, zi))
+                    zz = ce * (wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi, zi + e)
+                               - wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi, zi - e))
                     cw = -pi * inv_rhoi * inv_rhoi
                     wx = cw * zx
                     wy = cw * zy
