@@ -110,3 +110,136 @@ def test_from_matrices_rejects_a_scaling_animation():
     back = RigidMotion.from_matrices(good.times, [good.matrix(t) for t in good.times], good.pivot)
     for t in (0.2, 0.8, 1.4):
         assert np.allclose(back.matrix(t), good.matrix(t), atol=1e-12)
+
+
+# -- config and mesh_import -------------------------------------------------------------------------
+def _load(tmp_path, walls_yaml):
+    from pipeline import Registry
+    from pipeline.config import load_config
+
+    (tmp_path / "c.yaml").write_text("config_version: 1\nscene: {name: t}\nwalls:\n" + walls_yaml + "outputs: [walls]\n")
+    return load_config(tmp_path / "c.yaml", Registry.from_entry_points())
+
+
+def test_config_motion_times_must_increase(tmp_path):
+    from pipeline.errors import ConfigError
+
+    ok = _load(tmp_path, "  - builtin: box_tank\n    motion: {keyframes: [{time: 0}, {time: 1, rotate: [0, 0, 30]}]}\n")
+    assert ok.scene.walls[0].motion.keyframes[1].rotate == (0, 0, 30)
+    with pytest.raises(ConfigError) as err:
+        _load(tmp_path, "  - builtin: box_tank\n    motion: {keyframes: [{time: 1}, {time: 1, translate: [1, 0, 0]}]}\n")
+    msg = str(err.value)
+    assert "walls.0.motion.keyframes" in msg and "strictly increasing" in msg and "\n" not in msg
+
+
+def _import(tmp_path, walls, scene=None):
+    from pipeline.testing import run_stage
+    from stages.common.formats import WallMesh
+    from stages.mesh_import.trimesh_import import TrimeshImport
+
+    out = run_stage(TrimeshImport, tmp_path / "walls", scene={"scene": scene or {"name": "t"}, "walls": walls},
+                    config_dir=tmp_path)
+    return WallMesh.load(out), out
+
+
+def test_mesh_import_keeps_the_rest_pose_and_writes_the_motion(tmp_path):
+    motion = {"keyframes": KEYS}
+    wm, _ = _import(tmp_path, [{"builtin": "plane", "size": [2, 2, 0.5]},
+                               {"builtin": "box_tank", "size": [0.4, 0.2, 0.3], "center": [0.5, 0, 0.1],
+                                "translate": [0, 0.1, 0], "motion": motion}])
+    assert "motion" not in wm.walls[0]
+    v = wm.vertices[np.unique(wm.faces[wm.wall_id == 1])]
+    assert np.allclose(v.min(axis=0), [0.3, 0.0, 0.1]) and np.allclose(v.max(axis=0), [0.7, 0.2, 0.4])
+    m = RigidMotion.from_json(wm.walls[1]["motion"])
+    assert np.allclose(m.pivot, [0.5, 0.1, 0.25])  # default: the rest box's centre
+    ref = RigidMotion.from_keyframes(KEYS, [0.5, 0.1, 0.25])
+    for t in (0.0, 0.4, 1.1):
+        assert np.allclose(m.matrix(t), ref.matrix(t), atol=1e-12)
+    wm, _ = _import(tmp_path, [{"builtin": "box_tank", "motion": {**motion, "pivot": [1, 2, 3]}}])
+    assert RigidMotion.from_json(wm.walls[0]["motion"]).pivot.tolist() == [1, 2, 3]
+
+
+TCPS = 24.0
+PROP_TRANSLATE = {0: (0, 0, 0), 24: (30, 0, 0), 36: (30, 10, 0)}  # cm, in the parent's frame (Y up)
+PROP_ROTATE_Y = {0: 0.0, 12: 90.0, 36: 120.0}  # degrees about the up axis
+
+
+def _animated_usd(tmp_path, name="prop.usda", scale_samples=False):
+    """A 10 cm cube under an animated Xform (translate and rotateY time samples at different codes)
+    under a translated, turned and scaled parent, in a Y-up centimetre stage at 24 codes per second."""
+    from pxr import Gf, Usd, UsdGeom
+
+    stage = Usd.Stage.CreateNew(str(tmp_path / name))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+    stage.SetTimeCodesPerSecond(TCPS)
+    parent = UsdGeom.Xform.Define(stage, "/World")
+    parent.AddTranslateOp().Set(Gf.Vec3d(100, 50, -20))
+    parent.AddRotateYOp().Set(90.0)
+    parent.AddScaleOp().Set(Gf.Vec3f(2, 2, 2))
+    prop = UsdGeom.Xform.Define(stage, "/World/Prop")
+    tr = prop.AddTranslateOp()
+    for c, x in PROP_TRANSLATE.items():
+        tr.Set(Gf.Vec3d(*x), Usd.TimeCode(c))
+    ry = prop.AddRotateYOp()
+    for c, a in PROP_ROTATE_Y.items():
+        ry.Set(a, Usd.TimeCode(c))
+    if scale_samples:
+        sc = prop.AddScaleOp()
+        sc.Set(Gf.Vec3f(1, 1, 1), Usd.TimeCode(0))
+        sc.Set(Gf.Vec3f(1.5, 1, 1), Usd.TimeCode(24))
+    cube = UsdGeom.Mesh.Define(stage, "/World/Prop/Cube")
+    pts = [(x, y, z) for x in (-5, 5) for y in (-5, 5) for z in (-5, 5)]
+    cube.CreatePointsAttr([Gf.Vec3f(*p) for p in pts])
+    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    cube.CreateFaceVertexCountsAttr([4] * 6)
+    cube.CreateFaceVertexIndicesAttr([i for q in quads for i in q])
+    stage.GetRootLayer().Save()
+    return name
+
+
+def _keyframes_by_hand():
+    """The same motion as config keyframes in a Z-up metre scene, worked out by hand: the parent turns
+    the prop's offsets by 90 degrees about Y and doubles them; cm -> m; Y-up -> Z-up is (x, -z, y);
+    a turn about USD's Y is a turn about the scene's Z."""
+    turn = rotation_xyz([0, 90, 0])
+    keys = []
+    for c in (0, 12, 24, 36):  # the union of the two ops' sample codes; USD interpolates linearly
+        tr = np.array([np.interp(c, list(PROP_TRANSLATE), [p[a] for p in PROP_TRANSLATE.values()]) for a in range(3)])
+        off = turn @ (2.0 * tr) * 0.01
+        keys.append({"time": c / TCPS, "translate": [off[0], -off[2], off[1]],
+                     "rotate": [0.0, 0.0, float(np.interp(c, list(PROP_ROTATE_Y), list(PROP_ROTATE_Y.values())))]})
+    return keys
+
+
+def test_usd_time_samples_become_the_same_motion_as_config_keyframes(tmp_path):
+    name = _animated_usd(tmp_path)
+    wm, _ = _import(tmp_path, [{"usd": name}])
+    m = RigidMotion.from_json(wm.walls[0]["motion"])
+    # the rest pose is the pose at the earliest sample: the cube (20 cm after the parent's scale)
+    # around the prop's origin, (100, 50, -20) cm in Y-up -> (1, 0.2, 0.5) m in Z-up
+    assert np.allclose(wm.vertices.min(axis=0), [0.9, 0.1, 0.4]) and np.allclose(wm.vertices.max(axis=0), [1.1, 0.3, 0.6])
+    ref = RigidMotion.from_keyframes(_keyframes_by_hand(), [1.0, 0.2, 0.5])
+    assert np.allclose(m.pivot, ref.pivot, atol=1e-12)
+    for t in (-0.3, 0.0, 0.2, 0.5, 0.61, 1.0, 1.3, 1.5, 2.0):
+        a, b = m.matrix(t), ref.matrix(t)
+        assert np.abs(a - b).max() <= 1e-9 * np.abs(b).max(), t
+    # and in centimetres, Y up: the same motion in the scene's units and axes
+    wm_cm, _ = _import(tmp_path, [{"usd": name}], scene={"name": "t", "units": {"meters_per_unit": 0.01, "up_axis": "Y"}})
+    m_cm = RigidMotion.from_json(wm_cm.walls[0]["motion"])
+    x = np.array([[1.0, 0.25, 0.55]])
+    yz = np.array([[1, 0, 0], [0, 0, 1], [0, -1, 0]], float)  # Z-up metres -> Y-up: (x, y, z) -> (x, z, -y)
+    for t in (0.3, 1.2):
+        assert np.allclose(m_cm.to_world(x @ yz.T * 100, t), m.to_world(x, t) @ yz.T * 100, atol=1e-9)
+
+
+def test_usd_scaling_animation_and_double_motion_are_errors(tmp_path):
+    from pipeline.stage import StageError
+
+    name = _animated_usd(tmp_path, "scaled.usda", scale_samples=True)
+    with pytest.raises(StageError, match="/World/Prop/Cube.*not rigid") as err:
+        _import(tmp_path, [{"usd": name}])
+    assert "\n" not in str(err.value)
+    name = _animated_usd(tmp_path)
+    with pytest.raises(StageError, match="animated in the USD file and the wall has a motion"):
+        _import(tmp_path, [{"usd": name, "motion": {"keyframes": KEYS}}])

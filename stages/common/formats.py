@@ -19,9 +19,13 @@ mesh_import -> ``walls`` artifact folder:
     walls.npz                 vertices (V,3) f64 world space, scene units; faces (F,3) i32;
                               wall_id (F,) i32 (index into walls.json)
     walls.json                [{"name", "fluid": "inside"|"outside"|"both", "source", "report": {...},
-                              "shell": thickness (scene units; only for a shell, whose fluid is "both")}, ...]
+                              "shell": thickness (scene units; only for a shell, whose fluid is "both"),
+                              "motion": {"times": (K,) s, "translate": (K, 3) scene units, "quat": (K, 4)
+                              w x y z, "pivot": (3,) scene units} (only for a moving wall: RigidMotion.to_json,
+                              stages/common/motion.py; its vertices above are in its rest pose)}, ...]
     walls.usdc                the wall meshes as UsdGeom.Mesh prims (studio-facing)
-sdf_bake -> ``sdf`` artifact folder: sdf.npz (see stages/common/sdf.py)
+sdf_bake -> ``sdf`` artifact folder: sdf.npz, the static walls (see stages/common/sdf.py); with moving walls
+    also bodies.json and bodies/<k>.npz, each moving wall alone in its rest pose (sdf.load_bodies)
 """
 from __future__ import annotations
 
@@ -127,7 +131,7 @@ class WallMesh:
     vertices: np.ndarray  # (V, 3) float64, world space, scene units
     faces: np.ndarray  # (F, 3) int32
     wall_id: np.ndarray  # (F,) int32
-    walls: list[dict[str, Any]]  # per wall: name, fluid ("inside"/"outside"/"both"), source, report, [shell]
+    walls: list[dict[str, Any]]  # per wall: name, fluid ("inside"/"outside"/"both"), source, report, [shell], [motion]
 
     def shell_thickness(self, default: float = 0.0) -> np.ndarray:
         """(walls,) float64: each wall's shell thickness as imported (scene units; ``default`` where the
