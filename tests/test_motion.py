@@ -243,3 +243,59 @@ def test_usd_scaling_animation_and_double_motion_are_errors(tmp_path):
     name = _animated_usd(tmp_path)
     with pytest.raises(StageError, match="animated in the USD file and the wall has a motion"):
         _import(tmp_path, [{"usd": name, "motion": {"keyframes": KEYS}}])
+
+
+# -- sdf_bake ---------------------------------------------------------------------------------------
+L0 = 0.05
+
+
+def _bake(tmp_path, walls, tag, units=None, domain=None):
+    from pipeline.testing import run_stage
+    from stages.common.sdf import SDFGrid, load_bodies
+    from stages.mesh_import.trimesh_import import TrimeshImport
+    from stages.sdf_bake.open3d_bake import Open3dBake
+
+    scene = {"scene": {"name": "t", "domain": domain, **({"units": units} if units else {})}, "walls": walls,
+             "fluid": {"spacing": L0, "emitters": [{"box": {"min": [0, 0, 0], "max": [0.1, 0.1, 0.1]}}]}}
+    w = run_stage(TrimeshImport, tmp_path / f"walls_{tag}", scene=scene, config_dir=tmp_path)
+    s = run_stage(Open3dBake, tmp_path / f"sdf_{tag}", scene=scene, inputs={"walls": w})
+    return SDFGrid.load(s), load_bodies(s), s, w
+
+
+TANK = {"builtin": "box_tank", "size": [0.6, 0.4, 0.3], "center": [0.1, 0.0, 0.0]}
+SLOSH = {"keyframes": [{"time": 0.0}, {"time": 0.5, "translate": [0.05, 0, 0]}, {"time": 1.0, "rotate": [0, 10, 0]}]}
+
+
+def test_a_moving_tank_is_baked_alone_and_the_static_field_is_empty(tmp_path):
+    static, bodies, folder, _ = _bake(tmp_path, [{**TANK, "motion": SLOSH}], "moving")
+    assert (static.dist == static.band).all()  # no wall stands still: fluid (+band) everywhere
+    fixed, none, fixed_folder, _ = _bake(tmp_path, [TANK], "fixed")
+    assert none == [] and not (fixed_folder / "bodies.json").exists() and len(bodies) == 1
+    (body, motion), = bodies
+    assert np.array_equal(body.origin, fixed.origin) and body.spacing == fixed.spacing
+    assert np.array_equal(body.dist, fixed.dist)  # the same bake as the tank at rest
+    assert np.allclose(motion.to_json()["pivot"], [0.1, 0.0, 0.15])
+    info = json.loads((folder / "bodies.json").read_text())
+    assert info == [{"wall": 0, "name": "wall0_box_tank", "motion": motion.to_json(), "file": "bodies/0.npz"}]
+    # the static box covers the tank wherever it moves (swept bounds), padded like a static wall's
+    lo, hi = motion.swept_bounds([-0.2, -0.2, 0.0], [0.4, 0.2, 0.3])
+    assert (static.origin <= lo - 5 * L0).all() and (static.upper >= hi + 5 * L0).all()
+    assert (static.upper - static.origin > fixed.upper - fixed.origin + 0.05).any()
+
+
+def test_a_moving_paddle_is_absent_from_the_static_field(tmp_path):
+    floor = {"builtin": "plane", "size": [1.0, 1.0, 0.2]}
+    paddle = {"builtin": "box_tank", "fluid": "outside", "size": [0.05, 0.3, 0.2], "center": [0.0, 0.0, 0.05],
+              "motion": {"keyframes": [{"time": 0.0}, {"time": 1.0, "translate": [0.3, 0, 0]}]}}
+    static, bodies, _, _ = _bake(tmp_path, [floor, paddle], "paddle")
+    both, _, _, _ = _bake(tmp_path, [floor, {k: v for k, v in paddle.items() if k != "motion"}], "still")
+    inside_paddle = np.array([[0.0, 0.0, 0.15], [0.01, 0.1, 0.1]])
+    assert (both.sample(inside_paddle)[0] < 0).all()
+    assert (static.sample(inside_paddle)[0] > 0).all()  # the paddle is not in the static field
+    assert (static.sample(np.array([[0.0, 0.0, -0.1]]))[0] < 0).all()  # the floor is
+    (body, motion), = bodies
+    assert (body.sample(inside_paddle)[0] < 0).all()
+    # at t = 1 s the paddle is 0.3 further: a point there is inside it in the paddle's rest frame
+    moved = inside_paddle + [0.3, 0, 0]
+    assert (body.sample(motion.to_rest(moved, 1.0))[0] < 0).all()
+    assert (static.sample(moved)[0] > 0).all()
