@@ -299,3 +299,51 @@ def test_a_moving_paddle_is_absent_from_the_static_field(tmp_path):
     moved = inside_paddle + [0.3, 0, 0]
     assert (body.sample(motion.to_rest(moved, 1.0))[0] < 0).all()
     assert (static.sample(moved)[0] > 0).all()
+
+
+# -- wall_snap, render, export ----------------------------------------------------------------------
+FLOOR = {"builtin": "plane", "size": [1.0, 1.0, 0.2]}
+PADDLE = {"builtin": "box_tank", "fluid": "outside", "size": [0.05, 0.3, 0.2], "center": [0.0, 0.0, 0.05],
+          "motion": {"keyframes": [{"time": 0.0}, {"time": 1.0, "translate": [0.3, 0, 0], "rotate": [0, 0, 30]}]}}
+
+
+def _patch(motion, t, offset):
+    """A surface patch parallel to the paddle's +x face (x = 0.025 at rest), ``offset`` off it, posed
+    at time t; normals into the paddle (a contact region: out of the fluid, into the wall)."""
+    from stages.common.formats import SurfaceMesh
+
+    y, z = np.meshgrid(np.linspace(-0.1, 0.1, 9), np.linspace(0.08, 0.22, 7), indexing="ij")
+    rest = np.stack([np.full(y.size, 0.025 + offset), y.ravel(), z.ravel()], axis=1)
+    idx = np.arange(y.size).reshape(y.shape)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    faces = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)]).astype(np.int32)
+    r, _ = motion.pose(t)
+    normals = np.broadcast_to(r @ [-1.0, 0.0, 0.0], rest.shape)
+    return SurfaceMesh(motion.to_world(rest, t).astype(np.float32), faces, normals.astype(np.float32))
+
+
+@pytest.mark.parametrize("exact", [False, True])
+def test_wall_snap_snaps_onto_the_moved_face(tmp_path, exact):
+    from pipeline.testing import run_stage
+    from stages.common.formats import ParticleMeta, load_surface, save_surface
+    from stages.wall_snap.distance import DistanceSnap
+
+    _, bodies, sdf_dir, walls_dir = _bake(tmp_path, [FLOOR, PADDLE], "snap")
+    motion = bodies[0][1]
+    fps, frame = 20.0, 15  # t = 0.75 s
+    t = frame / fps
+    particles, raw = tmp_path / "particles", tmp_path / "raw"
+    particles.mkdir(), raw.mkdir()
+    ParticleMeta(spacing=L0, mass=0.125, density=1000.0, support=2 * L0, fps=fps, frame_count=20, up_axis="Z",
+                 meters_per_unit=1.0, solver="sph").save(particles)
+    patch = _patch(motion, t, 0.4 * L0)
+    save_surface(raw, frame, patch)
+    out = run_stage(DistanceSnap, tmp_path / f"snapped{exact}", scene={"scene": {"name": "t"}}, frames=(frame,),
+                    params={"exact": exact}, inputs={"raw_surface": raw, "sdf": sdf_dir, "particles": particles,
+                                                     "walls": walls_dir})
+    snapped = load_surface(out, frame)
+    rest = motion.to_rest(snapped.vertices.astype(np.float64), t)
+    assert np.abs(rest[:, 0] - 0.025).max() < (1e-5 if exact else 2e-3 * L0)  # on the moved face
+    assert np.allclose(rest[:, 1:], motion.to_rest(patch.vertices.astype(np.float64), t)[:, 1:], atol=1e-5)
+    # the face at rest is far away: nothing there would have moved the patch
+    assert np.linalg.norm(motion.to_world(np.array([[0.025, 0, 0.15]]), t) - [0.025, 0, 0.15]) > 0.2

@@ -36,6 +36,8 @@ from typing import Any
 
 import numpy as np
 
+from stages.common.motion import RigidMotion
+
 META_FILE = "meta.json"
 FRAMES_DIR = "frames"
 
@@ -138,6 +140,22 @@ class WallMesh:
         import left it open), 0 for a solid."""
         return np.array([0.0 if w.get("fluid") != "both" else default if w.get("shell") is None else float(w["shell"])
                          for w in self.walls], np.float64)
+
+    def motions(self) -> list[tuple[int, RigidMotion]]:
+        """(wall index, motion) of every moving wall."""
+        return [(i, RigidMotion.from_json(w["motion"])) for i, w in enumerate(self.walls) if w.get("motion") is not None]
+
+    def posed(self, t: float) -> "WallMesh":
+        """The walls at time ``t`` (s): every moving wall's vertices moved from its rest pose to its pose
+        then (each wall has vertices of its own); ``self`` when no wall moves."""
+        moving = self.motions()
+        if not moving:
+            return self
+        v = self.vertices.copy()
+        for i, m in moving:
+            idx = np.unique(self.faces[self.wall_id == i])
+            v[idx] = m.to_world(self.vertices[idx], t)
+        return WallMesh(v, self.faces, self.wall_id, self.walls)
 
     def save(self, folder: Path) -> None:
         np.savez(Path(folder) / WALLS_FILE, vertices=self.vertices.astype(np.float64),
