@@ -347,3 +347,32 @@ def test_wall_snap_snaps_onto_the_moved_face(tmp_path, exact):
     assert np.allclose(rest[:, 1:], motion.to_rest(patch.vertices.astype(np.float64), t)[:, 1:], atol=1e-5)
     # the face at rest is far away: nothing there would have moved the patch
     assert np.linalg.norm(motion.to_world(np.array([[0.025, 0, 0.15]]), t) - [0.025, 0, 0.15]) > 0.2
+
+
+def test_render_draws_a_moving_wall_where_it_is_at_the_frame(tmp_path):
+    import imageio.v3 as iio
+
+    from pipeline.testing import run_stage
+    from stages.common.formats import SurfaceMesh, save_surface
+    from stages.render.pyvista_render import PyvistaRender
+
+    block = {"builtin": "box_tank", "fluid": "outside", "size": [0.2, 0.2, 0.2], "center": [-0.4, 0.0, 0.4],
+             "motion": {"keyframes": [{"time": 0.0}, {"time": 1.0, "translate": [0.8, 0.0, 0.0]}]}}
+    _, walls = _import(tmp_path, [block])
+    surface = tmp_path / "surface"
+    surface.mkdir()
+    for f in (0, 10):
+        save_surface(surface, f, SurfaceMesh.empty())
+    eye = np.array([0.0, -4.0, 0.5])
+    scene = {"scene": {"name": "t", "frames": {"fps": 10, "count": 11}},
+             "camera": {"position": eye.tolist(), "focal_point": [0, 0, 0.5], "up": [0, 0, 1], "view_angle": 30.0}}
+    out = run_stage(PyvistaRender, tmp_path / "frames", scene=scene, frames=(0, 10),
+                    params={"resolution": [200, 150], "label": False}, inputs={"walls": walls, "surface": surface})
+    focal = 75 / np.tan(np.radians(15))
+    for f, x in ((0, -0.4), (10, 0.4)):  # the block's centre at t = 0 and 1 s
+        img = iio.imread(out / f"frame_{f:05d}.png")[..., :3].astype(int)
+        grey = (np.abs(img[..., 0] - img[..., 2]) < 12) & (img[..., 0] > 70)
+        ys, xs = np.nonzero(grey)
+        assert len(xs) > 100
+        depth = 4.0 - 0.1  # to the block's near face
+        assert abs(xs.mean() - (100 + focal * x / depth)) < 5, (f, xs.mean())
