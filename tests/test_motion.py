@@ -376,3 +376,76 @@ def test_render_draws_a_moving_wall_where_it_is_at_the_frame(tmp_path):
         assert len(xs) > 100
         depth = 4.0 - 0.1  # to the block's near face
         assert abs(xs.mean() - (100 + focal * x / depth)) < 5, (f, xs.mean())
+
+
+def _export(tmp_path, walls_dir, scene, frames):
+    from pipeline.testing import run_stage
+    from stages.common.formats import ParticleFrame, ParticleMeta, save_particle_frame
+    from stages.export.usd_export import UsdExport
+
+    parts = tmp_path / "particles"
+    parts.mkdir(exist_ok=True)
+    fps = scene["scene"]["frames"]["fps"]
+    ParticleMeta(spacing=L0, mass=0.125, density=1000.0, support=2 * L0, fps=fps, frame_count=max(frames) + 1,
+                 up_axis=scene["scene"]["units"]["up_axis"], meters_per_unit=scene["scene"]["units"]["meters_per_unit"],
+                 solver="synthetic").save(parts)
+    for f in frames:
+        n = 5
+        save_particle_frame(parts, f, ParticleFrame(np.full((n, 3), 0.1 * f), np.zeros((n, 3)), np.full(n, 1000.0),
+                                                    np.zeros(n), np.arange(n)))
+    return run_stage(UsdExport, tmp_path / "usd", scene=scene, frames=tuple(frames), config_dir=tmp_path,
+                     params={"surface": False}, inputs={"walls": walls_dir, "particles": parts})
+
+
+def _world_points(stage, path, code):
+    from pxr import Usd, UsdGeom
+
+    prim = stage.GetPrimAtPath(path)
+    m = np.asarray(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(Usd.TimeCode(code)))  # row vectors
+    pts = np.asarray(UsdGeom.Mesh(prim).GetPointsAttr().Get(Usd.TimeCode(code)), np.float64)
+    return pts @ m[:3, :3] + m[3, :3], m.T
+
+
+def test_export_animates_a_moving_wall_in_step_with_the_frames(tmp_path):
+    from pxr import Usd
+
+    units = {"meters_per_unit": 0.01, "up_axis": "Y"}  # a centimetre, Y-up scene
+    paddle = {"builtin": "box_tank", "fluid": "outside", "size": [5, 20, 30], "center": [0, 5, 0],
+              "motion": {"keyframes": [{"time": 0.0}, {"time": 0.5, "translate": [30, 0, 0], "rotate": [0, 45, 0]},
+                                       {"time": 1.0, "translate": [30, 10, 0], "rotate": [0, 90, 20]}]}}
+    scene = {"scene": {"name": "t", "units": units, "frames": {"fps": 12, "count": 14}},
+             "walls": [{"builtin": "plane", "size": [100, 10, 100]}, paddle]}
+    wm, walls_dir = _import(tmp_path, scene["walls"], scene=scene["scene"])
+    motion = RigidMotion.from_json(wm.walls[1]["motion"])
+    frames = list(range(14))
+    out = _export(tmp_path, walls_dir, scene, frames)
+    stage = Usd.Stage.Open(str(out / "scene.usda"))
+    assert stage.GetTimeCodesPerSecond() == 12
+    rest = wm.vertices[np.unique(wm.faces[wm.wall_id == 1])]
+    moved = 0.0
+    for f in frames:
+        pts, m = _world_points(stage, "/World/Walls/wall1_box_tank", f)
+        assert np.allclose(m, motion.matrix(f / 12), atol=1e-9)
+        assert np.allclose(np.sort(pts, axis=0), np.sort(motion.to_world(rest, f / 12), axis=0), atol=1e-4)
+        moved = max(moved, float(np.abs(np.sort(pts, axis=0) - np.sort(rest, axis=0)).max()))
+        floor, m0 = _world_points(stage, "/World/Walls/wall0_plane", f)
+        assert np.allclose(m0, np.eye(4))  # the static floor stays put
+    assert moved > 20  # the paddle did move (cm)
+
+
+def test_export_of_an_animated_usd_asset_keeps_its_animation_in_step(tmp_path):
+    from pxr import Usd
+
+    name = _animated_usd(tmp_path)
+    scene = {"scene": {"name": "t", "units": {"meters_per_unit": 1.0, "up_axis": "Z"}, "frames": {"fps": 48, "count": 80}},
+             "walls": [{"usd": name}]}
+    wm, walls_dir = _import(tmp_path, scene["walls"], scene=scene["scene"])
+    motion = RigidMotion.from_json(wm.walls[0]["motion"])
+    to_asset = np.linalg.inv(np.asarray(wm.walls[0]["asset_to_scene"]).reshape(4, 4))
+    frames = [0, 6, 24, 40, 60, 79]  # 0 .. 1.65 s at 48 fps; the asset is keyed at 24 codes per second
+    out = _export(tmp_path, walls_dir, scene, frames)
+    stage = Usd.Stage.Open(str(out / "scene.usda"))
+    for f in frames:
+        pts, _ = _world_points(stage, "/World/Prop/Cube", f)
+        want = motion.to_world(wm.vertices, f / 48) @ to_asset[:3, :3].T + to_asset[:3, 3]
+        assert np.allclose(np.sort(pts, axis=0), np.sort(want, axis=0), atol=1e-6), f
