@@ -106,6 +106,27 @@ def load_bodies(folder: Path) -> list[tuple[SDFGrid, RigidMotion]]:
             for b in json.loads(info.read_text())]
 
 
+def posed_field(static: SDFGrid, bodies: list[tuple[SDFGrid, RigidMotion]], t: float) -> SDFGrid:
+    """One grid for a consumer that takes one field (surface_extract): ``static`` with every moving wall
+    at time ``t`` (s) folded in by the minimum, each body sampled at the nodes' rest positions in its
+    frame (trilinear on trilinear: exact on flat faces, corners rounded within a cell). ``static``
+    itself when no wall moves."""
+    if not bodies:
+        return static
+    dist = static.dist.copy()
+    nx, ny, nz = dist.shape
+    j, k = np.meshgrid(np.arange(ny), np.arange(nz), indexing="ij")
+    plane = np.stack([np.zeros(j.size), j.ravel(), k.ravel()], axis=1) * static.spacing + static.origin
+    d = np.empty(len(plane), np.float64)
+    n = np.empty((len(plane), 3), np.float64)
+    for grid, motion in bodies:
+        for i in range(nx):  # one x-slab at a time: a few MB whatever the grid
+            plane[:, 0] = static.origin[0] + i * static.spacing
+            sdf_sample_many(grid.dist, grid.origin, 1.0 / grid.spacing, np.ascontiguousarray(motion.to_rest(plane, t)), d, n)
+            np.minimum(dist[i], np.clip(d, -static.band, static.band).reshape(ny, nz).astype(np.float32), out=dist[i])
+    return SDFGrid(static.origin, static.spacing, dist, static.band, static.shell_thickness)
+
+
 @nb.njit(cache=True, inline="always")
 def sdf_sample(dist, ox, oy, oz, inv_h, x, y, z):
     """Trilinear distance and the normalised gradient of the trilinear interpolant at (x, y, z).
