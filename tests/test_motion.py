@@ -485,3 +485,23 @@ def test_surface_extract_cuts_the_fluid_at_the_moved_wall(tmp_path):
     walls, none = np.abs(results["walls"]) / L0, np.abs(results["none"]) / L0
     assert len(walls) > 100 and np.median(walls) < 0.05 and walls.max() < 0.15
     assert np.median(none) > 0.15  # without the moving wall the surface floats off its face (0.22 l0)
+
+
+def test_a_changed_motion_changes_the_keys_of_the_stages_that_use_it(tmp_path):
+    from pipeline import Registry
+    from pipeline.cache import Cache
+    from pipeline.config import load_config
+    from pipeline.graph import build_graph
+    from pipeline.keys import plan
+
+    keys = []
+    for dx in (0.1, 0.2):
+        (tmp_path / "c.yaml").write_text(
+            "config_version: 1\nscene: {name: t}\nwalls:\n  - builtin: box_tank\n"
+            f"    motion: {{keyframes: [{{time: 0}}, {{time: 1, translate: [{dx}, 0, 0]}}]}}\n"
+            "fluid: {spacing: 0.1, emitters: [{box: {min: [0, 0, 0], max: [0.2, 0.2, 0.2]}}]}\noutputs: [usd]\n")
+        cfg = load_config(tmp_path / "c.yaml", Registry.from_entry_points())
+        p = plan(cfg, build_graph(cfg), Cache(tmp_path / "cache"))
+        keys.append(dict(p.keys))
+    for stage in ("mesh_import", "sdf_bake", "simulate", "surface_extract", "wall_snap", "export"):
+        assert keys[0][stage] != keys[1][stage], stage
