@@ -505,3 +505,21 @@ def test_a_changed_motion_changes_the_keys_of_the_stages_that_use_it(tmp_path):
         keys.append(dict(p.keys))
     for stage in ("mesh_import", "sdf_bake", "simulate", "surface_extract", "wall_snap", "export"):
         assert keys[0][stage] != keys[1][stage], stage
+
+
+def test_a_usd_prim_sampled_once_is_a_static_wall(tmp_path):
+    from pxr import Gf, Usd, UsdGeom
+
+    stage = Usd.Stage.CreateNew(str(tmp_path / "once.usda"))
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    xf = UsdGeom.Xform.Define(stage, "/Prop")
+    xf.AddTranslateOp().Set(Gf.Vec3d(1, 2, 3), Usd.TimeCode(5))
+    tri = UsdGeom.Mesh.Define(stage, "/Prop/Tri")
+    tri.CreatePointsAttr([Gf.Vec3f(0, 0, 0), Gf.Vec3f(1, 0, 0), Gf.Vec3f(0, 1, 0)])
+    tri.CreateFaceVertexCountsAttr([3])
+    tri.CreateFaceVertexIndicesAttr([0, 1, 2])
+    stage.GetRootLayer().Save()
+    wm, _ = _import(tmp_path, [{"usd": "once.usda", "shell": {"thickness": 0.1}}])
+    assert "motion" not in wm.walls[0]
+    assert np.allclose(wm.vertices.min(axis=0), [1, 2, 3])  # at its one sample

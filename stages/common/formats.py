@@ -23,7 +23,8 @@ mesh_import -> ``walls`` artifact folder:
                               "motion": {"times": (K,) s, "translate": (K, 3) scene units, "quat": (K, 4)
                               w x y z, "pivot": (3,) scene units} (only for a moving wall: RigidMotion.to_json,
                               stages/common/motion.py; its vertices above are in its rest pose)}, ...]
-    walls.usdc                the wall meshes as UsdGeom.Mesh prims (studio-facing)
+    walls.usdc                the wall meshes as UsdGeom.Mesh prims (studio-facing; a moving wall in its
+                              rest pose: export's walls layer carries the animation)
 sdf_bake -> ``sdf`` artifact folder: sdf.npz, the static walls (see stages/common/sdf.py); with moving walls
     also bodies.json and bodies/<k>.npz, each moving wall alone in its rest pose (sdf.load_bodies)
 """

@@ -152,6 +152,8 @@ def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str) ->
             tris = tris[:, ::-1]
         codes = _sample_codes(prim)
         moves = _animation(stage, prim, codes) if codes else None
+        if moves is not None and np.allclose(moves[1], np.eye(4), rtol=0, atol=1e-12):
+            moves = None  # sampled but standing still (e.g. a single sample): a static wall
         if used and not _same_motion(animation, moves):
             raise StageError(f"{where}: moves differently from {used[0]}; a wall is one rigid body: "
                              "give each differently moving prim its own wall")
