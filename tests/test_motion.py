@@ -82,6 +82,8 @@ def test_json_round_trip_and_scaled():
     x = np.array([[1.0, 2.0, 3.0]])
     assert np.allclose(s.to_world(x * 0.01, 0.7), m.to_world(x, 0.7) * 0.01, atol=1e-15)
     assert np.allclose(m.to_rest(m.to_world(x, 0.7), 0.7), x, atol=1e-12)
+    a, b = m.rest_transform(0.7)
+    assert np.allclose(m.to_world(x, 0.7) @ a.T + b, x, atol=1e-12)
 
 
 def test_swept_bounds_cover_the_moving_box():

@@ -124,6 +124,12 @@ class RigidMotion:
         m[:3, 3] = self.pivot + tr - r @ self.pivot
         return m
 
+    def rest_transform(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """(A (3,3), b (3,)) with x_rest = A @ x_world + b at t (A = R^T, b = pivot - R^T (pivot + T)):
+        what a kernel needs to sample the wall's rest-frame field at a world position."""
+        r, tr = self.pose(t)
+        return r.T.copy(), self.pivot - r.T @ (self.pivot + tr)
+
     def to_world(self, points: np.ndarray, t: float) -> np.ndarray:
         """Rest positions (N, 3) -> world positions at t."""
         r, tr = self.pose(t)
@@ -193,6 +199,11 @@ def _axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
     """3x3 rotation by ``angle`` (rad) about the unit ``axis`` (Rodrigues)."""
     k = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
     return np.eye(3) + np.sin(angle) * k + (1.0 - np.cos(angle)) * (k @ k)
+
+
+def rest_transform(motion: RigidMotion, t: float) -> tuple[np.ndarray, np.ndarray]:
+    """``motion.rest_transform(t)``: (A, b) with x_rest = A @ x_world + b."""
+    return motion.rest_transform(t)
 
 
 def wall_motion(info: dict[str, Any]) -> RigidMotion | None:
