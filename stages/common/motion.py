@@ -205,8 +205,3 @@ def rest_transform(motion: RigidMotion, t: float) -> tuple[np.ndarray, np.ndarra
     """``motion.rest_transform(t)``: (A, b) with x_rest = A @ x_world + b."""
     return motion.rest_transform(t)
 
-
-def wall_motion(info: dict[str, Any]) -> RigidMotion | None:
-    """The motion of a wall from its walls.json / bodies.json entry (None for a static wall)."""
-    m = info.get("motion")
-    return None if m is None else RigidMotion.from_json(m)

@@ -51,7 +51,6 @@ from pydantic import Field, field_validator
 
 from pipeline.stage import Artifact, Context, Params, Stage, StageError
 from stages.common.formats import WallMesh
-from stages.common.motion import RigidMotion
 from stages.common.sdf import BODIES_DIR, BODIES_FILE, DEFAULT_SHELL_THICKNESS, SDFGrid, min_shell_thickness
 from stages.common.sizes import sdf_estimate
 
@@ -266,12 +265,17 @@ def grid_box(wm: WallMesh, domain, l0: float, p: BakeParams) -> tuple[np.ndarray
     if domain is not None:
         pad = p.margin * l0
         return np.asarray(domain.min, np.float64) - pad, np.asarray(domain.max, np.float64) + pad
+    moving = wm.motions()
+    still = ~np.isin(wm.wall_id, [i for i, _ in moving])
     boxes = []
-    for i, info in enumerate(wm.walls):
+    if not moving and len(wm.vertices):
+        boxes.append((wm.vertices.min(axis=0), wm.vertices.max(axis=0)))
+    elif still.any():
+        used = wm.vertices[np.unique(wm.faces[still])]
+        boxes.append((used.min(axis=0), used.max(axis=0)))
+    for i, motion in moving:
         used = wm.vertices[np.unique(wm.faces[wm.wall_id == i])]
-        if len(used):
-            lo, hi = used.min(axis=0), used.max(axis=0)
-            boxes.append((lo, hi) if info.get("motion") is None else RigidMotion.from_json(info["motion"]).swept_bounds(lo, hi))
+        boxes.append(motion.swept_bounds(used.min(axis=0), used.max(axis=0)))
     if not boxes:
         raise StageError("sdf_bake: no walls and no scene.domain: nothing to bound the grid")
     pad = (p.band + p.margin) * l0
