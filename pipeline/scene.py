@@ -80,7 +80,40 @@ class Placement(Model):
     fit: Domain | None = Field(None, description="uniformly scale and move the model to fit this box")
 
 
-class BuiltinWall(Placement):
+class Keyframe(Model):
+    time: float = Field(description="seconds")
+    translate: Vec3 = Field((0.0, 0.0, 0.0), description="offset of the pivot from its rest position, scene units")
+    rotate: Vec3 = Field((0.0, 0.0, 0.0), description="rotation about the pivot from the rest pose, degrees "
+                         "about X, then Y, then Z (as the placement's rotate)")
+
+    _fin = field_validator("translate", "rotate")(_finite)
+
+
+class Motion(Model):
+    """A rigid wall's animation relative to its placed rest pose: the translation is interpolated
+    linearly, the rotation by slerp (the short way: keys less than half a turn apart); held before the
+    first and after the last key."""
+
+    keyframes: list[Keyframe] = Field(min_length=1, description="the poses at given times, times strictly increasing")
+    pivot: Vec3 | None = Field(None, description="rest position of the rotation centre, scene units; default: the "
+                               "centre of the wall's bounding box at rest")
+
+    _fin = field_validator("pivot")(lambda v: v if v is None else _finite(v))
+
+    @field_validator("keyframes")
+    @classmethod
+    def _increasing(cls, v: list[Keyframe]) -> list[Keyframe]:
+        for a, b in zip(v, v[1:]):
+            if not b.time > a.time:
+                raise ValueError(f"keyframe times must be strictly increasing (time {b.time} follows {a.time})")
+        return v
+
+
+class WallPlacement(Placement):
+    motion: Motion | None = Field(None, description="rigid animation of the wall (default: it stands still)")
+
+
+class BuiltinWall(WallPlacement):
     builtin: Literal["box_tank", "open_box", "cylinder", "plane"] = Field(
         description="analytic wall: box_tank (closed box, fluid inside), open_box (no lid), "
         "cylinder (closed, fluid inside), plane (floor through the origin)")
@@ -104,7 +137,7 @@ class Shell(Model):
                                     "0.6 fluid spacings (the least sdf_bake proves leak-free at its default cell)")
 
 
-class MeshWall(Placement):
+class MeshWall(WallPlacement):
     """A wall read from a model: a solid (``fluid``: which side is fluid) or a ``shell``. With neither
     set, mesh_import chooses: a closed mesh is a solid obstacle (fluid outside), an open one (boundary
     edges) a shell."""

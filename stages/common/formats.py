@@ -19,9 +19,14 @@ mesh_import -> ``walls`` artifact folder:
     walls.npz                 vertices (V,3) f64 world space, scene units; faces (F,3) i32;
                               wall_id (F,) i32 (index into walls.json)
     walls.json                [{"name", "fluid": "inside"|"outside"|"both", "source", "report": {...},
-                              "shell": thickness (scene units; only for a shell, whose fluid is "both")}, ...]
-    walls.usdc                the wall meshes as UsdGeom.Mesh prims (studio-facing)
-sdf_bake -> ``sdf`` artifact folder: sdf.npz (see stages/common/sdf.py)
+                              "shell": thickness (scene units; only for a shell, whose fluid is "both"),
+                              "motion": {"times": (K,) s, "translate": (K, 3) scene units, "quat": (K, 4)
+                              w x y z, "pivot": (3,) scene units} (only for a moving wall: RigidMotion.to_json,
+                              stages/common/motion.py; its vertices above are in its rest pose)}, ...]
+    walls.usdc                the wall meshes as UsdGeom.Mesh prims (studio-facing; a moving wall in its
+                              rest pose: export's walls layer carries the animation)
+sdf_bake -> ``sdf`` artifact folder: sdf.npz, the static walls (see stages/common/sdf.py); with moving walls
+    also bodies.json and bodies/<k>.npz, each moving wall alone in its rest pose (sdf.load_bodies)
 """
 from __future__ import annotations
 
@@ -31,6 +36,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from stages.common.motion import RigidMotion
 
 META_FILE = "meta.json"
 FRAMES_DIR = "frames"
@@ -127,13 +134,29 @@ class WallMesh:
     vertices: np.ndarray  # (V, 3) float64, world space, scene units
     faces: np.ndarray  # (F, 3) int32
     wall_id: np.ndarray  # (F,) int32
-    walls: list[dict[str, Any]]  # per wall: name, fluid ("inside"/"outside"/"both"), source, report, [shell]
+    walls: list[dict[str, Any]]  # per wall: name, fluid ("inside"/"outside"/"both"), source, report, [shell], [motion]
 
     def shell_thickness(self, default: float = 0.0) -> np.ndarray:
         """(walls,) float64: each wall's shell thickness as imported (scene units; ``default`` where the
         import left it open), 0 for a solid."""
         return np.array([0.0 if w.get("fluid") != "both" else default if w.get("shell") is None else float(w["shell"])
                          for w in self.walls], np.float64)
+
+    def motions(self) -> list[tuple[int, RigidMotion]]:
+        """(wall index, motion) of every moving wall."""
+        return [(i, RigidMotion.from_json(w["motion"])) for i, w in enumerate(self.walls) if w.get("motion") is not None]
+
+    def posed(self, t: float) -> "WallMesh":
+        """The walls at time ``t`` (s): every moving wall's vertices moved from its rest pose to its pose
+        then (each wall has vertices of its own); ``self`` when no wall moves."""
+        moving = self.motions()
+        if not moving:
+            return self
+        v = self.vertices.copy()
+        for i, m in moving:
+            idx = np.unique(self.faces[self.wall_id == i])
+            v[idx] = m.to_world(self.vertices[idx], t)
+        return WallMesh(v, self.faces, self.wall_id, self.walls)
 
     def save(self, folder: Path) -> None:
         np.savez(Path(folder) / WALLS_FILE, vertices=self.vertices.astype(np.float64),

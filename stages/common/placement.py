@@ -15,14 +15,23 @@ def up_axis_matrix(src: str, dst: str) -> np.ndarray:
     return trimesh.transformations.rotation_matrix(angle, [1.0, 0.0, 0.0])
 
 
+def rotation_xyz(degrees) -> np.ndarray:
+    """3x3 rotation of the config's ``rotate: [x, y, z]``: degrees about X, then Y, then Z (fixed axes,
+    i.e. Rz @ Ry @ Rx): the one conversion of a config rotation (placement and motion keyframes)."""
+    rx, ry, rz = np.radians(np.asarray(degrees, np.float64))
+    cx, sx, cy, sy, cz, sz = np.cos(rx), np.sin(rx), np.cos(ry), np.sin(ry), np.cos(rz), np.sin(rz)
+    x = np.array([[1.0, 0.0, 0.0], [0.0, cx, -sx], [0.0, sx, cx]])
+    y = np.array([[cy, 0.0, sy], [0.0, 1.0, 0.0], [-sy, 0.0, cy]])
+    z = np.array([[cz, -sz, 0.0], [sz, cz, 0.0], [0.0, 0.0, 1.0]])
+    return z @ y @ x
+
+
 def placement_matrix(vertices: np.ndarray, p: Placement) -> np.ndarray:
     """4x4 matrix (column vectors) of the placement: scale, then rotate about X, Y, Z (degrees), then
     fit into ``p.fit`` (uniform scale, centred on the box of ``vertices`` after rotation), then
     translate. All about the model's own origin."""
-    import trimesh
     m = np.eye(4)
-    rx, ry, rz = np.radians(p.rotate)
-    m[:3, :3] = trimesh.transformations.euler_matrix(rx, ry, rz, axes="sxyz")[:3, :3] @ np.diag(
+    m[:3, :3] = rotation_xyz(p.rotate) @ np.diag(
         np.broadcast_to(np.asarray(p.scale, np.float64), (3,)))
     v = np.asarray(vertices, np.float64)
     if p.fit is not None and len(v):

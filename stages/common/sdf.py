@@ -7,13 +7,20 @@ origin + spacing * (i, j, k).
 """
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import numba as nb
 import numpy as np
 
+from stages.common.motion import RigidMotion
+
 SDF_FILE = "sdf.npz"
+# moving walls: bodies.json = [{"wall": index into walls.json, "name", "motion": RigidMotion.to_json(),
+# "file": "bodies/<k>.npz"}], each file an SDFGrid of that wall alone in its rest pose
+BODIES_FILE = "bodies.json"
+BODIES_DIR = "bodies"
 
 # Shells and thin walls against the trilinear grid (tests/test_shells.py proves the bound):
 # the field |d| - t/2 of a wall thinner than a cell is V-shaped, and trilinear sampling flattens the V
@@ -59,7 +66,9 @@ class SDFGrid:
         return self.origin + self.spacing * (np.array(self.dist.shape) - 1)
 
     def save(self, folder: Path) -> Path:
-        path = Path(folder) / SDF_FILE
+        return self.save_file(Path(folder) / SDF_FILE)
+
+    def save_file(self, path: Path) -> Path:
         extra = {} if self.shell_thickness is None else {"shell_thickness": np.asarray(self.shell_thickness, np.float64)}
         np.savez(path, origin=self.origin, spacing=np.float64(self.spacing),
                  dist=np.ascontiguousarray(self.dist, dtype=np.float32), band=np.float64(self.band), **extra)
@@ -67,7 +76,11 @@ class SDFGrid:
 
     @classmethod
     def load(cls, folder: Path) -> "SDFGrid":
-        with np.load(Path(folder) / SDF_FILE) as z:
+        return cls.load_file(Path(folder) / SDF_FILE)
+
+    @classmethod
+    def load_file(cls, path: Path) -> "SDFGrid":
+        with np.load(path) as z:
             return cls(origin=np.asarray(z["origin"], np.float64), spacing=float(z["spacing"]),
                        dist=np.ascontiguousarray(z["dist"], np.float32), band=float(z["band"]),
                        shell_thickness=np.asarray(z["shell_thickness"], np.float64) if "shell_thickness" in z else None)
@@ -79,6 +92,39 @@ class SDFGrid:
         n = np.empty((len(pts), 3), np.float64)
         sdf_sample_many(self.dist, self.origin, 1.0 / self.spacing, pts, d, n)
         return d, n
+
+
+def load_bodies(folder: Path) -> list[tuple[SDFGrid, RigidMotion]]:
+    """The moving walls sdf_bake baked apart from ``sdf.npz``: per moving wall (in walls.json order) its
+    field in its rest pose and its motion. A point x at time t is sampled at the body's rest position
+    ``motion.to_rest(x, t)`` (R^T (x - pivot - T) + pivot), and the normal found there turns back with R.
+    Empty when no wall moves."""
+    info = Path(folder) / BODIES_FILE
+    if not info.is_file():
+        return []
+    return [(SDFGrid.load_file(Path(folder) / b["file"]), RigidMotion.from_json(b["motion"]))
+            for b in json.loads(info.read_text())]
+
+
+def posed_field(static: SDFGrid, bodies: list[tuple[SDFGrid, RigidMotion]], t: float) -> SDFGrid:
+    """One grid for a consumer that takes one field (surface_extract): ``static`` with every moving wall
+    at time ``t`` (s) folded in by the minimum, each body sampled at the nodes' rest positions in its
+    frame (trilinear on trilinear: exact on flat faces, corners rounded within a cell). ``static``
+    itself when no wall moves."""
+    if not bodies:
+        return static
+    dist = static.dist.copy()
+    nx, ny, nz = dist.shape
+    j, k = np.meshgrid(np.arange(ny), np.arange(nz), indexing="ij")
+    plane = np.stack([np.zeros(j.size), j.ravel(), k.ravel()], axis=1) * static.spacing + static.origin
+    d = np.empty(len(plane), np.float64)
+    n = np.empty((len(plane), 3), np.float64)
+    for grid, motion in bodies:
+        for i in range(nx):  # one x-slab at a time: a few MB whatever the grid
+            plane[:, 0] = static.origin[0] + i * static.spacing
+            sdf_sample_many(grid.dist, grid.origin, 1.0 / grid.spacing, np.ascontiguousarray(motion.to_rest(plane, t)), d, n)
+            np.minimum(dist[i], np.clip(d, -static.band, static.band).reshape(ny, nz).astype(np.float32), out=dist[i])
+    return SDFGrid(static.origin, static.spacing, dist, static.band, static.shell_thickness)
 
 
 @nb.njit(cache=True, inline="always")

@@ -4,7 +4,8 @@
     usd/fluid_surface.usdc    time-sampled UsdGeom.Mesh /World/Fluid/Surface + its water material
     usd/particles.usdc        time-sampled UsdGeom.Points (the particles artifact's layer when it is
                               in the export's frame, else written here)
-    usd/walls.usdc            wall meshes that did not come from a USD asset
+    usd/walls.usdc            wall meshes that did not come from a USD asset (a moving wall: its rest
+                              mesh under an xformOp:transform time-sampled at every exported frame)
     usd/assets/...            copies of studio USD assets the walls came from (with their local
                               dependencies): sublayered so their prim paths stay as they are
     usd/scene.usdz            optional package of all of the above
@@ -86,7 +87,7 @@ def _safe_name(name: str, used: set[str]) -> str:
 class UsdExport(Stage):
     kind = "export"
     name = "usd"
-    version = "3"
+    version = "4"
     Params = UsdParams
     inputs = ("walls", "particles")
     optional_inputs = ("surface",)
@@ -154,7 +155,7 @@ class UsdExport(Stage):
             sublayers.append("./fluid_surface.usdc")
         if params.particles:
             sublayers.append(self._write_particles(out, inputs["particles"], frames, to_target, metrics, progress))
-        if self._write_walls(out / "walls.usdc", walls, set(usd_walls), to_target, metrics):
+        if self._write_walls(out / "walls.usdc", walls, set(usd_walls), to_target, metrics, frames):
             sublayers.append("./walls.usdc")
         references: list[tuple[str, np.ndarray]] = []
         for asset, asset_to_scene in assets.items():
@@ -251,8 +252,15 @@ class UsdExport(Stage):
         return "./particles.usdc"
 
     @staticmethod
-    def _write_walls(path: Path, walls: WallMesh, skip: set[int], m: np.ndarray, metrics: dict) -> bool:
+    def _write_walls(path: Path, walls: WallMesh, skip: set[int], m: np.ndarray, metrics: dict,
+                     frames: list[int]) -> bool:
+        """The walls not from a USD asset; a moving wall as its rest mesh under a transform time-sampled
+        at every exported frame (code f: the pose at f / fps). A wall from an animated USD asset carries
+        its own animation in the asset (its time codes scaled to ours by their timeCodesPerSecond)."""
         from pxr import UsdGeom
+
+        motions = dict(walls.motions())
+        to_source = np.linalg.inv(m)
 
         keep = [i for i in range(len(walls.walls)) if i not in skip and np.any(walls.wall_id == i)]
         if not keep:
@@ -268,6 +276,11 @@ class UsdExport(Stage):
             if np.linalg.det(m[:3, :3]) < 0:
                 local = local[:, ::-1]
             ul.set_mesh(mesh, ul.apply(m, walls.vertices[idx]), local, None)
+            if i in motions:  # the rest pose above, moved by the wall's motion seen in the written frame
+                op = mesh.AddTransformOp()
+                for f in frames:
+                    op.Set(ul.to_gf_matrix(m @ motions[i].matrix(f / metrics["fps"]) @ to_source), f)
+                # the extent bounds the points as authored (the rest pose): USD applies the transform to it
             mesh.GetPrim().SetCustomDataByKey("source", str(walls.walls[i].get("source", "")))
         stage.GetRootLayer().Save()
         return True

@@ -19,6 +19,7 @@ from pydantic import Field
 from pipeline.scene import BuiltinWall, UsdWall
 from pipeline.stage import Artifact, Context, Params, Stage, StageError
 from stages.common.formats import WallMesh
+from stages.common.motion import RigidMotion
 from stages.common.sdf import DEFAULT_SHELL_THICKNESS
 
 from .builtin import builtin_mesh
@@ -115,6 +116,7 @@ class TrimeshImport(Stage):
             if f.min() < 0 or f.max() >= len(v):
                 raise StageError(f"{where}: face index {int(f.max())} out of range (mesh has {len(v)} vertices)")
             v = apply_placement(v, w)
+            motion = self._motion(w, v, extra.pop("animation", None), f"{where}:{extra['prims'][0]}" if "prims" in extra else where)
             diag = float(np.linalg.norm(v.max(axis=0) - v.min(axis=0))) or 1.0
             mesh, report = clean_mesh(trimesh.Trimesh(v, f, process=False), params.weld_tolerance * diag)
             if len(mesh.faces) == 0:
@@ -133,6 +135,8 @@ class TrimeshImport(Stage):
                 info[-1]["shell"] = shell
             if asset_to_scene is not None:
                 info[-1]["asset_to_scene"] = asset_to_scene
+            if motion is not None:
+                info[-1]["motion"] = motion.to_json()
             verts.append(np.asarray(mesh.vertices, np.float64))
             faces.append(np.asarray(mesh.faces, np.int64) + offset)
             ids.append(np.full(len(mesh.faces), i, np.int32))
@@ -145,6 +149,21 @@ class TrimeshImport(Stage):
         wm.save(ctx.out_dir)
         write_walls_usd(ctx.out_dir / USD_FILE, wm, scene.units.meters_per_unit, scene.units.up_axis)
         ctx.log.info("%d walls, %d triangles", len(info), len(wm.faces))
+
+    @staticmethod
+    def _motion(w: Any, v: np.ndarray, animation: tuple | None, where: str) -> RigidMotion | None:
+        """The wall's rigid motion about its placed rest pose ``v``: the config's keyframes, or the USD
+        prims' animation (times, rest -> world matrices in scene coordinates); the pivot defaults to the
+        centre of the rest bounding box."""
+        if w.motion is None and animation is None:
+            return None
+        pivot = 0.5 * (v.min(axis=0) + v.max(axis=0))
+        if w.motion is not None:
+            return RigidMotion.from_keyframes(w.motion.keyframes, pivot if w.motion.pivot is None else w.motion.pivot)
+        try:
+            return RigidMotion.from_matrices(*animation, pivot)
+        except ValueError as e:
+            raise StageError(f"{where}: {e}; only rigid animations (translate, rotate) can move a wall") from None
 
     @staticmethod
     def _solid_or_shell(ctx: Context, i: int, label: str, w: Any, fluid: str | None,
@@ -188,10 +207,18 @@ class TrimeshImport(Stage):
             path = ctx.resolve(w.usd)
             if path.suffix.lower() not in (".usd", ".usda", ".usdc", ".usdz"):
                 raise StageError(f"{path}: unsupported USD format {path.suffix!r}; expected .usd, .usda, .usdc or .usdz")
-            v, f, prims, to_units = read_usd_wall(path, w, units.meters_per_unit, units.up_axis)
+            v, f, prims, to_units, animation = read_usd_wall(path, w, units.meters_per_unit, units.up_axis)
             # the asset's frame -> the scene's, so export can reference the asset in place
             to_scene = placement_matrix(v, w) @ to_units
-            return v, f, w.fluid, str(path), {"prims": prims, "asset_to_scene": to_scene.ravel().tolist()}
+            extra = {"prims": prims, "asset_to_scene": to_scene.ravel().tolist()}
+            if animation is not None:
+                if w.motion is not None:
+                    raise StageError(f"{path}: {prims[0]} is animated in the USD file and the wall has a motion "
+                                     "in the config; keep one of them")
+                # the stage's world frame -> the scene's: the same rigid motion seen from the scene
+                times, mats = animation
+                extra["animation"] = (times, to_scene @ mats @ np.linalg.inv(to_scene))
+            return v, f, w.fluid, str(path), extra
         path = ctx.resolve(w.file)
         v, f = _read_mesh_file(path)
         if len(v) and w.meters_per_unit is not None:

@@ -61,9 +61,45 @@ def _triangulate(counts: np.ndarray, indices: np.ndarray, holes: np.ndarray, whe
     return tris[keep[face_of_tri]]
 
 
-def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str) -> tuple[np.ndarray, np.ndarray, list[str], np.ndarray]:
-    """World-space vertices (scene units, scene up axis), triangles, the prim paths used, and the 4x4
-    matrix (column vectors) from the stage's world frame to the scene's units and up axis."""
+def _sample_codes(prim) -> list[float]:
+    """The time codes at which the xformOps of ``prim`` or any ancestor are sampled (sorted; empty when
+    its world transform is static)."""
+    from pxr import UsdGeom
+
+    codes: set[float] = set()
+    p = prim
+    while p and p.IsValid() and not p.IsPseudoRoot():
+        if p.IsA(UsdGeom.Xformable):
+            for op in UsdGeom.Xformable(p).GetOrderedXformOps():
+                codes.update(op.GetAttr().GetTimeSamples())
+        p = p.GetParent()
+    return sorted(codes)
+
+
+def _animation(stage, prim, codes: list[float]) -> tuple[np.ndarray, np.ndarray]:
+    """(times (K,) s, (K, 4, 4) column-vector matrices M(t) M(t0)^-1 in the stage's world frame) of an
+    animated prim, at its sample codes and every whole code between (so a turn keyed at two codes is
+    followed as USD interpolates it, not cut to the short arc between its ends)."""
+    from pxr import Usd, UsdGeom
+
+    lo, hi = codes[0], codes[-1]
+    every = sorted(set(codes) | {float(c) for c in range(int(np.ceil(lo)), int(np.floor(hi)) + 1)})
+    cache = UsdGeom.XformCache()
+    mats = []
+    for c in every:
+        cache.SetTime(Usd.TimeCode(c))
+        mats.append(np.asarray(cache.GetLocalToWorldTransform(prim), np.float64).T)  # pxr: row vectors
+    rest_inv = np.linalg.inv(mats[0])
+    return np.asarray(every) / float(stage.GetTimeCodesPerSecond()), np.array([m @ rest_inv for m in mats])
+
+
+def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str) -> tuple[np.ndarray, np.ndarray, list[str], np.ndarray, tuple | None]:
+    """World-space vertices (scene units, scene up axis), triangles, the prim paths used, the 4x4
+    matrix (column vectors) from the stage's world frame to the scene's units and up axis, and the
+    wall's animation: None when static, else (times s, (K, 4, 4) matrices taking the rest pose to the
+    pose at each time, in the stage's world frame). An animated wall's vertices are in its rest pose:
+    the world transform at its earliest time sample. Every prim of one wall must move alike (one rigid
+    body)."""
     from pxr import Usd, UsdGeom
 
     if not path.is_file():
@@ -92,6 +128,7 @@ def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str) ->
         chosen += [p for p in matched if p not in chosen]
 
     verts, faces, used, offset = [], [], [], 0
+    animation: tuple | None = None
     for prim in chosen:
         if not prim.IsA(UsdGeom.Mesh):
             continue
@@ -113,7 +150,18 @@ def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str) ->
         tris = _triangulate(counts, idx, holes, where)
         if mesh.GetOrientationAttr().Get() == UsdGeom.Tokens.leftHanded:
             tris = tris[:, ::-1]
+        codes = _sample_codes(prim)
+        moves = _animation(stage, prim, codes) if codes else None
+        if moves is not None and np.allclose(moves[1], np.eye(4), rtol=0, atol=1e-12):
+            moves = None  # sampled but standing still (e.g. a single sample): a static wall
+        if used and not _same_motion(animation, moves):
+            raise StageError(f"{where}: moves differently from {used[0]}; a wall is one rigid body: "
+                             "give each differently moving prim its own wall")
+        animation = moves
+        if codes:  # the rest pose: the earliest sample
+            cache.SetTime(Usd.TimeCode(codes[0]))
         world = np.asarray(cache.GetLocalToWorldTransform(prim), np.float64)  # row-vector convention
+        cache.SetTime(Usd.TimeCode.Default())
         p = pts @ world[:3, :3] + world[3, :3]
         if np.linalg.det(world[:3, :3]) < 0:  # a mirroring transform flips the winding
             tris = tris[:, ::-1]
@@ -125,7 +173,14 @@ def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str) ->
         raise StageError(f"{path}: no visible UsdGeom.Mesh prim with faces matches {wall.prims}")
     units = np.eye(4)
     units[:3, :3] = to_scene
-    return np.concatenate(verts), np.concatenate(faces), used, units
+    return np.concatenate(verts), np.concatenate(faces), used, units, animation
+
+
+def _same_motion(a: tuple | None, b: tuple | None) -> bool:
+    if a is None or b is None:
+        return a is None and b is None
+    return (len(a[0]) == len(b[0]) and np.allclose(a[0], b[0], rtol=0, atol=1e-12)
+            and np.allclose(a[1], b[1], rtol=1e-9, atol=1e-9 * max(1.0, float(np.abs(a[1][:, :3, 3]).max()))))
 
 
 class UsdImport(TrimeshImport):

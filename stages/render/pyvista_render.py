@@ -9,7 +9,7 @@ a VTK_DEFAULT_OPENGL_WINDOW set by the user wins.
 Containers (fluid "inside", mesh_import's open box, and shells) are seen from outside, so the faces
 between the camera and the container's centre are drawn faint: the water inside shows. Walls are drawn
 two-sided (no back-face culling, two-sided lighting): an open or single-sided mesh (a shell) shows its
-back faces lit like its front.
+back faces lit like its front. A moving wall is drawn at its pose at the frame's time (frame / fps).
 """
 from __future__ import annotations
 
@@ -103,7 +103,7 @@ def polydata(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray | None
 class PyvistaRender(Stage):
     kind = "render"
     name = "pyvista"
-    version = "3"
+    version = "4"
     Params = RenderParams
     inputs = ("walls",)
     optional_inputs = ("surface", "particles")
@@ -134,7 +134,8 @@ class PyvistaRender(Stage):
             plotter.set_background(params.background)
             eye, centre, up, view_angle = shot_camera(walls, scene.units, ctx.scene["camera"], ctx.resolve,
                                                       "render.pyvista")
-            self._add_walls(plotter, walls, eye, params)
+            # the camera frames the walls at rest (the same in every frame); moving walls drawn at the frame's time
+            self._add_walls(plotter, walls.posed(frame / scene.frames.fps), eye, params)
             if params.show == "surface":
                 self._add_surface(plotter, inputs, frame, params)
             else:

@@ -31,10 +31,17 @@ twice) and the space above the opening outside, as if the bowl had a lid at its 
 containers as solids with thickness (mesh_import's builtin open_box does) and fluid "outside" so fluid
 may leave them. Walls are combined by the minimum over walls: a point is fluid only if every wall
 allows it.
+
+Moving walls (walls.json "motion"): each is baked alone, in its rest pose, on its own bounds padded
+by band + margin at the same node spacing, into bodies/<k>.npz (listed in bodies.json; loaded with
+stages.common.sdf.load_bodies); sdf.npz holds the static walls only, on a box that also covers every
+moving wall's swept bounds when no domain is given (+band everywhere when no wall stands still).
 """
 from __future__ import annotations
 
+import json
 import time
+from pathlib import Path
 from typing import Mapping
 
 import numpy as np
@@ -44,7 +51,7 @@ from pydantic import Field, field_validator
 
 from pipeline.stage import Artifact, Context, Params, Stage, StageError
 from stages.common.formats import WallMesh
-from stages.common.sdf import DEFAULT_SHELL_THICKNESS, SDFGrid, min_shell_thickness
+from stages.common.sdf import BODIES_DIR, BODIES_FILE, DEFAULT_SHELL_THICKNESS, SDFGrid, min_shell_thickness
 from stages.common.sizes import sdf_estimate
 
 from .mesh_distance import band_distance, inside_votes
@@ -253,13 +260,58 @@ def wall_thicknesses(wm: WallMesh, l0: float, p: "BakeParams", log=None) -> np.n
 
 
 def grid_box(wm: WallMesh, domain, l0: float, p: BakeParams) -> tuple[np.ndarray, np.ndarray]:
+    """The static grid's box: scene.domain padded by the margin; without a domain, the fluid's reach:
+    the static walls' bounds and every moving wall's swept bounds, padded by band + margin."""
     if domain is not None:
         pad = p.margin * l0
         return np.asarray(domain.min, np.float64) - pad, np.asarray(domain.max, np.float64) + pad
-    if len(wm.vertices) == 0:
+    moving = wm.motions()
+    still = ~np.isin(wm.wall_id, [i for i, _ in moving])
+    boxes = []
+    if not moving and len(wm.vertices):
+        boxes.append((wm.vertices.min(axis=0), wm.vertices.max(axis=0)))
+    elif still.any():
+        used = wm.vertices[np.unique(wm.faces[still])]
+        boxes.append((used.min(axis=0), used.max(axis=0)))
+    for i, motion in moving:
+        used = wm.vertices[np.unique(wm.faces[wm.wall_id == i])]
+        boxes.append(motion.swept_bounds(used.min(axis=0), used.max(axis=0)))
+    if not boxes:
         raise StageError("sdf_bake: no walls and no scene.domain: nothing to bound the grid")
     pad = (p.band + p.margin) * l0
-    return wm.vertices.min(axis=0) - pad, wm.vertices.max(axis=0) + pad
+    return np.min([b[0] for b in boxes], axis=0) - pad, np.max([b[1] for b in boxes], axis=0) + pad
+
+
+def split_moving(wm: WallMesh) -> tuple[WallMesh, list[tuple[int, WallMesh]]]:
+    """The static walls (the moving walls' faces dropped) and per moving wall (index, that wall alone);
+    every part keeps the whole walls list, so per-wall arrays (shell thickness) keep their indices."""
+    moving = [i for i, info in enumerate(wm.walls) if info.get("motion") is not None]
+    static = ~np.isin(wm.wall_id, moving)
+    part = lambda keep: WallMesh(wm.vertices, wm.faces[keep], wm.wall_id[keep], wm.walls)  # noqa: E731
+    return part(static), [(i, part(wm.wall_id == i)) for i in moving]
+
+
+def bake_bodies(wm: WallMesh, out_dir: Path, l0: float, p: BakeParams, shells: np.ndarray, log=None) -> list[dict]:
+    """Bake each moving wall alone in its rest pose (the bake of the static walls, on its own bounds
+    padded by band + margin, at the same node spacing) into bodies/<k>.npz; write bodies.json."""
+    _, bodies = split_moving(wm)
+    if not bodies:
+        return []
+    (out_dir / BODIES_DIR).mkdir()
+    entries = []
+    for k, (i, body) in enumerate(bodies):
+        used = body.vertices[np.unique(body.faces)]
+        pad = (p.band + p.margin) * l0
+        grid, stats = bake(body, used.min(axis=0) - pad, used.max(axis=0) + pad, p.cell * l0, p.band * l0,
+                           p.exact_reach, p.sign_rays, shells, p.sign, p.min_thickness_l0() * l0)
+        name = f"{BODIES_DIR}/{k}.npz"
+        grid.save_file(out_dir / name)
+        entries.append({"wall": i, "name": wm.walls[i]["name"], "motion": wm.walls[i]["motion"], "file": name})
+        if log is not None:
+            log.info("moving wall %d (%s): body sdf %s nodes, %.2f s", i, wm.walls[i]["name"],
+                     "x".join(map(str, stats["shape"])), stats["seconds"])
+    (out_dir / BODIES_FILE).write_text(json.dumps(entries, indent=2, sort_keys=True))
+    return entries
 
 
 def bake(wm: WallMesh, lo: np.ndarray, hi: np.ndarray, h: float, band: float, exact_reach: float = 4.0,
@@ -320,7 +372,7 @@ class Open3dBake(Stage):
 
     kind = "sdf_bake"
     name = "open3d"
-    version = "3"
+    version = "4"
     Params = BakeParams
     inputs = ("walls",)
     outputs = ("sdf",)
@@ -340,7 +392,11 @@ class Open3dBake(Stage):
         wm = WallMesh.load(inputs["walls"].path)
         lo, hi = grid_box(wm, ctx.scene["scene"].domain, l0, params)
         shells = wall_thicknesses(wm, l0, params, ctx.log)
-        grid, stats = bake(wm, lo, hi, params.cell * l0, params.band * l0, params.exact_reach, params.sign_rays,
+        # a moving wall is baked apart, in its own frame (bodies/); sdf.npz holds the static walls only
+        # (+band everywhere when every wall moves)
+        static, _ = split_moving(wm)
+        bake_bodies(wm, ctx.out_dir, l0, params, shells, ctx.log)
+        grid, stats = bake(static, lo, hi, params.cell * l0, params.band * l0, params.exact_reach, params.sign_rays,
                            shells, params.sign, params.min_thickness_l0() * l0)
         grid.save(ctx.out_dir)
         ctx.log.info("sdf %s nodes, %d exact + %d propagated band nodes, %d tied signs, %d faces of thin parts "

@@ -28,7 +28,8 @@ Yu and Turk 2013), for smooth sheets and flat surfaces.
 With an SDF upstream the wall's share of the density is added near walls (mirror images of the
 particles within R of a wall) and the fluid is cut by the wall (Phi' = iso + min(Phi - iso, d / R)),
 so where the fluid touches a wall the raw surface already lies on it instead of floating about half a
-kernel radius off; wall_snap then only has the contact line left to do.
+kernel radius off; wall_snap then only has the contact line left to do. Moving walls (sdf_bake's
+bodies) are folded into the field at the frame's time (sdf.posed_field).
 """
 from __future__ import annotations
 
@@ -41,7 +42,7 @@ from pydantic import Field
 from pipeline.stage import Artifact, Context, Params, Stage
 from stages.common.formats import ParticleMeta, SurfaceMesh, load_particle_frame, save_surface
 from stages.common.meshes import signed_volume, vertex_normals
-from stages.common.sdf import SDFGrid
+from stages.common.sdf import SDFGrid, load_bodies, posed_field
 
 from .anisotropic import anisotropic_kernels, scatter_anisotropic
 from .implicit import cut_by_walls, ghost_particles, order_and_chunks, particle_volumes, scatter_implicit
@@ -146,7 +147,7 @@ def extract(x: np.ndarray, vol: np.ndarray, l0: float, params: MarchingCubesPara
 class MarchingCubes(Stage):
     kind = "surface_extract"
     name = "marching_cubes"
-    version = "4"
+    version = "5"
     Params = MarchingCubesParams
     inputs = ("particles",)
     optional_inputs = ("sdf",)
@@ -161,7 +162,10 @@ class MarchingCubes(Stage):
         meta = ParticleMeta.load(folder)
         pf = load_particle_frame(folder, frame)
         vol = np.full(len(pf.x), meta.volume(meta.density))  # m / rho0 in scene units^3 (m / rho alone is m^3)
-        sdf = SDFGrid.load(inputs["sdf"].frame(frame)) if inputs.get("sdf") is not None else None
+        sdf = None
+        if inputs.get("sdf") is not None:  # moving walls folded in at the frame's time
+            folder = inputs["sdf"].frame(frame)
+            sdf = posed_field(SDFGrid.load(folder), load_bodies(folder), frame / meta.fps)
         timings: dict = {}
         mesh = extract(pf.x, vol, meta.spacing, params, sdf=sdf, timings=timings)
         ctx.log.debug("frame %d: %d particles -> %d triangles (volumes %.3f s, phi %.3f s, contour %.3f s, "

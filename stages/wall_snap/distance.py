@@ -11,6 +11,10 @@ wall by up to about half a grid cell there. With the wall mesh at hand (``exact`
 vertex finishes on the mesh's exact closest point (open3d), so it lies on the wall itself; on a shell
 wall, on the face of the shell the fluid touches (thickness/2 off the mesh, on the vertex's side).
 
+Moving walls (sdf_bake's bodies): at frame f (time f / fps) each vertex snaps onto the nearest wall,
+a moving one in its own rest frame (its field baked there), and the exact finish uses the wall mesh
+posed at that time.
+
 Projection folds the surface where it meets the wall (a strip of marching-cubes triangles standing
 on the wall is pressed flat onto it, a contact line or a crease draws vertices across each other), and
 a folded triangle has flipped its orientation. Three passes remove the folds, each only where
@@ -35,7 +39,8 @@ from pydantic import Field
 from pipeline.stage import Artifact, Context, Params, Stage
 from stages.common.formats import ParticleMeta, SurfaceMesh, WallMesh, load_surface, save_surface
 from stages.common.meshes import face_normals, vertex_normals
-from stages.common.sdf import SDFGrid, sdf_sample
+from stages.common.motion import RigidMotion
+from stages.common.sdf import SDFGrid, load_bodies, sdf_sample
 
 
 class DistanceSnapParams(Params):
@@ -98,6 +103,33 @@ def snap(v, normals, dist, origin, inv_h, band, only_contact, on_wall, tol, iter
         out[p, 0] = x - t * nx
         out[p, 1] = y - t * ny
         out[p, 2] = z - t * nz
+
+
+def snap_to_walls(v: np.ndarray, normals: np.ndarray, sdf: SDFGrid, bodies: list[tuple[SDFGrid, RigidMotion]],
+                  t: float, band: float, only_contact: bool, on_wall: float, tol: float, iterations: int,
+                  out: np.ndarray, moved: np.ndarray) -> None:
+    """``snap`` against the static field and each moving wall's field at time ``t`` (s): each vertex
+    snaps onto the wall nearest to it, a moving wall's in that wall's rest frame (x_rest = R^T (x - pivot
+    - T) + pivot, the surface normal turned with it) and the result is moved back to the world."""
+    fields = [(sdf, None)] + list(bodies)
+    if len(fields) == 1:
+        snap(v, normals, sdf.dist, sdf.origin, 1.0 / sdf.spacing, band, only_contact, on_wall, tol, iterations,
+             out, moved)
+        return
+    near = np.argmin([g.sample(v if m is None else m.to_rest(v, t))[0] for g, m in fields], axis=0)
+    for k, (g, m) in enumerate(fields):
+        idx = np.flatnonzero(near == k)
+        if not len(idx):
+            continue
+        x, n = v[idx], normals[idx]
+        if m is not None:
+            x, n = m.to_rest(x, t), n @ m.pose(t)[0]
+        o = np.empty_like(x)
+        mv = np.zeros(len(x), np.bool_)
+        snap(np.ascontiguousarray(x), np.ascontiguousarray(n), g.dist, g.origin, 1.0 / g.spacing, band, only_contact,
+             on_wall, tol, iterations, o, mv)
+        out[idx] = o if m is None else m.to_world(o, t)
+        moved[idx] = mv
 
 
 def undo_flips(before: np.ndarray, after: np.ndarray, faces: np.ndarray, halvings: int = 8,
@@ -337,7 +369,8 @@ def revert_collapses(raw_faces: np.ndarray, faces: np.ndarray, alive: np.ndarray
 
 
 def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapParams,
-              walls: WallMesh | None = None) -> tuple[SurfaceMesh, dict]:
+              walls: WallMesh | None = None, bodies: list[tuple[SDFGrid, RigidMotion]] = (),
+              t: float = 0.0) -> tuple[SurfaceMesh, dict]:
     """The mesh with its near-wall vertices on the walls; and a report: counts (snapped by the contact
     test, grown at folded contact lines, relaxation moves summed over the passes, collapsed edges,
     damped) and ``kept_faces``, the indices of the input's triangles that the output keeps
@@ -352,15 +385,15 @@ def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapPa
     v = mesh.vertices.astype(np.float64)
     out = np.empty_like(v)
     moved = np.zeros(len(v), np.bool_)
-    snap(v, mesh.normals.astype(np.float64), sdf.dist, sdf.origin, 1.0 / sdf.spacing, params.band * l0,
-         params.only_contact, ON_WALL * l0, params.tolerance * l0, params.iterations, out, moved)
+    snap_to_walls(v, mesh.normals.astype(np.float64), sdf, bodies, t, params.band * l0, params.only_contact,
+                  ON_WALL * l0, params.tolerance * l0, params.iterations, out, moved)
     counts["snapped"] = int(moved.sum())
     f = mesh.faces.copy()
     n_ref = face_normals(v, f)
     alive = np.ones(len(f), np.bool_)
     merged: list[tuple[int, int]] = []
     if params.exact and walls is not None and len(walls.faces) and moved.any():
-        project = WallProjector(walls, sdf.shell_thickness)  # shells as baked
+        project = WallProjector(walls.posed(t), sdf.shell_thickness)  # shells as baked; moving walls at t
         near, _ = project(out[moved])
         # only where the SDF step landed on this wall (not on a far one through a thin gap)
         ok = np.linalg.norm(near - out[moved], axis=1) < 1.5 * sdf.spacing
@@ -411,7 +444,7 @@ def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapPa
 class DistanceSnap(Stage):
     kind = "wall_snap"
     name = "distance"
-    version = "8"
+    version = "9"
     Params = DistanceSnapParams
     inputs = ("raw_surface", "sdf", "particles")  # particles: for l0 (band and tolerance are in l0)
     optional_inputs = ("walls",)
@@ -421,11 +454,12 @@ class DistanceSnap(Stage):
     description = "x' = x - d(x) n(x) for vertices near the walls (eq. 19)"
 
     def run_frame(self, ctx: Context, inputs: Mapping[str, Artifact], params: DistanceSnapParams, frame: int) -> None:
-        l0 = ParticleMeta.load(inputs["particles"].frame(frame)).spacing
+        meta = ParticleMeta.load(inputs["particles"].frame(frame))
         sdf = SDFGrid.load(inputs["sdf"].frame(frame))
+        bodies = load_bodies(inputs["sdf"].frame(frame))  # moving walls, posed at the frame's time
         mesh = load_surface(inputs["raw_surface"].frame(frame), frame)
         walls = WallMesh.load(inputs["walls"].path) if params.exact and inputs.get("walls") is not None else None
-        snapped, report = snap_mesh(mesh, sdf, l0, params, walls)
+        snapped, report = snap_mesh(mesh, sdf, meta.spacing, params, walls, bodies, frame / meta.fps)
         ctx.log.debug("frame %d: %d vertices snapped, %d relaxed, %d edges collapsed, %d damped", frame,
                       report["snapped"], report["relaxed"], report["collapsed"], report["damped"])
         save_surface(ctx.out_dir, frame, snapped)
