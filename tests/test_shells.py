@@ -3,6 +3,7 @@ held by an open bowl, a single-sided USD trough in centimetres and a tilted shee
 against a wall 0.2 l0 thick and against a shell of the default thickness (issue 16)."""
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numba as nb
@@ -258,10 +259,10 @@ def test_a_wall_is_a_solid_or_a_shell_not_both(tmp_path):
 
 
 @pytest.mark.parametrize("cap, expected", [(0.9999, "outside"), (0.6, "both")])
-def test_a_mesh_with_small_holes_stays_a_solid_and_one_with_an_opening_becomes_a_shell(cap, expected, tmp_path):
+def test_a_mesh_with_small_holes_stays_a_solid_and_one_with_an_opening_becomes_a_shell(cap, expected, tmp_path, caplog):
     """The automatic choice: a sphere (radius 0.2, l0 0.02) with a scan hole at its top narrower than
     2 l0 (the faces round its pole, 1.9 l0 wide) is closed but messy, a solid with its inside/outside;
-    with a cap cut off (an opening 23 l0 wide) it is an open vessel, a shell."""
+    with a cap cut off (an opening 23 l0 wide) it is an open vessel, a shell. The log says which and why."""
     sphere = trimesh.creation.icosphere(subdivisions=4, radius=0.2)
     keep = sphere.vertices[sphere.faces].max(axis=1)[:, 2] < cap * 0.2
     trimesh.Trimesh(sphere.vertices + [0, 0, 0.25], sphere.faces[keep]).export(tmp_path / "vessel.obj")
@@ -270,8 +271,13 @@ def test_a_mesh_with_small_holes_stays_a_solid_and_one_with_an_opening_becomes_a
         "walls": [{"builtin": "box_tank", "size": [0.6, 0.6, 0.6]}, {"file": "vessel.obj"}],
         "fluid": {"spacing": 0.02, "emitters": [{"box": {"min": [-0.25, -0.25, 0.0], "max": [-0.21, -0.21, 0.04]}}]},
         "outputs": ["walls"]}))
-    report = pipeline.run(tmp_path / "scene.yaml", registry=Registry.from_entry_points(), cache_dir=tmp_path / "cache",
-                          out_dir=tmp_path / "out")
+    with caplog.at_level(logging.INFO, logger="stage.mesh_import.trimesh"):
+        report = pipeline.run(tmp_path / "scene.yaml", registry=Registry.from_entry_points(), cache_dir=tmp_path / "cache",
+                              out_dir=tmp_path / "out")
     walls = WallMesh.load(Path(report.outputs["walls"]))
     assert walls.walls[1]["report"]["boundary_edges"] > 0
     assert walls.walls[1]["fluid"] == expected, walls.walls[1]["report"]["largest_hole"]
+    edges = walls.walls[1]["report"]["boundary_edges"]
+    why = (f"wall 1 (vessel): closed but for small holes ({edges} boundary edges, widest" if expected == "outside"
+           else f"wall 1 (vessel): open mesh ({edges} boundary edges) -> shell 0.012 (0.6 l0) thick; set fluid: inside/outside")
+    assert why in caplog.text, caplog.text
