@@ -269,3 +269,39 @@ def test_failed_replacement_keeps_the_old_published_folder(tmp_path, toy_registr
     assert err.startswith("error: publish into") and "No space left on device" in err
     assert (out / "frames" / "frame_00000.txt").read_text() == before
     assert_consistent(tmp_path / "c", out)
+
+
+def test_plan_size_names_particles_sdf_nodes_steps_and_memory(tmp_path, caplog):
+    """Before anything runs, the run logs the plan's size from the real stages' estimates."""
+    import logging
+
+    from pipeline.config import load_config
+    from pipeline.estimate import check_size
+    from pipeline.graph import build_graph
+    from pipeline.keys import plan
+
+    cfg = tmp_path / "tank.yaml"
+    cfg.write_text("config_version: 1\n"
+                   "scene: {name: tank, frames: {fps: 30, count: 30}, domain: {min: [0, 0, 0], max: [2, 1, 1]}}\n"
+                   "fluid: {spacing: 0.05, emitters: [{box: {min: [0, 0, 0], max: [0.5, 0.5, 0.5]}}]}\n"
+                   "effects: {gravity: {g: 9.81}}\nstages: {simulate: {use: sph}}\noutputs: [particles]\n")
+    config = load_config(cfg, Registry.from_entry_points())
+    p = plan(config, build_graph(config), Cache(tmp_path / "c"))
+    with caplog.at_level(logging.INFO, logger="pipeline"):
+        sizes = check_size(p)
+    assert sizes["simulate"]["particles"] == 1000 and sizes["sdf_bake"]["sdf_nodes"] > 0
+    line = next(r.getMessage() for r in caplog.records if r.getMessage().startswith("plan size: "))
+    assert "simulate: 1,000 particles, ~" in line and " steps, ~" in line and "sdf_bake: " in line and " SDF nodes, ~" in line, line
+    assert not (tmp_path / "c").exists()  # nothing written before the plan is accepted
+
+
+@pytest.mark.parametrize("name", ["30_alias_bomb", "31_deep_nesting", "32_deep_block_nesting"])
+def test_hostile_yaml_is_refused_well_under_a_second(name):
+    """Issue 15: an alias bomb or deep nesting is exit 2 'in well under a second' (measured ~10 ms to
+    refuse, so 1 s leaves room for a loaded machine; the corpus test above only bounds it at 5 s)."""
+    from pipeline.config import ConfigError, load_config
+
+    t0 = time.perf_counter()
+    with pytest.raises(ConfigError, match="expands to more than|nested more than 64 levels"):
+        load_config(TESTS / "bad_configs" / f"{name}.yaml", Registry.from_entry_points())
+    assert time.perf_counter() - t0 < 1.0
