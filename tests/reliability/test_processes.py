@@ -70,9 +70,9 @@ def test_lock_wait_names_the_holder_and_gives_up(tmp_path):
     assert_consistent(cache)
 
 
-def _interrupt_when(tmp_path: Path, marker: str, *sets: str) -> tuple[subprocess.Popen, float, str]:
+def _interrupt_when(tmp_path: Path, marker: str, *sets: str, extra: tuple[str, ...] = ()) -> tuple[subprocess.Popen, float, str]:
     cfg = write_config(tmp_path, count=4)
-    args = ["run", str(cfg), "--cache", str(tmp_path / "c"), "--workers", "2", "-q"]
+    args = ["run", str(cfg), "--cache", str(tmp_path / "c"), "--workers", "2", "-q", *extra]
     for s in sets:
         args += ["--set", s]
     proc = _start(*args)
@@ -123,6 +123,17 @@ def test_ctrl_c_during_frames_in_worker_processes_stops_quickly(tmp_path):
     # terminated pool left behind: Python's noise, not ours (noted in issue 15's closing note)
     ours = [line for line in err.strip().splitlines() if "resource_tracker" not in line]
     assert ours[-1].startswith("interrupted"), err
+    _resume_is_consistent(tmp_path)
+
+
+def test_ctrl_c_during_frames_on_a_local_dask_cluster_stops_quickly(tmp_path):
+    """--executor dask without a scheduler: a LocalCluster of worker processes, ended with the run (a
+    frame job sleeping 30 s does not hold it up); one line, exit 130, the cache consistent."""
+    proc, seconds, err = _interrupt_when(tmp_path, "ran_render.log", "render.sleep=30", extra=("--executor", "dask"))
+    assert proc.returncode == 130, err
+    assert seconds < 10, f"took {seconds:.1f} s to stop"
+    ours = [line for line in err.strip().splitlines() if "resource_tracker" not in line]
+    assert len(ours) == 1 and ours[0].startswith("interrupted"), err
     _resume_is_consistent(tmp_path)
 
 
