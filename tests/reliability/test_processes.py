@@ -37,17 +37,22 @@ def test_two_concurrent_runs_of_the_same_config(tmp_path):
 
 
 def test_two_concurrent_runs_of_different_configs_sharing_a_cache(tmp_path):
-    a = write_config(tmp_path / "a", name="a", steps=3, sim_sleep=0.3)
-    b = write_config(tmp_path / "b", name="b", steps=5, sim_sleep=0.3)
+    # the same scene (the toy import reads the whole scene section, name included), other simulations
+    a = write_config(tmp_path / "a", steps=3, sim_sleep=0.3, file="a.yaml")
+    b = write_config(tmp_path / "b", steps=5, sim_sleep=0.3, file="b.yaml")
     cache = tmp_path / "shared"
     procs = [_start("run", str(c), "--cache", str(cache), "--workers", "2", "-q") for c in (a, b)]
     for p in procs:
         _, err = p.communicate(timeout=120)
         assert p.returncode == 0, err
     for cfg, dots in ((a, 3), (b, 5)):
-        text = (cfg.parent / "out" / cfg.stem / "usd" / "scene.txt").read_text()
+        text = (cfg.parent / "out" / "shot" / "usd" / "scene.txt").read_text()
         assert text.endswith("| sim" + "." * dots), text
-        assert_consistent(cache, cfg.parent / "out" / cfg.stem)
+        assert_consistent(cache, cfg.parent / "out" / "shot")
+    # the stages they share (same scene and walls) were computed once, by whichever run came first
+    for kind in ("mesh_import", "sdf_bake"):
+        assert sum(_lines(c.parent / f"ran_{kind}.log") for c in (a, b)) == 1, kind
+    assert sum(_lines(c.parent / "ran_simulate.log") for c in (a, b)) == 2
 
 
 def test_lock_wait_names_the_holder_and_gives_up(tmp_path):
