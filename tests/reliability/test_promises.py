@@ -158,6 +158,64 @@ def test_size_refusal_then_yes_and_allow_large(tmp_path, monkeypatch):
     assert r.exit_code == 0, r.output
 
 
+# a 1 km tank at l0 = 1 cm: the SDF grid (cell 0.5 l0, padded by band 4 + margin 2 l0 each side) has
+# (1000.12 / 0.005 + 1)^3 nodes, some 170 PB while baking; the fluid itself is tiny
+KM_NODES = 200_025 ** 3
+KM_CONFIG = """config_version: 1
+scene: {{name: km, frames: {{fps: 30, count: 2}}}}
+walls: [{wall}]
+fluid: {{spacing: 0.01, emitters: [{{box: {{min: [1, 1, 0], max: [1.1, 1.1, 0.1]}}}}]}}
+outputs: [particles]
+"""
+
+
+@pytest.fixture
+def bake_calls(monkeypatch):
+    """sdf_bake's bake() replaced by a recorder that stops the stage (a user error, exit 2): whether and
+    with which grid the stage got past its checks, without baking 8e15 nodes."""
+    import stages.sdf_bake.open3d_bake as ob
+    from pipeline.stage import StageError
+
+    calls = []
+
+    def recorder(wm, lo, hi, h, *a, **k):
+        calls.append(ob.sdf_size(lo, hi, h)[0])
+        raise StageError("bake reached")
+
+    monkeypatch.setattr(ob, "bake", recorder)
+    return calls
+
+
+def test_size_refusal_of_a_builtin_tank_whose_sdf_exceeds_memory_before_anything_runs(tmp_path, bake_calls):
+    """Without scene.domain the builtin walls' sizes give the SDF grid: refused up front with its
+    numbers, nothing written; --yes runs past both checks (the plan's and sdf_bake's) to the bake."""
+    cfg = tmp_path / "km.yaml"
+    cfg.write_text(KM_CONFIG.format(wall="{builtin: box_tank, size: [1000, 1000, 1000], center: [500, 500, 0]}"))
+    err = _one_line_exit(_run(cfg), 2)
+    assert f"stage sdf_bake would need about" in err and f"sdf_bake: {KM_NODES:,} SDF nodes, ~" in err, err
+    assert "PB of memory" in err and "--yes" in err and sorted(p.name for p in tmp_path.iterdir()) == [cfg.name]
+    err = _one_line_exit(_run(cfg, "--yes", "--until", "sdf_bake"), 2)
+    assert err.endswith("stage sdf_bake.open3d: bake reached") and bake_calls == [(200_025,) * 3], (err, bake_calls)
+
+
+def test_size_refusal_of_mesh_walls_whose_sdf_exceeds_memory_before_sdf_bake_allocates(tmp_path, bake_calls):
+    """A wall from a file has bounds only once imported: sdf_bake refuses the grid with its numbers
+    before allocating it (no sdf_bake entry, nothing half-written, no output); --yes passes."""
+    (tmp_path / "cube.obj").write_text("".join(f"v {x} {y} {z}\n" for x in (0, 1) for y in (0, 1) for z in (0, 1))
+                                       + "f 1 2 4 3\nf 5 7 8 6\nf 1 5 6 2\nf 3 4 8 7\nf 1 3 7 5\nf 2 6 8 4\n")
+    cfg = tmp_path / "km.yaml"
+    cfg.write_text(KM_CONFIG.format(wall="{file: cube.obj, scale: 1000, fluid: inside}"))
+    err = _one_line_exit(_run(cfg), 2)
+    assert err.startswith("error: stage sdf_bake.open3d: would need about") and "PB of memory" in err, err
+    assert f"({KM_NODES:,} SDF nodes, grid 200025x200025x200025)" in err and "--yes" in err, err
+    cache = tmp_path / ".pipeline"
+    assert bake_calls == [] and not (cache / "sdf_bake").exists() and (cache / "mesh_import").is_dir()
+    assert_consistent(cache)
+    assert not (tmp_path / "out").exists()
+    err = _one_line_exit(_run(cfg, "--yes"), 2)
+    assert err.endswith("stage sdf_bake.open3d: bake reached") and bake_calls == [(200_025,) * 3], (err, bake_calls)
+
+
 def test_sweep_removes_only_provably_dead_tmp_folders(tmp_path):
     cache = Cache(tmp_path / "c")
     tmp = cache.root / "tmp"
