@@ -46,9 +46,9 @@ def scene_box(scene) -> tuple[np.ndarray, np.ndarray] | None:
     return None
 
 
-def sdf_size(lo: np.ndarray, hi: np.ndarray, h: float) -> tuple[tuple[int, int, int], dict]:
-    """The shape of the node grid of spacing ``h`` from ``lo`` covering ``hi`` (as sdf_bake bakes it), and
-    its nodes and memory while baking. The tolerance keeps a box that is a whole number of spacings from
+def sdf_estimate(lo: np.ndarray, hi: np.ndarray, h: float) -> tuple[tuple[int, int, int], dict]:
+    """The SDF node grid of spacing ``h`` from ``lo`` covering ``hi``: its shape (sdf_bake bakes this one),
+    and its nodes and memory while baking. The tolerance keeps a box that is a whole number of spacings from
     gaining a row by rounding ((1.1 + 0.1) / 0.025 = 48.00000000000001), so the grid is the same in any unit."""
     shape = tuple(int(k) for k in np.ceil((np.asarray(hi, np.float64) - lo) / h - 1e-9) + 1)
     nodes = float(np.prod(np.asarray(shape, np.float64)))

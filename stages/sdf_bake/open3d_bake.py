@@ -45,7 +45,7 @@ from pydantic import Field, field_validator
 from pipeline.stage import Artifact, Context, Params, Stage, StageError
 from stages.common.formats import WallMesh
 from stages.common.sdf import DEFAULT_SHELL_THICKNESS, SDFGrid, min_shell_thickness
-from stages.common.sizes import sdf_size
+from stages.common.sizes import sdf_estimate
 from stages.mesh_import.builtin import builtin_corners
 
 from .mesh_distance import band_distance, inside_votes
@@ -266,7 +266,7 @@ def grid_box(wm: WallMesh, domain, l0: float, p: BakeParams) -> tuple[np.ndarray
 def check_grid_memory(ctx: Context, lo: np.ndarray, hi: np.ndarray, h: float) -> None:
     """Refuse (exit 2, unless --yes) a grid larger than the memory available, before allocating it: the
     plan's size check before the run knows it only from scene.domain or builtin walls."""
-    shape, size = sdf_size(lo, hi, h)
+    shape, size = sdf_estimate(lo, hi, h)
     ctx.check_memory(size["memory_bytes"], f"{int(size['sdf_nodes']):,} SDF nodes, grid {'x'.join(map(str, shape))}")
 
 
@@ -280,7 +280,7 @@ def bake(wm: WallMesh, lo: np.ndarray, hi: np.ndarray, h: float, band: float, ex
     shells = wm.shell_thickness(np.nan) if shells is None else np.asarray(shells, np.float64)
     if np.isnan(shells).any():
         raise ValueError("bake: a shell's thickness was left to the default; pass shells (wall_thicknesses)")
-    shape, _ = sdf_size(lo, hi, h)
+    shape, _ = sdf_estimate(lo, hi, h)
     if np.prod(shape, dtype=np.int64) > MAX_NODES:
         raise StageError(f"sdf_bake: grid {shape} has more than {MAX_NODES:,} nodes; increase cell or shrink scene.domain")
     t0 = time.perf_counter()
@@ -349,7 +349,7 @@ class Open3dBake(Stage):
                 return None  # walls from files: run checks the memory once they are loaded, before allocating
             walls = WallMesh(corners, np.zeros((0, 3), np.int32), np.zeros(0, np.int32), [])
         lo, hi = grid_box(walls, scene.domain, fluid.spacing, params)
-        return sdf_size(lo, hi, params.cell * fluid.spacing)[1]
+        return sdf_estimate(lo, hi, params.cell * fluid.spacing)[1]
 
     def run(self, ctx: Context, inputs: Mapping[str, Artifact], params: Params) -> None:
         fluid = ctx.scene["fluid"]

@@ -179,7 +179,7 @@ def bake_calls(monkeypatch):
     calls = []
 
     def recorder(wm, lo, hi, h, *a, **k):
-        calls.append(ob.sdf_size(lo, hi, h)[0])
+        calls.append(ob.sdf_estimate(lo, hi, h)[0])
         raise StageError("bake reached")
 
     monkeypatch.setattr(ob, "bake", recorder)
