@@ -214,6 +214,9 @@ def test_size_refusal_of_mesh_walls_whose_sdf_exceeds_memory_before_sdf_bake_all
     assert not (tmp_path / "out").exists()
     err = _one_line_exit(_run(cfg, "--yes"), 2)
     assert err.endswith("stage sdf_bake.open3d: bake reached") and bake_calls == [(200_025,) * 3], (err, bake_calls)
+    cfg.write_text("allow_large: true\n" + cfg.read_text())
+    err = _one_line_exit(_run(cfg), 2)
+    assert err.endswith("stage sdf_bake.open3d: bake reached") and len(bake_calls) == 2, err
 
 
 def test_sweep_removes_only_provably_dead_tmp_folders(tmp_path):
