@@ -60,7 +60,7 @@ def connect(scheduler: str | None, workers: int = 1):
             return Client(scheduler, timeout="20s")
         except (OSError, TimeoutError) as e:
             raise PipelineError(f"--scheduler {scheduler}: cannot connect ({e})") from None
-    from .estimate import available_memory
+    from .memory import available_memory
 
     workers = max(1, int(workers))
     threads = max(1, (os.cpu_count() or 1) // workers)

@@ -89,14 +89,12 @@ class DaskExecutor:
 
     name = "dask"
 
-    def __init__(self, scheduler: str | None) -> None:
-        try:
-            from distributed import Client
-        except ImportError:
-            from .errors import PipelineError
+    def __init__(self, scheduler: str | None, workers: int = 1) -> None:
+        from .cluster import connect
 
-            raise PipelineError("--executor dask needs the dask extra: pip install 'fluid-pipeline[dask]'") from None
-        self._client = Client(scheduler) if scheduler else Client(processes=False)
+        # without a scheduler: a LocalCluster of ``workers`` processes (as --workers says), so Ctrl-C can
+        # stop a running job by ending its process (threads of this process could not be stopped)
+        self._client = connect(scheduler, workers)
 
     def map_unordered(self, fn, jobs):
         from distributed import as_completed as dask_completed
@@ -110,15 +108,25 @@ class DaskExecutor:
             self._client.cancel([f for f in futures if not f.done()])
 
     def close(self) -> None:
-        self._client.close()
+        from .cluster import close
+
+        close(self._client)
 
     def abort(self) -> None:
-        # a task already running on a worker finishes (Dask cannot stop it) and commits a valid entry
-        # under its key's lock; nothing else is started
+        # nothing else is started; on a remote cluster a task already running finishes (Dask cannot stop
+        # it) and commits a valid entry under its key's lock; a LocalCluster's workers are ended with it
+        # (their unfinished entries are temporary folders, swept by the next run)
+        cluster = getattr(self._client, "cluster", None)
         try:
             self._client.cancel(getattr(self, "_futures", []))
-        finally:
             self._client.close(timeout=2)
+        except Exception:  # noqa: BLE001 - stopping: a slow or dead scheduler must not turn Ctrl-C into a failure
+            pass
+        if cluster is not None:
+            try:
+                cluster.close(timeout=2)
+            except Exception:  # noqa: BLE001 - as above
+                pass
 
 
 class WorkerDaskExecutor:
@@ -148,7 +156,7 @@ class WorkerDaskExecutor:
 
 def make_executor(kind: str, workers: int = 1, scheduler: str | None = None) -> Executor:
     if kind == "dask":
-        return DaskExecutor(scheduler)
+        return DaskExecutor(scheduler, workers)
     if kind == "processes" or (kind == "auto" and workers > 1):
         return ProcessExecutor(workers)
     return InlineExecutor()

@@ -229,11 +229,12 @@ def _outside(what: str, exc: BaseException, cache: Cache) -> StageFailed:
 
 
 def execute(p: Plan, *, out_dir: Path, force: frozenset[str] = frozenset(), executor: Executor | None = None,
-            progress: bool = False, events: Events | None = None) -> RunReport:
+            progress: bool = False, events: Events | None = None, allow_large: bool = False) -> RunReport:
     """Run the plan. Inline, stages go one by one in dependency order; with a pool executor, independent
     branches (e.g. render frames and export) are driven concurrently by threads of this process while
     their per-frame jobs run in the pool's worker processes. faulthandler writes native crashes (VTK,
-    numba) of this process and of the workers into the run's log under the cache's logs/."""
+    numba) of this process and of the workers into the run's log under the cache's logs/. ``allow_large``:
+    stages' own memory checks (Context.check_memory) let anything pass."""
     cache = p.cache
     try:
         cache.root.mkdir(parents=True, exist_ok=True)
@@ -246,7 +247,7 @@ def execute(p: Plan, *, out_dir: Path, force: frozenset[str] = frozenset(), exec
     was_enabled = faulthandler.is_enabled()
     faulthandler.enable(fault_fh)
     try:
-        return _execute(p, out_dir, force, executor, progress, str(fault_log), events)
+        return _execute(p, out_dir, force, executor, progress, str(fault_log), events, allow_large)
     finally:
         faulthandler.disable()
         if was_enabled:  # e.g. pytest's or PYTHONFAULTHANDLER's, to the real stderr
@@ -263,7 +264,7 @@ def execute(p: Plan, *, out_dir: Path, force: frozenset[str] = frozenset(), exec
 
 
 def _execute(p: Plan, out_dir: Path, force: frozenset[str], executor: Executor | None, progress: bool,
-             fault_log: str, events: Events | None = None) -> RunReport:
+             fault_log: str, events: Events | None = None, allow_large: bool = False) -> RunReport:
     config, graph, cache = p.config, p.graph, p.cache
     t_start = time.perf_counter()
     report = RunReport(config=str(config.path), scene=config.name, cache=str(cache.root), out=str(out_dir))
@@ -288,7 +289,7 @@ def _execute(p: Plan, out_dir: Path, force: frozenset[str], executor: Executor |
                 sr, frames = _run_per_frame(p, node, key, inputs, runnable, forced, executor, bars, fault_log)
                 made = {out: Artifact(name=out, key=key, frames=frames) for out in node.cls.outputs}
             else:
-                sr, path = _run_whole(p, node, key, inputs, runnable, forced, bars)
+                sr, path = _run_whole(p, node, key, inputs, runnable, forced, bars, allow_large)
                 made = {out: Artifact(name=out, key=key, path=path) for out in node.cls.outputs}
         except PipelineError:
             raise
@@ -367,7 +368,7 @@ def _run_branches(graph: Graph, order: list[str], run_node: Callable, finish: Ca
 
 
 def _run_whole(p: Plan, node: Node, key: str, inputs: dict[str, Artifact], runnable: bool, forced: bool,
-               bars: _Progress) -> tuple[StageReport, Path]:
+               bars: _Progress, allow_large: bool = False) -> tuple[StageReport, Path]:
     cache, config = p.cache, p.config
     sr = StageReport(node.kind, node.cls.name, node.cls.version, key, "cached")
     hit = None if (forced and runnable) else cache.lookup(node.kind, key)
@@ -385,7 +386,8 @@ def _run_whole(p: Plan, node: Node, key: str, inputs: dict[str, Artifact], runna
         tmp = cache.new_tmp(key)
         resume = p.resume.get(node.kind)
         ctx = context(config, node, tmp, p.frames, checkpoint_dir=cache.checkpoint_dir(key),
-                      resume_from=resume_source(cache, node.kind, resume) if resume and not forced else None)
+                      resume_from=resume_source(cache, node.kind, resume) if resume and not forced else None,
+                      allow_large=allow_large)
         ctx.make_progress = bars.make
         t0, c0 = time.perf_counter(), time.process_time()
         try:
@@ -511,8 +513,10 @@ def run(config_path: str | Path, *, registry: Registry | None = None, overrides:
             p = plan(config, graph, cache, frames)
         except OSError as exc:  # an input file that exists but cannot be read (permissions, I/O)
             raise StageFailed(f"cannot read input file {exc.filename}: {exc.strerror or exc}", user_error=True) from None
-        check_size(p, allow_large=allow_large or config.allow_large)
-        return execute(p, out_dir=out, force=frozenset(force), executor=executor, progress=progress, events=events)
+        allow_large = allow_large or config.allow_large
+        check_size(p, allow_large=allow_large)
+        return execute(p, out_dir=out, force=frozenset(force), executor=executor, progress=progress, events=events,
+                       allow_large=allow_large)
     except (PipelineError, KeyboardInterrupt, SystemExit):
         raise
     except Exception as exc:  # noqa: BLE001 - anything else is still one line, exit 1, and a log

@@ -7,6 +7,7 @@ holds only the scene description that several stages share.
 from __future__ import annotations
 
 import math
+import re
 from typing import Annotated, Literal, Union
 
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, field_validator, model_validator
@@ -65,11 +66,18 @@ class Domain(Model):
 
 class Scene(Model):
     # a plain folder name: no separators, no leading dot (so never '.', '..' or a hidden staging name)
-    name: str = Field(pattern=r"^[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}$",
-                      description="scene name; also the output folder name (letters, digits, _ . -; not starting with '.')")
+    name: str = Field(description="scene name; also the output folder name (letters, digits, _ . -; not starting with '.')")
     units: Units = Field(default_factory=Units)
     frames: Frames = Field(default_factory=Frames)
     domain: Domain | None = Field(None, description="simulation domain; default: the walls' bounds")
+
+    @field_validator("name")
+    @classmethod
+    def _plain_folder_name(cls, v: str) -> str:
+        if not re.fullmatch(r"[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}", v):
+            raise ValueError("not a plain folder name (it names the output folder): 1-64 letters, digits, "
+                             "_ . -, not starting with '.'")
+        return v
 
 
 # -- walls -------------------------------------------------------------------------------------

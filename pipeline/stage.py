@@ -16,6 +16,7 @@ from typing import Any, Callable, ClassVar, Mapping
 
 from pydantic import BaseModel, ConfigDict
 
+from .memory import refusal
 from .reads import FRAMES, SceneReads, UndeclaredRead, check_read
 
 # The stage kinds of the DAG, in dependency order, and the artifact each one produces. The engine
@@ -81,7 +82,8 @@ class Context:
     def __init__(self, out_dir: Path, scene: Mapping[str, Any], config_dir: Path,
                  frames: tuple[int, ...] | None, log: logging.Logger,
                  make_progress: Callable[[str, float], Progress] | None = None, threads: int | None = None,
-                 checkpoint_dir: Path | None = None, resume_from: Path | None = None) -> None:
+                 checkpoint_dir: Path | None = None, resume_from: Path | None = None,
+                 allow_large: bool = False) -> None:
         self.out_dir = out_dir
         self.scene = scene
         self.config_dir = config_dir
@@ -97,12 +99,13 @@ class Context:
         # stage's cost by the engine
         self.warmup_seconds = 0.0
         self.warmup_cpu_seconds = 0.0
+        self.allow_large = allow_large  # --yes / config allow_large: true (check_memory lets anything pass)
 
     @classmethod
     def for_stage(cls, stage_cls: type["Stage"], sections: Mapping[str, Any], *, out_dir: Path, config_dir: Path,
-                  frames: tuple[int, ...], **kw: Any) -> "Context":
-        """The context the engine gives ``stage_cls``: only its declared reads are visible."""
-        return cls(out_dir=out_dir, scene=SceneReads(sections, stage_cls.reads), config_dir=config_dir,
+                  frames: tuple[int, ...], extra_reads: tuple[str, ...] = (), **kw: Any) -> "Context":
+        """The context the engine gives ``stage_cls``: only its declared reads (and ``extra_reads``) are visible."""
+        return cls(out_dir=out_dir, scene=SceneReads(sections, stage_cls.reads + extra_reads), config_dir=config_dir,
                    frames=frames if FRAMES in stage_cls.reads else None,
                    log=kw.pop("log", None) or logging.getLogger(f"stage.{stage_cls.qualname()}"), **kw)
 
@@ -126,6 +129,14 @@ class Context:
             self.warmup_seconds += time.perf_counter() - w
             self.warmup_cpu_seconds += time.process_time() - c
 
+    def check_memory(self, need_bytes: float, details: str) -> None:
+        """Refuse (exit 2, one line with ``details``) work about to allocate ``need_bytes`` when that exceeds
+        the memory available now, unless the run allows large plans; for sizes only the inputs tell (the
+        config alone did for the plan's size check before the run)."""
+        refused = refusal(need_bytes, details, self.allow_large)
+        if refused:
+            raise StageError(refused)
+
     def resolve(self, path: str | Path) -> Path:
         """A path from the config, relative to the config file's folder."""
         p = Path(path).expanduser()
@@ -146,6 +157,9 @@ class Stage:
     # config fields the stage reads, as dotted paths ("scene.units", "fluid.spacing", "walls"), and
     # "frames" if it uses the run's frame selection; the key holds exactly these, ctx exposes only these
     reads: ClassVar[tuple[str, ...]] = ()
+    # config fields the ``estimate`` hook reads beyond ``reads``, to size work made from its inputs (the SDF's
+    # grid from the walls' bounds); not keyed: the result depends on them through the inputs' keys
+    estimate_reads: ClassVar[tuple[str, ...]] = ()
     # a read whose growth the stage can continue from a cached shorter run ("scene.frames.count")
     extends: ClassVar[str | None] = None
     # the first run in a process pays one-off costs a second one does not (numba JIT compilation of its

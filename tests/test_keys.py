@@ -194,3 +194,28 @@ def test_extending_a_shot_resumes_and_equals_a_fresh_run(tmp_path, caplog):
     a, b = Path(longer.outputs["particles"]), Path(fresh.outputs["particles"])
     for f in range(5):
         assert frame_path(a, f).read_bytes() == frame_path(b, f).read_bytes(), f"frame {f} differs"
+
+
+def test_an_unreadable_input_file_is_one_line_exit_2_and_nothing_written(tmp_path, monkeypatch):
+    """Issue 15: permission denied while hashing an input file (as root chmod does not deny, so the
+    read fails by injection): exit 2, one line naming the file, no cache or output folder."""
+    from click.testing import CliRunner
+
+    from pipeline import cache as cache_module
+    from pipeline.cli import main
+
+    config = tiny(tmp_path)
+    real = cache_module.file_sha256
+
+    def denied(path, *a, **k):
+        if Path(path).name == "drop.obj":
+            raise PermissionError(13, "Permission denied", str(path))
+        return real(path, *a, **k)
+
+    monkeypatch.setattr("pipeline.keys.file_sha256", denied)
+    r = CliRunner().invoke(main, ["run", str(config)])
+    assert r.exit_code == 2, r.output
+    err = r.stderr.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in r.output, err
+    assert "cannot read input file" in err and "drop.obj" in err and "Permission denied" in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["drop.obj", "tiny.yaml"]

@@ -219,3 +219,22 @@ def test_damaged_usd_is_a_stage_error(tmp_path):
     _write(tmp_path, "broken.usda", "#usda 1.0\ndef Mesh \"A\" {\n  point3f[] points = [(0, 0\n")
     with pytest.raises(StageError, match="broken.usda"):
         _import(tmp_path, [{"usd": "broken.usda"}])
+
+
+@pytest.mark.parametrize("up", ["Y", "Z"])
+@pytest.mark.parametrize("placement", [{}, {"scale": [2, 0.5, 3], "translate": [1, -2, 3]}, {"rotate": [0, 0, 90]},
+                                       {"rotate": [90, 0, 0], "fit": {"min": [0, 0, 0], "max": [1, 2, 3]}}])
+def test_builtin_corners_bound_the_imported_builtin_walls(tmp_path, up, placement):
+    """The size estimate's builtin wall bounds (no mesh built) are the imported meshes' bounds."""
+    from stages.mesh_import.builtin import builtin_corners
+    from pipeline.testing import scene_sections
+
+    walls = [{"builtin": kind, "size": [0.6, 0.8, 1.4], "center": [0.1, 0.2, 0.3], **placement}
+             for kind in ("box_tank", "open_box", "cylinder", "plane")]
+    wm = _import(tmp_path, walls, scene={"name": "t", "units": {"up_axis": up}})
+    parsed = scene_sections({"scene": {"name": "t"}, "walls": walls + [{"file": "x.obj"}]})["walls"]
+    for i, w in enumerate(parsed[:-1]):
+        got = builtin_corners([w], up)
+        v = wm.vertices[np.unique(wm.faces[wm.wall_id == i])]
+        assert np.allclose(got.min(axis=0), v.min(axis=0)) and np.allclose(got.max(axis=0), v.max(axis=0)), w.builtin
+    assert builtin_corners(parsed, up) is None  # a file's bounds need the file

@@ -215,3 +215,29 @@ def test_render_every_second_frame_and_the_movie_keeps_time(tmp_path, inputs):
     (frames / "frame_00003.skipped").unlink()  # a lost frame is an error, not a skip
     with pytest.raises(StageError, match="frame_00003.png"):
         run_stage(FfmpegMovie, tmp_path / "m2", scene=scene, inputs={"frames": frames})
+
+
+def test_a_single_sided_sheet_is_drawn_the_same_from_either_side(tmp_path, inputs):
+    """Issue 16: open meshes render two-sided. A single sheet of triangles (a shell) seen from above
+    looks the same whichever way its faces are wound (with back-face culling the sheet wound away
+    from the camera vanishes: checked, 2 of 19,200 pixels)."""
+    import imageio.v3 as iio
+
+    sheet = trimesh.creation.box(extents=(2.0, 2.0, 1e-9))
+    top = sheet.faces[sheet.triangles_center[:, 2] > 0]  # two triangles, normals +z
+    scene = {**SCENE, "camera": {"position": [0.0, -0.8, 3.0], "focal_point": [0, 0, 0], "up": [0, 0, 1],
+                                 "view_angle": 40.0}}
+    images, counts = [], []
+    for name, faces in (("up", top), ("down", top[:, ::-1])):
+        walls = tmp_path / f"walls_{name}"
+        walls.mkdir()
+        WallMesh(sheet.vertices, faces, np.zeros(len(faces), np.int32),
+                 [{"name": "sheet", "fluid": "both", "shell": 0.01, "source": "sheet.obj"}]).save(walls)
+        out = run_stage(PyvistaRender, tmp_path / name, scene=scene, params={"resolution": [160, 120], "label": False},
+                        inputs={**inputs, "walls": walls}, frames=(0,))
+        img = iio.imread(out / "frame_00000.png")[..., :3].astype(int)
+        wall = (np.abs(img - img[0, 0]).sum(axis=2) > 30) & ~water_mask(img)  # neither background nor water
+        images.append(img)
+        counts.append(int(wall.sum()))
+    assert min(counts) > 0.3 * 160 * 120, counts  # the sheet fills much of the view, seen from either side
+    assert np.abs(images[0] - images[1]).max(axis=2).mean() < 2.0  # and is lit the same

@@ -228,3 +228,26 @@ def test_exact_queries_grow_with_wall_area_not_domain_volume():
     assert measured["small"] < 0.3 * st_small["nodes"]
     # and the far field is the clamped positive value everywhere outside the band
     assert big.dist[0, 0, 0] == pytest.approx(band) and (big.dist < 0).sum() == (small.dist < 0).sum()
+
+
+def test_winding_sign_keeps_interpenetrating_parts_inside_where_parity_does_not(tmp_path):
+    """A solid made of two closed spheres that intersect, as one triangle soup (a model of
+    interpenetrating parts): the generalized winding number (sign: winding) puts the whole union
+    inside, overlap included; the grid-line parity vote calls the overlap outside (two crossings)."""
+    centres, r = (np.array([-0.2, 0.0, 0.0]), np.array([0.2, 0.05, 0.0])), 0.5
+    parts = [trimesh.creation.icosphere(subdivisions=4, radius=r).apply_translation(c) for c in centres]
+    trimesh.util.concatenate(parts).export(tmp_path / "two.ply")
+    wrong = {}
+    for sign in ("parity", "winding"):
+        g, wm = _bake(tmp_path / sign, [{"file": str(tmp_path / "two.ply"), "fluid": "outside"}], sign=sign)
+        assert wm.walls[0]["fluid"] == "outside"
+        p = _nodes(g)
+        depth = np.max([r - np.linalg.norm(p - c, axis=1) for c in centres], axis=0)  # > 0 inside the union
+        # nodes clear of every sphere's surface (the overlap's inner faces too: icosphere chords, rounding)
+        off = np.min([np.abs(np.linalg.norm(p - c, axis=1) - r) for c in centres], axis=0) > g.spacing
+        overlap = off & np.all([np.linalg.norm(p - c, axis=1) < r for c in centres], axis=0)
+        assert overlap.sum() > 1000
+        d = g.dist.reshape(-1)
+        wrong[sign] = (int(np.sum(np.sign(d[off]) != -np.sign(depth[off]))), int(np.sum(d[overlap] > 0)))
+    assert wrong["winding"] == (0, 0), wrong
+    assert wrong["parity"][1] > 0.5 * overlap.sum(), wrong  # the case the option exists for

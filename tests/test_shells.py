@@ -3,6 +3,7 @@ held by an open bowl, a single-sided USD trough in centimetres and a tilted shee
 against a wall 0.2 l0 thick and against a shell of the default thickness (issue 16)."""
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numba as nb
@@ -258,10 +259,10 @@ def test_a_wall_is_a_solid_or_a_shell_not_both(tmp_path):
 
 
 @pytest.mark.parametrize("cap, expected", [(0.9999, "outside"), (0.6, "both")])
-def test_a_mesh_with_small_holes_stays_a_solid_and_one_with_an_opening_becomes_a_shell(cap, expected, tmp_path):
+def test_a_mesh_with_small_holes_stays_a_solid_and_one_with_an_opening_becomes_a_shell(cap, expected, tmp_path, caplog):
     """The automatic choice: a sphere (radius 0.2, l0 0.02) with a scan hole at its top narrower than
     2 l0 (the faces round its pole, 1.9 l0 wide) is closed but messy, a solid with its inside/outside;
-    with a cap cut off (an opening 23 l0 wide) it is an open vessel, a shell."""
+    with a cap cut off (an opening 23 l0 wide) it is an open vessel, a shell. The log says which and why."""
     sphere = trimesh.creation.icosphere(subdivisions=4, radius=0.2)
     keep = sphere.vertices[sphere.faces].max(axis=1)[:, 2] < cap * 0.2
     trimesh.Trimesh(sphere.vertices + [0, 0, 0.25], sphere.faces[keep]).export(tmp_path / "vessel.obj")
@@ -270,8 +271,41 @@ def test_a_mesh_with_small_holes_stays_a_solid_and_one_with_an_opening_becomes_a
         "walls": [{"builtin": "box_tank", "size": [0.6, 0.6, 0.6]}, {"file": "vessel.obj"}],
         "fluid": {"spacing": 0.02, "emitters": [{"box": {"min": [-0.25, -0.25, 0.0], "max": [-0.21, -0.21, 0.04]}}]},
         "outputs": ["walls"]}))
-    report = pipeline.run(tmp_path / "scene.yaml", registry=Registry.from_entry_points(), cache_dir=tmp_path / "cache",
-                          out_dir=tmp_path / "out")
+    with caplog.at_level(logging.INFO, logger="stage.mesh_import.trimesh"):
+        report = pipeline.run(tmp_path / "scene.yaml", registry=Registry.from_entry_points(), cache_dir=tmp_path / "cache",
+                              out_dir=tmp_path / "out")
     walls = WallMesh.load(Path(report.outputs["walls"]))
     assert walls.walls[1]["report"]["boundary_edges"] > 0
     assert walls.walls[1]["fluid"] == expected, walls.walls[1]["report"]["largest_hole"]
+    edges = walls.walls[1]["report"]["boundary_edges"]
+    why = (f"wall 1 (vessel): closed but for small holes ({edges} boundary edges, widest" if expected == "outside"
+           else f"wall 1 (vessel): open mesh ({edges} boundary edges) -> shell 0.012 (0.6 l0) thick; set fluid: inside/outside")
+    assert why in caplog.text, caplog.text
+
+
+@pytest.mark.parametrize("solver", ["sph", "dfsph"])
+def test_a_10_m_s_jet_does_not_cross_the_wall_of_a_cup_0_2_l0_thick(solver, tmp_path):
+    """Issue 16's cup: a closed, watertight cup (a revolved profile, radius 6 l0, side and floor 0.2 l0
+    thick) on the tank floor with its rim against the tank's lid, so its inside is sealed (the
+    jet's splash reaches the lid within 0.03 s); a 10 m/s jet hits its curved side from outside. No
+    particle is ever inside the cup."""
+    l0, r_in, lift, tank_h = 0.01, 0.06, 0.0, 0.32
+    r_out, axis = r_in + 0.2 * l0, np.array([0.28, 0.0])
+    profile = np.array([[0, lift], [r_out, lift], [r_out, tank_h], [r_in, tank_h],
+                        [r_in, lift + 0.2 * l0], [0, lift + 0.2 * l0], [0, lift]])  # (r, z), counter-clockwise
+    cup = trimesh.creation.revolve(profile, sections=64)
+    assert cup.is_watertight and cup.volume > 0
+    cup.apply_translation([axis[0], axis[1], 0.0])
+    cup.export(tmp_path / "cup.obj")
+    walls, frames, stats = _run(tmp_path, {
+        "scene": {"name": "cup", "frames": {"fps": 200, "count": 7}},
+        "walls": [{"builtin": "box_tank", "size": [0.4, 0.24, tank_h], "center": [0.2, 0.0, 0.0]}, {"file": "cup.obj"}],
+        "fluid": {"spacing": l0, "emitters": [{"box": {"min": [0.08, -0.03, 0.04], "max": [0.18, 0.03, 0.10]},
+                                               "velocity": [10.0, 0.0, 0.0]}]},
+        "effects": {"gravity": {"g": 9.81}, "viscosity": {"mu": 0.001}}}, sets=(f"simulate.use={solver}",))
+    assert walls.walls[1]["fluid"] == "outside" and walls.walls[1]["report"]["watertight"]
+    assert len(frames[0]) > 300
+    gap = [np.linalg.norm(f.x[:, :2] - axis, axis=1) for f in frames]  # distance from the cup's axis
+    assert min(g.min() for g in gap) > r_out, [g.min() for g in gap]  # nobody inside the cup's side
+    assert min(g.min() for g in gap[2:]) < r_out + 1.5 * l0  # the jet reached the cup
+    assert stats["left_domain"] == 0

@@ -1,7 +1,7 @@
 """Sizes of a run from the config alone (before any stage runs), for the stages' ``estimate`` hooks:
 particle counts of the emitters, the box the SDF grid covers, and the simulation's step count and
-memory. Estimates, not promises: mesh emitters, and the walls' bounds when scene.domain is not set,
-are unknown until loaded."""
+memory. Estimates, not promises: mesh emitters, and the bounds of walls read from files when
+scene.domain is not set, are unknown until loaded."""
 from __future__ import annotations
 
 import math
@@ -46,15 +46,13 @@ def scene_box(scene) -> tuple[np.ndarray, np.ndarray] | None:
     return None
 
 
-def sdf_estimate(scene, fluid, cell: float, pad_l0: float) -> dict | None:
-    """Nodes and memory of an SDF grid of spacing ``cell * l0`` over scene.domain padded by ``pad_l0``."""
-    box = scene_box(scene)
-    if box is None or fluid is None:
-        return None
-    l0 = fluid.spacing
-    h = cell * l0
-    nodes = float(np.prod(np.ceil((box[1] - box[0] + 2 * pad_l0 * l0) / h) + 1))
-    return {"sdf_nodes": nodes, "memory_bytes": nodes * BYTES_PER_SDF_NODE}
+def sdf_estimate(lo: np.ndarray, hi: np.ndarray, h: float) -> tuple[tuple[int, int, int], dict]:
+    """The SDF node grid of spacing ``h`` from ``lo`` covering ``hi``: its shape (sdf_bake bakes this one),
+    and its nodes and memory while baking. The tolerance keeps a box that is a whole number of spacings from
+    gaining a row by rounding ((1.1 + 0.1) / 0.025 = 48.00000000000001), so the grid is the same in any unit."""
+    shape = tuple(int(k) for k in np.ceil((np.asarray(hi, np.float64) - lo) / h - 1e-9) + 1)
+    nodes = float(np.prod(np.asarray(shape, np.float64)))
+    return shape, {"sdf_nodes": nodes, "memory_bytes": nodes * BYTES_PER_SDF_NODE}
 
 
 def simulate_estimate(ctx, cfl: float, sound_factor: float | None, support: float = 2.0) -> dict | None:

@@ -93,3 +93,35 @@ def _open_box(lo: np.ndarray, hi: np.ndarray, t: float, axes: tuple[int, int, in
     mesh = trimesh.Trimesh(v, np.asarray(faces), process=True)
     trimesh.repair.fix_normals(mesh)
     return mesh
+
+
+def builtin_box(wall: BuiltinWall, up_axis: str) -> tuple[np.ndarray, np.ndarray]:
+    """The axis-aligned box builtin_mesh's mesh spans before placement, without building it (for the
+    size estimate before the run; tests/test_mesh_import checks it against the meshes)."""
+    lo, hi = _bounds(wall, up_axis)
+    if wall.builtin == "cylinder" and up_axis == "Y":  # (diameter, diameter, height) whatever the up axis
+        c, s = np.asarray(wall.center, np.float64), np.asarray(wall.size, np.float64)
+        return c + [-0.5 * s[0], 0.0, -0.5 * s[1]], c + [0.5 * s[0], s[2], 0.5 * s[1]]
+    if wall.builtin == "plane":  # the slab below the floor level
+        u = _axes(up_axis)[2]
+        lo[u], hi[u] = lo[u] - (hi[u] - lo[u]), lo[u]
+    return lo, hi
+
+
+def builtin_corners(walls: list, up_axis: str) -> np.ndarray | None:
+    """(8 per wall, 3) the placed corners of the builtin walls' boxes (builtin_box), whose bounds are
+    the walls' bounds (exact but for a rotated cylinder, whose box's corners lie outside it); None
+    when a wall is read from a file (its bounds are known once mesh_import has read it)."""
+    from stages.common.placement import apply_placement
+
+    out = []
+    for w in walls:
+        if not isinstance(w, BuiltinWall):
+            return None
+        lo, hi = builtin_box(w, up_axis)
+        corners = np.array([[(lo, hi)[(k >> i) & 1][i] for i in range(3)] for k in range(8)])
+        if w.fit is None and not any(w.rotate):  # as placement_matrix, without importing trimesh (~1 s)
+            out.append(corners * np.asarray(w.scale, np.float64) + np.asarray(w.translate, np.float64))
+        else:
+            out.append(apply_placement(corners, w))
+    return np.concatenate(out) if out else np.zeros((0, 3))

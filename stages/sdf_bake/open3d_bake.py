@@ -53,6 +53,7 @@ from pipeline.stage import Artifact, Context, Params, Stage, StageError
 from stages.common.formats import WallMesh
 from stages.common.sdf import BODIES_DIR, BODIES_FILE, DEFAULT_SHELL_THICKNESS, SDFGrid, min_shell_thickness
 from stages.common.sizes import sdf_estimate
+from stages.mesh_import.builtin import builtin_corners
 
 from .mesh_distance import band_distance, inside_votes
 
@@ -314,6 +315,13 @@ def bake_bodies(wm: WallMesh, out_dir: Path, l0: float, p: BakeParams, shells: n
     return entries
 
 
+def check_grid_memory(ctx: Context, lo: np.ndarray, hi: np.ndarray, h: float) -> None:
+    """Refuse (exit 2, unless --yes) a grid larger than the memory available, before allocating it: the
+    plan's size check before the run knows it only from scene.domain or builtin walls."""
+    shape, size = sdf_estimate(lo, hi, h)
+    ctx.check_memory(size["memory_bytes"], f"{int(size['sdf_nodes']):,} SDF nodes, grid {'x'.join(map(str, shape))}")
+
+
 def bake(wm: WallMesh, lo: np.ndarray, hi: np.ndarray, h: float, band: float, exact_reach: float = 4.0,
          sign_rays: int = 7, shells: np.ndarray | None = None, sign: str = "parity",
          min_thickness: float = 0.0) -> tuple[SDFGrid, dict]:
@@ -324,7 +332,7 @@ def bake(wm: WallMesh, lo: np.ndarray, hi: np.ndarray, h: float, band: float, ex
     shells = wm.shell_thickness(np.nan) if shells is None else np.asarray(shells, np.float64)
     if np.isnan(shells).any():
         raise ValueError("bake: a shell's thickness was left to the default; pass shells (wall_thicknesses)")
-    shape = tuple(int(k) for k in np.ceil((np.asarray(hi) - lo) / h).astype(int) + 1)
+    shape, _ = sdf_estimate(lo, hi, h)
     if np.prod(shape, dtype=np.int64) > MAX_NODES:
         raise StageError(f"sdf_bake: grid {shape} has more than {MAX_NODES:,} nodes; increase cell or shrink scene.domain")
     t0 = time.perf_counter()
@@ -377,12 +385,23 @@ class Open3dBake(Stage):
     inputs = ("walls",)
     outputs = ("sdf",)
     reads = ("fluid.spacing", "scene.domain")
+    estimate_reads = ("walls", "scene.units")  # builtin walls' bounds (not keyed: the walls input's key holds them)
     default = True
     description = "narrow-band SDF on a grid (exact distance near the walls, sign by grid-line ray votes)"
 
     def estimate(self, ctx: Context, params: Params) -> dict | None:
-        # the grid covers scene.domain padded by the margin (without a domain: the walls', unknown yet)
-        return sdf_estimate(ctx.scene["scene"], ctx.scene["fluid"], params.cell, params.margin)
+        # run's grid_box over scene.domain, or else over the builtin walls' placed boxes
+        scene, fluid = ctx.scene["scene"], ctx.scene["fluid"]
+        if fluid is None:
+            return None
+        walls = None
+        if scene.domain is None:
+            corners = builtin_corners(ctx.scene["walls"] or [], scene.units.up_axis)
+            if corners is None or not len(corners):
+                return None  # walls from files: run checks the memory once they are loaded, before allocating
+            walls = WallMesh(corners, np.zeros((0, 3), np.int32), np.zeros(0, np.int32), [])
+        lo, hi = grid_box(walls, scene.domain, fluid.spacing, params)
+        return sdf_estimate(lo, hi, params.cell * fluid.spacing)[1]
 
     def run(self, ctx: Context, inputs: Mapping[str, Artifact], params: Params) -> None:
         fluid = ctx.scene["fluid"]
@@ -391,6 +410,7 @@ class Open3dBake(Stage):
         l0 = fluid.spacing
         wm = WallMesh.load(inputs["walls"].path)
         lo, hi = grid_box(wm, ctx.scene["scene"].domain, l0, params)
+        check_grid_memory(ctx, lo, hi, params.cell * l0)
         shells = wall_thicknesses(wm, l0, params, ctx.log)
         # a moving wall is baked apart, in its own frame (bodies/); sdf.npz holds the static walls only
         # (+band everywhere when every wall moves)

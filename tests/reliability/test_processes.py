@@ -37,17 +37,22 @@ def test_two_concurrent_runs_of_the_same_config(tmp_path):
 
 
 def test_two_concurrent_runs_of_different_configs_sharing_a_cache(tmp_path):
-    a = write_config(tmp_path / "a", name="a", steps=3, sim_sleep=0.3)
-    b = write_config(tmp_path / "b", name="b", steps=5, sim_sleep=0.3)
+    # the same scene (the toy import reads the whole scene section, name included), other simulations
+    a = write_config(tmp_path / "a", steps=3, sim_sleep=0.3, file="a.yaml")
+    b = write_config(tmp_path / "b", steps=5, sim_sleep=0.3, file="b.yaml")
     cache = tmp_path / "shared"
     procs = [_start("run", str(c), "--cache", str(cache), "--workers", "2", "-q") for c in (a, b)]
     for p in procs:
         _, err = p.communicate(timeout=120)
         assert p.returncode == 0, err
     for cfg, dots in ((a, 3), (b, 5)):
-        text = (cfg.parent / "out" / cfg.stem / "usd" / "scene.txt").read_text()
+        text = (cfg.parent / "out" / "shot" / "usd" / "scene.txt").read_text()
         assert text.endswith("| sim" + "." * dots), text
-        assert_consistent(cache, cfg.parent / "out" / cfg.stem)
+        assert_consistent(cache, cfg.parent / "out" / "shot")
+    # the stages they share (same scene and walls) were computed once, by whichever run came first
+    for kind in ("mesh_import", "sdf_bake"):
+        assert sum(_lines(c.parent / f"ran_{kind}.log") for c in (a, b)) == 1, kind
+    assert sum(_lines(c.parent / "ran_simulate.log") for c in (a, b)) == 2
 
 
 def test_lock_wait_names_the_holder_and_gives_up(tmp_path):
@@ -70,9 +75,9 @@ def test_lock_wait_names_the_holder_and_gives_up(tmp_path):
     assert_consistent(cache)
 
 
-def _interrupt_when(tmp_path: Path, marker: str, *sets: str) -> tuple[subprocess.Popen, float, str]:
+def _interrupt_when(tmp_path: Path, marker: str, *sets: str, extra: tuple[str, ...] = ()) -> tuple[subprocess.Popen, float, str]:
     cfg = write_config(tmp_path, count=4)
-    args = ["run", str(cfg), "--cache", str(tmp_path / "c"), "--workers", "2", "-q"]
+    args = ["run", str(cfg), "--cache", str(tmp_path / "c"), "--workers", "2", "-q", *extra]
     for s in sets:
         args += ["--set", s]
     proc = _start(*args)
@@ -123,6 +128,17 @@ def test_ctrl_c_during_frames_in_worker_processes_stops_quickly(tmp_path):
     # terminated pool left behind: Python's noise, not ours (noted in issue 15's closing note)
     ours = [line for line in err.strip().splitlines() if "resource_tracker" not in line]
     assert ours[-1].startswith("interrupted"), err
+    _resume_is_consistent(tmp_path)
+
+
+def test_ctrl_c_during_frames_on_a_local_dask_cluster_stops_quickly(tmp_path):
+    """--executor dask without a scheduler: a LocalCluster of worker processes, ended with the run (a
+    frame job sleeping 30 s does not hold it up); one line, exit 130, the cache consistent."""
+    proc, seconds, err = _interrupt_when(tmp_path, "ran_render.log", "render.sleep=30", extra=("--executor", "dask"))
+    assert proc.returncode == 130, err
+    assert seconds < 10, f"took {seconds:.1f} s to stop"
+    ours = [line for line in err.strip().splitlines() if "resource_tracker" not in line]
+    assert len(ours) == 1 and ours[0].startswith("interrupted"), err
     _resume_is_consistent(tmp_path)
 
 

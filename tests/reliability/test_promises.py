@@ -158,6 +158,67 @@ def test_size_refusal_then_yes_and_allow_large(tmp_path, monkeypatch):
     assert r.exit_code == 0, r.output
 
 
+# a 1 km tank at l0 = 1 cm: the SDF grid (cell 0.5 l0, padded by band 4 + margin 2 l0 each side) has
+# (1000.12 / 0.005 + 1)^3 nodes, some 170 PB while baking; the fluid itself is tiny
+KM_NODES = 200_025 ** 3
+KM_CONFIG = """config_version: 1
+scene: {{name: km, frames: {{fps: 30, count: 2}}}}
+walls: [{wall}]
+fluid: {{spacing: 0.01, emitters: [{{box: {{min: [1, 1, 0], max: [1.1, 1.1, 0.1]}}}}]}}
+outputs: [particles]
+"""
+
+
+@pytest.fixture
+def bake_calls(monkeypatch):
+    """sdf_bake's bake() replaced by a recorder that stops the stage (a user error, exit 2): whether and
+    with which grid the stage got past its checks, without baking 8e15 nodes."""
+    import stages.sdf_bake.open3d_bake as ob
+    from pipeline.stage import StageError
+
+    calls = []
+
+    def recorder(wm, lo, hi, h, *a, **k):
+        calls.append(ob.sdf_estimate(lo, hi, h)[0])
+        raise StageError("bake reached")
+
+    monkeypatch.setattr(ob, "bake", recorder)
+    return calls
+
+
+def test_size_refusal_of_a_builtin_tank_whose_sdf_exceeds_memory_before_anything_runs(tmp_path, bake_calls):
+    """Without scene.domain the builtin walls' sizes give the SDF grid: refused up front with its
+    numbers, nothing written; --yes runs past both checks (the plan's and sdf_bake's) to the bake."""
+    cfg = tmp_path / "km.yaml"
+    cfg.write_text(KM_CONFIG.format(wall="{builtin: box_tank, size: [1000, 1000, 1000], center: [500, 500, 0]}"))
+    err = _one_line_exit(_run(cfg), 2)
+    assert f"stage sdf_bake would need about" in err and f"sdf_bake: {KM_NODES:,} SDF nodes, ~" in err, err
+    assert "PB of memory" in err and "--yes" in err and sorted(p.name for p in tmp_path.iterdir()) == [cfg.name]
+    err = _one_line_exit(_run(cfg, "--yes", "--until", "sdf_bake"), 2)
+    assert err.endswith("stage sdf_bake.open3d: bake reached") and bake_calls == [(200_025,) * 3], (err, bake_calls)
+
+
+def test_size_refusal_of_mesh_walls_whose_sdf_exceeds_memory_before_sdf_bake_allocates(tmp_path, bake_calls):
+    """A wall from a file has bounds only once imported: sdf_bake refuses the grid with its numbers
+    before allocating it (no sdf_bake entry, nothing half-written, no output); --yes passes."""
+    (tmp_path / "cube.obj").write_text("".join(f"v {x} {y} {z}\n" for x in (0, 1) for y in (0, 1) for z in (0, 1))
+                                       + "f 1 2 4 3\nf 5 7 8 6\nf 1 5 6 2\nf 3 4 8 7\nf 1 3 7 5\nf 2 6 8 4\n")
+    cfg = tmp_path / "km.yaml"
+    cfg.write_text(KM_CONFIG.format(wall="{file: cube.obj, scale: 1000, fluid: inside}"))
+    err = _one_line_exit(_run(cfg), 2)
+    assert err.startswith("error: stage sdf_bake.open3d: would need about") and "PB of memory" in err, err
+    assert f"({KM_NODES:,} SDF nodes, grid 200025x200025x200025)" in err and "--yes" in err, err
+    cache = tmp_path / ".pipeline"
+    assert bake_calls == [] and not (cache / "sdf_bake").exists() and (cache / "mesh_import").is_dir()
+    assert_consistent(cache)
+    assert not (tmp_path / "out").exists()
+    err = _one_line_exit(_run(cfg, "--yes"), 2)
+    assert err.endswith("stage sdf_bake.open3d: bake reached") and bake_calls == [(200_025,) * 3], (err, bake_calls)
+    cfg.write_text("allow_large: true\n" + cfg.read_text())
+    err = _one_line_exit(_run(cfg), 2)
+    assert err.endswith("stage sdf_bake.open3d: bake reached") and len(bake_calls) == 2, err
+
+
 def test_sweep_removes_only_provably_dead_tmp_folders(tmp_path):
     cache = Cache(tmp_path / "c")
     tmp = cache.root / "tmp"
@@ -269,3 +330,40 @@ def test_failed_replacement_keeps_the_old_published_folder(tmp_path, toy_registr
     assert err.startswith("error: publish into") and "No space left on device" in err
     assert (out / "frames" / "frame_00000.txt").read_text() == before
     assert_consistent(tmp_path / "c", out)
+
+
+def test_plan_size_names_particles_sdf_nodes_steps_and_memory(tmp_path, caplog):
+    """Before anything runs, the run logs the plan's size from the real stages' estimates."""
+    import logging
+
+    from pipeline.config import load_config
+    from pipeline.estimate import check_size
+    from pipeline.graph import build_graph
+    from pipeline.keys import plan
+
+    cfg = tmp_path / "tank.yaml"
+    cfg.write_text("config_version: 1\n"
+                   "scene: {name: tank, frames: {fps: 30, count: 30}, domain: {min: [0, 0, 0], max: [2, 1, 1]}}\n"
+                   "fluid: {spacing: 0.05, emitters: [{box: {min: [0, 0, 0], max: [0.5, 0.5, 0.5]}}]}\n"
+                   "effects: {gravity: {g: 9.81}}\nstages: {simulate: {use: sph}}\noutputs: [particles]\n")
+    config = load_config(cfg, Registry.from_entry_points())
+    p = plan(config, build_graph(config), Cache(tmp_path / "c"))
+    with caplog.at_level(logging.INFO, logger="pipeline"):
+        sizes = check_size(p)
+    assert sizes["simulate"]["particles"] == 1000 and sizes["sdf_bake"]["sdf_nodes"] > 0
+    line = next(r.getMessage() for r in caplog.records if r.getMessage().startswith("plan size: "))
+    assert "simulate: 1,000 particles, ~" in line and " steps, ~" in line and "sdf_bake: " in line and " SDF nodes, ~" in line, line
+    assert not (tmp_path / "c").exists()  # nothing written before the plan is accepted
+
+
+@pytest.mark.parametrize("name", ["30_alias_bomb", "31_deep_nesting", "32_deep_block_nesting"])
+def test_hostile_yaml_is_refused_well_under_a_second(name):
+    """Issue 15: an alias bomb or deep nesting is exit 2 'in well under a second' (measured ~10 ms to
+    refuse, so 1 s leaves room for a loaded machine; the corpus test above only bounds it at 5 s)."""
+    from pipeline.config import ConfigError, load_config
+
+    registry = Registry.from_entry_points()
+    t0 = time.perf_counter()
+    with pytest.raises(ConfigError, match="expands to more than|nested more than 64 levels"):
+        load_config(TESTS / "bad_configs" / f"{name}.yaml", registry)
+    assert time.perf_counter() - t0 < 1.0
