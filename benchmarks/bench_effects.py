@@ -26,7 +26,7 @@ from stages.simulate.effects import compile_effects
 from stages.simulate.emitters import lattice
 from stages.simulate.kernels import spiky_grad_coef
 from stages.simulate.sph import SPHParams, SPHSolver
-from stages.simulate.sph_kernels import wall_density
+from stages.simulate.walls.maps import map_density
 
 
 @nb.njit(cache=True, parallel=True, fastmath=True)  # built like sph_kernels.forces
@@ -34,7 +34,7 @@ def reference_forces_pressure(x, v, p, d, nbr, cnt, inv_rho, h, spiky_coef, mass
                               wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, gravity, av, acc):
     """Hand-written pressure (eq. 6, 8, Monaghan av) + gravity + the conservative wall pressure
     -(p_i / rho_i^2) grad Z over the solver's neighbour list (the pairs r < h first in each row, cnt of
-    them): no other code but the wall density lookup (sph_kernels.wall_density)."""
+    them): no other code but the wall density lookup (walls.maps.map_density)."""
     h2 = h * h
     gx0 = gravity[0]
     gy0 = gravity[1]
@@ -76,12 +76,12 @@ def reference_forces_pressure(x, v, p, d, nbr, cnt, inv_rho, h, spiky_coef, mass
         if near_wall:
             e = 0.5 / winv
             ce = 0.5 / e
-            zx = ce * (wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi + e, yi, zi)
-                       - wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi - e, yi, zi))
-            zy = ce * (wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi + e, zi)
-                       - wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi - e, zi))
-            zz = ce * (wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi, zi + e)
-                       - wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi, zi - e))
+            zx = ce * (map_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi + e, yi, zi)
+                       - map_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi - e, yi, zi))
+            zy = ce * (map_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi + e, zi)
+                       - map_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi - e, zi))
+            zz = ce * (map_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi, zi + e)
+                       - map_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi, zi - e))
             cw = -pi * inv_rhoi * inv_rhoi
             ax += cw * zx
             ay += cw * zy

@@ -114,7 +114,7 @@ class ReferenceSolver(SPHSolver):
 
     def __init__(self, *a, **k):
         import stages.simulate.sph as S
-        from stages.simulate.wall_maps import WallMaps
+        from stages.simulate.walls.maps import WallMaps
         bricks, S.BrickWallMaps = S.BrickWallMaps, WallMaps  # the dense map, as before
         try:
             super().__init__(*a, **k)
@@ -253,7 +253,7 @@ def one_thread_cpu_ms(solver, steps: int) -> float:
 def side_by_side(new: SPHSolver, x, sdf, l0, height, steps: int) -> dict:
     """The old and the new step from the same state, in alternating rounds (noisy machine)."""
     tracemalloc.start()
-    ref = make_solver(ReferenceSolver, x, sdf, l0, height)  # with the dense wall map of wall_maps.py
+    ref = make_solver(ReferenceSolver, x, sdf, l0, height)  # with the dense wall map of walls/maps.py
     ref.load_state({k: np.copy(v) for k, v in new.state().items()})  # own arrays: the sort reuses buffers
     ref.step(10.0)
     _, ref_peak = tracemalloc.get_traced_memory()

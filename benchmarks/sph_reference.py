@@ -8,8 +8,8 @@ import math
 import numba as nb
 
 from stages.common.sdf import sdf_sample
-from stages.simulate.wall_maps import map_sample
-from stages.simulate.wall_tables import table_lookup
+from stages.simulate.walls.maps import map_sample
+from stages.simulate.walls.tables import table_lookup
 
 EOS_LINEAR = 0
 EOS_TAIT = 1
@@ -19,7 +19,7 @@ EOS_TAIT = 1
 def density_pressure(x, starts, lo, inv_cell, dims, h, poly6_coef, mass, rho0, wmap, wo, winv, fix_rho, inv_dr,
                      sdf, sdf_o, sdf_inv, eos, stiffness, clamp, rho, p, d, nrm):
     """Eq. 11: rho_i = sum_j m W(r_ij) (eq. 4, 10, self included) + Z_rho (eq. 12) from the 3D wall
-    map (wall_maps.py) times the flat-wall factor at the SDF distance r_iw; eq. 5 pressure p = k (rho - rho0) (or Tait, B = stiffness), optionally
+    map (walls/maps.py) times the flat-wall factor at the SDF distance r_iw; eq. 5 pressure p = k (rho - rho0) (or Tait, B = stiffness), optionally
     clamped at 0. Also stores the SDF distance ``d`` and wall normal ``nrm`` of each particle."""
     h2 = h * h
     nx, ny, nz = dims[0], dims[1], dims[2]

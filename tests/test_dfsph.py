@@ -15,7 +15,7 @@ from stages.common.formats import ParticleMeta, load_particle_frame
 from stages.common.sdf import box_interior_sdf, grid_from_function
 from stages.simulate.dfsph import DFSPHParams, DFSPHSimulate, DFSPHSolver
 from stages.simulate.emitters import lattice
-from stages.simulate.dfsph_walls import spline_np
+from stages.simulate.walls.spline import spline_np
 from stages.simulate.kernels import poly6_np
 
 L0, W, H, G = 0.01, 0.1, 0.2, 9.81

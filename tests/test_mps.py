@@ -18,7 +18,7 @@ from stages.common.sdf import box_interior_sdf, grid_from_function
 from stages.simulate.emitters import lattice
 from stages.simulate import mps_kernels as K
 from stages.simulate.mps import MPSParams, MPSSimulate, MPSSolver
-from stages.simulate.mps_walls import MPSWallMaps, build_tables, lattice_constants
+from stages.simulate.walls.mps import MPSWallMaps, build_tables, lattice_constants
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_sph_dam_break import _reference  # noqa: E402  (the Martin & Moyce series)

@@ -1,14 +1,24 @@
 """SPH kernels, wall tables, pair-force symmetry (PHYSICS.md eq. 6-15)."""
 import math
 
+from types import SimpleNamespace
+
 import numpy as np
 
 from stages.common.sdf import box_interior_sdf, grid_from_function
 from stages.simulate import sph_kernels as K
+from stages.simulate.walls.maps import BrickWallMaps, make_walls
+
+
+def no_wall_terms(sdf, h):
+    """Walls whose map is empty (no wall term anywhere) over ``sdf``: internal forces only."""
+    empty = SimpleNamespace(index=np.full((1, 1, 1), -1, np.int32), bricks=np.zeros((0, 4, 4, 4, 5), np.float32),
+                            shape=np.array([2, 2, 2]), origin=np.zeros(3), spacing=1.0, fix_rho=np.zeros(8), inv_dr=7 / h)
+    return make_walls(sdf, empty)
 from stages.simulate.effects import cohesion_coef
 from stages.simulate.kernels import lattice_mass, poly6_coef, poly6_np, spiky_grad_coef, visc_lap_coef
 from stages.simulate.neighbours import CellGrid
-from stages.simulate.wall_tables import build_tables, half_space_density
+from stages.simulate.walls.tables import build_tables, half_space_density
 
 
 def test_poly6_integrates_to_one():
@@ -62,20 +72,19 @@ def test_pair_forces_conserve_momentum_without_walls():
     m = lattice_mass(1000.0, l0, h)
     rho, p, d, nrm = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros((n, 3))
     zeros = np.zeros(8)
-    no_walls = np.zeros((2, 2, 2, 5), np.float32)  # no wall terms: internal forces only
-    wo = np.zeros(3)
-    K.density_pressure(x, grid.starts, grid.lo, 1 / grid.cell, grid.dims, h, poly6_coef(h), m, 1000.0, no_walls, wo,
-                       1.0, zeros, 7 / h, sdf.dist, sdf.origin, 1 / sdf.spacing, K.EOS_LINEAR, 100.0, False, rho, p, d, nrm)
+    walls = no_wall_terms(sdf, h)
+    K.density_pressure(x, grid.starts, grid.lo, 1 / grid.cell, grid.dims, h, poly6_coef(h), m, 1000.0, walls,
+                       K.EOS_LINEAR, 100.0, False, rho, p, d, nrm)
     normals = np.zeros((n, 3))
     K.surface_normals(x, rho, grid.starts, grid.lo, 1 / grid.cell, grid.dims, h, spiky_grad_coef(h), m, normals)
-    pressure = (p, spiky_grad_coef(h), zeros, 0.5, sdf.dist, sdf.origin, 1 / sdf.spacing)
+    pressure = (p, spiky_grad_coef(h), 0.5)
     viscosity = (0.01, visc_lap_coef(h), zeros)
     tension = (0.05, normals, cohesion_coef(h))
     for pr, vis, ten in ((pressure, None, None), (pressure, viscosity, None), (None, None, tension),
                          (pressure, viscosity, tension)):
         acc = np.zeros((n, 3))
-        K.forces(x, v, rho, d, nrm, grid.starts, grid.lo, 1 / grid.cell, grid.dims, h, m, 1000.0, no_walls, wo, 1.0,
-                 7 / h, np.zeros(3), acc, pr, vis, ten, None, None, None, None)
+        K.forces(x, v, rho, d, nrm, grid.starts, grid.lo, 1 / grid.cell, grid.dims, h, m, 1000.0, walls, np.zeros(3),
+                 acc, pr, vis, ten, None, None, None, None)
         total = (m * acc).sum(axis=0)
         scale = (m * np.abs(acc)).sum()
         assert scale > 0
@@ -83,8 +92,8 @@ def test_pair_forces_conserve_momentum_without_walls():
 
 
 def test_wall_map_counts_every_wall_in_edges_and_corners():
-    from stages.simulate.wall_maps import WallMaps, map_sample
-    from stages.simulate.wall_tables import table_lookup
+    from stages.simulate.walls.maps import WallMaps, map_sample
+    from stages.simulate.walls.tables import table_lookup
     l0, h, rho0 = 0.01, 0.02, 1000.0
     m = lattice_mass(rho0, l0, h)
     sdf = grid_from_function(box_interior_sdf([0, 0, 0], [0.1, 0.1, 0.1]), [0, 0, 0], [0.1, 0.1, 0.1], l0 / 2)
@@ -137,14 +146,12 @@ def test_list_kernels_are_the_cell_scan_kernels():
     the same pairs in the same order, so the same bits; forces(neighbours, inv_rho) the same to rounding
     (a fastmath build: the two loop forms may contract differently), for every effect set."""
     from stages.simulate.neighbours import neighbour_list
-    from stages.simulate.wall_maps import WallMaps
     x, v, sdf, grid, l0, h = _random_cloud()
     n = len(x)
     m = lattice_mass(1000.0, l0, h)
-    wm = WallMaps(sdf, l0, h, m, 1000.0, 64)  # walls within h of some particles: wall terms on
     g = (grid.starts, grid.lo, 1 / grid.cell, grid.dims)
-    common = (h, poly6_coef(h), m, 1000.0, wm.maps, wm.origin, 1 / wm.spacing, wm.fix_rho, wm.inv_dr, sdf.dist,
-              sdf.origin, 1 / sdf.spacing, K.EOS_LINEAR, 100.0, True)
+    walls = make_walls(sdf, BrickWallMaps(sdf, l0, h, m, 1000.0, 64))  # walls within h of some particles
+    common = (h, poly6_coef(h), m, 1000.0, walls, K.EOS_LINEAR, 100.0, True)
     a = [np.zeros(n), np.zeros(n), np.zeros(n), np.zeros((n, 3))]
     K.density_pressure(x, *g, *common, *a)
     nbr, cnt, inv_rho = np.zeros((n, 80), np.int32), np.zeros(n, np.int32), np.zeros(n)
@@ -162,7 +169,8 @@ def test_list_kernels_are_the_cell_scan_kernels():
     K.surface_normals(x, rho, *g, h, gc, m, n1)
     K.surface_normals(x, rho, *g, h, gc, m, n2, (nbr, cnt))
     assert np.array_equal(n1, n2)
-    press = (p, gc, np.linspace(1.0, 0.5, 64), 0.5, sdf.dist, sdf.origin, 1 / sdf.spacing)
+    walls = walls._replace(fix_rho=np.linspace(1.0, 0.5, 64))
+    press = (p, gc, 0.5)
     vis = (0.01, visc_lap_coef(h), np.linspace(1.0, 0.0, 64))
     ten = (0.05, n1, cohesion_coef(h))
     adh, fri = (np.linspace(2.0, 0.0, 64),), (3.0,)
@@ -171,7 +179,7 @@ def test_list_kernels_are_the_cell_scan_kernels():
     for effects in ((press, vis, None, None, None, None, None), (None, vis, ten, adh, fri, wind, att),
                     (press, vis, ten, adh, fri, wind, att)):
         acc1, acc2 = np.zeros((n, 3)), np.zeros((n, 3))
-        args = (x, v, rho, d, nrm, *g, h, m, 1000.0, wm.maps, wm.origin, 1 / wm.spacing, wm.inv_dr, grav)
+        args = (x, v, rho, d, nrm, *g, h, m, 1000.0, walls, grav)
         K.forces(*args, acc1, *effects)
         K.forces(*args, acc2, *effects, (nbr, cnt), inv_rho)
         assert np.abs(acc1).max() > 0 and np.abs(acc1 - acc2).max() <= 1e-13 * np.abs(acc1).max()
@@ -182,12 +190,10 @@ def test_verlet_density_finds_every_pair_while_particles_move_less_than_the_skin
     density of the cell scan at the new positions (to rounding), its first cnt_in entries of each row
     are exactly the pairs r < h, and every candidate of the row is still there (only reordered)."""
     from stages.simulate.neighbours import neighbour_list
-    from stages.simulate.wall_maps import WallMaps
     x, _, sdf, grid, l0, h = _random_cloud()
     n = len(x)
     skin = 0.3 * l0
     m = lattice_mass(1000.0, l0, h)
-    wm = WallMaps(sdf, l0, h, m, 1000.0, 64)
     vgrid = CellGrid(sdf.origin, sdf.upper, h + skin)
     order = vgrid.sort(x)
     x = x[order].copy()
@@ -198,8 +204,8 @@ def test_verlet_density_finds_every_pair_while_particles_move_less_than_the_skin
     step = rng.normal(size=(n, 3))
     step *= (0.499 * skin * rng.uniform(0, 1, n) / np.linalg.norm(step, axis=1))[:, None]
     y = x + step
-    common = (h, poly6_coef(h), m, 1000.0, wm.maps, wm.origin, 1 / wm.spacing, wm.fix_rho, wm.inv_dr, sdf.dist,
-              sdf.origin, 1 / sdf.spacing, K.EOS_LINEAR, 100.0, True)
+    walls = make_walls(sdf, BrickWallMaps(sdf, l0, h, m, 1000.0, 64))  # walls within h of some particles
+    common = (h, poly6_coef(h), m, 1000.0, walls, K.EOS_LINEAR, 100.0, True)
     cnt_in, inv_rho = np.zeros(n, np.int32), np.zeros(n)
     b = [np.zeros(n), np.zeros(n), np.zeros(n), np.zeros((n, 3))]
     K.density_verlet(y, nbr, cnt, cnt_in, *common, *b, inv_rho)
@@ -232,7 +238,7 @@ def test_bulk_particles_skipping_the_sdf_changes_nothing():
             self.sort_and_density()
             self.forces()
             dt = step_to(self.t, t_end, self.stable_dt(t_end - self.t))
-            K.integrate(self.x, self.v, self.acc, dt, self.sdf.dist, self.sdf.origin, self.sdf_inv,
+            K.integrate(self.x, self.v, self.acc, dt, self.wall_terms,
                         self.p.r_rep * self.l0, 0.5 * self.l0, wall_move_limit(self.p.r_rep) * self.l0,
                         self.travel)  # no bound: every particle tested
             self.t = t_end if dt >= t_end - self.t else self.t + dt
@@ -282,8 +288,8 @@ def test_bricked_wall_maps_are_the_dense_maps():
     """BrickWallMaps keeps only the bricks near the walls, with the same node values as WallMaps, and
     the kernels' lookups through it give the same bits (a box with a sphere inside: edges, corners
     and a curved wall)."""
-    from stages.simulate.sph import BrickWallMaps
-    from stages.simulate.wall_maps import WallMaps, map_sample
+    from stages.simulate.walls.maps import BrickWallMaps, brick_sample
+    from stages.simulate.walls.maps import WallMaps, map_sample
     l0, h, rho0 = 0.01, 0.02, 1000.0
     m = lattice_mass(rho0, l0, h)
     box = box_interior_sdf([0, 0, 0], [0.6, 0.4, 0.4])
@@ -300,7 +306,7 @@ def test_bricked_wall_maps_are_the_dense_maps():
     inv = 1 / dense.spacing
     for c in range(5):
         a = [map_sample(dense.maps, *dense.origin, inv, *p, c) for p in pts]
-        b = [K.brick_sample(*bricks.wmap, *bricks.origin, inv, *p, c) for p in pts]
+        b = [brick_sample(*bricks.wmap, *bricks.origin, inv, *p, c) for p in pts]
         assert np.array_equal(a, b) and np.count_nonzero(a) > 100
 
 
@@ -321,10 +327,9 @@ def _jittered_block(jitter=0.15, n=12, seed=4):
     nbr, cnt = np.zeros((N, 80), np.int32), np.zeros(N, np.int32)
     neighbour_list(x, grid.starts, grid.lo, 1 / grid.cell, grid.dims, h, nbr, cnt)
     rho, p, d, nrm, inv_rho = np.zeros(N), np.zeros(N), np.zeros(N), np.zeros((N, 3)), np.zeros(N)
-    no_walls = np.zeros((2, 2, 2, 5), np.float32)
-    K.density_verlet(x, nbr, cnt, np.zeros(N, np.int32), h, poly6_coef(h), m, 1000.0, no_walls, np.zeros(3), 1.0,
-                     np.zeros(8), 7 / h, sdf.dist, sdf.origin, 1 / sdf.spacing, K.EOS_LINEAR, 100.0, False, rho, p, d,
-                     nrm, inv_rho)
+    walls = no_wall_terms(sdf, h)
+    K.density_verlet(x, nbr, cnt, np.zeros(N, np.int32), h, poly6_coef(h), m, 1000.0, walls, K.EOS_LINEAR, 100.0, False,
+                     rho, p, d, nrm, inv_rho)
     return x, nbr, cnt, rho, inv_rho, d, nrm, grid, m, l0, h
 
 
@@ -372,7 +377,7 @@ def _box_sdf(grid):
     """A box SDF over the cell grid: the pressure term's SDF (its walls are out of reach: d = 1 m is passed)."""
     sdf = grid_from_function(box_interior_sdf(grid.lo, grid.lo + grid.cell * grid.dims), grid.lo,
                              grid.lo + grid.cell * grid.dims, grid.cell)
-    return sdf.dist, sdf.origin, 1 / sdf.spacing
+    return sdf
 
 
 def test_corrected_pair_forces_conserve_momentum():
@@ -384,12 +389,10 @@ def test_corrected_pair_forces_conserve_momentum():
     n = len(x)
     p = rng.uniform(0, 500.0, n)
     v = rng.normal(0, 0.1, (n, 3))
-    zeros = np.zeros(8)
-    no_walls = np.zeros((2, 2, 2, 5), np.float32)
     acc = np.zeros((n, 3))
-    K.forces(x, v, rho, np.full(n, 1.0), nrm, grid.starts, grid.lo, 1 / grid.cell, grid.dims, h, m, 1000.0, no_walls,
-             np.zeros(3), 1.0, 7 / h, np.zeros(3), acc, (p, gc, zeros, 0.5, *_box_sdf(grid)), None, None, None,
-             None, None, None,
+    walls = no_wall_terms(_box_sdf(grid), h)
+    K.forces(x, v, rho, np.full(n, 1.0), nrm, grid.starts, grid.lo, 1 / grid.cell, grid.dims, h, m, 1000.0, walls,
+             np.zeros(3), acc, (p, gc, 0.5), None, None, None, None, None, None,
              (nbr, cnt), inv_rho, (L,))
     total = (m * acc).sum(axis=0)
     assert np.abs(total).max() < 1e-10 * (m * np.abs(acc)).sum()
@@ -426,19 +429,19 @@ def test_wall_pressure_force_is_the_derivative_of_the_wall_density():
     wall term Z_rho fix_rho at its position), the gradient by central differences half a wall-map node
     apart as the force kernel takes it (continuous across the map's node planes, where the trilinear
     slope jumps; the energy test in test_sph_validation.py checks that this keeps the energy falling)."""
-    from stages.simulate.wall_maps import WallMaps
+    from stages.simulate.walls.maps import WallMaps
     l0, h = 0.01, 0.02
     m = lattice_mass(1000.0, l0, h)
     sdf = grid_from_function(box_interior_sdf([0, 0, 0], [0.1, 0.1, 0.1]), [0, 0, 0], [0.1, 0.1, 0.1], l0 / 2)
     wm = WallMaps(sdf, l0, h, m, 1000.0, 256)
     grid = CellGrid(sdf.origin, sdf.upper, h)
+    walls = make_walls(sdf, BrickWallMaps(sdf, l0, h, m, 1000.0, 256))
 
     def density(p):
         x = np.array([p], float)
         grid.sort(x)
         out = [np.zeros(1), np.zeros(1), np.zeros(1), np.zeros((1, 3))]
-        K.density_pressure(x, grid.starts, grid.lo, 1 / grid.cell, grid.dims, h, poly6_coef(h), m, 1000.0, wm.maps,
-                           wm.origin, 1 / wm.spacing, wm.fix_rho, wm.inv_dr, sdf.dist, sdf.origin, 1 / sdf.spacing,
+        K.density_pressure(x, grid.starts, grid.lo, 1 / grid.cell, grid.dims, h, poly6_coef(h), m, 1000.0, walls,
                            K.EOS_LINEAR, 100.0, False, *out)
         return x, out
 
@@ -446,9 +449,7 @@ def test_wall_pressure_force_is_the_derivative_of_the_wall_density():
         x, (rho, p, d, nrm) = density(point)
         acc = np.zeros((1, 3))
         K.forces(x, np.zeros((1, 3)), rho, d, nrm, grid.starts, grid.lo, 1 / grid.cell, grid.dims, h, m, 1000.0,
-                 wm.maps, wm.origin, 1 / wm.spacing, wm.inv_dr, np.zeros(3), acc,
-                 (p, spiky_grad_coef(h), wm.fix_rho, 0.0, sdf.dist, sdf.origin, 1 / sdf.spacing),
-                 None, None, None, None, None, None)
+                 walls, np.zeros(3), acc, (p, spiky_grad_coef(h), 0.0), None, None, None, None, None, None)
         e = 0.5 * wm.spacing
         grad = np.array([(density(np.add(point, e * u))[1][0][0] - density(np.subtract(point, e * u))[1][0][0]) / (2 * e)
                          for u in np.eye(3)])

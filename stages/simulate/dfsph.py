@@ -11,7 +11,7 @@ the pressure instead, so its step is bound by the CFL condition only. One step (
   5. sort, density, factors, neighbour lists at the new positions; divergence-free solve on v.
 The stage shares the scene set-up and frame loop with the other solvers (driver.py).
 
-Walls: sph.BrickWallMaps (the 3D wall map, bricked; no dense map over the SDF box). Density: Z_rho
+Walls: walls.maps.BrickWallMaps (the 3D wall map, bricked; no dense map over the SDF box). Density: Z_rho
 from its channel 0. Wall gradient Psi (the Spiky default): from the map's wall direction channels, the
 same Spiky sums as the fluid's gradient, so on the rest lattice S_i + Psi_i = 0 within 1 % at a floor
 and in a corner and 4 % in an edge (grad Z_rho, the Poly6 slope, was 11-13 % short there).
@@ -22,7 +22,7 @@ hydrostatic test as a strict xfail: 10 x 10 x 20 tank, l0 = 1 cm, mean speed 0.1
 m/s, for 0.6 s and more). What was measured:
 - not the cause alone: dt (0.001-0.005 s), relaxation, warm start, r_rep, iteration bound, the Poly6
   gradient, relaxing the lattice first, and ONE kernel for density and gradient (gradient="spline",
-  the cubic spline with walls as the quadrature of the same kernel, dfsph_walls.py: the solve's rate is
+  the cubic spline with walls as the quadrature of the same kernel, walls/spline.py: the solve's rate is
   then the density's derivative, tested; the tank boils just the same, and the CI dam break front runs
   11-16 % ahead at 4.7 density iterations a step instead of 6-10 % at 2.2, so it stays opt-in);
 - the floor: with S_i + Psi_i = 0 and the wall counting kappa_i once (WALL_MIRROR = 1, the symmetric
@@ -63,10 +63,11 @@ from . import dfsph_kernels as D
 from . import sph_kernels as K
 from .driver import SolverBase, drive, prepare, set_threads
 from .effects import EffectConstants, compile_effects
-from .dfsph_walls import SplineWallMaps, spline_coefs, spline_lattice_mass
+from .walls.spline import SplineWallMaps, spline_coefs, spline_lattice_mass
 from .kernels import lattice_mass, poly6_coef, spiky_grad_coef, spiky_lattice_factor
 from .neighbours import CellGrid
-from .sph import BrickWallMaps, SPHSolver
+from .sph import SPHSolver
+from .walls.maps import BrickWallMaps, make_walls
 from .timestep import stable_dt, step_to
 
 
@@ -95,7 +96,7 @@ class DFSPHParams(Params):
     gradient: Literal["spiky", "poly6", "spline"] = Field("spiky", description="pressure kernel gradient: Spiky "
                                                           "(eq. 8, normalised as in sph) or the exact Poly6 derivative "
                                                           "of the density; 'spline': the cubic spline for the density and "
-                                                          "its gradient, walls as its quadrature (dfsph_walls.py)")
+                                                          "its gradient, walls as its quadrature (walls/spline.py)")
     r_rep: float = Field(0.2, gt=0, le=1.0, description="eq. 16 wall clamp distance, in units of l0: a safety net "
                          "below the first layer's rest distance 0.5 l0, so the solver, not the clamp, holds the fluid")
     checkpoint_every: int = Field(10, ge=1, description="write a checkpoint every this many frames")
@@ -145,6 +146,7 @@ class DFSPHSolver(SolverBase):
         self.mu = float(effects.mu) if effects.mu is not None else 0.0
         self.sdf = sdf
         self.sdf_inv = 1.0 / sdf.spacing
+        self.wall_terms = make_walls(sdf, self.walls)  # what the shared WCSPH kernels take
         lo, hi = (sdf.origin, sdf.upper) if domain is None else domain
         self.domain = (np.asarray(lo, float), np.asarray(hi, float))
         self.grid = CellGrid(sdf.origin, sdf.upper, self.h)
@@ -211,14 +213,14 @@ class DFSPHSolver(SolverBase):
     effect_args = SPHSolver.effect_args
 
     def non_pressure_forces(self) -> None:
-        g, w = self.grid, self.walls
+        g = self.grid
         if self.normals is not None:
             K.surface_normals(self.x, self.rho, g.starts, g.lo, 1.0 / g.cell, g.dims, self.h, self.grad_coef,
                               self.mass, self.normals)
         # over this step's neighbour lists (same pairs, same order as the cell scan: the same sums)
         lists = (self.nbr.reshape(len(self.x), self.cap), self.count)
         K.forces(self.x, self.v, self.rho, self.d, self.nrm, g.starts, g.lo, 1.0 / g.cell, g.dims, self.h, self.mass,
-                 self.rho0, w.wmap, w.origin, 1.0 / w.spacing, w.inv_dr, self.gravity, self.acc, None,
+                 self.rho0, self.wall_terms, self.gravity, self.acc, None,
                  *self.effect_args(), neighbours=lists)
 
     def stable_dt(self, dt_max: float) -> float:
@@ -269,7 +271,7 @@ class DFSPHSolver(SolverBase):
         self.iterations[0] += it
         self.solve_error[0] += err
         # x += dt v*, then the eq. 16 clamp along the SDF normal as a safety net (acceleration already in v)
-        K.integrate(self.x, self.v, self.zero_acc, dt, self.sdf.dist, self.sdf.origin, self.sdf_inv,
+        K.integrate(self.x, self.v, self.zero_acc, dt, self.wall_terms,
                     self.p.r_rep * self.l0, 0.5 * self.l0, wall_move_limit(self.p.r_rep) * self.l0)
         self.refresh()
         if self.p.divergence_solve:

@@ -35,10 +35,10 @@ import numba as nb
 
 from stages.common.sdf import sdf_sample
 
-from .dfsph_walls import spline_f, spline_w
+from .walls.spline import spline_f, spline_w
 from .neighbours import cell_coords
-from .sph_kernels import wall_density, wall_sample_1234
-from .wall_tables import table_lookup
+from .walls.maps import map_density, wall_sample_1234
+from .walls.tables import table_lookup
 
 SPIKY, POLY6, SPLINE = 0, 1, 2  # the ``gradient`` modes of density_alpha_neighbours
 WALL_MIRROR = 1.0  # the wall's share of the pressure acceleration counts kappa_i once (see above)
@@ -55,8 +55,8 @@ def density_alpha_neighbours(x, starts, lo, inv_cell, dims, h, poly6_coef, grad_
     Also the warm starts of both solves (their rho is this pass's): kr = warm kappa / rho and
     kr_v = warm kappa_v / rho (one parallel region less each, which counts on a busy 2-core machine).
     ``mode`` SPIKY / POLY6: Poly6 density with that gradient (``poly6_coef``, ``grad_coef`` its
-    coefficients); SPLINE: the cubic spline for both (dfsph_walls.py; ``poly6_coef`` and ``grad_coef``
-    then carry its k and l, and the wall map must be dfsph_walls.SplineWallMaps)."""
+    coefficients); SPLINE: the cubic spline for both (walls/spline.py; ``poly6_coef`` and ``grad_coef``
+    then carry its k and l, and the wall map must be spline.SplineWallMaps)."""
     spiky = mode != POLY6  # the wall terms of SPIKY and SPLINE are read the same way from their maps
     h2 = h * h
     nx, ny, nz = dims[0], dims[1], dims[2]
@@ -130,7 +130,7 @@ def density_alpha_neighbours(x, starts, lo, inv_cell, dims, h, poly6_coef, grad_
         pz = 0.0
         if spiky:
             if dw < h:  # only particles within h of a wall have wall terms
-                zw = wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi, zi)
+                zw = map_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi, zi)
                 # Psi = sum_wall m grad_i W_iw with the fluid's (normalised) Spiky gradient: the map's
                 # wall direction G = (m / rho0) sum -grad W times the flat-wall factor, so Psi cancels the
                 # fluid's S_i on the rest lattice at a floor, in edges and in corners alike (grad Z_rho
@@ -142,16 +142,16 @@ def density_alpha_neighbours(x, starts, lo, inv_cell, dims, h, poly6_coef, grad_
                 py = c * g2
                 pz = c * g3
         elif dw < h + fd:
-            zw = wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi, zi)
+            zw = map_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi, zi)
             # Poly6: Psi = grad Z_rho by central differences of the same function the density uses, so
             # the solver's predicted density change matches the real one, edges and corners included
             c = 0.5 / fd
-            px = c * (wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi + fd, yi, zi)
-                      - wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi - fd, yi, zi))
-            py = c * (wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi + fd, zi)
-                      - wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi - fd, zi))
-            pz = c * (wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi, zi + fd)
-                      - wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi, zi - fd))
+            px = c * (map_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi + fd, yi, zi)
+                      - map_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi - fd, yi, zi))
+            py = c * (map_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi + fd, zi)
+                      - map_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi - fd, zi))
+            pz = c * (map_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi, zi + fd)
+                      - map_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi, zi - fd))
         psi[i, 0] = px
         psi[i, 1] = py
         psi[i, 2] = pz

@@ -13,7 +13,7 @@ from __future__ import annotations
 import copy
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Protocol
 
@@ -23,7 +23,7 @@ import numpy as np
 from pipeline.errors import PipelineError
 from pipeline.stage import Artifact, Context, StageError
 from stages.common.formats import ParticleFrame, ParticleMeta
-from stages.common.sdf import SDFGrid
+from stages.common.sdf import SDFGrid, load_bodies, posed_field
 from stages.common.usd_points import write_points_layer
 
 from .emitters import drop_inside_walls, drop_overlaps, emit
@@ -215,13 +215,28 @@ def ballistic_speed(setup: "Setup", effects=None) -> float:
     hi = setup.domain[1] if setup.domain is not None else setup.sdf.upper
     corners = np.array([[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1]) for c in (lo[2], hi[2])])
     height = max(float((setup.x @ setup.up).max() - (corners @ setup.up).min()), setup.spacing)
-    bound = v0 + math.sqrt(2.0 * g * height)
+    bound = v0 + math.sqrt(2.0 * g * height) + 2.0 * wall_speed_bound(setup.bodies)
     if effects is not None:
         if getattr(effects, "wind_velocity", None) is not None:
             bound += float(np.linalg.norm(effects.wind_velocity))
         if getattr(effects, "attractor_point", None) is not None:
             bound += math.sqrt(2.0 * abs(effects.attractor_k) / effects.attractor_soft)
     return max(bound, math.sqrt(9.81 * setup.spacing))  # a scene without gravity or motion: never zero
+
+
+def wall_speed_bound(bodies) -> float:
+    """The fastest a point of a moving wall goes over its whole motion (m/s): its pivot's speed plus its
+    angular speed times its reach from the pivot, at every key and between (a wall can fling the fluid at
+    twice its own speed, an elastic bounce; ballistic_speed takes that)."""
+    top = 0.0
+    for sdf, m in bodies:
+        reach = float(np.linalg.norm(np.maximum(np.abs(sdf.origin - m.pivot), np.abs(sdf.upper - m.pivot))))
+        span = np.asarray(m.times, float)
+        ts = np.unique(np.concatenate([span, (span[:-1] + span[1:]) / 2.0])) if len(span) > 1 else span
+        for t in ts:
+            v, w = m.velocity(float(t))
+            top = max(top, float(np.linalg.norm(v)) + float(np.linalg.norm(w)) * reach)
+    return top
 
 
 @dataclass
@@ -239,6 +254,7 @@ class Setup:
     effects: Any  # pipeline.scene.Effects
     meters_per_unit: float  # of the scene: frames are written back in scene units
     dropped: int = 0  # emitted particles dropped because they started inside a wall
+    bodies: list = field(default_factory=list)  # moving walls: (SDFGrid in its rest frame, RigidMotion), SI
 
 
 def up_vector(up_axis: str) -> np.ndarray:
@@ -250,9 +266,10 @@ def set_threads(threads: int | None) -> None:
         nb.set_num_threads(min(int(threads), nb.config.NUMBA_NUM_THREADS))
 
 
-def prepare(ctx: Context, inputs: Mapping[str, Artifact], who: str) -> Setup:
+def prepare(ctx: Context, inputs: Mapping[str, Artifact], who: str, moving_walls: bool = False) -> Setup:
     """Emit the fluid, drop the particles inside walls and resolve gravity; ``who`` names the stage
-    in errors."""
+    in errors. ``moving_walls``: whether the solver takes moving walls (a scene with them is refused
+    otherwise, in one line)."""
     scene = ctx.scene["scene"]
     fluid = ctx.scene["fluid"]
     effects = ctx.scene["effects"]
@@ -262,9 +279,14 @@ def prepare(ctx: Context, inputs: Mapping[str, Artifact], who: str) -> Setup:
     l0 = fluid.spacing
     mpu = scene.units.meters_per_unit
     up = up_vector(scene.units.up_axis)
+    bodies = load_bodies(inputs["sdf"].path)
+    if bodies and not moving_walls:
+        raise StageError(f"{who}: the scene has moving walls (walls[].motion or animated USD prims); only "
+                         "simulate: {use: sph} moves walls so far")
     x, v = emit(fluid.emitters, l0, ctx.resolve, mpu)
     x, v, _ = drop_overlaps(x, v, l0, ctx.log)
-    x, v, dropped = drop_inside_walls(x, v, sdf, l0, ctx.log)
+    # the moving walls where they stand at t = 0 count like the static ones
+    x, v, dropped = drop_inside_walls(x, v, posed_field(sdf, bodies, 0.0), l0, ctx.log)
     if len(x) == 0:
         raise StageError(f"{who}: the emitters produced no particles in the fluid region "
                          "(fluid.emitters outside the walls or smaller than fluid.spacing?)")
@@ -272,6 +294,8 @@ def prepare(ctx: Context, inputs: Mapping[str, Artifact], who: str) -> Setup:
         x, v, l0 = x * mpu, v * mpu, l0 * mpu
         sdf = SDFGrid(origin=sdf.origin * mpu, spacing=sdf.spacing * mpu, dist=sdf.dist * np.float32(mpu),
                       band=sdf.band * mpu)
+        bodies = [(SDFGrid(origin=b.origin * mpu, spacing=b.spacing * mpu, dist=b.dist * np.float32(mpu),
+                           band=b.band * mpu), m.scaled(mpu)) for b, m in bodies]
     gravity = np.zeros(3)
     v_ref = float(np.linalg.norm(v, axis=1).max())
     if effects.gravity is not None:
@@ -283,7 +307,7 @@ def prepare(ctx: Context, inputs: Mapping[str, Artifact], who: str) -> Setup:
     if scene.domain is not None:
         domain = (np.asarray(scene.domain.min, float) * mpu, np.asarray(scene.domain.max, float) * mpu)
     return Setup(x=x, v=v, sdf=sdf, spacing=l0, density=fluid.density, gravity=gravity, up=up, v_ref=v_ref,
-                 domain=domain, effects=effects, meters_per_unit=mpu, dropped=dropped)
+                 domain=domain, effects=effects, meters_per_unit=mpu, dropped=dropped, bodies=bodies)
 
 
 def to_scene_units(fr: ParticleFrame, mpu: float) -> ParticleFrame:

@@ -81,11 +81,11 @@ def spiky_lattice_factor(rho0: float, l0: float, h: float, mass: float) -> float
 def wall_gradient_tables(l0: float, h: float, mass: float, rho0: float, grad_norm: float, samples: int = 256):
     """The wall's share of the gradient tensor, T_wall(r) = sum_wall (m / rho0) grad_i W (x) (x_w - x_i)
     (eq. 8 divided by ``grad_norm``), for a particle at distance r above a flat wall of virtual particles
-    on the lattice (wall_tables.wall_lattice): T_wall = t_nn n n^T + t_tt (I - n n^T). Returns
+    on the lattice (tables.wall_lattice): T_wall = t_nn n n^T + t_tt (I - n n^T). Returns
     (t_nn, t_tt), each (samples,) on r = h i / (samples - 1). On the rest lattice the fluid's share plus
     this is the identity: the wall's part of grad p that a uniform wall pressure cannot give."""
     import numpy as np
-    from .wall_tables import wall_lattice
+    from .walls.tables import wall_lattice
     wall = wall_lattice(l0, h)
     c = mass / rho0 * spiky_grad_coef(h) / grad_norm
     t_nn = np.zeros(samples)

@@ -20,7 +20,7 @@ but the density term's pull on the near-surface layers (n/n0 there is 0.99-1.01 
 pressure 3-7 % below rho g h at 8 layers deep after 1.3 s, 1.5 % with 0.01; the dam break front and
 the mean n/n0 (0.998 at 2 s) are the same with either.
 
-Walls: MPSWallMaps (mps_walls.py), the wall sums of every wall within re on a grid, calibrated to
+Walls: MPSWallMaps (walls/mps.py), the wall sums of every wall within re on a grid, calibrated to
 the flat-wall lattice tables; no wall particles.
 
 Effects: gravity and viscosity (with its no-slip wall term) only; a scene declaring any other effect
@@ -44,7 +44,7 @@ from stages.common.sizes import simulate_estimate
 from . import mps_kernels as K
 from .driver import SolverBase, drive, prepare, set_threads
 from .kernels import lattice_mass
-from .mps_walls import MPSWallMaps, build_tables, lattice_constants
+from .walls.mps import MPSWallMaps, build_tables, lattice_constants
 from .neighbours import CellGrid, reorder
 from .timestep import stable_dt, step_to
 

@@ -1,5 +1,5 @@
 """The numba kernels of one MPS step (Koshizuka and Oka 1996; PHYSICS.md "MPS") with distance-function
-walls (mps_walls.py).
+walls (walls/mps.py).
 
 Neighbours: one list per step, built at the start-of-step positions with radius max(re) + skin, so
 it still holds every pair after the prediction moved particles by at most cfl l0; each kernel
@@ -18,11 +18,11 @@ from stages.common.sdf import sdf_sample
 
 from .neighbours import cell_coords
 from .sph_kernels import push_out_of_walls
-from .wall_maps import map_sample
-from .wall_tables import table_lookup
+from .walls.maps import map_sample
+from .walls.tables import table_lookup
 
 CG_BLOCKS = 128
-# channels of mps_walls.MPSWallMaps and rows of its ``fix``
+# channels of walls.mps.MPSWallMaps and rows of its ``fix``
 ZN, G, T, ZL, M = 0, 1, 4, 10, 11
 FIX_N, FIX_G, FIX_T, FIX_L, FIX_M = 0, 1, 2, 3, 4
 
@@ -30,7 +30,7 @@ FIX_N, FIX_G, FIX_T, FIX_L, FIX_M = 0, 1, 2, 3, 4
 @nb.njit(cache=True, inline="always")
 def wall_sum(maps, m_o, m_inv, fix, inv_dr, x, y, z, d, c, row):
     """Channel ``c`` of the wall maps at (x, y, z) times its flat-wall correction ``fix[row]`` at the
-    wall distance d (mps_walls.MPSWallMaps)."""
+    wall distance d (walls.mps.MPSWallMaps)."""
     return map_sample(maps, m_o[0], m_o[1], m_o[2], m_inv, x, y, z, c) * table_lookup(fix[row], d, inv_dr)
 
 
@@ -207,7 +207,7 @@ def collide(xs, vs, offsets, nbr, r_col, restitution, dt, x_out, v_out):
 @nb.njit(cache=True, parallel=True)
 def number_density(x, offsets, nbr, re_n, d, maps, m_o, m_inv, fix, inv_dr, n):
     """n_i = sum_{j != i} w(r_ij) + Zn(x_i): the fluid neighbours plus the wall's share from the 3D map
-    (mps_walls.MPSWallMaps)."""
+    (walls.mps.MPSWallMaps)."""
     r2max = re_n * re_n
     for i in nb.prange(x.shape[0]):
         s = 0.0
@@ -298,7 +298,7 @@ def _fill_rows(x, offsets, nbr, re_l, lap_coef, dirichlet, n, n0, src_coef, div,
         diag[i] = s + diag_extra
         bi = src_coef * (n[i] - n0) / n0 + div_coef * div[i]
         if d[i] < re_l:
-            # the wall's resting pressure p_w = p_i + rho g . (x_w - x_i) (mps_walls.py): the p_i part
+            # the wall's resting pressure p_w = p_i + rho g . (x_w - x_i) (walls/mps.py): the p_i part
             # cancels, the hydrostatic part rho g . M is known and moves to the right-hand side
             xi, yi, zi, di = x[i, 0], x[i, 1], x[i, 2], d[i]
             gm = (g_vec[0] * wall_sum(maps, m_o, m_inv, fix, inv_dr, xi, yi, zi, di, M, FIX_M)
@@ -444,7 +444,7 @@ def correct(xs, vs, p, offsets, nbr, re_g, grad_coef, d, maps, m_o, m_inv, fix, 
     """Pressure gradient <grad p>_i = C_i (d / n0) [sum_j (p_j - p_min_i) / r_ij^2 (x_j - x_i) w(r_ij)
     + (p_i - p_min_i) G(x_i) + rho T(x_i) g], p_min_i the smallest pressure of i and its neighbours; the
     wall terms are the wall maps' sums with the resting wall pressure p_w = p_i + rho g . (x_w - x_i)
-    (mps_walls.py); then u = u* - (dt / rho) <grad p>, x = x* + dt (u - u*).
+    (walls/mps.py); then u = u* - (dt / rho) <grad p>, x = x* + dt (u - u*).
 
     C_i is the corrective matrix (Khayyer and Gotoh 2011; not yet in PHYSICS.md), the inverse of
     (d / n0) [sum_j (x_j - x_i)(x_j - x_i)^T / r_ij^2 w(r_ij) + T(x_i)] (identity on the cubic lattice),

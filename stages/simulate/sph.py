@@ -10,7 +10,7 @@ from typing import Literal, Mapping
 import numpy as np
 from pydantic import Field
 
-from pipeline.stage import Artifact, Context, Params, Stage
+from pipeline.stage import Artifact, Context, Params, Stage, StageError
 from stages.common.formats import ParticleFrame
 from stages.common.sdf import SDFGrid, wall_move_limit
 from stages.common.sizes import simulate_estimate
@@ -21,6 +21,7 @@ from .effects import EffectConstants, compile_effects, cohesion_coef
 from .kernels import (lattice_mass, poly6_coef, spiky_grad_coef, spiky_lattice_factor, visc_lap_coef,
                       wall_gradient_tables)
 from .neighbours import CellGrid, neighbour_list, reorder
+from .walls.maps import BrickWallMaps, make_walls, set_pose
 from .timestep import stable_dt, step_to
 
 
@@ -62,61 +63,8 @@ class SPHParams(Params):
 NEIGHBOUR_CAP = 48
 
 
-class BrickWallMaps:
-    """wall_maps.WallMaps stored as bricks (sph_kernels.BRICK^3 nodes) holding a node of the band
-    d < h + l0/2 where the map is non-zero: the same node values and lookups (bitwise), without the dense array
-    over the whole SDF box (1.3 KB per particle in the PEERS dam break, and built at that size).
-    ``wmap`` is what the kernels take: (index, bricks, shape)."""
-
-    def __init__(self, sdf: SDFGrid, l0: float, h: float, mass: float, rho0: float, samples: int = 256):
-        from . import wall_maps as W
-        from .kernels import spiky_grad_coef as cs, visc_lap_coef as cv
-        # the flat-wall factors do not depend on the SDF: a WallMaps of a tiny grid gives exactly them
-        tiny = SDFGrid(origin=np.zeros(3), spacing=l0, dist=np.ones((2, 2, 2), np.float32), band=1.0)
-        flat = W.WallMaps(tiny, l0, h, mass, rho0, samples)
-        self.fix_rho, self.fix_press, self.fix_vis, self.inv_dr = flat.fix_rho, flat.fix_press, flat.fix_vis, flat.inv_dr
-        self.h = h
-        slots = self._allocate(sdf, l0, h)
-        dq = self.spacing
-        K.build_bricks(sdf.dist, sdf.origin, 1.0 / sdf.spacing, self.origin, dq, self.shape, self.index, slots, h,
-                       dq, W._offsets(h, dq), poly6_coef(h), cs(h), cv(h), dq ** 3 / l0 ** 3, mass, rho0, self.bricks)
-
-    def _allocate(self, sdf: SDFGrid, l0: float, h: float) -> np.ndarray:
-        """Nodes every l0/2 over the SDF box (as WallMaps); zeroed bricks for those holding a node within
-        h + l0/2 of a wall. Returns each brick's flat brick index (the fill kernel's ``slots``)."""
-        self.spacing = 0.5 * l0
-        self.origin = np.asarray(sdf.origin, np.float64)
-        self.shape = np.floor((sdf.upper - sdf.origin) / self.spacing).astype(np.int64) + 1
-        need = np.zeros(tuple(-(-self.shape // K.BRICK)), np.uint8)
-        K.bricks_needed(sdf.dist, sdf.origin, 1.0 / sdf.spacing, self.origin, self.spacing, self.shape,
-                        h + self.spacing, need)
-        slots = np.flatnonzero(need.ravel()).astype(np.int64)
-        self.index = np.full(need.shape, -1, np.int32)
-        self.index.ravel()[slots] = np.arange(len(slots), dtype=np.int32)
-        self.bricks = np.zeros((len(slots), K.BRICK, K.BRICK, K.BRICK, 5), np.float32)
-        self._dense = None
-        return slots
-
-    @property
-    def wmap(self) -> tuple:
-        return self.index, self.bricks, self.shape
-
-    @property
-    def maps(self) -> np.ndarray:
-        """The dense (nx, ny, nz, 5) map, built on first use (for code written against WallMaps)."""
-        if self._dense is None:
-            dense = np.zeros((*self.shape, 5), np.float32)
-            B = K.BRICK
-            for (bx, by, bz) in np.argwhere(self.index >= 0):
-                b = self.bricks[self.index[bx, by, bz]]
-                sx, sy, sz = (min(B, n - o) for n, o in zip(self.shape, (bx * B, by * B, bz * B)))
-                dense[bx * B:bx * B + sx, by * B:by * B + sy, bz * B:bz * B + sz] = b[:sx, :sy, :sz]
-            self._dense = dense
-        return self._dense
-
-    @property
-    def nbytes(self) -> int:
-        return self.index.nbytes + self.bricks.nbytes
+def _corners(lo, hi) -> list[np.ndarray]:
+    return [np.array([a, b, c]) for a in (lo[0], hi[0]) for b in (lo[1], hi[1]) for c in (lo[2], hi[2])]
 
 
 class SPHSolver(SolverBase):
@@ -124,9 +72,11 @@ class SPHSolver(SolverBase):
 
     def __init__(self, x, v, ids, sdf: SDFGrid, *, spacing: float, rho0: float, params: SPHParams,
                  gravity=(0.0, 0.0, 0.0), mu: float | None = None, wall_viscosity: bool = True,
-                 v_ref: float = 1.0, domain=None, effects: EffectConstants | None = None):
+                 v_ref: float = 1.0, domain=None, effects: EffectConstants | None = None, bodies=()):
         """``effects`` (effects.compile_effects) selects the compiled force kernel; without it, ``mu``
-        and ``wall_viscosity`` give the pressure(+viscosity) solver of issue 4."""
+        and ``wall_viscosity`` give the pressure(+viscosity) solver of issue 4. ``bodies``: the moving
+        rigid walls, each (SDFGrid baked in its rest frame, motion with ``pose(t)`` and ``velocity(t)``
+        as stages.common.motion.RigidMotion), all in SI; ``sdf`` holds the static walls only."""
         if effects is None:
             effects = EffectConstants(mu=mu, wall_viscosity=wall_viscosity)
         self.effects = effects
@@ -145,6 +95,15 @@ class SPHSolver(SolverBase):
         self.fix_press = self.walls.fix_press / self.grad_norm  # the mirrored wall's table (wall_pressure)
         self.mirrored_wall = params.wall_pressure == "mirrored" or (
             params.wall_pressure == "auto" and (params.wall_gradient or params.gradient_correction))
+        if bodies and self.mirrored_wall:
+            raise ValueError("simulate.sph: moving walls need the conservative wall pressure (wall_pressure: "
+                             "conservative, without gradient_correction or wall_gradient)")
+        self.motions = [m for _, m in bodies]
+        self.bodies = [(b, BrickWallMaps(b, self.l0, self.h, self.mass, self.rho0, params.table_samples)) for b, _ in bodies]
+        # each body's reach from its pivot: |omega| times it bounds the speed its rotation gives a wall point
+        self.body_reach = [max(float(np.linalg.norm(c - m.pivot)) for c in _corners(b.origin, b.upper))
+                           for b, m in bodies]
+        self.wall_terms = make_walls(sdf, self.walls, self.bodies)
         self.wall_t = None
         if params.wall_gradient or params.gradient_correction:
             self.wall_t = wall_gradient_tables(self.l0, self.h, self.mass, self.rho0, self.grad_norm, params.table_samples)
@@ -158,6 +117,7 @@ class SPHSolver(SolverBase):
         lo, hi = (sdf.origin, sdf.upper) if domain is None else domain
         self.domain = (np.asarray(lo, float), np.asarray(hi, float))
         self.skin = params.neighbour_skin * self.l0
+        self._pose_bodies(0.0)
         self.grid = CellGrid(sdf.origin, sdf.upper, self.h + self.skin)
         self.x = np.array(x, np.float64)  # own copies: the sort reuses buffers
         self.v = np.array(v, np.float64)
@@ -212,10 +172,10 @@ class SPHSolver(SolverBase):
             self.build_neighbours()
         # after a build (the arrays reordered) every particle samples the SDF; between builds only those
         # within h of a wall by integrate's lower bound of their distance
+        # (with moving walls every particle samples them: the distance bound holds for static walls only)
         K.density_verlet(self.x, self.nbr, self.cnt, self.cnt_in, self.h, poly6_coef(self.h), self.mass, self.rho0,
-                         self.walls.wmap, self.walls.origin, 1.0 / self.walls.spacing, self.walls.fix_rho,
-                         self.inv_dr, self.sdf.dist, self.sdf.origin, self.sdf_inv, self.eos, self.stiffness,
-                         self.p.clamp_pressure, self.rho, self.pr, self.d, self.nrm, self.inv_rho, built)
+                         self.wall_terms, self.eos, self.stiffness, self.p.clamp_pressure, self.rho, self.pr, self.d,
+                         self.nrm, self.inv_rho, built or bool(self.bodies))
 
     def effect_args(self) -> tuple:
         """(viscosity, tension, adhesion, friction, wind, attractor) for K.forces: None when absent."""
@@ -234,8 +194,7 @@ class SPHSolver(SolverBase):
         if self.normals is not None:  # Akinci normals: a pass after the density, only with tension
             K.surface_normals(self.x, self.rho, g.starts, g.lo, 1.0 / g.cell, g.dims, self.h, grad_coef, self.mass,
                               self.normals, (self.nbr, self.cnt_in))
-        pressure = (self.pr, grad_coef, self.walls.fix_rho, self.p.artificial_viscosity * self.c * self.h,
-                    self.sdf.dist, self.sdf.origin, self.sdf_inv)
+        pressure = (self.pr, grad_coef, self.p.artificial_viscosity * self.c * self.h)
         correction = None
         if self.lcorr is not None:
             K.gradient_correction(self.x, self.nbr, self.cnt_in, self.inv_rho, self.rho, self.rho0, self.h, grad_coef,
@@ -243,15 +202,16 @@ class SPHSolver(SolverBase):
                                   self.p.correction_wall_fade, self.lcorr)
             correction = (self.lcorr,)
         K.forces(self.x, self.v, self.rho, self.d, self.nrm, g.starts, g.lo, 1.0 / g.cell, g.dims, self.h, self.mass,
-                 self.rho0, self.walls.wmap, self.walls.origin, 1.0 / self.walls.spacing, self.inv_dr, self.gravity,
-                 self.acc, pressure, *self.effect_args(), (self.nbr, self.cnt_in), self.inv_rho, correction,
+                 self.rho0, self.wall_terms, self.gravity, self.acc, pressure, *self.effect_args(), (self.nbr, self.cnt_in), self.inv_rho, correction,
                  self.wall_t if self.p.wall_gradient else None,
                  (self.fix_press,) if self.mirrored_wall else None)
 
     def stable_dt(self, dt_max: float) -> float:
         v2, a2 = K.max_speed2_accel2(self.v, self.acc)
         nu = self.mu / self.rho0 if self.mu > 0 else None
-        return stable_dt(l0=self.l0, h=self.h, v_max=math.sqrt(v2), a_max=math.sqrt(a2), cfl=self.p.cfl,
+        # a moving wall must not outrun the fluid's step either (it would tunnel through particles)
+        v_max = max(math.sqrt(v2), self.wall_speed(self.t), self.wall_speed(self.t + dt_max))
+        return stable_dt(l0=self.l0, h=self.h, v_max=v_max, a_max=math.sqrt(a2), cfl=self.p.cfl,
                          sound_speed=self.c, nu=nu, dt_max=min(dt_max, self.effects.dt_limit))
 
     def step(self, t_end: float) -> float:
@@ -259,11 +219,27 @@ class SPHSolver(SolverBase):
         self.sort_and_density()
         self.forces()
         dt = step_to(self.t, t_end, self.p.time_step or self.stable_dt(t_end - self.t))
-        K.integrate(self.x, self.v, self.acc, dt, self.sdf.dist, self.sdf.origin, self.sdf_inv,
-                    self.p.r_rep * self.l0, 0.5 * self.l0, wall_move_limit(self.p.r_rep) * self.l0, self.travel, self.d)
-        self.t = t_end if dt >= t_end - self.t else self.t + dt
+        t_new = t_end if dt >= t_end - self.t else self.t + dt
+        self._pose_bodies(t_new)  # the push-out keeps the fluid out of the walls where they are at the step's end
+        K.integrate(self.x, self.v, self.acc, dt, self.wall_terms, self.p.r_rep * self.l0, 0.5 * self.l0,
+                    wall_move_limit(self.p.r_rep) * self.l0, self.travel, None if self.bodies else self.d)
+        self.t = t_new
         self.steps += 1
         return dt
+
+    def _pose_bodies(self, t: float) -> None:
+        for k, motion in enumerate(self.motions):
+            R, T = motion.pose(t)
+            v, w = motion.velocity(t)
+            set_pose(self.wall_terms, k, R, T, motion.pivot, v, w)
+
+    def wall_speed(self, t: float) -> float:
+        """The fastest any moving wall point goes at time t (0 without moving walls)."""
+        top = 0.0
+        for motion, reach in zip(self.motions, self.body_reach):
+            v, w = motion.velocity(t)
+            top = max(top, float(np.linalg.norm(v)) + float(np.linalg.norm(w)) * reach)
+        return top
 
     def density_ratio(self, p: np.ndarray) -> np.ndarray:
         """rho / rho0 at pressure p: eq. 5 (linear) or Tait."""
@@ -293,6 +269,7 @@ class SPHSolver(SolverBase):
         self.t = float(s["t"])
         self.steps = int(s["steps"])
         self.left_domain = int(s["left_domain"])
+        self._pose_bodies(self.t)
         self._scratch.clear()
         self._alloc()
 
@@ -318,11 +295,14 @@ class SPHSimulate(Stage):
 
     def run(self, ctx: Context, inputs: Mapping[str, Artifact], params: SPHParams) -> None:
         set_threads(params.threads or getattr(ctx, "threads", None))
-        setup = prepare(ctx, inputs, "simulate.sph")
+        setup = prepare(ctx, inputs, "simulate.sph", moving_walls=True)
+        if setup.bodies and (params.wall_gradient or params.gradient_correction or params.wall_pressure == "mirrored"):
+            raise StageError("simulate.sph: moving walls need the conservative wall pressure: leave wall_pressure, "
+                             "gradient_correction and wall_gradient at their defaults")
         h = params.support * setup.spacing
         effects = compile_effects(setup.effects, meters_per_unit=setup.meters_per_unit, rho0=setup.density,
                                   l0=setup.spacing, h=h, table_samples=params.table_samples)
         solver = SPHSolver(setup.x, setup.v, np.arange(len(setup.x), dtype=np.int32), setup.sdf, spacing=setup.spacing,
                            rho0=setup.density, params=params, gravity=setup.gravity, v_ref=setup.v_ref,
-                           domain=setup.domain, effects=effects)
+                           domain=setup.domain, effects=effects, bodies=setup.bodies)
         drive(ctx, solver, setup, solver_name="sph", checkpoint_every=params.checkpoint_every)

@@ -24,7 +24,7 @@ one machine-code build per effect set on disk, so an absent effect costs nothing
     common   x, v (N,3) positions m, velocities m/s; rho (N,) density kg/m^3; d (N,) SDF distance m and
              nrm (N,3) SDF normal (into the fluid), both from density_pressure; starts/lo/inv_cell/dims
              the cell grid (neighbours.py); h support m; mass kg; rho0 kg/m^3; wmap/wo/winv the wall
-             maps (wall_maps.py dense array, or the bricked (index, bricks, shape) of sph.BrickWallMaps)
+             maps (walls/maps.py dense array, or the bricked (index, bricks, shape) of walls.maps.BrickWallMaps)
              and inv_dr their tables' 1/dr; gravity (3,) m/s^2 (always added;
              zeros without the effect); acc (N,3) output, m/s^2 (overwritten).
     pressure   (p, grad_coef, fix_rho, av, sdf, sdf_o, sdf_inv): p (N,) Pa; grad_coef the Spiky gradient
@@ -52,229 +52,42 @@ from __future__ import annotations
 import math
 
 import numba as nb
-import numpy as np
-from numba.core import types
-from numba.extending import overload
 
 from stages.common.sdf import sdf_sample
 
 from .kernels import FASTMATH
 from .neighbours import cell_coords
-from .wall_maps import _quadrature_at, map_sample
-from .wall_tables import table_lookup
+from .walls.maps import (bodies_density, bodies_nearest, bodies_push_out, bodies_viscous, brick_sample,
+                         brick_sample_1234, static_distance, wall_density)
+from .walls.tables import table_lookup
 
 EOS_LINEAR = 0
 EOS_TAIT = 1
-BRICK = 4  # wall-map brick edge, in nodes
-
-
-# -- wall maps stored as bricks (memory) ------------------------------------------------------------
-# The dense wall map of wall_maps.py covers the whole SDF box at l0/2 with 5 float32 channels, 1.3 KB
-# per particle in the PEERS dam break, yet it is non-zero only within h + l0/2 of a wall. The bricked
-# form keeps only the BRICK^3-node blocks that hold a node of that band: the same node values (the
-# same quadrature, wall_maps._quadrature_at) and the same trilinear arithmetic, so every lookup
-# returns the same bits as the dense map. ``wmap`` arguments below take either form.
-
-@nb.njit(cache=True, parallel=True)
-def bricks_needed(sdf, so, sinv, mo, mh, shape, reach, need):
-    """need[bx, by, bz] = 1 if any node of the brick has SDF distance < reach (a non-zero map value)."""
-    nbx, nby, nbz = need.shape
-    for b in nb.prange(nbx * nby * nbz):
-        bx = b // (nby * nbz)
-        by = (b // nbz) % nby
-        bz = b % nbz
-        hit = 0
-        for i in range(bx * BRICK, min(bx * BRICK + BRICK, shape[0])):
-            for j in range(by * BRICK, min(by * BRICK + BRICK, shape[1])):
-                for k in range(bz * BRICK, min(bz * BRICK + BRICK, shape[2])):
-                    d, _, _, _ = sdf_sample(sdf, so[0], so[1], so[2], sinv, mo[0] + i * mh, mo[1] + j * mh,
-                                            mo[2] + k * mh)
-                    if d < reach:
-                        hit = 1
-        need[bx, by, bz] = hit
-
-
-@nb.njit(cache=True, parallel=True)
-def build_bricks(sdf, so, sinv, mo, mh, shape, index, slots, h, dq, offsets, c6, cs, cv, scale, mass, rho0, bricks):
-    """Fill every allocated brick (slots[s] = its flat brick index) node by node as wall_maps._build
-    fills the dense map (zero at d >= h + dq, else the quadrature)."""
-    nby, nbz = index.shape[1], index.shape[2]
-    for s in nb.prange(slots.shape[0]):
-        b = slots[s]
-        bx = b // (nby * nbz)
-        by = (b // nbz) % nby
-        bz = b % nbz
-        out = np.zeros(5)
-        for a in range(BRICK):
-            i = bx * BRICK + a
-            for c in range(BRICK):
-                j = by * BRICK + c
-                for e in range(BRICK):
-                    k = bz * BRICK + e
-                    for ch in range(5):
-                        bricks[s, a, c, e, ch] = 0.0
-                    if i >= shape[0] or j >= shape[1] or k >= shape[2]:
-                        continue
-                    px = mo[0] + i * mh
-                    py = mo[1] + j * mh
-                    pz = mo[2] + k * mh
-                    d, _, _, _ = sdf_sample(sdf, so[0], so[1], so[2], sinv, px, py, pz)
-                    if d >= h + dq:
-                        continue
-                    _quadrature_at(sdf, so, sinv, px, py, pz, h, dq, offsets, c6, cs, cv, scale, mass, rho0, out)
-                    for ch in range(5):
-                        bricks[s, a, c, e, ch] = out[ch]
 
 
 @nb.njit(cache=True, inline="always")
-def _node(index, bricks, i, j, k, c):
-    s = index[i // BRICK, j // BRICK, k // BRICK]
-    if s < 0:
-        return np.float32(0.0)
-    return bricks[s, i % BRICK, j % BRICK, k % BRICK, c]
-
-
-@nb.njit(cache=True, inline="always")
-def _trilinear(m000, m100, m010, m110, m001, m101, m011, m111, tx, ty, tz):
-    """wall_maps.map_sample's arithmetic, operation for operation (so the same bits)."""
-    c00 = m000 + (m100 - m000) * tx
-    c10 = m010 + (m110 - m010) * tx
-    c01 = m001 + (m101 - m001) * tx
-    c11 = m011 + (m111 - m011) * tx
-    c0 = c00 + (c10 - c00) * ty
-    c1 = c01 + (c11 - c01) * ty
-    return c0 + (c1 - c0) * tz
-
-
-@nb.njit(cache=True, inline="always")
-def _cell(shape, ox, oy, oz, inv_h, x, y, z):
-    fx = min(max((x - ox) * inv_h, 0.0), shape[0] - 1.000001)
-    fy = min(max((y - oy) * inv_h, 0.0), shape[1] - 1.000001)
-    fz = min(max((z - oz) * inv_h, 0.0), shape[2] - 1.000001)
-    i = int(fx)
-    j = int(fy)
-    k = int(fz)
-    return i, j, k, fx - i, fy - j, fz - k
-
-
-@nb.njit(cache=True, inline="always")
-def _slot(index, i, j, k):
-    return index[i // BRICK, j // BRICK, k // BRICK]
-
-
-@nb.njit(cache=True, inline="always")
-def _at(bricks, s, i, j, k, c):
-    if s < 0:
-        return np.float32(0.0)  # a brick that is not stored: all its nodes are 0 in the dense map
-    return bricks[s, i % BRICK, j % BRICK, k % BRICK, c]
-
-
-@nb.njit(cache=True, inline="always")
-def brick_sample(index, bricks, shape, ox, oy, oz, inv_h, x, y, z, c):
-    """wall_maps.map_sample of the dense map, read from its bricks (bitwise the same value)."""
-    i, j, k, tx, ty, tz = _cell(shape, ox, oy, oz, inv_h, x, y, z)
-    s000 = _slot(index, i, j, k)
-    s100 = _slot(index, i + 1, j, k)
-    s010 = _slot(index, i, j + 1, k)
-    s110 = _slot(index, i + 1, j + 1, k)
-    s001 = _slot(index, i, j, k + 1)
-    s101 = _slot(index, i + 1, j, k + 1)
-    s011 = _slot(index, i, j + 1, k + 1)
-    s111 = _slot(index, i + 1, j + 1, k + 1)
-    return _trilinear(_at(bricks, s000, i, j, k, c), _at(bricks, s100, i + 1, j, k, c),
-                      _at(bricks, s010, i, j + 1, k, c), _at(bricks, s110, i + 1, j + 1, k, c),
-                      _at(bricks, s001, i, j, k + 1, c), _at(bricks, s101, i + 1, j, k + 1, c),
-                      _at(bricks, s011, i, j + 1, k + 1, c), _at(bricks, s111, i + 1, j + 1, k + 1, c), tx, ty, tz)
-
-
-@nb.njit(cache=True, inline="always")
-def brick_sample_1234(index, bricks, shape, ox, oy, oz, inv_h, x, y, z):
-    """Channels 1-4 (wall pressure direction, Z_vis) at once: the brick slots are looked up once."""
-    i, j, k, tx, ty, tz = _cell(shape, ox, oy, oz, inv_h, x, y, z)
-    s000 = _slot(index, i, j, k)
-    s100 = _slot(index, i + 1, j, k)
-    s010 = _slot(index, i, j + 1, k)
-    s110 = _slot(index, i + 1, j + 1, k)
-    s001 = _slot(index, i, j, k + 1)
-    s101 = _slot(index, i + 1, j, k + 1)
-    s011 = _slot(index, i, j + 1, k + 1)
-    s111 = _slot(index, i + 1, j + 1, k + 1)
-    out1 = 0.0
-    out2 = 0.0
-    out3 = 0.0
-    out4 = 0.0
-    for c in range(1, 5):
-        v = _trilinear(_at(bricks, s000, i, j, k, c), _at(bricks, s100, i + 1, j, k, c),
-                       _at(bricks, s010, i, j + 1, k, c), _at(bricks, s110, i + 1, j + 1, k, c),
-                       _at(bricks, s001, i, j, k + 1, c), _at(bricks, s101, i + 1, j, k + 1, c),
-                       _at(bricks, s011, i, j + 1, k + 1, c), _at(bricks, s111, i + 1, j + 1, k + 1, c), tx, ty, tz)
-        if c == 1:
-            out1 = v
-        elif c == 2:
-            out2 = v
-        elif c == 3:
-            out3 = v
-        else:
-            out4 = v
-    return out1, out2, out3, out4
-
-
-def wall_sample_1234(wmap, ox, oy, oz, inv_h, x, y, z):
-    """Channels 1-4 of the wall map at (x, y, z), either form of ``wmap``."""
-
-
-@overload(wall_sample_1234)
-def _wall_sample_1234(wmap, ox, oy, oz, inv_h, x, y, z):
-    if isinstance(wmap, types.Array):
-        def dense(wmap, ox, oy, oz, inv_h, x, y, z):
-            return (map_sample(wmap, ox, oy, oz, inv_h, x, y, z, 1), map_sample(wmap, ox, oy, oz, inv_h, x, y, z, 2),
-                    map_sample(wmap, ox, oy, oz, inv_h, x, y, z, 3), map_sample(wmap, ox, oy, oz, inv_h, x, y, z, 4))
-        return dense
-    return lambda wmap, ox, oy, oz, inv_h, x, y, z: brick_sample_1234(wmap[0], wmap[1], wmap[2], ox, oy, oz, inv_h,
-                                                                      x, y, z)
-
-
-def wall_sample(wmap, ox, oy, oz, inv_h, x, y, z, c):
-    """Channel c of the wall map at (x, y, z): ``wmap`` the dense (nx, ny, nz, 5) array or the bricked
-    form (index, bricks, shape); chosen at compile time."""
-
-
-@overload(wall_sample)
-def _wall_sample(wmap, ox, oy, oz, inv_h, x, y, z, c):
-    if isinstance(wmap, types.Array):
-        return lambda wmap, ox, oy, oz, inv_h, x, y, z, c: map_sample(wmap, ox, oy, oz, inv_h, x, y, z, c)
-    return lambda wmap, ox, oy, oz, inv_h, x, y, z, c: brick_sample(wmap[0], wmap[1], wmap[2], ox, oy, oz, inv_h,
-                                                                    x, y, z, c)
-
-
-@nb.njit(cache=True, inline="always")
-def wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, x, y, z):
-    """Z_rho at a point (eq. 12): the 3D wall map times the flat-wall factor at the SDF distance (the wall
-    term _walls_and_pressure adds; DFSPH's density and the WCSPH wall force differentiate it)."""
-    dw, _, _, _ = sdf_sample(sdf, sdf_o[0], sdf_o[1], sdf_o[2], sdf_inv, x, y, z)
-    if dw >= h:
-        return 0.0
-    return wall_sample(wmap, wo[0], wo[1], wo[2], winv, x, y, z, 0) * table_lookup(fix_rho, dw, inv_dr)
-
-
-@nb.njit(cache=True, inline="always")
-def _walls_and_pressure(i, s, xi, yi, zi, h, poly6_coef, mass, rho0, wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o,
-                        sdf_inv, eos, stiffness, clamp, rho, p, d, nrm, lazy=False):
+def _walls_and_pressure(i, s, xi, yi, zi, h, poly6_coef, mass, rho0, walls, eos, stiffness, clamp, rho, p, d, nrm,
+                        lazy=False):
     """Particle i's density from its kernel sum ``s`` = sum_j (h^2 - r^2)^3 plus the wall term, its
     pressure, SDF distance and normal (the tail of eq. 11, 12 and eq. 5). ``lazy``: d[i] holds a lower
     bound of i's wall distance (``integrate`` keeps one); beyond h it is kept and the SDF not sampled
-    (no wall term there, and nrm is only read within h)."""
+    (no wall term there, and nrm is only read within h). With moving walls (walls.pose) d and nrm are
+    the nearest wall's, static or moving, and the wall term sums every wall (lazy must be False: the
+    bound holds for static walls only)."""
+    zw = 0.0
     if lazy and d[i] > h:
         dw = d[i]
     else:
-        dw, gx, gy, gz = sdf_sample(sdf, sdf_o[0], sdf_o[1], sdf_o[2], sdf_inv, xi, yi, zi)
+        dw, gx, gy, gz = sdf_sample(walls.sdf, walls.sdf_o[0], walls.sdf_o[1], walls.sdf_o[2], walls.sdf_inv, xi, yi, zi)
+        if dw < h:  # only particles within h of a wall have wall terms
+            zw = brick_sample(walls.index, walls.bricks, walls.shape, walls.wo[0], walls.wo[1], walls.wo[2], walls.winv,
+                              xi, yi, zi, 0) * table_lookup(walls.fix_rho, dw, walls.inv_dr)
+        zw += bodies_density(walls, h, xi, yi, zi)
+        dw, gx, gy, gz = bodies_nearest(walls, xi, yi, zi, dw, gx, gy, gz)
         d[i] = dw
         nrm[i, 0] = gx
         nrm[i, 1] = gy
         nrm[i, 2] = gz
-    zw = 0.0
-    if dw < h:  # only particles within h of a wall have wall terms
-        zw = wall_sample(wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 0) * table_lookup(fix_rho, dw, inv_dr)
     r = mass * poly6_coef * s + zw
     rho[i] = r
     if eos == EOS_TAIT:
@@ -290,10 +103,10 @@ def _walls_and_pressure(i, s, xi, yi, zi, h, poly6_coef, mass, rho0, wmap, wo, w
 
 
 @nb.njit(cache=True, parallel=True)
-def density_pressure(x, starts, lo, inv_cell, dims, h, poly6_coef, mass, rho0, wmap, wo, winv, fix_rho, inv_dr,
-                     sdf, sdf_o, sdf_inv, eos, stiffness, clamp, rho, p, d, nrm):
+def density_pressure(x, starts, lo, inv_cell, dims, h, poly6_coef, mass, rho0, walls, eos, stiffness, clamp, rho, p,
+                     d, nrm):
     """Eq. 11: rho_i = sum_j m W(r_ij) (eq. 4, 10, self included) + Z_rho (eq. 12) from the 3D wall
-    map (wall_maps.py) times the flat-wall factor at the SDF distance r_iw; eq. 5 pressure
+    map (walls/maps.py) times the flat-wall factor at the SDF distance r_iw; eq. 5 pressure
     p = k (rho - rho0) (or Tait, B = stiffness), optionally clamped at 0. Also stores the SDF distance
     ``d`` and wall normal ``nrm`` of each particle. Grid cells of size >= h (27 cells scanned);
     SPHSolver uses ``density_verlet`` instead."""
@@ -318,13 +131,12 @@ def density_pressure(x, starts, lo, inv_cell, dims, h, poly6_coef, mass, rho0, w
                     if r2 < h2:
                         q = h2 - r2
                         s += q * q * q
-        _walls_and_pressure(i, s, xi, yi, zi, h, poly6_coef, mass, rho0, wmap, wo, winv, fix_rho, inv_dr, sdf,
-                            sdf_o, sdf_inv, eos, stiffness, clamp, rho, p, d, nrm)
+        _walls_and_pressure(i, s, xi, yi, zi, h, poly6_coef, mass, rho0, walls, eos, stiffness, clamp, rho, p, d, nrm)
 
 
 @nb.njit(cache=True, parallel=True)
-def density_verlet(x, nbr, cnt, cnt_in, h, poly6_coef, mass, rho0, wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o,
-                   sdf_inv, eos, stiffness, clamp, rho, p, d, nrm, inv_rho, exact=True):
+def density_verlet(x, nbr, cnt, cnt_in, h, poly6_coef, mass, rho0, walls, eos, stiffness, clamp, rho, p, d, nrm, inv_rho,
+                   exact=True):
     """``density_pressure`` (eq. 11, 12, 5) over a Verlet list, plus ``inv_rho`` = 1 / rho for ``forces``.
     nbr[i, :cnt[i]] holds every particle that was within h + skin of i when the list was built
     (neighbours.neighbour_list with that radius), so while no pair has closed in by more than the skin
@@ -356,8 +168,8 @@ def density_verlet(x, nbr, cnt, cnt_in, h, poly6_coef, mass, rho0, wmap, wo, win
             nbr[i, k] = j if inside else a
             k += inside
         cnt_in[i] = k
-        _walls_and_pressure(i, s, xi, yi, zi, h, poly6_coef, mass, rho0, wmap, wo, winv, fix_rho, inv_dr, sdf,
-                            sdf_o, sdf_inv, eos, stiffness, clamp, rho, p, d, nrm, not exact)
+        _walls_and_pressure(i, s, xi, yi, zi, h, poly6_coef, mass, rho0, walls, eos, stiffness, clamp, rho, p, d, nrm,
+                            not exact)
         inv_rho[i] = 1.0 / rho[i]
 
 
@@ -506,8 +318,7 @@ def surface_normals(x, rho, starts, lo, inv_cell, dims, h, grad_coef, mass, out,
 # 1e-15 relative of the strict build); still one fixed instruction sequence per particle, so the result
 # does not depend on the thread count. FASTMATH keeps NaN/Inf semantics (the blow-up check needs them)
 @nb.njit(cache=True, parallel=True, fastmath=FASTMATH)
-def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, wmap, wo, winv, inv_dr, gravity, acc,
-           pressure, viscosity, tension, adhesion, friction, wind, attractor, neighbours=None, inv_rho=None,
+def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, walls, gravity, acc, pressure, viscosity, tension, adhesion, friction, wind, attractor, neighbours=None, inv_rho=None,
            correction=None, wall_gradient=None, mirrored_wall=None):
     """Acceleration of every particle: gravity plus the declared effects (module docstring). Pressure
     eq. 6, 8 (+ Monaghan av) and the wall pressure -(p_i / rho_i^2) grad Z of the wall density Z (or the
@@ -526,6 +337,7 @@ def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, wmap, w
     wall pressure a particle beside a side wall misses that share of its vertical support)."""
     h2 = h * h
     nx, ny, nz = dims[0], dims[1], dims[2]
+    wo, winv, inv_dr = walls.wo, walls.winv, walls.inv_dr
     if correction is not None:
         lc = correction[0]
     if neighbours is not None:
@@ -538,7 +350,7 @@ def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, wmap, w
     gy0 = gravity[1]
     gz0 = gravity[2]
     if pressure is not None:
-        p, grad_coef, fix_rho, av, sdf, sdf_o, sdf_inv = pressure
+        p, grad_coef, av = pressure
     if viscosity is not None:
         mu, lap_coef, fix_vis = viscosity
     if tension is not None:
@@ -687,7 +499,7 @@ def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, wmap, w
                         uz -= kij * (nzi - normals[j, 2])
         w4 = 0.0
         if near_wall:  # the wall map's Z_vis
-            w4 = wall_sample(wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi, 4)
+            w4 = brick_sample(walls.index, walls.bricks, walls.shape, wo[0], wo[1], wo[2], winv, xi, yi, zi, 4)
         if pressure is not None:
             c = mass * grad_coef * inv_rhoi
             ax = ax * c + gx0
@@ -703,7 +515,8 @@ def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, wmap, w
                     # the former form: the wall as mirrored particles of pressure p_w = max(p_i, the
                     # neighbours' Shepard mean) along the map's Spiky direction (not conservative; kept
                     # for the gradient-corrected hydrostatic option, whose wall share was fitted to it)
-                    w1, w2, w3, _ = wall_sample_1234(wmap, wo[0], wo[1], wo[2], winv, xi, yi, zi)
+                    w1, w2, w3, _ = brick_sample_1234(walls.index, walls.bricks, walls.shape, wo[0], wo[1], wo[2], winv,
+                                                      xi, yi, zi)
                     cw = (pi + max(pi, sp / sw)) * inv_rhoi * table_lookup(mirrored_wall[0], d[i], inv_dr)
                     wx = cw * w1
                     wy = cw * w2
@@ -715,12 +528,12 @@ def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, wmap, w
                     # in mm ran differently from the same scene in m)
                     e = 0.5 / winv
                     ce = 0.5 / e
-                    zx = ce * (wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi + e, yi, zi)
-                               - wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi - e, yi, zi))
-                    zy = ce * (wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi + e, zi)
-                               - wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi - e, zi))
-                    zz = ce * (wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi, zi + e)
-                               - wall_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, xi, yi, zi - e))
+                    zx = ce * (wall_density(walls, h, xi + e, yi, zi)
+                               - wall_density(walls, h, xi - e, yi, zi))
+                    zy = ce * (wall_density(walls, h, xi, yi + e, zi)
+                               - wall_density(walls, h, xi, yi - e, zi))
+                    zz = ce * (wall_density(walls, h, xi, yi, zi + e)
+                               - wall_density(walls, h, xi, yi, zi - e))
                     cw = -pi * inv_rhoi * inv_rhoi
                     wx = cw * zx
                     wy = cw * zy
@@ -747,11 +560,19 @@ def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, wmap, w
             az = gz0
         if viscosity is not None:
             if near_wall:
-                # eq. 13-14: the resting wall's viscous term -mu v_i Z_vis(r_iw)
-                zw = mu * inv_rhoi * table_lookup(fix_vis, d[i], inv_dr) * w4
+                # eq. 13-14: the resting wall's viscous term -mu v_i Z_vis(r_iw); a moving wall's -mu (v_i - v_w) Z_vis
+                ds = static_distance(walls, d[i], xi, yi, zi)
+                zw = 0.0
+                if ds < h:
+                    zw = mu * inv_rhoi * table_lookup(fix_vis, ds, inv_dr) * w4
                 ax -= zw * vxi
                 ay -= zw * vyi
                 az -= zw * vzi
+                mx, my, mz = bodies_viscous(walls, fix_vis, h, xi, yi, zi, vxi, vyi, vzi)
+                cm = mu * inv_rhoi
+                ax += cm * mx
+                ay += cm * my
+                az += cm * mz
             cv = mu * mass * lap_coef * inv_rhoi
             ax += bx * cv
             ay += by * cv
@@ -820,11 +641,12 @@ def push_out_of_walls(px, py, pz, vx, vy, vz, sdf, sdf_o, sdf_inv, r_rep, max_co
 
 
 @nb.njit(cache=True, inline="always")
-def move_near_walls(x0, y0, z0, vx, vy, vz, dt, sdf, sdf_o, sdf_inv, r_rep, max_corr, max_move):
+def move_near_walls(x0, y0, z0, vx, vy, vz, dt, walls, r_rep, max_corr, max_move):
     """x += dt v for a particle near a wall, in sub-steps no longer than ``max_move``, each followed by
     the eq. 16 push-out: a thin wall or shell on the trilinear SDF grid holds only against moves that
     short between two push-outs (stages.common.sdf.wall_move_limit). A particle moving less than
-    ``max_move`` takes the single step it always took (bitwise). Returns the new (x, v)."""
+    ``max_move`` takes the single step it always took (bitwise). Moving walls are taken at their pose at
+    the end of the step. Returns the new (x, v)."""
     n = 1
     step = dt * math.sqrt(vx * vx + vy * vy + vz * vz)
     if step > max_move:
@@ -837,12 +659,14 @@ def move_near_walls(x0, y0, z0, vx, vy, vz, dt, sdf, sdf_o, sdf_inv, r_rep, max_
         px += h * vx
         py += h * vy
         pz += h * vz
-        px, py, pz, vx, vy, vz = push_out_of_walls(px, py, pz, vx, vy, vz, sdf, sdf_o, sdf_inv, r_rep, max_corr)
+        px, py, pz, vx, vy, vz = push_out_of_walls(px, py, pz, vx, vy, vz, walls.sdf, walls.sdf_o, walls.sdf_inv,
+                                                   r_rep, max_corr)
+        px, py, pz, vx, vy, vz = bodies_push_out(walls, px, py, pz, vx, vy, vz, r_rep, max_corr)
     return px, py, pz, vx, vy, vz
 
 
 @nb.njit(cache=True, parallel=True)
-def integrate(x, v, acc, dt, sdf, sdf_o, sdf_inv, r_rep, max_corr, max_move, travel=None, d=None):
+def integrate(x, v, acc, dt, walls, r_rep, max_corr, max_move, travel=None, d=None):
     """Symplectic Euler (v += dt a; x += dt v), then the wall pressure of eq. 16 as a position
     correction along the SDF normal for r_iw < r_rep, capped at ``max_corr`` per step, and removal of
     the velocity component into the wall; near walls the move is split into sub-steps of at most
@@ -853,7 +677,8 @@ def integrate(x, v, acc, dt, sdf, sdf_o, sdf_inv, r_rep, max_corr, max_move, tra
     the move, the SDF is not sampled (the eq. 16 test would find nothing: the trilinear SDF changes by
     at most sqrt(3) per unit length, so d - 2 |dx| bounds the new distance) and d is lowered by
     2 |dx|; elsewhere d is set to -1 (unknown, ``density_verlet`` samples it). Same result, less
-    random access to the SDF grid for the particles in the bulk."""
+    random access to the SDF grid for the particles in the bulk (static walls only: with moving walls
+    ``d`` must be None)."""
     for i in nb.prange(x.shape[0]):
         vx = v[i, 0] + dt * acc[i, 0]
         vy = v[i, 1] + dt * acc[i, 1]
@@ -867,8 +692,8 @@ def integrate(x, v, acc, dt, sdf, sdf_o, sdf_inv, r_rep, max_corr, max_move, tra
         else:
             if d is not None:
                 d[i] = -1.0
-            px, py, pz, vx, vy, vz = move_near_walls(x[i, 0], x[i, 1], x[i, 2], vx, vy, vz, dt, sdf, sdf_o, sdf_inv,
-                                                     r_rep, max_corr, max_move)
+            px, py, pz, vx, vy, vz = move_near_walls(x[i, 0], x[i, 1], x[i, 2], vx, vy, vz, dt, walls, r_rep, max_corr,
+                                                     max_move)
         if travel is not None:
             ex = px - x[i, 0]
             ey = py - x[i, 1]

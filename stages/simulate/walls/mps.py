@@ -16,7 +16,7 @@ gravity it is the Neumann condition p_w = p_i.
 
 ``build_tables``: the flat-wall values as 1D tables of the wall distance r, summed over virtual wall
 particles on the cubic lattice of spacing l0 below the plane, first layer l0/2 behind the surface,
-like the SPH tables (wall_tables.py): Zn, Zg = -G . n, Zgz = T_nn, Zl, Zlz = -M . n.
+like the SPH tables (walls/tables.py): Zn, Zg = -G . n, Zgz = T_nn, Zl, Zlz = -M . n.
 
 ``MPSWallMaps``: every channel as a 3D map over the SDF grid (a convolution of the wall occupancy,
 cheap: 0.35 s for a 0.1 x 0.1 x 0.3 m tank at l0 = 1 cm), scaled per wall distance so that on a flat
@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
-from .wall_tables import wall_lattice
+from .tables import wall_lattice
 
 
 def mps_weight_np(r: np.ndarray, re: float) -> np.ndarray:
@@ -160,7 +160,7 @@ def _build(dist, occ, reach, idx, w, maps):
 
 class MPSWallMaps:
     """The wall sums of every wall within re on a node grid of spacing l0 / 2 over the SDF (like
-    wall_maps.WallMaps for SPH), so a particle in a concave edge or corner counts both walls and is
+    maps.WallMaps for SPH), so a particle in a concave edge or corner counts both walls and is
     neither under-counted (taken for free surface) nor pushed towards the missing wall.
 
     ``fix`` (5, samples), per wall distance r = r_max i / (samples - 1): the lattice table over the

@@ -11,7 +11,7 @@ import math
 import numba as nb
 import numpy as np
 
-from .kernels import poly6_np, spiky_grad_coef, visc_lap_np
+from ..kernels import poly6_np, spiky_grad_coef, visc_lap_np
 
 
 def wall_lattice(l0: float, h: float) -> np.ndarray:

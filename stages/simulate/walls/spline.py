@@ -1,6 +1,6 @@
 """DFSPH's kernel and wall terms: the cubic spline for the density AND its gradient (as SPlisHSPlasH,
 Bender and Koschier), with the wall density Z_rho and the wall gradient Psi as quadratures of that same
-kernel and its gradient over the wall region (the analogue of wall_maps.py, which does Poly6 / Spiky).
+kernel and its gradient over the wall region (the analogue of walls/maps.py, which does Poly6 / Spiky).
 
 Why one kernel: the solve predicts the density change with sum_j m (v_i - v_j) . grad_i W_ij; that is
 the density's Jacobian only if W is the density's kernel. With a Poly6 density and a Spiky gradient the
@@ -10,11 +10,11 @@ Cubic spline (support h, q = r / h, 3D): W = k (6 q^3 - 6 q^2 + 1) for q <= 1/2,
 q < 1, k = 8 / (pi h^3); -grad_i W_ij = f(r) (x_i - x_j) with f = l (2 - 3 q) / h^2 (q <= 1/2) and
 l (1 - q)^2 / (r h) (q < 1), l = 48 / (pi h^3).
 
-Wall maps (bricked like sph.BrickWallMaps, read with sph_kernels.wall_sample / wall_sample_1234):
+Wall maps (bricked like walls.maps.BrickWallMaps, read with walls.maps.wall_sample / wall_sample_1234):
 channel 0 Z_rho = sum_wall m W (kg/m^3), 1-3 G = (m / rho0) sum_wall -grad_i W (1/m, points into the
 fluid; Psi = -rho0 G), 4 Z_vis of eq. 15 (the viscosity Laplacian, for sph_kernels.forces). Each node
-integrates over {d < 0} with the l0/2 quadrature of wall_maps.py; 1D flat-wall factors (by wall
-distance) make a flat floor match the lattice sum over wall particles exactly (wall_tables.wall_lattice),
+integrates over {d < 0} with the l0/2 quadrature of walls/maps.py; 1D flat-wall factors (by wall
+distance) make a flat floor match the lattice sum over wall particles exactly (tables.wall_lattice),
 so a particle l0/2 above a floor on the rest lattice has rho0 and S_i + Psi_i = 0.
 
 Used by DFSPHParams(gradient="spline"), opt-in: it did not bring a resting tank to rest (dfsph.py)."""
@@ -27,10 +27,9 @@ import numpy as np
 
 from stages.common.sdf import SDFGrid, grid_from_function, sdf_sample
 
-from .kernels import visc_lap_coef, visc_lap_np
-from .sph import BrickWallMaps
-from .wall_maps import _offsets, _wall_weight
-from .wall_tables import wall_lattice
+from ..kernels import visc_lap_coef, visc_lap_np
+from .maps import BrickWallMaps, quadrature_offsets, wall_weight
+from .tables import wall_lattice
 
 
 def spline_coefs(h: float) -> tuple[float, float]:
@@ -89,7 +88,7 @@ def spline_lattice_mass(rho0: float, l0: float, h: float) -> float:
 
 
 def flat_wall_tables(l0: float, h: float, mass: float, rho0: float, samples: int):
-    """Lattice sums over the wall particles of wall_tables.wall_lattice for a particle at r = h i /
+    """Lattice sums over the wall particles of tables.wall_lattice for a particle at r = h i /
     (samples - 1) above a flat floor: (z_rho, z_grad, z_vis), z_rho = m sum W, z_grad = (m / rho0)
     sum f dz (the normal component of G), z_vis = (m / rho0) sum lap W_vis (eq. 15)."""
     wall = wall_lattice(l0, h)
@@ -107,7 +106,7 @@ def flat_wall_tables(l0: float, h: float, mass: float, rho0: float, samples: int
 
 @nb.njit(cache=True)
 def _quadrature_at(sdf, so, sinv, px, py, pz, h, dq, offsets, k, l, cv, scale, mass, rho0, out):
-    """wall_maps._quadrature_at with the cubic spline and its gradient (channels 0-3) and the
+    """maps._quadrature_at with the cubic spline and its gradient (channels 0-3) and the
     viscosity Laplacian (channel 4) over the wall region around (px, py, pz)."""
     for c in range(5):
         out[c] = 0.0
@@ -120,7 +119,7 @@ def _quadrature_at(sdf, so, sinv, px, py, pz, h, dq, offsets, k, l, cv, scale, m
         if r2 >= h2:
             continue
         d, _, _, _ = sdf_sample(sdf, so[0], so[1], so[2], sinv, px + ox, py + oy, pz + oz)
-        w = _wall_weight(d, 0.5 * dq)
+        w = wall_weight(d, 0.5 * dq)
         if w == 0.0:
             continue
         r = math.sqrt(r2)
@@ -135,7 +134,7 @@ def _quadrature_at(sdf, so, sinv, px, py, pz, h, dq, offsets, k, l, cv, scale, m
 
 @nb.njit(cache=True, parallel=True)
 def _build_bricks(sdf, so, sinv, mo, mh, shape, index, slots, h, dq, offsets, k, l, cv, scale, mass, rho0, bricks):
-    """sph_kernels.build_bricks with this module's quadrature. (Passing the quadrature to one shared
+    """maps.build_bricks with this module's quadrature. (Passing the quadrature to one shared
     kernel as an argument works, but numba cannot cache a kernel that takes a function: 2.4 s of
     compilation in every process.)"""
     nby, nbz = index.shape[1], index.shape[2]
@@ -168,7 +167,7 @@ def _build_bricks(sdf, so, sinv, mo, mh, shape, index, slots, h, dq, offsets, k,
 
 
 class SplineWallMaps(BrickWallMaps):
-    """The wall map of this module, bricked as sph.BrickWallMaps (whose storage and lookups it shares),
+    """The wall map of this module, bricked as walls.maps.BrickWallMaps (whose storage and lookups it shares),
     with the flat-wall factors fix_rho, fix_press (for G), fix_vis indexed by the wall distance."""
 
     def __init__(self, sdf: SDFGrid, l0: float, h: float, mass: float, rho0: float, samples: int = 256):
@@ -176,7 +175,7 @@ class SplineWallMaps(BrickWallMaps):
         slots = self._allocate(sdf, l0, h)
         dq = self.spacing
         k, l = spline_coefs(h)
-        args = (h, dq, _offsets(h, dq), k, l, visc_lap_coef(h), dq ** 3 / l0 ** 3, mass, rho0)
+        args = (h, dq, quadrature_offsets(h, dq), k, l, visc_lap_coef(h), dq ** 3 / l0 ** 3, mass, rho0)
         _build_bricks(sdf.dist, sdf.origin, 1.0 / sdf.spacing, self.origin, dq, self.shape, self.index, slots, *args,
                       self.bricks)
         # flat-wall factors: the lattice sums over the quadrature of a half space, per wall distance

@@ -1,0 +1,599 @@
+"""3D wall maps: the wall density, wall pressure-gradient and wall viscosity terms of eq. 11-15
+precomputed on a grid from the SDF (the "density map" improvement PHYSICS.md names), so edges and
+corners, where two or three walls are within h, count every wall and not only the nearest plane.
+
+Each node integrates the kernels over the wall region {d < 0} inside its support with a quadrature
+lattice of spacing l0/2 (the wall particles of eq. 12 and 15 smeared into a continuum), then a 1D
+factor per wall distance makes the flat-wall value equal the lattice-sum table of walls/tables.py
+exactly (so a particle l0/2 above a flat floor gets rho0, as with the 1D tables).
+
+Channels: 0 Z_rho (kg/m^3), 1-3 wall pressure direction G = (m/rho0) sum -grad W (1/m, eq. 6, 8),
+4 Z_vis (1/m^2, eq. 15)."""
+from __future__ import annotations
+
+import math
+from collections import namedtuple
+
+import numba as nb
+import numpy as np
+
+from stages.common.sdf import SDFGrid, sdf_sample
+
+from numba.core import types
+from numba.extending import overload
+
+from ..kernels import poly6_coef, spiky_grad_coef, visc_lap_coef
+from .tables import build_tables, table_lookup
+
+
+@nb.njit(cache=True, inline="always")
+def wall_weight(d, half_width):
+    """Smooth occupancy of the wall region (1 deep inside, 0 in the fluid)."""
+    t = 0.5 - d / (2.0 * half_width)
+    return min(max(t, 0.0), 1.0)
+
+
+@nb.njit(cache=True)
+def quadrature_at(sdf, so, sinv, px, py, pz, h, dq, offsets, c6, cs, cv, scale, mass, rho0, out):
+    out[0] = 0.0
+    out[1] = 0.0
+    out[2] = 0.0
+    out[3] = 0.0
+    out[4] = 0.0
+    h2 = h * h
+    for k in range(offsets.shape[0]):
+        ox = offsets[k, 0]
+        oy = offsets[k, 1]
+        oz = offsets[k, 2]
+        r2 = ox * ox + oy * oy + oz * oz
+        if r2 >= h2:
+            continue
+        d, _, _, _ = sdf_sample(sdf, so[0], so[1], so[2], sinv, px + ox, py + oy, pz + oz)
+        w = wall_weight(d, 0.5 * dq)
+        if w == 0.0:
+            continue
+        r = math.sqrt(r2)
+        q = h2 - r2
+        out[0] += w * scale * mass * c6 * q * q * q
+        if r > 1e-12:
+            g = w * scale * (mass / rho0) * cs * (h - r) * (h - r) / r
+            # -grad W points from the wall sample (x + o) to the particle: along -o
+            out[1] -= g * ox
+            out[2] -= g * oy
+            out[3] -= g * oz
+        out[4] += w * scale * (mass / rho0) * cv * (h - r)
+
+
+@nb.njit(cache=True, parallel=True)
+def _build(sdf, so, sinv, mo, mh, shape, h, dq, offsets, c6, cs, cv, scale, mass, rho0, maps):
+    nx, ny, nz = shape[0], shape[1], shape[2]
+    for i in nb.prange(nx):
+        out = np.zeros(5)
+        for j in range(ny):
+            for k in range(nz):
+                px = mo[0] + i * mh
+                py = mo[1] + j * mh
+                pz = mo[2] + k * mh
+                d, _, _, _ = sdf_sample(sdf, so[0], so[1], so[2], sinv, px, py, pz)
+                if d >= h + dq:
+                    for c in range(5):
+                        maps[i, j, k, c] = 0.0
+                    continue
+                quadrature_at(sdf, so, sinv, px, py, pz, h, dq, offsets, c6, cs, cv, scale, mass, rho0, out)
+                for c in range(5):
+                    maps[i, j, k, c] = out[c]
+
+
+def quadrature_offsets(h: float, dq: float) -> np.ndarray:
+    k = int(math.ceil(h / dq)) + 1
+    g = (np.arange(-k, k) + 0.5) * dq  # cell-centred, symmetric about 0
+    X, Y, Z = np.meshgrid(g, g, g, indexing="ij")
+    o = np.stack([X.ravel(), Y.ravel(), Z.ravel()], 1)
+    return np.ascontiguousarray(o[np.linalg.norm(o, axis=1) < h + dq])
+
+
+class WallMaps:
+    """The wall terms on a node grid of spacing ``l0 / 2`` over the SDF grid, plus the flat-wall
+    correction factors (1D, indexed by the wall distance)."""
+
+    def __init__(self, sdf, l0: float, h: float, mass: float, rho0: float, samples: int = 256):
+        self.h = h
+        dq = 0.5 * l0
+        self.spacing = 0.5 * l0
+        self.origin = np.asarray(sdf.origin, np.float64)
+        shape = np.floor((sdf.upper - sdf.origin) / self.spacing).astype(np.int64) + 1
+        self.maps = np.zeros((*shape, 5), np.float32)
+        offsets = quadrature_offsets(h, dq)
+        scale = dq ** 3 / l0 ** 3  # quadrature volume in units of one wall particle's volume
+        args = (h, dq, offsets, poly6_coef(h), spiky_grad_coef(h), visc_lap_coef(h), scale, mass, rho0)
+        _build(sdf.dist, sdf.origin, 1.0 / sdf.spacing, self.origin, self.spacing, shape, *args, self.maps)
+        # flat-wall correction: the quadrature of a half space against the lattice-sum table
+        _, z_rho, z_vis, z_press = build_tables(l0, h, mass, rho0, samples)
+        r = np.linspace(0.0, h, samples)
+        flat = np.zeros((samples, 5))
+        lo = np.array([-2 * h, -2 * h, -2 * h])
+        from stages.common.sdf import grid_from_function
+        plane = grid_from_function(lambda p: p[:, 2], lo, -lo, dq / 2)
+        out = np.zeros(5)
+        for s, ri in enumerate(r):
+            quadrature_at(plane.dist, plane.origin, 1.0 / plane.spacing, 0.0, 0.0, ri, *args, out)
+            flat[s] = out
+        self.fix_rho = np.where(flat[:, 0] > 1e-12, z_rho / np.maximum(flat[:, 0], 1e-300), 1.0)
+        self.fix_press = np.where(flat[:, 3] > 1e-12, z_press / np.maximum(flat[:, 3], 1e-300), 1.0)
+        self.fix_vis = np.where(flat[:, 4] > 1e-12, z_vis / np.maximum(flat[:, 4], 1e-300), 1.0)
+        self.inv_dr = (samples - 1) / h
+
+
+@nb.njit(cache=True, inline="always")
+def map_sample(maps, ox, oy, oz, inv_h, x, y, z, c):
+    """Trilinear value of channel ``c`` of a node-centred (nx, ny, nz, C) map (clamped to the grid)."""
+    nx, ny, nz = maps.shape[0], maps.shape[1], maps.shape[2]
+    fx = min(max((x - ox) * inv_h, 0.0), nx - 1.000001)
+    fy = min(max((y - oy) * inv_h, 0.0), ny - 1.000001)
+    fz = min(max((z - oz) * inv_h, 0.0), nz - 1.000001)
+    i = int(fx)
+    j = int(fy)
+    k = int(fz)
+    tx = fx - i
+    ty = fy - j
+    tz = fz - k
+    c00 = maps[i, j, k, c] + (maps[i + 1, j, k, c] - maps[i, j, k, c]) * tx
+    c10 = maps[i, j + 1, k, c] + (maps[i + 1, j + 1, k, c] - maps[i, j + 1, k, c]) * tx
+    c01 = maps[i, j, k + 1, c] + (maps[i + 1, j, k + 1, c] - maps[i, j, k + 1, c]) * tx
+    c11 = maps[i, j + 1, k + 1, c] + (maps[i + 1, j + 1, k + 1, c] - maps[i, j + 1, k + 1, c]) * tx
+    c0 = c00 + (c10 - c00) * ty
+    c1 = c01 + (c11 - c01) * ty
+    return c0 + (c1 - c0) * tz
+
+
+
+BRICK = 4  # wall-map brick edge, in nodes
+
+
+# -- wall maps stored as bricks (memory) ------------------------------------------------------------
+# The dense wall map of walls/maps.py covers the whole SDF box at l0/2 with 5 float32 channels, 1.3 KB
+# per particle in the PEERS dam break, yet it is non-zero only within h + l0/2 of a wall. The bricked
+# form keeps only the BRICK^3-node blocks that hold a node of that band: the same node values (the
+# same quadrature, maps._quadrature_at) and the same trilinear arithmetic, so every lookup
+# returns the same bits as the dense map. ``wmap`` arguments below take either form.
+
+@nb.njit(cache=True, parallel=True)
+def bricks_needed(sdf, so, sinv, mo, mh, shape, reach, need):
+    """need[bx, by, bz] = 1 if any node of the brick has SDF distance < reach (a non-zero map value)."""
+    nbx, nby, nbz = need.shape
+    for b in nb.prange(nbx * nby * nbz):
+        bx = b // (nby * nbz)
+        by = (b // nbz) % nby
+        bz = b % nbz
+        hit = 0
+        for i in range(bx * BRICK, min(bx * BRICK + BRICK, shape[0])):
+            for j in range(by * BRICK, min(by * BRICK + BRICK, shape[1])):
+                for k in range(bz * BRICK, min(bz * BRICK + BRICK, shape[2])):
+                    d, _, _, _ = sdf_sample(sdf, so[0], so[1], so[2], sinv, mo[0] + i * mh, mo[1] + j * mh,
+                                            mo[2] + k * mh)
+                    if d < reach:
+                        hit = 1
+        need[bx, by, bz] = hit
+
+
+@nb.njit(cache=True, parallel=True)
+def build_bricks(sdf, so, sinv, mo, mh, shape, index, slots, h, dq, offsets, c6, cs, cv, scale, mass, rho0, bricks):
+    """Fill every allocated brick (slots[s] = its flat brick index) node by node as maps._build
+    fills the dense map (zero at d >= h + dq, else the quadrature)."""
+    nby, nbz = index.shape[1], index.shape[2]
+    for s in nb.prange(slots.shape[0]):
+        b = slots[s]
+        bx = b // (nby * nbz)
+        by = (b // nbz) % nby
+        bz = b % nbz
+        out = np.zeros(5)
+        for a in range(BRICK):
+            i = bx * BRICK + a
+            for c in range(BRICK):
+                j = by * BRICK + c
+                for e in range(BRICK):
+                    k = bz * BRICK + e
+                    for ch in range(5):
+                        bricks[s, a, c, e, ch] = 0.0
+                    if i >= shape[0] or j >= shape[1] or k >= shape[2]:
+                        continue
+                    px = mo[0] + i * mh
+                    py = mo[1] + j * mh
+                    pz = mo[2] + k * mh
+                    d, _, _, _ = sdf_sample(sdf, so[0], so[1], so[2], sinv, px, py, pz)
+                    if d >= h + dq:
+                        continue
+                    quadrature_at(sdf, so, sinv, px, py, pz, h, dq, offsets, c6, cs, cv, scale, mass, rho0, out)
+                    for ch in range(5):
+                        bricks[s, a, c, e, ch] = out[ch]
+
+
+@nb.njit(cache=True, inline="always")
+def _node(index, bricks, i, j, k, c):
+    s = index[i // BRICK, j // BRICK, k // BRICK]
+    if s < 0:
+        return np.float32(0.0)
+    return bricks[s, i % BRICK, j % BRICK, k % BRICK, c]
+
+
+@nb.njit(cache=True, inline="always")
+def _trilinear(m000, m100, m010, m110, m001, m101, m011, m111, tx, ty, tz):
+    """maps.map_sample's arithmetic, operation for operation (so the same bits)."""
+    c00 = m000 + (m100 - m000) * tx
+    c10 = m010 + (m110 - m010) * tx
+    c01 = m001 + (m101 - m001) * tx
+    c11 = m011 + (m111 - m011) * tx
+    c0 = c00 + (c10 - c00) * ty
+    c1 = c01 + (c11 - c01) * ty
+    return c0 + (c1 - c0) * tz
+
+
+@nb.njit(cache=True, inline="always")
+def _cell(shape, ox, oy, oz, inv_h, x, y, z):
+    fx = min(max((x - ox) * inv_h, 0.0), shape[0] - 1.000001)
+    fy = min(max((y - oy) * inv_h, 0.0), shape[1] - 1.000001)
+    fz = min(max((z - oz) * inv_h, 0.0), shape[2] - 1.000001)
+    i = int(fx)
+    j = int(fy)
+    k = int(fz)
+    return i, j, k, fx - i, fy - j, fz - k
+
+
+@nb.njit(cache=True, inline="always")
+def _slot(index, i, j, k):
+    return index[i // BRICK, j // BRICK, k // BRICK]
+
+
+@nb.njit(cache=True, inline="always")
+def _at(bricks, s, i, j, k, c):
+    if s < 0:
+        return np.float32(0.0)  # a brick that is not stored: all its nodes are 0 in the dense map
+    return bricks[s, i % BRICK, j % BRICK, k % BRICK, c]
+
+
+@nb.njit(cache=True, inline="always")
+def brick_sample(index, bricks, shape, ox, oy, oz, inv_h, x, y, z, c):
+    """maps.map_sample of the dense map, read from its bricks (bitwise the same value)."""
+    i, j, k, tx, ty, tz = _cell(shape, ox, oy, oz, inv_h, x, y, z)
+    s000 = _slot(index, i, j, k)
+    s100 = _slot(index, i + 1, j, k)
+    s010 = _slot(index, i, j + 1, k)
+    s110 = _slot(index, i + 1, j + 1, k)
+    s001 = _slot(index, i, j, k + 1)
+    s101 = _slot(index, i + 1, j, k + 1)
+    s011 = _slot(index, i, j + 1, k + 1)
+    s111 = _slot(index, i + 1, j + 1, k + 1)
+    return _trilinear(_at(bricks, s000, i, j, k, c), _at(bricks, s100, i + 1, j, k, c),
+                      _at(bricks, s010, i, j + 1, k, c), _at(bricks, s110, i + 1, j + 1, k, c),
+                      _at(bricks, s001, i, j, k + 1, c), _at(bricks, s101, i + 1, j, k + 1, c),
+                      _at(bricks, s011, i, j + 1, k + 1, c), _at(bricks, s111, i + 1, j + 1, k + 1, c), tx, ty, tz)
+
+
+@nb.njit(cache=True, inline="always")
+def brick_sample_1234(index, bricks, shape, ox, oy, oz, inv_h, x, y, z):
+    """Channels 1-4 (wall pressure direction, Z_vis) at once: the brick slots are looked up once."""
+    i, j, k, tx, ty, tz = _cell(shape, ox, oy, oz, inv_h, x, y, z)
+    s000 = _slot(index, i, j, k)
+    s100 = _slot(index, i + 1, j, k)
+    s010 = _slot(index, i, j + 1, k)
+    s110 = _slot(index, i + 1, j + 1, k)
+    s001 = _slot(index, i, j, k + 1)
+    s101 = _slot(index, i + 1, j, k + 1)
+    s011 = _slot(index, i, j + 1, k + 1)
+    s111 = _slot(index, i + 1, j + 1, k + 1)
+    out1 = 0.0
+    out2 = 0.0
+    out3 = 0.0
+    out4 = 0.0
+    for c in range(1, 5):
+        v = _trilinear(_at(bricks, s000, i, j, k, c), _at(bricks, s100, i + 1, j, k, c),
+                       _at(bricks, s010, i, j + 1, k, c), _at(bricks, s110, i + 1, j + 1, k, c),
+                       _at(bricks, s001, i, j, k + 1, c), _at(bricks, s101, i + 1, j, k + 1, c),
+                       _at(bricks, s011, i, j + 1, k + 1, c), _at(bricks, s111, i + 1, j + 1, k + 1, c), tx, ty, tz)
+        if c == 1:
+            out1 = v
+        elif c == 2:
+            out2 = v
+        elif c == 3:
+            out3 = v
+        else:
+            out4 = v
+    return out1, out2, out3, out4
+
+
+def wall_sample_1234(wmap, ox, oy, oz, inv_h, x, y, z):
+    """Channels 1-4 of the wall map at (x, y, z), either form of ``wmap``."""
+
+
+@overload(wall_sample_1234)
+def _wall_sample_1234(wmap, ox, oy, oz, inv_h, x, y, z):
+    if isinstance(wmap, types.Array):
+        def dense(wmap, ox, oy, oz, inv_h, x, y, z):
+            return (map_sample(wmap, ox, oy, oz, inv_h, x, y, z, 1), map_sample(wmap, ox, oy, oz, inv_h, x, y, z, 2),
+                    map_sample(wmap, ox, oy, oz, inv_h, x, y, z, 3), map_sample(wmap, ox, oy, oz, inv_h, x, y, z, 4))
+        return dense
+    return lambda wmap, ox, oy, oz, inv_h, x, y, z: brick_sample_1234(wmap[0], wmap[1], wmap[2], ox, oy, oz, inv_h,
+                                                                      x, y, z)
+
+
+def wall_sample(wmap, ox, oy, oz, inv_h, x, y, z, c):
+    """Channel c of the wall map at (x, y, z): ``wmap`` the dense (nx, ny, nz, 5) array or the bricked
+    form (index, bricks, shape); chosen at compile time."""
+
+
+@overload(wall_sample)
+def _wall_sample(wmap, ox, oy, oz, inv_h, x, y, z, c):
+    if isinstance(wmap, types.Array):
+        return lambda wmap, ox, oy, oz, inv_h, x, y, z, c: map_sample(wmap, ox, oy, oz, inv_h, x, y, z, c)
+    return lambda wmap, ox, oy, oz, inv_h, x, y, z, c: brick_sample(wmap[0], wmap[1], wmap[2], ox, oy, oz, inv_h,
+                                                                    x, y, z, c)
+
+
+@nb.njit(cache=True, inline="always")
+def map_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, x, y, z):
+    """Z_rho of one wall field at a point (eq. 12): its 3D map times the flat-wall factor at its SDF distance
+    (DFSPH's density and wall gradient differentiate it)."""
+    dw, _, _, _ = sdf_sample(sdf, sdf_o[0], sdf_o[1], sdf_o[2], sdf_inv, x, y, z)
+    if dw >= h:
+        return 0.0
+    return wall_sample(wmap, wo[0], wo[1], wo[2], winv, x, y, z, 0) * table_lookup(fix_rho, dw, inv_dr)
+
+
+# -- the walls as the WCSPH kernels take them -------------------------------------------------------------
+# ``Walls``: the static walls (their SDF and bricked map) and the moving rigid walls, each baked once in its
+# own rest frame and sampled at the particle's position carried into that frame by the body's current pose.
+# Numba's parallel loops take a named tuple of arrays but not nested tuples, so the bodies are an atlas:
+# their SDF grids and brick indices concatenated flat (``b_grid`` / ``b_igrid`` rows: offset, nx, ny, nz),
+# their bricks in one array; no body = empty arrays (the loops over them do nothing). The flat-wall tables
+# depend only on l0 and h, so every field shares them.
+# ``pose`` (bodies, POSE_SIZE) float64, rewritten in place each step (set_pose): R row-major (0:9), the
+# pivot's current world position c (9:12), its rest position p0 (12:15), the pivot's velocity (15:18), the
+# angular velocity (18:21): x_local = R^T (x - c) + p0 and the wall's velocity at x is v + omega x (x - c).
+Walls = namedtuple("Walls", "sdf sdf_o sdf_inv index bricks shape wo winv fix_rho inv_dr "
+                            "b_sdf b_grid b_sdf_o b_sdf_inv b_index b_igrid b_bricks b_shape b_wo b_winv pose")
+POSE_SIZE = 21
+
+
+def make_walls(sdf, maps, bodies=()) -> Walls:
+    """The Walls of the static SDFGrid (SI) and its BrickWallMaps; ``bodies``: (SDFGrid in its rest frame,
+    its BrickWallMaps) per moving wall, posed at rest until set_pose."""
+    grids, igrids, offs, ioffs, nbricks = [], [], [0], [0], 0
+    index = []
+    for sb, mb in bodies:
+        grids.append([offs[-1], *sb.dist.shape])
+        offs.append(offs[-1] + sb.dist.size)
+        igrids.append([ioffs[-1], *mb.index.shape])
+        ioffs.append(ioffs[-1] + mb.index.size)
+        index.append(np.where(mb.index >= 0, mb.index + nbricks, -1).astype(np.int32).ravel())
+        nbricks += len(mb.bricks)
+    n = len(bodies)
+    pose = np.zeros((n, POSE_SIZE))
+    pose[:, [0, 4, 8]] = 1.0
+    for k, (sb, _) in enumerate(bodies):  # at rest: c = p0 = the box's lower corner (any point will do)
+        pose[k, 9:12] = pose[k, 12:15] = sb.origin
+    cat = (lambda xs, dt, shape: np.concatenate(xs).astype(dt) if xs else np.zeros(shape, dt))
+    return Walls(sdf.dist, np.asarray(sdf.origin, np.float64), 1.0 / sdf.spacing, maps.index, maps.bricks,
+                 np.asarray(maps.shape, np.int64), np.asarray(maps.origin, np.float64), 1.0 / maps.spacing, maps.fix_rho,
+                 maps.inv_dr,
+                 cat([sb.dist.ravel() for sb, _ in bodies], np.float32, (0,)), np.array(grids, np.int64).reshape(n, 4),
+                 np.array([sb.origin for sb, _ in bodies], np.float64).reshape(n, 3),
+                 np.array([1.0 / sb.spacing for sb, _ in bodies], np.float64),
+                 cat(index, np.int32, (0,)), np.array(igrids, np.int64).reshape(n, 4),
+                 cat([mb.bricks for _, mb in bodies], np.float32, (0, BRICK, BRICK, BRICK, 5)),
+                 np.array([mb.shape for _, mb in bodies], np.int64).reshape(n, 3),
+                 np.array([mb.origin for _, mb in bodies], np.float64).reshape(n, 3),
+                 np.array([1.0 / mb.spacing for _, mb in bodies], np.float64), pose)
+
+
+def set_pose(walls: Walls, k: int, R, T, pivot, v, omega) -> None:
+    """Body k at world = R (x_rest - pivot) + pivot + T, moving with the pivot's velocity v and angular
+    velocity omega (stages.common.motion.RigidMotion.pose / velocity, in SI)."""
+    p = walls.pose[k]
+    p[0:9] = np.asarray(R, np.float64).ravel()
+    p[9:12] = np.asarray(pivot, np.float64) + np.asarray(T, np.float64)
+    p[12:15] = pivot
+    p[15:18] = v
+    p[18:21] = omega
+
+
+@nb.njit(cache=True, inline="always")
+def to_body(pose, x, y, z):
+    """A world point in the body's rest frame: R^T (x - c) + p0."""
+    dx = x - pose[9]
+    dy = y - pose[10]
+    dz = z - pose[11]
+    return (pose[0] * dx + pose[3] * dy + pose[6] * dz + pose[12], pose[1] * dx + pose[4] * dy + pose[7] * dz + pose[13],
+            pose[2] * dx + pose[5] * dy + pose[8] * dz + pose[14])
+
+
+@nb.njit(cache=True, inline="always")
+def body_direction(pose, gx, gy, gz):
+    """A direction of the body's rest frame in the world: R g."""
+    return (pose[0] * gx + pose[1] * gy + pose[2] * gz, pose[3] * gx + pose[4] * gy + pose[5] * gz,
+            pose[6] * gx + pose[7] * gy + pose[8] * gz)
+
+
+@nb.njit(cache=True, inline="always")
+def body_velocity(pose, x, y, z):
+    """The wall's velocity at world point x: v + omega x (x - c)."""
+    rx = x - pose[9]
+    ry = y - pose[10]
+    rz = z - pose[11]
+    return (pose[15] + pose[19] * rz - pose[20] * ry, pose[16] + pose[20] * rx - pose[18] * rz,
+            pose[17] + pose[18] * ry - pose[19] * rx)
+
+
+@nb.njit(cache=True, inline="always")
+def _body_sdf(w, k):
+    o, nx, ny, nz = w.b_grid[k, 0], w.b_grid[k, 1], w.b_grid[k, 2], w.b_grid[k, 3]
+    return w.b_sdf[o:o + nx * ny * nz].reshape((nx, ny, nz))
+
+
+@nb.njit(cache=True, inline="always")
+def _body_index(w, k):
+    o, nx, ny, nz = w.b_igrid[k, 0], w.b_igrid[k, 1], w.b_igrid[k, 2], w.b_igrid[k, 3]
+    return w.b_index[o:o + nx * ny * nz].reshape((nx, ny, nz))
+
+
+@nb.njit(cache=True, inline="always")
+def body_distance(w, k, lx, ly, lz):
+    """(d, gx, gy, gz) of body k at a point of its rest frame (gradient in that frame)."""
+    so = w.b_sdf_o[k]
+    return sdf_sample(_body_sdf(w, k), so[0], so[1], so[2], w.b_sdf_inv[k], lx, ly, lz)
+
+
+@nb.njit(cache=True, inline="always")
+def body_sample(w, k, x, y, z):
+    """(d, nx, ny, nz) of body k at world point x: its SDF in its rest frame, the normal in the world."""
+    pose = w.pose[k]
+    lx, ly, lz = to_body(pose, x, y, z)
+    d, gx, gy, gz = body_distance(w, k, lx, ly, lz)
+    nx, ny, nz = body_direction(pose, gx, gy, gz)
+    return d, nx, ny, nz
+
+
+@nb.njit(cache=True, inline="always")
+def body_map(w, k, lx, ly, lz, c):
+    """Channel c of body k's wall map at a point of its rest frame."""
+    wo = w.b_wo[k]
+    return brick_sample(_body_index(w, k), w.b_bricks, w.b_shape[k], wo[0], wo[1], wo[2], w.b_winv[k], lx, ly, lz, c)
+
+
+@nb.njit(cache=True, inline="always")
+def wall_density(w, h, x, y, z):
+    """Z_rho of every wall at a point (eq. 12): the static walls' map and each moving wall's, each times
+    the flat-wall factor at its own SDF distance (the WCSPH density adds it, its wall force differentiates it)."""
+    dw, _, _, _ = sdf_sample(w.sdf, w.sdf_o[0], w.sdf_o[1], w.sdf_o[2], w.sdf_inv, x, y, z)
+    s = 0.0
+    if dw < h:
+        s = brick_sample(w.index, w.bricks, w.shape, w.wo[0], w.wo[1], w.wo[2], w.winv, x, y, z, 0) * table_lookup(
+            w.fix_rho, dw, w.inv_dr)
+    return s + bodies_density(w, h, x, y, z)
+
+
+@nb.njit(cache=True, inline="always")
+def bodies_density(w, h, x, y, z):
+    """The moving walls' share of wall_density."""
+    s = 0.0
+    for k in range(w.pose.shape[0]):
+        lx, ly, lz = to_body(w.pose[k], x, y, z)
+        db, _, _, _ = body_distance(w, k, lx, ly, lz)
+        if db < h:
+            s += body_map(w, k, lx, ly, lz, 0) * table_lookup(w.fix_rho, db, w.inv_dr)
+    return s
+
+
+@nb.njit(cache=True, inline="always")
+def bodies_nearest(w, x, y, z, d, nx, ny, nz):
+    """(d, nx, ny, nz) of the nearest wall: the given static wall's, or a moving wall's if nearer."""
+    for k in range(w.pose.shape[0]):
+        db, bx, by, bz = body_sample(w, k, x, y, z)
+        if db < d:
+            d, nx, ny, nz = db, bx, by, bz
+    return d, nx, ny, nz
+
+
+@nb.njit(cache=True, inline="always")
+def static_distance(w, d, x, y, z):
+    """The static walls' SDF distance at x, given ``d`` the nearest wall's (the same without moving walls)."""
+    if w.pose.shape[0] == 0:
+        return d
+    ds, _, _, _ = sdf_sample(w.sdf, w.sdf_o[0], w.sdf_o[1], w.sdf_o[2], w.sdf_inv, x, y, z)
+    return ds
+
+
+@nb.njit(cache=True, inline="always")
+def bodies_viscous(w, fix_vis, h, x, y, z, vx, vy, vz):
+    """sum over the moving walls within h of fix_vis(d_b) Z_vis,b (v_b(x) - v): the no-slip term of eq. 13-15
+    against each wall's own velocity."""
+    ax = 0.0
+    ay = 0.0
+    az = 0.0
+    for k in range(w.pose.shape[0]):
+        lx, ly, lz = to_body(w.pose[k], x, y, z)
+        db, _, _, _ = body_distance(w, k, lx, ly, lz)
+        if db < h:
+            c = table_lookup(fix_vis, db, w.inv_dr) * body_map(w, k, lx, ly, lz, 4)
+            ux, uy, uz = body_velocity(w.pose[k], x, y, z)
+            ax += c * (ux - vx)
+            ay += c * (uy - vy)
+            az += c * (uz - vz)
+    return ax, ay, az
+
+
+@nb.njit(cache=True, inline="always")
+def bodies_push_out(w, px, py, pz, vx, vy, vz, r_rep, max_corr):
+    """Eq. 16 against every moving wall: out along its normal to r_rep (at most max_corr per projection), and
+    the velocity into the wall relative to the wall's own removed (the wall pushes the fluid)."""
+    for k in range(w.pose.shape[0]):
+        for _ in range(3):
+            dw, nx, ny, nz = body_sample(w, k, px, py, pz)
+            if dw >= r_rep * 0.999:
+                break
+            corr = min(r_rep - dw, max_corr)
+            px += corr * nx
+            py += corr * ny
+            pz += corr * nz
+            ux, uy, uz = body_velocity(w.pose[k], px, py, pz)
+            vn = (vx - ux) * nx + (vy - uy) * ny + (vz - uz) * nz
+            if vn < 0.0:
+                vx -= vn * nx
+                vy -= vn * ny
+                vz -= vn * nz
+    return px, py, pz, vx, vy, vz
+
+
+class BrickWallMaps:
+    """WallMaps stored as bricks (BRICK^3 nodes) holding a node of the band
+    d < h + l0/2 where the map is non-zero: the same node values and lookups (bitwise), without the dense array
+    over the whole SDF box (1.3 KB per particle in the PEERS dam break, and built at that size).
+    ``wmap`` is what the kernels take: (index, bricks, shape)."""
+
+    def __init__(self, sdf: SDFGrid, l0: float, h: float, mass: float, rho0: float, samples: int = 256):
+        # the flat-wall factors do not depend on the SDF: a WallMaps of a tiny grid gives exactly them
+        tiny = SDFGrid(origin=np.zeros(3), spacing=l0, dist=np.ones((2, 2, 2), np.float32), band=1.0)
+        flat = WallMaps(tiny, l0, h, mass, rho0, samples)
+        self.fix_rho, self.fix_press, self.fix_vis, self.inv_dr = flat.fix_rho, flat.fix_press, flat.fix_vis, flat.inv_dr
+        self.h = h
+        slots = self._allocate(sdf, l0, h)
+        dq = self.spacing
+        build_bricks(sdf.dist, sdf.origin, 1.0 / sdf.spacing, self.origin, dq, self.shape, self.index, slots, h,
+                     dq, quadrature_offsets(h, dq), poly6_coef(h), spiky_grad_coef(h), visc_lap_coef(h), dq ** 3 / l0 ** 3,
+                     mass, rho0, self.bricks)
+
+    def _allocate(self, sdf: SDFGrid, l0: float, h: float) -> np.ndarray:
+        """Nodes every l0/2 over the SDF box (as WallMaps); zeroed bricks for those holding a node within
+        h + l0/2 of a wall. Returns each brick's flat brick index (the fill kernel's ``slots``)."""
+        self.spacing = 0.5 * l0
+        self.origin = np.asarray(sdf.origin, np.float64)
+        self.shape = np.floor((sdf.upper - sdf.origin) / self.spacing).astype(np.int64) + 1
+        need = np.zeros(tuple(-(-self.shape // BRICK)), np.uint8)
+        bricks_needed(sdf.dist, sdf.origin, 1.0 / sdf.spacing, self.origin, self.spacing, self.shape,
+                        h + self.spacing, need)
+        slots = np.flatnonzero(need.ravel()).astype(np.int64)
+        self.index = np.full(need.shape, -1, np.int32)
+        self.index.ravel()[slots] = np.arange(len(slots), dtype=np.int32)
+        self.bricks = np.zeros((len(slots), BRICK, BRICK, BRICK, 5), np.float32)
+        self._dense = None
+        return slots
+
+    @property
+    def wmap(self) -> tuple:
+        return self.index, self.bricks, self.shape
+
+    @property
+    def maps(self) -> np.ndarray:
+        """The dense (nx, ny, nz, 5) map, built on first use (for code written against WallMaps)."""
+        if self._dense is None:
+            dense = np.zeros((*self.shape, 5), np.float32)
+            B = BRICK
+            for (bx, by, bz) in np.argwhere(self.index >= 0):
+                b = self.bricks[self.index[bx, by, bz]]
+                sx, sy, sz = (min(B, n - o) for n, o in zip(self.shape, (bx * B, by * B, bz * B)))
+                dense[bx * B:bx * B + sx, by * B:by * B + sy, bz * B:bz * B + sz] = b[:sx, :sy, :sz]
+            self._dense = dense
+        return self._dense
+
+    @property
+    def nbytes(self) -> int:
+        return self.index.nbytes + self.bricks.nbytes
