@@ -284,7 +284,7 @@ class SPHSolver(SolverBase):
 
     def state(self) -> dict:
         return {"x": self.x, "v": self.v, "id": self.id, "t": np.float64(self.t), "steps": np.int64(self.steps),
-                "left_domain": np.int64(self.left_domain)}
+                "left_domain": np.int64(self.left_domain), **self.flow_state()}
 
     def load_state(self, s: Mapping) -> None:
         self.x = np.ascontiguousarray(s["x"], np.float64)
@@ -293,6 +293,7 @@ class SPHSolver(SolverBase):
         self.t = float(s["t"])
         self.steps = int(s["steps"])
         self.left_domain = int(s["left_domain"])
+        self.load_flow_state(s)
         self._scratch.clear()
         self._alloc()
 
