@@ -28,7 +28,7 @@ from stages.common.sdf import SDFGrid
 from stages.common.usd_points import write_points_layer
 
 from .emitters import drop_inside_walls, drop_overlaps, emit
-from .inflow import Inflow, Sink, from_config, overlapping
+from .inflow import Inflow, Sink, from_config, in_sinks, overlapping
 from .kernels import count_blown
 from .output import iter_frames, latest_checkpoint, restore_frames, save_checkpoint, write_frame
 
@@ -237,9 +237,7 @@ class SolverBase:
 
     def drain_sinks(self) -> int:
         """Remove the particles whose centre is in a sink (counted in ``sunk``)."""
-        inside = self.sinks[0].inside(self.x)
-        for s in self.sinks[1:]:
-            inside |= s.inside(self.x)
+        inside = in_sinks(self.x, self.sinks)
         gone = int(inside.sum())
         if gone:
             self._keep(~inside)

@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numba as nb
 import numpy as np
 
 
@@ -97,8 +98,24 @@ class Sink:
     lo: np.ndarray
     hi: np.ndarray
 
-    def inside(self, x: np.ndarray) -> np.ndarray:
-        return np.all((x >= self.lo) & (x <= self.hi), axis=1)
+
+def in_sinks(x: np.ndarray, sinks) -> np.ndarray:
+    """Which particles are in a sink: one numba pass (checked every step: numpy's took 1.5 ms at 20k particles)."""
+    lo = np.array([s.lo for s in sinks], np.float64).reshape(-1, 3)
+    hi = np.array([s.hi for s in sinks], np.float64).reshape(-1, 3)
+    out = np.zeros(len(x), np.bool_)
+    _in_boxes(x, lo, hi, out)
+    return out
+
+
+@nb.njit(cache=True, parallel=True)
+def _in_boxes(x, lo, hi, out):
+    for i in nb.prange(x.shape[0]):
+        for b in range(lo.shape[0]):
+            if (lo[b, 0] <= x[i, 0] <= hi[b, 0] and lo[b, 1] <= x[i, 1] <= hi[b, 1]
+                    and lo[b, 2] <= x[i, 2] <= hi[b, 2]):
+                out[i] = True
+                break
 
 
 def overlapping(new: np.ndarray, x: np.ndarray, min_distance: float) -> bool:
