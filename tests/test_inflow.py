@@ -79,17 +79,19 @@ def test_emitted_volume_is_pi_r2_v_t(jet_run):
 def test_jet_follows_the_ballistic_parabola(jet_run):
     """Each particle of a free jet flies on z = z0 - g X^2 / (2 v^2) (X the distance from the nozzle) until it
     spreads at the floor (the jet reaches it at X ~ 0.5 m): the centroid of the jet particles in slices
-    X +- l0 / 2 is there within l0 + 3 % of the drop, at t = 0.28 s (the jet is steady up to X = 0.5 m)."""
+    X +- l0 / 2 (about one layer) lies on the parabola at its own X within l0 / 2 + 3 % of the drop, at
+    t = 0.28 s (the jet is steady up to X = 0.5 m). Measured: within 0.2 l0 up to X = 0.3 m (a 11 cm drop),
+    for the three solvers; at X = 0.4 m, where the jet thins before the floor, 0.5-0.9 l0."""
     name, out = jet_run
     f = load_particle_frame(out, 7)  # t = 0.28 s
     x0, z0 = JET["center"][0], JET["center"][2]
     for X in (0.05, 0.1, 0.2, 0.3):
-        drop = G * X ** 2 / (2.0 * JET["speed"] ** 2)
         sl = np.abs(f.x[:, 0] - x0 - X) <= JET_L0 / 2
         sl &= f.x[:, 2] > 0.1  # not the puddle spreading on the floor
         assert sl.sum() >= 5, (name, X, sl.sum())
-        z = float(f.x[sl, 2].mean())
-        assert abs(z - (z0 - drop)) <= JET_L0 + 0.03 * drop, (name, X, z, z0 - drop)
+        xc, z = float(f.x[sl, 0].mean()) - x0, float(f.x[sl, 2].mean())
+        drop = G * xc ** 2 / (2.0 * JET["speed"] ** 2)
+        assert abs(z - (z0 - drop)) <= 0.5 * JET_L0 + 0.03 * drop, (name, X, z, z0 - drop)
 
 
 # -- a tank with a tap and an overflow drain -------------------------------------------------------------
