@@ -194,3 +194,46 @@ def test_inflow_inside_a_wall_is_a_stage_error(tmp_path):
     scene = {**TANK_SCENE, "fluid": {**TANK_SCENE["fluid"], "inflow": [{**TAP, "center": [0.06, 0.05, 0.5]}]}}
     with pytest.raises(StageError, match=r"fluid.inflow.0: its disc lies inside a wall or outside the domain"):
         run_stage(SPHSimulate, tmp_path / "out", scene=scene, params={"threads": 1}, inputs={"sdf": sdf})
+
+
+# -- the emission itself ----------------------------------------------------------------------------------
+def _solver_with_block(tmp_path, block_hi):
+    from stages.simulate.emitters import lattice
+    from stages.simulate.sph import SPHParams, SPHSolver
+    from stages.common.sdf import SDFGrid
+    sdf = SDFGrid.load(_tank(tmp_path, [0.2, 0.1, 0.3], TANK_L0))
+    x = lattice([0, 0, 0], block_hi, TANK_L0)
+    return SPHSolver(x, np.zeros_like(x), np.arange(len(x), dtype=np.int32), sdf, spacing=TANK_L0, rho0=1000.0,
+                     params=SPHParams(threads=1), gravity=(0, 0, -G))
+
+
+def test_layers_are_placed_where_they_would_be_and_a_blocked_jet_is_skipped(tmp_path, caplog):
+    """Five layers due at once are each where the jet has carried them since their own emission time
+    (x = c + v (t - t_k) n + g (t - t_k)^2 / 2), with fresh ids after the largest; a nozzle inside the fluid
+    emits nothing, counts the skipped layers and warns once."""
+    import logging
+    s = _solver_with_block(tmp_path, [0.2, 0.1, 0.06])
+    free = Inflow(center=[0.1, 0.05, 0.25], direction=[0, 0, -1], radius=0.03, speed=0.5, start=0.0, end=1.0, l0=TANK_L0)
+    T = free.period
+    free.end = free.layer_time(4) + 0.1 * T  # five layers in all
+    t_first = free.layer_time(4) + 0.25 * T
+    buried = Inflow(center=[0.11, 0.05, 0.03], direction=[1, 0, 0], radius=0.03, speed=0.5, start=t_first - 0.6 * T,
+                    end=1.0, l0=TANK_L0)  # its disc on the block's lattice points; a layer due 0.1 T before t_first
+    n0 = len(s.x)
+    s.attach_flows([free, buried], [], logging.getLogger("t"))
+    s.t = t_first
+    with caplog.at_level(logging.WARNING):
+        added = s.emit_inflow()
+        s.t += T
+        assert s.emit_inflow() == 0
+    assert added == 5 * len(free.disc) and s.inflow_particles == added and len(s.x) == n0 + added
+    assert list(s.inflow_layers) == [5, 2] and list(s.inflow_skipped) == [0, 2]
+    assert caplog.text.count("inflow 1 blocked") == 1 and "inflow 0" not in caplog.text
+    assert np.array_equal(s.id[n0:], np.arange(n0, n0 + added)) and s.next_id == n0 + added
+    for k in range(5):
+        tau = t_first - free.layer_time(k)
+        layer = slice(n0 + k * len(free.disc), n0 + (k + 1) * len(free.disc))
+        assert np.allclose(s.x[layer].mean(axis=0), [0.1, 0.05, 0.25 - 0.5 * tau - 0.5 * G * tau ** 2], atol=1e-12)
+        assert np.allclose(s.v[layer], [0, 0, -0.5 - G * tau], atol=1e-12)
+    # the layers are v T apart along the jet: N_disc l0^3 / (pi r^2) (1.27 l0 for this 9-particle disc)
+    assert T * free.speed == pytest.approx(9 * TANK_L0 ** 3 / (math.pi * 0.03 ** 2))

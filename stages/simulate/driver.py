@@ -481,6 +481,10 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
             save_checkpoint(ckpt_dir, f, {**solver.state(), **_stats_to(stats)})
         progress.advance()
     stats["wall_seconds"] += time.perf_counter() - t0
+    for i, n in enumerate(solver.inflow_skipped):
+        if n:
+            ctx.log.warning("inflow %d: %d of its %d layers were skipped (blocked by the fluid at the nozzle)", i, n,
+                            solver.inflow_layers[i])
     # the final state in the entry itself, so a longer shot can continue from it
     save_checkpoint(ctx.out_dir, count - 1, {**solver.state(), **_stats_to(stats)})
     sim_seconds = (count - 1) / fps
