@@ -153,9 +153,9 @@ class SolverBase:
         while self.t < t_end:
             if self.inflows:
                 self.emit_inflow()
-                if len(self.x) == 0:  # nothing to step yet: on to the next layer's time
-                    self.t = min(t_end, self._next_layer_time())
-                    continue
+            if len(self.x) == 0:  # nothing to step (yet, or any more): on to the next layer's time
+                self.t = min(t_end, self._next_layer_time())
+                continue
             try:
                 dt = self.step(t_end)
             except BlowUp:
@@ -198,6 +198,8 @@ class SolverBase:
         self.inflow_particles = int(s["inflow_particles"])
 
     def _next_layer_time(self) -> float:
+        if not self.inflows:
+            return math.inf
         times = [jet.layer_time(int(k)) for jet, k in zip(self.inflows, self.inflow_layers)
                  if jet.layer_time(int(k)) < jet.end]
         return min(times, default=math.inf)
