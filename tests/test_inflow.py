@@ -15,7 +15,7 @@ from click.testing import CliRunner
 from pipeline.cli import main
 from pipeline.stage import Artifact, StageError
 from pipeline.testing import run_stage, stage_context
-from stages.common.formats import ParticleMeta, load_particle_frame
+from stages.common.formats import ParticleMeta, load_particle_frame, load_surface
 from stages.common.sdf import box_interior_sdf, grid_from_function
 from stages.simulate.dfsph import DFSPHSimulate
 from stages.simulate.inflow import Inflow
@@ -92,6 +92,28 @@ def test_jet_follows_the_ballistic_parabola(jet_run):
         xc, z = float(f.x[sl, 0].mean()) - x0, float(f.x[sl, 2].mean())
         drop = G * xc ** 2 / (2.0 * JET["speed"] ** 2)
         assert abs(z - (z0 - drop)) <= 0.5 * JET_L0 + 0.03 * drop, (name, X, z, z0 - drop)
+
+
+def test_points_layer_and_surface_take_a_changing_particle_count(jet_run):
+    """Frame 0 of the jet scene is empty and the count grows: particles.usdc has each frame's points and
+    ids, and marching cubes gives an empty surface for frame 0 and a surface for the last frame."""
+    from pxr import Usd, UsdGeom
+
+    from stages.surface_extract.marching_cubes import MarchingCubes
+    _, out = jet_run
+    count = JET_SCENE["scene"]["frames"]["count"]
+    stage = Usd.Stage.Open(str(out / "particles.usdc"))
+    pts = UsdGeom.Points(stage.GetPrimAtPath("/World/Particles"))
+    lengths = [len(load_particle_frame(out, f)) for f in range(count)]
+    assert lengths[0] == 0 and lengths == sorted(lengths) and lengths[-1] > 0
+    for f in range(count):
+        ids = pts.GetIdsAttr().Get(f)
+        assert len(pts.GetPointsAttr().Get(f)) == lengths[f] == len(ids)
+        assert np.array_equal(np.asarray(ids), load_particle_frame(out, f).id)
+    surf = run_stage(MarchingCubes, out.parent / "surface", scene=JET_SCENE, inputs={"particles": out},
+                     frames=(0, count - 1))
+    first, last = load_surface(surf, 0), load_surface(surf, count - 1)
+    assert len(first.faces) == 0 and len(last.faces) > 100
 
 
 # -- a tank with a tap and an overflow drain -------------------------------------------------------------
