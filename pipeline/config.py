@@ -222,10 +222,12 @@ def apply_override(data: dict, assignment: str, lines: _Lines) -> None:
 def _first_error(err: ValidationError, prefix: tuple, lines: _Lines) -> ConfigError:
     e = err.errors(include_url=False)[0]
     loc = prefix + tuple(e["loc"])
-    # pydantic puts the union tag into loc (walls.0.builtin.size): drop tags that are not keys
+    # pydantic puts the union tag into loc (walls.0.builtin.size): drop tags that are not keys (only in the
+    # lists of unions: a sink's 'box' is a key)
     clean: list = []
     for i, p in enumerate(loc):
-        if isinstance(p, str) and i > 0 and isinstance(loc[i - 1], int) and p in {"builtin", "file", "usd", "box", "sphere", "mesh"}:
+        if (isinstance(p, str) and i > 1 and isinstance(loc[i - 1], int) and loc[i - 2] in ("walls", "emitters")
+                and p in {"builtin", "file", "usd", "box", "sphere", "mesh"}):
             continue
         if isinstance(p, str) and (p in {"float", "int", "str", "bool"} or p.startswith("tuple[")):
             continue  # pydantic's union member tags (scale: float | Vec3)

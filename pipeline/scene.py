@@ -60,7 +60,7 @@ class Domain(Model):
     @model_validator(mode="after")
     def _ordered(self) -> "Domain":
         if any(a >= b for a, b in zip(self.min, self.max)):
-            raise ValueError("domain.min must be below domain.max on every axis")
+            raise ValueError("min must be below max on every axis")
         return self
 
 
@@ -229,11 +229,67 @@ EmitterSpec = Annotated[
 ]
 
 
+class Inflow(Model):
+    """A continuous emitter (a tap, a nozzle): a round jet leaving the disc of ``radius`` around ``center``
+    normal to ``direction`` at ``speed``, at the volume rate pi radius^2 speed from ``start`` to ``end``
+    (stages/simulate/inflow.py)."""
+
+    center: Vec3 = Field(description="centre of the emitting disc, scene units")
+    direction: Vec3 = Field(description="the jet's direction (normalised; not zero)")
+    radius: float = Field(gt=0, description="radius of the jet, scene units (at least the fluid spacing)")
+    speed: float = Field(gt=0, description="jet speed, scene units per second")
+    start: float = Field(0.0, ge=0, description="when the jet starts, seconds")
+    end: float | None = Field(None, gt=0, description="when the jet stops, seconds; default: the end of the shot")
+
+    _fin = field_validator("center")(_finite)
+
+    @field_validator("direction")
+    @classmethod
+    def _unit(cls, v: Vec3) -> Vec3:
+        n = math.sqrt(sum(c * c for c in v)) if all(math.isfinite(c) for c in v) else 0.0
+        if not n > 0:
+            raise ValueError("expected a finite non-zero vector")
+        return (v[0] / n, v[1] / n, v[2] / n)
+
+    @model_validator(mode="after")
+    def _ordered(self) -> "Inflow":
+        if self.end is not None and self.end <= self.start:
+            raise ValueError(f"end ({self.end:g} s) must be after start ({self.start:g} s)")
+        return self
+
+
+class Sink(Model):
+    """A drain: particles whose centre enters the box are removed (counted as 'sunk' in the statistics)."""
+
+    box: Domain = Field(description="the sink's axis-aligned box, scene units")
+
+
 class Fluid(Model):
     spacing: float = Field(gt=0, description="particle spacing l0, scene units")
     density: float = Field(1000.0, gt=0, description="rest density rho0, kg/m^3")
+    # before the emitters: their check needs to know whether a jet fills the scene instead
+    inflow: list[Inflow] = Field(default_factory=list, description="continuous emitters (jets) adding fluid during the run")
+    sinks: list[Sink] = Field(default_factory=list, description="boxes that remove the fluid entering them (drains)")
     emitters: list[EmitterSpec] = Field(
-        min_length=1, description="where the fluid starts: box, sphere or mesh volumes")
+        default_factory=list, validate_default=True,
+        description="where the fluid starts: box, sphere or mesh volumes (none if an inflow fills the scene)")
+
+    @field_validator("inflow")
+    @classmethod
+    def _wide_enough(cls, v: list[Inflow], info) -> list[Inflow]:
+        l0 = info.data.get("spacing")
+        for i, jet in enumerate(v):
+            if l0 is not None and jet.radius < l0:
+                raise ValueError(f"inflow {i}: radius {jet.radius:g} is below the spacing {l0:g} "
+                                 "(a jet needs a few particles across)")
+        return v
+
+    @field_validator("emitters")
+    @classmethod
+    def _some_fluid(cls, v: list, info) -> list:
+        if not v and not info.data.get("inflow"):
+            raise ValueError("needs at least one emitter (or a fluid.inflow)")
+        return v
 
 
 # -- effects (issue 8: only the declared ones are compiled in and computed) --------------------

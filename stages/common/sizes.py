@@ -15,13 +15,17 @@ BYTES_PER_PARTICLE = 1024
 BYTES_PER_SDF_NODE = 24
 
 
-def emitted_particles(fluid) -> float | None:
-    """Particles the emitters make on the l0 lattice (before those inside walls are dropped); None when
-    a mesh emitter makes it unknown."""
+def emitted_particles(fluid, shot_seconds: float = 0.0) -> float | None:
+    """Particles the emitters make on the l0 lattice (before those inside walls are dropped), plus what
+    the inflows emit over a shot of ``shot_seconds`` (pi r^2 v per second); None when a mesh emitter
+    makes it unknown."""
     if fluid is None:
         return None
     l0 = fluid.spacing
     n = 0.0
+    for jet in fluid.inflow:
+        seconds = max(min(jet.end if jet.end is not None else shot_seconds, shot_seconds) - jet.start, 0.0)
+        n += math.pi * jet.radius ** 2 * jet.speed * seconds / l0 ** 3
     for em in fluid.emitters:
         if hasattr(em, "box"):
             n += float(np.prod(np.floor((np.asarray(em.box.max) - np.asarray(em.box.min)) / l0 + 1e-9)))  # as emitters.lattice
@@ -61,7 +65,7 @@ def simulate_estimate(ctx, cfl: float, sound_factor: float | None, support: floa
     c = sound_factor v (weakly compressible; None for incompressible solvers), over count / fps seconds.
     The SDF grid read by the solver is counted too (cell 0.5 l0, as sdf_bake's default)."""
     scene, fluid, effects = ctx.scene["scene"], ctx.scene["fluid"], ctx.scene.get("effects")
-    n = emitted_particles(fluid)
+    n = emitted_particles(fluid, scene.frames.count / scene.frames.fps)
     if n is None:
         return None
     out: dict = {"particles": n, "memory_bytes": n * BYTES_PER_PARTICLE * (support / 2.0) ** 3}
@@ -69,7 +73,8 @@ def simulate_estimate(ctx, cfl: float, sound_factor: float | None, support: floa
     if box is not None:
         out["memory_bytes"] += float(np.prod(np.ceil((box[1] - box[0]) / (0.5 * fluid.spacing)) + 1)) * 4
     mpu = scene.units.meters_per_unit
-    v = max((float(np.linalg.norm(em.velocity)) for em in fluid.emitters), default=0.0) * mpu
+    v = max([float(np.linalg.norm(em.velocity)) for em in fluid.emitters] + [jet.speed for jet in fluid.inflow],
+            default=0.0) * mpu
     if effects is not None and effects.gravity is not None:
         height = float(np.max(box[1] - box[0])) if box is not None else _fluid_extent(fluid)
         v = max(v, math.sqrt(2.0 * effects.gravity.g * height * mpu))

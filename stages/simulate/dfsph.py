@@ -296,7 +296,8 @@ class DFSPHSolver(SolverBase):
     def state(self) -> dict:
         return {"x": self.x, "v": self.v, "id": self.id, "kappa": self.kappa, "kappa_v": self.kappa_v, "t": np.float64(self.t),
                 "steps": np.int64(self.steps), "left_domain": np.int64(self.left_domain),
-                "iterations": np.asarray(self.iterations, np.int64), "solve_error": np.asarray(self.solve_error)}
+                "iterations": np.asarray(self.iterations, np.int64), "solve_error": np.asarray(self.solve_error),
+                **self.flow_state()}
 
     def load_state(self, s: Mapping) -> None:
         self.x = np.ascontiguousarray(s["x"], np.float64)
@@ -307,6 +308,7 @@ class DFSPHSolver(SolverBase):
         self.t = float(s["t"])
         self.steps = int(s["steps"])
         self.left_domain = int(s["left_domain"])
+        self.load_flow_state(s)
         self.iterations = [int(k) for k in s["iterations"]]
         self.solve_error = [float(e) for e in s["solve_error"]]
         self._alloc()

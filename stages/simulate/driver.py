@@ -11,6 +11,7 @@ gravity in m/s^2, so a scene in centimetres (meters_per_unit 0.01) is converted 
 from __future__ import annotations
 
 import copy
+import logging
 import math
 import time
 from dataclasses import dataclass, field
@@ -27,6 +28,7 @@ from stages.common.sdf import SDFGrid, load_bodies, posed_field
 from stages.common.usd_points import write_points_layer
 
 from .emitters import drop_inside_walls, drop_overlaps, emit
+from .inflow import Inflow, Sink, from_config, in_sinks, overlapping
 from .kernels import count_blown
 from .output import iter_frames, latest_checkpoint, restore_frames, save_checkpoint, write_frame
 
@@ -134,13 +136,26 @@ class SolverBase:
     """The stepping every solver shares. A solver sets ``x``, ``v``, ``id``, ``t``, ``domain`` and
     ``left_domain``, defines ``step(t_end)`` and ``_resized()`` (rebuild its per-particle buffers), and
     names in ``carried`` its per-particle arrays besides x, v and id that live across steps. With a
-    ``guard`` (set by ``drive``), every step is checked for a blow-up (BlowUp)."""
+    ``guard`` (set by ``drive``), every step is checked for a blow-up (BlowUp).
+
+    Inflows and sinks (inflow.py, attached by ``attach_flows``): before each step the layers due are
+    emitted (appended to the arrays: a copy per layer, not per step), after it the particles in a sink
+    are removed. Their counters are part of the state (``flow_state``), so a resumed run goes on bitwise."""
     carried: tuple[str, ...] = ()
     guard: Guard | None = None
+    inflows: tuple = ()
+    sinks: tuple = ()
+    sunk = 0  # particles removed by the sinks
+    log: logging.Logger | None = None
 
     def advance_to(self, t_end: float) -> int:
         n = 0
         while self.t < t_end:
+            if self.inflows:
+                self.emit_inflow()
+            if len(self.x) == 0:  # nothing to step (yet, or any more): on to the next layer's time
+                self.t = min(t_end, self._next_layer_time())
+                continue
             try:
                 dt = self.step(t_end)
             except BlowUp:
@@ -148,9 +163,93 @@ class SolverBase:
             except FloatingPointError as e:  # a solver's own divergence check (dfsph: dt not finite)
                 raise BlowUp(str(e), self.t, len(self.x), "the time step or the stiffness") from e
             n += 1
+            if self.sinks:
+                self.drain_sinks()
             if self.guard is not None:
                 self.guard.check(self, dt, last_of_frame=self.t >= t_end)
         return n
+
+    # -- inflows and sinks -------------------------------------------------------------------------
+    def attach_flows(self, inflows, sinks, log: logging.Logger | None = None) -> None:
+        """Give the solver the scene's inflows and sinks (inflow.py, SI); new ids continue after the
+        largest id so far."""
+        self.inflows, self.sinks, self.log = tuple(inflows), tuple(sinks), log
+        self.next_id = int(self.id.max()) + 1 if len(self.id) else 0
+        self.inflow_layers = np.zeros(len(self.inflows), np.int64)  # layers due so far, per inflow
+        self.inflow_skipped = np.zeros(len(self.inflows), np.int64)  # of them, not emitted: blocked
+        self.inflow_particles = 0
+        self.sunk = 0
+
+    def flow_state(self) -> dict:
+        """The inflow and sink counters, for the checkpoints (every solver's ``state``)."""
+        next_id = getattr(self, "next_id", int(self.id.max()) + 1 if len(self.id) else 0)
+        return {"next_id": np.int64(next_id), "sunk": np.int64(self.sunk),
+                "inflow_layers": np.asarray(getattr(self, "inflow_layers", ()), np.int64),
+                "inflow_skipped": np.asarray(getattr(self, "inflow_skipped", ()), np.int64),
+                "inflow_particles": np.int64(getattr(self, "inflow_particles", 0))}
+
+    def load_flow_state(self, s: Mapping) -> None:
+        if "next_id" not in s:  # a checkpoint written before inflows existed
+            return
+        self.next_id = int(s["next_id"])
+        self.sunk = int(s["sunk"])
+        self.inflow_layers = np.array(s["inflow_layers"], np.int64)
+        self.inflow_skipped = np.array(s["inflow_skipped"], np.int64)
+        self.inflow_particles = int(s["inflow_particles"])
+
+    def _next_layer_time(self) -> float:
+        if not self.inflows:
+            return math.inf
+        times = [jet.layer_time(int(k)) for jet, k in zip(self.inflows, self.inflow_layers)
+                 if jet.layer_time(int(k)) < jet.end]
+        return min(times, default=math.inf)
+
+    def emit_inflow(self) -> int:
+        """Emit every layer due by self.t (inflow.py); a layer that would land within l0 / 2 of a particle
+        (the jet is blocked: the last layer still at the nozzle) is skipped and counted. Returns the
+        particles added."""
+        xs, vs = [], []
+        for i, jet in enumerate(self.inflows):
+            while jet.due(int(self.inflow_layers[i]), self.t):
+                k = int(self.inflow_layers[i])
+                self.inflow_layers[i] += 1
+                x, v = jet.layer(k, self.t, self.gravity)
+                if overlapping(x, self.x, 0.5 * self.l0) or (xs and overlapping(x, np.concatenate(xs), 0.5 * self.l0)):
+                    if self.inflow_skipped[i] == 0 and self.log is not None:
+                        self.log.warning("inflow %d blocked at t = %.4g s: a layer would land on the fluid and is "
+                                         "skipped (counted in the statistics as inflow_skipped_layers)", i, self.t)
+                    self.inflow_skipped[i] += 1
+                    continue
+                xs.append(x)
+                vs.append(v)
+        if not xs:
+            return 0
+        x, v = np.concatenate(xs), np.concatenate(vs)
+        n = len(x)
+        self.x = np.concatenate([self.x, x])
+        self.v = np.concatenate([self.v, v])
+        self.id = np.concatenate([self.id, np.arange(self.next_id, self.next_id + n, dtype=self.id.dtype)])
+        for name in self.carried:  # new particles start with zero (a warm start from nothing)
+            a = getattr(self, name)
+            setattr(self, name, np.concatenate([a, np.zeros((n,) + a.shape[1:], a.dtype)]))
+        self.next_id += n
+        self.inflow_particles += n
+        self._resized()
+        return n
+
+    def drain_sinks(self) -> int:
+        """Remove the particles whose centre is in a sink (counted in ``sunk``)."""
+        inside = in_sinks(self.x, self.sinks)
+        gone = int(inside.sum())
+        if gone:
+            self._keep(~inside)
+            self.sunk += gone
+        return gone
+
+    def _keep(self, keep: np.ndarray) -> None:
+        for name in ("x", "v", "id") + self.carried:
+            setattr(self, name, np.ascontiguousarray(getattr(self, name)[keep]))
+        self._resized()
 
     def density_ratio(self, p: np.ndarray) -> np.ndarray | None:
         """rho / rho0 at pressure p by the solver's equation of state; None for an incompressible solver
@@ -164,9 +263,7 @@ class SolverBase:
         keep = np.all((self.x >= lo) & (self.x <= hi) & np.isfinite(self.x), axis=1)
         gone = int(len(keep) - keep.sum())
         if gone:
-            for name in ("x", "v", "id") + self.carried:
-                setattr(self, name, np.ascontiguousarray(getattr(self, name)[keep]))
-            self._resized()
+            self._keep(keep)
             self.left_domain += gone
         return gone
 
@@ -207,14 +304,16 @@ def hydrostatic_start(solver: SolverBase) -> None:
 
 def ballistic_speed(setup: "Setup", effects=None) -> float:
     """The fastest a particle of the scene can move without the solver creating energy (m/s): the
-    emitters' top speed, plus the free fall from the top of the fluid to the bottom of the domain (the
-    walls' box without one), plus the wind's speed and an attractor's escape speed sqrt(2 k / s)."""
-    v0 = float(np.linalg.norm(setup.v, axis=1).max()) if len(setup.v) else 0.0
+    emitters' and inflows' top speed, plus the free fall from the top of the fluid (or of an inflow's disc) to
+    the bottom of the domain (the walls' box without one), plus the wind's speed and an attractor's escape
+    speed sqrt(2 k / s)."""
+    v0 = max([float(np.linalg.norm(setup.v, axis=1).max()) if len(setup.v) else 0.0]
+             + [jet.speed for jet in setup.inflows])
     g = float(np.linalg.norm(setup.gravity))
     lo = setup.domain[0] if setup.domain is not None else setup.sdf.origin
     hi = setup.domain[1] if setup.domain is not None else setup.sdf.upper
     corners = np.array([[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1]) for c in (lo[2], hi[2])])
-    height = max(float((setup.x @ setup.up).max() - (corners @ setup.up).min()), setup.spacing)
+    height = max(_fluid_top(setup) - float((corners @ setup.up).min()), setup.spacing)
     bound = v0 + math.sqrt(2.0 * g * height) + 2.0 * wall_speed_bound(setup.bodies)
     if effects is not None:
         if getattr(effects, "wind_velocity", None) is not None:
@@ -239,6 +338,13 @@ def wall_speed_bound(bodies) -> float:
     return top
 
 
+def _fluid_top(setup: "Setup") -> float:
+    """The highest point of the fluid at the start or of an inflow's disc, along up."""
+    tops = [float((setup.x @ setup.up).max())] if len(setup.x) else []
+    tops += [float((jet.disc_points(jet.start) @ setup.up).max()) for jet in setup.inflows]
+    return max(tops)
+
+
 @dataclass
 class Setup:
     """The scene as a solver needs it, in SI units (metres, seconds, kg)."""
@@ -255,6 +361,8 @@ class Setup:
     meters_per_unit: float  # of the scene: frames are written back in scene units
     dropped: int = 0  # emitted particles dropped because they started inside a wall
     bodies: list = field(default_factory=list)  # moving walls: (SDFGrid in its rest frame, RigidMotion), SI
+    inflows: list[Inflow] = field(default_factory=list)  # inflow.py, SI
+    sinks: list[Sink] = field(default_factory=list)
 
 
 def up_vector(up_axis: str) -> np.ndarray:
@@ -287,7 +395,7 @@ def prepare(ctx: Context, inputs: Mapping[str, Artifact], who: str, moving_walls
     x, v, _ = drop_overlaps(x, v, l0, ctx.log)
     # the moving walls where they stand at t = 0 count like the static ones
     x, v, dropped = drop_inside_walls(x, v, posed_field(sdf, bodies, 0.0), l0, ctx.log)
-    if len(x) == 0:
+    if len(x) == 0 and not fluid.inflow:
         raise StageError(f"{who}: the emitters produced no particles in the fluid region "
                          "(fluid.emitters outside the walls or smaller than fluid.spacing?)")
     if mpu != 1.0:  # scene units -> metres
@@ -296,18 +404,45 @@ def prepare(ctx: Context, inputs: Mapping[str, Artifact], who: str, moving_walls
                       band=sdf.band * mpu)
         bodies = [(SDFGrid(origin=b.origin * mpu, spacing=b.spacing * mpu, dist=b.dist * np.float32(mpu),
                            band=b.band * mpu), m.scaled(mpu)) for b, m in bodies]
-    gravity = np.zeros(3)
-    v_ref = float(np.linalg.norm(v, axis=1).max())
-    if effects.gravity is not None:
-        g = effects.gravity.g
-        gravity = -g * up
-        height = float((x @ up).max() - (x @ up).min()) + l0
-        v_ref = max(v_ref, math.sqrt(2.0 * g * height))
     domain = None
     if scene.domain is not None:
         domain = (np.asarray(scene.domain.min, float) * mpu, np.asarray(scene.domain.max, float) * mpu)
+    inflows, sinks = from_config(fluid, mpu)
+    for i, jet in enumerate(inflows):
+        _clear_of_walls(jet, i, sdf, domain, l0, who, ctx.log)
+    gravity = np.zeros(3)
+    v_ref = max([float(np.linalg.norm(v, axis=1).max()) if len(v) else 0.0] + [jet.speed for jet in inflows])
+    if effects.gravity is not None:
+        g = effects.gravity.g
+        gravity = -g * up
+        heights = [x @ up] + [jet.disc_points(jet.start) @ up for jet in inflows]
+        if inflows:  # a jet falls to the bottom of the domain
+            lo, hi = domain if domain is not None else (sdf.origin, sdf.upper)
+            heights.append(np.array([min(lo @ up, hi @ up)]))
+        h = np.concatenate(heights)
+        height = float(h.max() - h.min()) + l0
+        # the fastest a particle gets falling from the top: a jet's speed adds (energy) to the free fall
+        v_top = max([jet.speed for jet in inflows], default=0.0)
+        v_ref = max(v_ref, math.sqrt(v_top ** 2 + 2.0 * g * height))
     return Setup(x=x, v=v, sdf=sdf, spacing=l0, density=fluid.density, gravity=gravity, up=up, v_ref=v_ref,
-                 domain=domain, effects=effects, meters_per_unit=mpu, dropped=dropped, bodies=bodies)
+                 domain=domain, effects=effects, meters_per_unit=mpu, dropped=dropped, inflows=inflows, sinks=sinks,
+                 bodies=bodies)
+
+
+def _clear_of_walls(jet: Inflow, i: int, sdf: SDFGrid, domain, l0: float, who: str, log: logging.Logger) -> None:
+    """Keep the disc points of an inflow at least l0 / 2 from a wall and inside the SDF grid and the
+    domain (as drop_inside_walls does for the emitters); an inflow with none left is a user error."""
+    p = jet.disc_points(jet.start)
+    d, _ = sdf.sample(p)
+    lo, hi = (sdf.origin, sdf.upper) if domain is None else (np.maximum(domain[0], sdf.origin),
+                                                              np.minimum(domain[1], sdf.upper))
+    jet.keep = (d >= (0.5 - 1e-3) * l0) & np.all((p >= lo) & (p <= hi), axis=1)
+    if not jet.keep.any():
+        raise StageError(f"{who}: fluid.inflow.{i}: its disc lies inside a wall or outside the domain")
+    if not jet.keep.all():
+        log.warning("inflow %d: %d of its %d disc particles are inside or within 0.5 l0 of a wall or outside the "
+                    "domain and are not emitted (the jet emits that much less than pi r^2 v)", i,
+                    int((~jet.keep).sum()), len(jet.keep))
 
 
 def to_scene_units(fr: ParticleFrame, mpu: float) -> ParticleFrame:
@@ -337,6 +472,7 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
         source = Path(ctx.resume_from)
         resumed = latest_checkpoint(source, count)
     progress = ctx.progress(f"simulating ({solver_name})", count)
+    solver.attach_flows(setup.inflows, setup.sinks, ctx.log)
     if resumed is not None:
         start, state = resumed
         solver.load_state(state)
@@ -372,11 +508,17 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
             save_checkpoint(ckpt_dir, f, {**solver.state(), **_stats_to(stats)})
         progress.advance()
     stats["wall_seconds"] += time.perf_counter() - t0
+    for i, n in enumerate(solver.inflow_skipped):
+        if n:
+            ctx.log.warning("inflow %d: %d of its %d layers were skipped (blocked by the fluid at the nozzle)", i, n,
+                            solver.inflow_layers[i])
     # the final state in the entry itself, so a longer shot can continue from it
     save_checkpoint(ctx.out_dir, count - 1, {**solver.state(), **_stats_to(stats)})
     sim_seconds = (count - 1) / fps
     stats.update(steps=solver.steps, left_domain=solver.left_domain, sound_speed=solver.c,
-                 mean_dt=sim_seconds / max(solver.steps, 1), particles=int(len(solver.x)))
+                 mean_dt=sim_seconds / max(solver.steps, 1), particles=int(len(solver.x)), sunk=solver.sunk,
+                 inflow_particles=solver.inflow_particles, inflow_layers=solver.inflow_layers.tolist(),
+                 inflow_skipped_layers=solver.inflow_skipped.tolist())
     # scalar summaries, so `pipeline study` can put accuracy against cost
     stats["summary"] = {
         "density_error_mean": float(np.mean(stats["density_error_mean"][1:] or [0.0])),
@@ -400,6 +542,11 @@ def _warm_up(solver: SolverBase, fps: float) -> None:
     this run's types here, outside the stage's recorded cost (Context.warm_up), so a study charges each
     variant its simulation, not the compiler (the first of a process paid seconds of it)."""
     twin = copy.deepcopy(solver)
+    twin.log = None
+    if len(twin.x) == 0:  # a scene filled by an inflow: start from its first layer
+        twin.t = twin._next_layer_time()
+        if not math.isfinite(twin.t) or twin.emit_inflow() == 0:
+            return
     try:
         dt = twin.step(twin.t + 1.0 / fps)
         twin.guard.check(twin, dt, last_of_frame=True)

@@ -249,7 +249,7 @@ class MPSSolver(SolverBase):
     def state(self) -> dict:
         return {"x": self.x, "v": self.v, "id": self.id, "p": self.pr, "t": np.float64(self.t),
                 "steps": np.int64(self.steps), "left_domain": np.int64(self.left_domain),
-                "cg_iterations": np.int64(self.cg_iterations)}
+                "cg_iterations": np.int64(self.cg_iterations), **self.flow_state()}
 
     def load_state(self, s: Mapping) -> None:
         self.x = np.ascontiguousarray(s["x"], np.float64)
@@ -259,6 +259,7 @@ class MPSSolver(SolverBase):
         self.t = float(s["t"])
         self.steps = int(s["steps"])
         self.left_domain = int(s["left_domain"])
+        self.load_flow_state(s)
         self.cg_iterations = int(s["cg_iterations"])
         self._scratch.clear()
         self._alloc()

@@ -260,7 +260,7 @@ class SPHSolver(SolverBase):
 
     def state(self) -> dict:
         return {"x": self.x, "v": self.v, "id": self.id, "t": np.float64(self.t), "steps": np.int64(self.steps),
-                "left_domain": np.int64(self.left_domain)}
+                "left_domain": np.int64(self.left_domain), **self.flow_state()}
 
     def load_state(self, s: Mapping) -> None:
         self.x = np.ascontiguousarray(s["x"], np.float64)
@@ -270,6 +270,7 @@ class SPHSolver(SolverBase):
         self.steps = int(s["steps"])
         self.left_domain = int(s["left_domain"])
         self._pose_bodies(self.t)
+        self.load_flow_state(s)
         self._scratch.clear()
         self._alloc()
 
