@@ -110,10 +110,13 @@ def test_a_body_at_rest_is_the_static_wall_and_moves_with_its_pose():
         assert np.abs(acc - acc0).max() < 1e-6 * np.abs(acc0).max()
 
 
-def sloshing_frequency(L=0.2, depth=0.1, width=0.06, l0=0.01, amplitude=0.002, cycles=2, free=3.2):
+def sloshing_frequency(L=0.2, depth=0.1, width=0.2, l0=0.01, amplitude=0.002, cycles=2, free=3.5):
     """Sway a tank at the linear f1 for ``cycles`` periods, stop it, and measure the free oscillation of
-    the fluid's centre of mass relative to the tank (the first sloshing mode moves it; the tank is at
-    rest then) by its zero crossings over ``free`` periods. Returns (measured, theory) in Hz."""
+    the first sloshing mode by the zero crossings of its modal velocity over ``free`` periods: the
+    particles' velocities projected on the mode's, u ~ (sin kx cosh kz, -cos kx sinh kz) from the floor
+    and the left wall (orthogonal to the other modes; the tank is at rest then). Returns (measured,
+    theory) in Hz. (A tank 6 l0 wide rings 4-6 % fast, with free-slip walls too: the side walls' share
+    of the wall terms; 12 l0 wide, 3 %; 20 l0, 1 %.)"""
     k = math.pi / L
     f1 = math.sqrt(G * k * math.tanh(k * depth)) / (2.0 * math.pi)
     w = 2.0 * math.pi * f1
@@ -127,18 +130,19 @@ def sloshing_frequency(L=0.2, depth=0.1, width=0.06, l0=0.01, amplitude=0.002, c
                   bodies=[(tank, Sway(amplitude, w, stop, pivot=0.5 * (lo + hi)))])
     hydrostatic_start(s)
     fps = 120.0
-    t, cm = [], []
+    t, q = [], []
     for f in range(1, int((stop + free / f1) * fps) + 1):
         s.advance_to(f / fps)
         if s.t > stop:
-            t.append(s.t)
-            cm.append(s.x[:, 0].mean() - 0.5 * L)  # the tank is back at its rest position after the stop
-    t, cm = np.array(t), np.array(cm)
-    cm -= cm.mean()
-    assert np.abs(cm).max() > 0.05 * l0  # it sloshes
-    sign = np.signbit(cm)
+            t.append(s.t)  # the tank is back at its rest position after the stop
+            xx, zz = s.x[:, 0], s.x[:, 2]
+            q.append(float((s.v[:, 0] * np.sin(k * xx) * np.cosh(k * zz) - s.v[:, 2] * np.cos(k * xx) * np.sinh(k * zz)).mean()))
+    t, q = np.array(t), np.array(q)
+    q -= q.mean()
+    assert np.abs(q).max() > 0.01  # it sloshes (m/s)
+    sign = np.signbit(q)
     idx = np.flatnonzero(sign[1:] != sign[:-1])
-    crossings = t[idx] - cm[idx] * (t[idx + 1] - t[idx]) / (cm[idx + 1] - cm[idx])
+    crossings = t[idx] - q[idx] * (t[idx + 1] - t[idx]) / (q[idx + 1] - q[idx])
     assert len(crossings) >= 5
     measured = (len(crossings) - 1) / (2.0 * (crossings[-1] - crossings[0]))
     return measured, f1
@@ -178,7 +182,9 @@ def test_a_paddle_pushes_water_without_entering_it_and_within_its_work():
     assert worst > 0.0, worst  # never inside the plate (eq. 16 keeps them r_rep = l0 / 2 out)
     assert jx > 0.0
     assert 0.3 * work < ke <= work, (ke, work)
-    front = s.x[:, 0] < motion.pose(s.t)[1][0] + plate_hi[0] + 1.5 * l0
+    face = motion.pose(s.t)[1][0] + plate_hi[0]
+    inner = np.all((s.x[:, 1:] > plate_lo[1:] + 2 * l0) & (s.x[:, 1:] < plate_hi[1:] - 2 * l0), axis=1)
+    front = inner & (s.x[:, 0] > face) & (s.x[:, 0] < face + 1.5 * l0)  # the layer on the plate's face
     assert front.sum() > 20 and abs(s.v[front, 0].mean() / U - 1.0) < 0.15
 
 
