@@ -26,9 +26,10 @@ $(STAMP): pyproject.toml
 
 setup: $(STAMP)
 
+# the dam break with DFSPH (the cheapest solver per simulated second) and a moving wall pouring into a shell
 demo: setup
-	$(BIN)/pipeline run configs/dam_break.yaml
-	$(BIN)/pipeline run configs/dragon.yaml
+	$(BIN)/pipeline run configs/dam_break_dfsph.yaml
+	$(BIN)/pipeline run configs/pour.yaml
 
 test: setup
 	$(BIN)/python -m pytest -q

@@ -114,16 +114,26 @@ def posed_field(static: SDFGrid, bodies: list[tuple[SDFGrid, RigidMotion]], t: f
     if not bodies:
         return static
     dist = static.dist.copy()
-    nx, ny, nz = dist.shape
-    j, k = np.meshgrid(np.arange(ny), np.arange(nz), indexing="ij")
-    plane = np.stack([np.zeros(j.size), j.ravel(), k.ravel()], axis=1) * static.spacing + static.origin
-    d = np.empty(len(plane), np.float64)
-    n = np.empty((len(plane), 3), np.float64)
     for grid, motion in bodies:
-        for i in range(nx):  # one x-slab at a time: a few MB whatever the grid
+        # only the static nodes within the body's grid box where it stands at t (its field beyond that box
+        # is the clamped border value, at least the band: the minimum leaves those nodes as they are)
+        lo, hi = grid.origin, grid.upper
+        corners = np.array([[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1]) for c in (lo[2], hi[2])])
+        world = motion.to_world(corners, t)
+        i0 = np.clip(np.floor((world.min(axis=0) - static.origin) / static.spacing).astype(int), 0, np.array(dist.shape) - 1)
+        i1 = np.clip(np.ceil((world.max(axis=0) - static.origin) / static.spacing).astype(int) + 1, 0, np.array(dist.shape))
+        ny, nz = i1[1] - i0[1], i1[2] - i0[2]
+        if np.any(i1 <= i0):
+            continue
+        j, k = np.meshgrid(np.arange(i0[1], i1[1]), np.arange(i0[2], i1[2]), indexing="ij")
+        plane = np.stack([np.zeros(j.size), j.ravel(), k.ravel()], axis=1) * static.spacing + static.origin
+        d = np.empty(len(plane), np.float64)
+        n = np.empty((len(plane), 3), np.float64)
+        for i in range(i0[0], i1[0]):  # one x-slab at a time: a few MB whatever the grid
             plane[:, 0] = static.origin[0] + i * static.spacing
             sdf_sample_many(grid.dist, grid.origin, 1.0 / grid.spacing, np.ascontiguousarray(motion.to_rest(plane, t)), d, n)
-            np.minimum(dist[i], np.clip(d, -static.band, static.band).reshape(ny, nz).astype(np.float32), out=dist[i])
+            block = dist[i, i0[1]:i1[1], i0[2]:i1[2]]
+            np.minimum(block, np.clip(d, -static.band, static.band).reshape(ny, nz).astype(np.float32), out=block)
     return SDFGrid(static.origin, static.spacing, dist, static.band, static.shell_thickness)
 
 

@@ -349,6 +349,8 @@ def map_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, x, y, z
 # ``pose`` (bodies, POSE_SIZE) float64, rewritten in place each step (set_pose): R row-major (0:9), the
 # pivot's current world position c (9:12), its rest position p0 (12:15), the pivot's velocity (15:18), the
 # angular velocity (18:21): x_local = R^T (x - c) + p0 and the wall's velocity at x is v + omega x (x - c).
+# The functions below that take the whole bundle are called, not inlined: the force kernel calls
+# wall_density six times, and inlining each with its loop over the bodies made its build minutes long.
 Walls = namedtuple("Walls", "sdf sdf_o sdf_inv index bricks shape wo winv fix_rho inv_dr "
                             "b_sdf b_grid b_sdf_o b_sdf_inv b_index b_igrid b_bricks b_shape b_wo b_winv pose")
 POSE_SIZE = 21
@@ -459,7 +461,7 @@ def body_map(w, k, lx, ly, lz, c):
     return brick_sample(_body_index(w, k), w.b_bricks, w.b_shape[k], wo[0], wo[1], wo[2], w.b_winv[k], lx, ly, lz, c)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def wall_density(w, h, x, y, z):
     """Z_rho of every wall at a point (eq. 12): the static walls' map and each moving wall's, each times
     the flat-wall factor at its own SDF distance (the WCSPH density adds it, its wall force differentiates it)."""
@@ -471,7 +473,7 @@ def wall_density(w, h, x, y, z):
     return s + bodies_density(w, h, x, y, z)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def bodies_density(w, h, x, y, z):
     """The moving walls' share of wall_density."""
     s = 0.0
@@ -483,7 +485,7 @@ def bodies_density(w, h, x, y, z):
     return s
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def bodies_nearest(w, x, y, z, d, nx, ny, nz):
     """(d, nx, ny, nz) of the nearest wall: the given static wall's, or a moving wall's if nearer."""
     for k in range(w.pose.shape[0]):
@@ -493,7 +495,7 @@ def bodies_nearest(w, x, y, z, d, nx, ny, nz):
     return d, nx, ny, nz
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def static_distance(w, d, x, y, z):
     """The static walls' SDF distance at x, given ``d`` the nearest wall's (the same without moving walls)."""
     if w.pose.shape[0] == 0:
@@ -502,7 +504,7 @@ def static_distance(w, d, x, y, z):
     return ds
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def bodies_viscous(w, fix_vis, h, x, y, z, vx, vy, vz):
     """sum over the moving walls within h of fix_vis(d_b) Z_vis,b (v_b(x) - v): the no-slip term of eq. 13-15
     against each wall's own velocity."""
@@ -521,7 +523,7 @@ def bodies_viscous(w, fix_vis, h, x, y, z, vx, vy, vz):
     return ax, ay, az
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def bodies_push_out(w, px, py, pz, vx, vy, vz, r_rep, max_corr):
     """Eq. 16 against every moving wall: out along its normal to r_rep (at most max_corr per projection), and
     the velocity into the wall relative to the wall's own removed (the wall pushes the fluid)."""
