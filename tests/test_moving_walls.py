@@ -110,13 +110,13 @@ def test_a_body_at_rest_is_the_static_wall_and_moves_with_its_pose():
         assert np.abs(acc - acc0).max() < 1e-6 * np.abs(acc0).max()
 
 
-def sloshing_frequency(L=0.2, depth=0.1, width=0.2, l0=0.01, amplitude=0.002, cycles=2, free=3.5):
+def sloshing_frequency(L=0.2, depth=0.1, width=0.2, l0=0.0125, amplitude=0.002, cycles=2, free=3.5):
     """Sway a tank at the linear f1 for ``cycles`` periods, stop it, and measure the free oscillation of
     the first sloshing mode by the zero crossings of its modal velocity over ``free`` periods: the
     particles' velocities projected on the mode's, u ~ (sin kx cosh kz, -cos kx sinh kz) from the floor
     and the left wall (orthogonal to the other modes; the tank is at rest then). Returns (measured,
-    theory) in Hz. (A tank 6 l0 wide rings 4-6 % fast, with free-slip walls too: the side walls' share
-    of the wall terms; 12 l0 wide, 3 %; 20 l0, 1 %.)"""
+    theory) in Hz. (At l0 = 1 cm a tank 6 l0 wide rings 4-6 % fast, with free-slip walls too: the side
+    walls' share of the wall terms; 12 l0 wide, 3 %; 20 l0, 1-2 %. Here 16 l0: -1 % by the crossings.)"""
     k = math.pi / L
     f1 = math.sqrt(G * k * math.tanh(k * depth)) / (2.0 * math.pi)
     w = 2.0 * math.pi * f1
@@ -200,7 +200,7 @@ def _simulate(tmp_path, walls, tag, count=10):
 
     tank = {"builtin": "box_tank", "size": [0.8, 1.2, 0.9], "center": [1.0, 0.5, 0.0]}
     scene = {"scene": {"name": "t", "frames": {"fps": 25, "count": count}}, "walls": [tank, *walls],
-             "fluid": {"spacing": 0.04, "emitters": [{"box": {"min": [0.6, -0.1, 0.0], "max": [1.4, 1.1, 0.52]}}]},
+             "fluid": {"spacing": 0.05, "emitters": [{"box": {"min": [0.6, -0.1, 0.0], "max": [1.4, 1.1, 0.52]}}]},
              "effects": {"gravity": {}, "viscosity": {"mu": MU}}}
     w = run_stage(TrimeshImport, tmp_path / f"walls_{tag}", scene=scene, config_dir=tmp_path)
     s = run_stage(Open3dBake, tmp_path / f"sdf_{tag}", scene=scene, inputs={"walls": w})
@@ -231,7 +231,7 @@ def test_an_animated_usd_prop_moves_the_fluid_as_its_keyframes_do(tmp_path):
     for f, (a, b) in enumerate(zip(usd, keyed)):
         both = ~np.isnan(a[:, 0]) & ~np.isnan(b[:, 0])
         assert both.mean() > 0.99
-        assert np.abs(a[both] - b[both]).max() < 0.05 * 0.04, f  # 5 % of a spacing
+        assert np.abs(a[both] - b[both]).max() < 0.05 * 0.05, f  # 5 % of a spacing
         d, _ = cube.sample(motion.to_rest(a[both], f / 25.0))
         assert d.min() > 0.0, (f, d.min())
         moved = max(moved, float(np.linalg.norm(a[both] - usd[0][both], axis=1).max()))
