@@ -16,23 +16,21 @@ optional argument that is either a tuple of its constants or None. Numba types N
 prunes every ``if arg is not None:`` branch before lowering (dead-branch pruning), and cache=True keeps
 one machine-code build per effect set on disk, so an absent effect costs nothing per pair.
 
-    forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0,
-           wmap, wo, winv, inv_dr, gravity, acc,
+    forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, walls, gravity, acc,
            pressure, viscosity, tension, adhesion, friction, wind, attractor, neighbours=None, inv_rho=None,
-           correction=None, wall_gradient=None)
+           correction=None, wall_gradient=None, mirrored_wall=None)
 
     common   x, v (N,3) positions m, velocities m/s; rho (N,) density kg/m^3; d (N,) SDF distance m and
-             nrm (N,3) SDF normal (into the fluid), both from density_pressure; starts/lo/inv_cell/dims
-             the cell grid (neighbours.py); h support m; mass kg; rho0 kg/m^3; wmap/wo/winv the wall
-             maps (walls/maps.py dense array, or the bricked (index, bricks, shape) of walls.maps.BrickWallMaps)
-             and inv_dr their tables' 1/dr; gravity (3,) m/s^2 (always added;
+             nrm (N,3) SDF normal (into the fluid) of the nearest wall, both from density_pressure;
+             starts/lo/inv_cell/dims the cell grid (neighbours.py); h support m; mass kg; rho0 kg/m^3;
+             walls the walls.maps.Walls bundle (static SDF and bricked map, the moving walls and their
+             poses, the flat-wall factor fix_rho and the tables' 1/dr); gravity (3,) m/s^2 (always added;
              zeros without the effect); acc (N,3) output, m/s^2 (overwritten).
-    pressure   (p, grad_coef, fix_rho, av, sdf, sdf_o, sdf_inv): p (N,) Pa; grad_coef the Spiky gradient
-               coefficient (eq. 8, divided by the lattice factor); fix_rho the wall density's flat-wall
-               factor and the SDF grid (dist, origin, 1/spacing): the wall force is -(p_i / rho_i^2) grad of
-               the wall density Z_rho fix_rho(d); av = alpha c h,
-               Monaghan's artificial viscosity (part of the WCSPH pressure term). None: no pressure
-               at all (DFSPH calls it this way for the non-pressure accelerations).
+    pressure   (p, grad_coef, av): p (N,) Pa; grad_coef the Spiky gradient coefficient (eq. 8, divided by
+               the lattice factor); av = alpha c h, Monaghan's artificial viscosity (part of the WCSPH
+               pressure term). The wall force is -(p_i / rho_i^2) grad of every wall's density share
+               (walls.maps.wall_density). None: no pressure at all (DFSPH calls it this way for the
+               non-pressure accelerations).
     viscosity  (mu, lap_coef, fix_vis): Pa s, eq. 9 coefficient, the Z_vis table (zeros = no wall term).
     tension    (k, normals, coh_coef): Akinci 2013 constant k (effects.tension_constant), the (N,3)
                particle normals from ``surface_normals`` (pointing into the fluid), 32 / (pi h^9).
