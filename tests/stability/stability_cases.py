@@ -68,7 +68,8 @@ class _SetupView:
 
     def __getattr__(self, name):
         s = self.scene
-        return {"v": s.v, "x": s.x, "gravity": s.gravity, "domain": None, "sdf": s.sdf, "spacing": s.l0}[name]
+        return {"v": s.v, "x": s.x, "gravity": s.gravity, "domain": None, "sdf": s.sdf, "spacing": s.l0, "inflows": [],
+                "bodies": []}[name]
 
 
 class _Quiet:
