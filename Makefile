@@ -31,8 +31,9 @@ demo: setup
 	$(BIN)/pipeline run configs/dam_break_dfsph.yaml
 	$(BIN)/pipeline run configs/pour.yaml
 
+# two pytest workers: most of the suite's time is numba compiling, which is single-threaded
 test: setup
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2
 
 bench: setup
 	$(BIN)/python benchmarks/run_all.py
