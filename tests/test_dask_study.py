@@ -182,3 +182,46 @@ def test_batch_of_shots_with_a_broken_one(tmp_path, plugin, scheduler):
         assert len(list((out / "frames").glob("frame_*.txt"))) == 3
         assert (out / "usd" / "scene.txt").is_file()
     assert_consistent(tmp_path / "cache")
+
+
+def test_the_readme_slurm_recipe_starts_workers_that_run_a_batch(tmp_path, plugin, monkeypatch):
+    """The README's SLURM recipe, executed as written (only ``scale``, which would call sbatch, is held
+    back): the job script it makes, run by bash as SLURM would run it, starts a worker with one task
+    thread, the declared resources and the numba threads; a batch of shots sent to its scheduler
+    completes."""
+    import re
+
+    jobqueue = pytest.importorskip("dask_jobqueue")
+    from distributed import Client
+
+    block = next(b for b in re.findall(r"```python\n(.*?)```", (REPO / "README.md").read_text(), re.S)
+                 if "SLURMCluster" in b)
+    scaled = []
+    monkeypatch.setattr(jobqueue.SLURMCluster, "scale", lambda self, *a, **kw: scaled.append(kw or a))
+    scope: dict = {}
+    exec(compile(block, "README.md", "exec"), scope)
+    cluster = scope["cluster"]
+    script = tmp_path / "job.sh"
+    script.write_text(cluster.job_script())
+    worker = subprocess.Popen(["bash", str(script)], env=_env(plugin), stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL, start_new_session=True)
+    try:
+        client = Client(cluster.scheduler_address, timeout="30s")
+        client.wait_for_workers(1, timeout=60)
+        (info,) = client.scheduler_info(n_workers=-1)["workers"].values()
+        assert info["nthreads"] == 1  # one shot per worker at a time: the cores are numba's
+        assert info["resources"] == {"threads": 8.0, "memory": 64e9}
+        assert set(client.run(lambda: os.environ.get("NUMBA_NUM_THREADS")).values()) == {"8"}
+        shots = [write_config(tmp_path / n, name=n, count=2) for n in ("a", "b")]
+        r = subprocess.run([sys.executable, "-m", "pipeline.cli", "run", *map(str, shots), "--executor", "dask",
+                            "--scheduler", cluster.scheduler_address, "--cache", str(tmp_path / "cache"), "-q"],
+                           env=_env(plugin), capture_output=True, text=True, timeout=120)
+        assert r.returncode == 0, r.stderr
+        for cfg in shots:
+            assert len(list((cfg.parent / "out" / cfg.stem / "frames").glob("frame_*.txt"))) == 2
+        assert scaled[0] == {"jobs": 4}  # what the recipe asks of SLURM
+        client.close()
+    finally:
+        os.killpg(worker.pid, signal.SIGTERM)
+        worker.wait(30)
+        cluster.close()
