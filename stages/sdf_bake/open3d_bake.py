@@ -300,10 +300,8 @@ def bake_bodies(wm: WallMesh, out_dir: Path, l0: float, p: BakeParams, shells: n
         return []
     (out_dir / BODIES_DIR).mkdir()
     entries = []
-    for k, (i, body) in enumerate(bodies):
-        used = body.vertices[np.unique(body.faces)]
-        pad = (p.band + p.margin) * l0
-        grid, stats = bake(body, used.min(axis=0) - pad, used.max(axis=0) + pad, p.cell * l0, p.band * l0,
+    for k, ((i, body), (lo, hi)) in enumerate(zip(bodies, body_boxes(wm, l0, p))):
+        grid, stats = bake(body, lo, hi, p.cell * l0, p.band * l0,
                            p.exact_reach, p.sign_rays, shells, p.sign, p.min_thickness_l0() * l0)
         name = f"{BODIES_DIR}/{k}.npz"
         grid.save_file(out_dir / name)
@@ -315,11 +313,40 @@ def bake_bodies(wm: WallMesh, out_dir: Path, l0: float, p: BakeParams, shells: n
     return entries
 
 
-def check_grid_memory(ctx: Context, lo: np.ndarray, hi: np.ndarray, h: float) -> None:
-    """Refuse (exit 2, unless --yes) a grid larger than the memory available, before allocating it: the
-    plan's size check before the run knows it only from scene.domain or builtin walls."""
-    shape, size = sdf_estimate(lo, hi, h)
-    ctx.check_memory(size["memory_bytes"], f"{int(size['sdf_nodes']):,} SDF nodes, grid {'x'.join(map(str, shape))}")
+def body_boxes(wm: WallMesh, l0: float, p: BakeParams) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Each moving wall's own grid box: its rest bounds padded by band + margin."""
+    pad = (p.band + p.margin) * l0
+    boxes = []
+    for i, _ in wm.motions():
+        used = wm.vertices[np.unique(wm.faces[wm.wall_id == i])]
+        boxes.append((used.min(axis=0) - pad, used.max(axis=0) + pad))
+    return boxes
+
+
+def grids_estimate(wm: WallMesh | None, domain, l0: float, p: BakeParams) -> tuple[list[tuple], dict]:
+    """The shapes of every grid the bake allocates (the static one, then each moving wall's) and their
+    nodes and memory together. ``wm`` None: scene.domain alone (no moving wall known yet)."""
+    boxes = [grid_box(wm, domain, l0, p)] + (body_boxes(wm, l0, p) if wm is not None else [])
+    sizes = [sdf_estimate(lo, hi, p.cell * l0) for lo, hi in boxes]
+    return [shape for shape, _ in sizes], {k: sum(size[k] for _, size in sizes) for k in sizes[0][1]}
+
+
+def builtin_boxes(corners: np.ndarray, walls: list) -> WallMesh:
+    """The builtin walls as their placed boxes' corners (8 per wall, three triangles using all 8) with
+    their config motions: enough for grid_box and body_boxes before mesh_import has run."""
+    from stages.common.motion import RigidMotion
+
+    n = len(corners) // 8
+    faces = (np.arange(n)[:, None, None] * 8 + np.array([[0, 1, 2], [3, 4, 5], [6, 7, 0]])).reshape(-1, 3)
+    info = []
+    for k, w in enumerate(walls):
+        motion = None
+        if w.motion is not None:
+            box = corners[8 * k:8 * k + 8]
+            pivot = 0.5 * (box.min(axis=0) + box.max(axis=0)) if w.motion.pivot is None else w.motion.pivot
+            motion = RigidMotion.from_keyframes(w.motion.keyframes, pivot).to_json()
+        info.append({"motion": motion})
+    return WallMesh(corners, faces.astype(np.int32), np.repeat(np.arange(n), 3).astype(np.int32), info)
 
 
 def bake(wm: WallMesh, lo: np.ndarray, hi: np.ndarray, h: float, band: float, exact_reach: float = 4.0,
@@ -394,14 +421,15 @@ class Open3dBake(Stage):
         scene, fluid = ctx.scene["scene"], ctx.scene["fluid"]
         if fluid is None:
             return None
-        walls = None
-        if scene.domain is None:
-            corners = builtin_corners(ctx.scene["walls"] or [], scene.units.up_axis)
-            if corners is None or not len(corners):
+        config_walls = ctx.scene["walls"] or []
+        corners = builtin_corners(config_walls, scene.units.up_axis)
+        if corners is None or not len(corners):
+            if scene.domain is None:
                 return None  # walls from files: run checks the memory once they are loaded, before allocating
-            walls = WallMesh(corners, np.zeros((0, 3), np.int32), np.zeros(0, np.int32), [])
-        lo, hi = grid_box(walls, scene.domain, fluid.spacing, params)
-        return sdf_estimate(lo, hi, params.cell * fluid.spacing)[1]
+            walls = None  # the moving walls' own grids are checked by run too
+        else:
+            walls = builtin_boxes(corners, config_walls)
+        return grids_estimate(walls, scene.domain, fluid.spacing, params)[1]
 
     def run(self, ctx: Context, inputs: Mapping[str, Artifact], params: Params) -> None:
         fluid = ctx.scene["fluid"]
@@ -410,7 +438,9 @@ class Open3dBake(Stage):
         l0 = fluid.spacing
         wm = WallMesh.load(inputs["walls"].path)
         lo, hi = grid_box(wm, ctx.scene["scene"].domain, l0, params)
-        check_grid_memory(ctx, lo, hi, params.cell * l0)
+        shapes, size = grids_estimate(wm, ctx.scene["scene"].domain, l0, params)
+        ctx.check_memory(size["memory_bytes"], f"{int(size['sdf_nodes']):,} SDF nodes, grid "
+                         + " + ".join("x".join(map(str, shape)) for shape in shapes))
         shells = wall_thicknesses(wm, l0, params, ctx.log)
         # a moving wall is baked apart, in its own frame (bodies/); sdf.npz holds the static walls only
         # (+band everywhere when every wall moves)

@@ -198,6 +198,21 @@ def test_size_refusal_of_a_builtin_tank_whose_sdf_exceeds_memory_before_anything
     assert err.endswith("stage sdf_bake.open3d: bake reached") and bake_calls == [(200_025,) * 3], (err, bake_calls)
 
 
+def test_size_refusal_counts_where_a_moving_wall_goes_and_its_own_grid(tmp_path, bake_calls):
+    """A 10 cm builtin box keyframed 1 km away: the static grid must cover where it goes (the fluid can follow
+    it) and the box has a grid of its own; both are counted before anything runs."""
+    cfg = tmp_path / "km.yaml"
+    paddle = ("{builtin: box_tank, size: [0.1, 0.1, 0.1], center: [1, 1, 0.5], fluid: outside, motion: "
+              "{keyframes: [{time: 0}, {time: 1, translate: [1000, 1000, 1000]}]}}")
+    cfg.write_text(KM_CONFIG.format(wall="{builtin: box_tank, size: [2, 2, 2], center: [1, 1, 0]}, " + paddle))
+    err = _one_line_exit(_run(cfg), 2)
+    assert "stage sdf_bake would need about" in err and "PB of memory" in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == [cfg.name]
+    err = _one_line_exit(_run(cfg, "--yes", "--until", "sdf_bake"), 2)
+    body = (round((0.1 + 2 * 6 * 0.01) / 0.005) + 1,) * 3  # its rest box padded by band + margin
+    assert err.endswith("stage sdf_bake.open3d: bake reached") and bake_calls == [body], (err, bake_calls)
+
+
 def test_size_refusal_of_mesh_walls_whose_sdf_exceeds_memory_before_sdf_bake_allocates(tmp_path, bake_calls):
     """A wall from a file has bounds only once imported: sdf_bake refuses the grid with its numbers
     before allocating it (no sdf_bake entry, nothing half-written, no output); --yes passes."""
