@@ -120,3 +120,49 @@ def test_a_paddle_pushes_water_without_entering_it_and_within_its_work():
     # the block (6 l0 long, free all round) squeezes out sideways: the speed falls off ahead of the plate
     # (measured 0.73 U one spacing on), but the fluid there is pushed along
     assert behind.sum() > 10 and s.v[behind, 0].mean() > 0.5 * U
+
+
+def _bake(tmp_path, scene):
+    from pipeline.testing import run_stage
+    from stages.mesh_import.trimesh_import import TrimeshImport
+    from stages.sdf_bake.open3d_bake import Open3dBake
+    w = run_stage(TrimeshImport, tmp_path / "walls", scene=scene, config_dir=tmp_path)
+    return run_stage(Open3dBake, tmp_path / "sdf", scene=scene, inputs={"walls": w})
+
+
+def test_the_mps_stage_moves_a_keyframed_wall_and_dfsph_refuses_it_in_one_line(tmp_path):
+    """simulate.mps of a tank (centimetres, Y up) with a keyframed box pushed through its water: every frame's
+    particles are outside the box where it stands at the frame's time and the water is stirred;
+    simulate.dfsph refuses the scene with one StageError line."""
+    from pipeline.stage import StageError
+    from pipeline.testing import run_stage
+    from stages.common.formats import load_particle_frame
+    from stages.common.sdf import load_bodies
+    from stages.simulate.dfsph import DFSPHSimulate
+    from stages.simulate.mps import MPSSimulate
+
+    keys = [{"time": 0.0, "translate": [0, 0, 0]}, {"time": 0.12, "translate": [6.0, 0, 0]}]  # 0.5 m/s
+    scene = {"scene": {"name": "t", "units": {"meters_per_unit": 0.01, "up_axis": "Y"}, "frames": {"fps": 25, "count": 4}},
+             "walls": [{"builtin": "box_tank", "size": [24, 24, 24], "center": [0, 0, 0]},
+                       {"builtin": "box_tank", "size": [5, 10, 5], "center": [-5, 4, 0], "fluid": "outside",
+                        "motion": {"keyframes": keys}}],
+             "fluid": {"spacing": 2.5, "emitters": [{"box": {"min": [-12, 0, -12], "max": [12, 10, 12]}}]},
+             "effects": {"gravity": {}, "viscosity": {"mu": MU}}}
+    sdf = _bake(tmp_path, scene)
+    (box, motion), = load_bodies(sdf)
+    p = run_stage(MPSSimulate, tmp_path / "mps", scene=scene, params={"threads": 1}, inputs={"sdf": sdf})
+    first = None
+    moved = 0.0
+    for f in range(4):
+        fr = load_particle_frame(p, f)
+        d, _ = box.sample(motion.to_rest(fr.x, f / 25.0))
+        assert d.min() > 0.0, (f, d.min())
+        x = np.full((fr.id.max() + 1, 3), np.nan)
+        x[fr.id] = fr.x
+        first = x if first is None else first
+        n = min(len(x), len(first))
+        moved = max(moved, float(np.nanmax(np.abs(x[:n] - first[:n]))))
+    assert moved > 1.0  # cm: the box stirred the water
+    with pytest.raises(StageError) as e:
+        run_stage(DFSPHSimulate, tmp_path / "dfsph", scene=scene, inputs={"sdf": sdf})
+    assert "moving walls" in str(e.value) and "\n" not in str(e.value)
