@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from stages.common.placement import rotation_xyz
 from stages.common.sdf import box_interior_sdf, grid_from_function
 from stages.simulate.emitters import lattice
 from stages.simulate.mps import MPSParams, MPSSolver
@@ -34,11 +35,26 @@ def one_thread():
     nb.set_num_threads(before)
 
 
+class Turned:
+    """A wall held turned by ``R`` about ``pivot`` (the RigidMotion interface)."""
+
+    def __init__(self, R, pivot):
+        self.R = np.asarray(R, float)
+        self.pivot = np.asarray(pivot, float)
+
+    def pose(self, t):
+        return self.R.copy(), np.zeros(3)
+
+    def velocity(self, t):
+        return np.zeros(3), np.zeros(3)
+
+
 def test_a_body_at_rest_is_the_static_wall_and_moves_with_its_pose():
     """A splashing block in a tank, one MPS step (prediction with viscosity, collision, number density, the
     Poisson solve, the corrected gradient, the projection): with the tank as the static wall, as a body at its
-    rest pose over an empty static field, and with the body and the particles translated by the same offset
-    (velocities unchanged): the same number density, positions and velocities, to rounding."""
+    rest pose over an empty static field, with the body and the particles translated by the same offset
+    (velocities unchanged), and all turned (velocities and gravity too): the same number density, positions and
+    velocities (turned back), to rounding."""
     l0 = 0.01
     lo, hi = np.array([0.0, 0.0, 0.0]), np.array([0.12, 0.08, 0.1])
     tank = grid_from_function(box_interior_sdf(lo, hi), lo, hi, 0.5 * l0)
@@ -57,6 +73,22 @@ def test_a_body_at_rest_is_the_static_wall_and_moves_with_its_pose():
 
     n0, x0, v0, p0 = one(tank, x)
     assert (p0 > 0).sum() > 100  # a pressure field, not only free surface
+    # turned about the tank's centre, with the particles, their velocities and gravity: the same state turned
+    # (the vector and tensor wall sums turn with the body's pose)
+    c = 0.5 * (lo + hi)
+    R = rotation_xyz([20.0, -35.0, 50.0])
+    space = open_space(c - 0.15, c + 0.15, 0.5 * l0)
+    s = MPSSolver((x - c) @ R.T + c, v @ R.T, np.arange(len(x)), space, bodies=[(tank, Turned(R, c))],
+                  **{**kw, "gravity": R @ [0.0, 0.0, -G]})
+    s.advance_to(1e-3)
+    n = s.frame().rho
+    order = np.argsort(s.id)
+    print("turned: max |dn| %.3g, |dx| %.3g, |dv| %.3g" % (np.abs(n[order] - n0).max(),
+                                                           np.abs((s.x[order] - c) @ R + c - x0).max(),
+                                                           np.abs(s.v[order] @ R - v0).max()))
+    assert np.allclose(n[order], n0, rtol=1e-9, atol=0)
+    assert np.abs((s.x[order] - c) @ R + c - x0).max() < 1e-9
+    assert np.abs(s.v[order] @ R - v0).max() < 1e-6 * np.abs(v0).max()
     shift = np.array([0.031, -0.017, 0.023])
     for off in (np.zeros(3), shift):
         space = open_space(lo - 0.05 + np.minimum(off, 0), hi + 0.05 + np.maximum(off, 0), 0.5 * l0)
