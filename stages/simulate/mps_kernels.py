@@ -147,10 +147,11 @@ def predict_viscosity(x, v, offsets, nbr, re_l, lap_coef, nu, d, walls, wall_vis
                 lx -= v[i, 0] * zw
                 ly -= v[i, 1] * zw
                 lz -= v[i, 2] * zw
-            bx, by, bz = bodies_laplacian(walls, re_l, xi, yi, zi, v[i, 0], v[i, 1], v[i, 2])
-            lx += bx
-            ly += by
-            lz += bz
+            if walls.pose.shape[0] > 0:  # moving walls (a call per particle costs even when it does nothing)
+                bx, by, bz = bodies_laplacian(walls, re_l, xi, yi, zi, v[i, 0], v[i, 1], v[i, 2])
+                lx += bx
+                ly += by
+                lz += bz
         c = nu * lap_coef
         ux = v[i, 0] + dt * (c * lx + gravity[0])
         uy = v[i, 1] + dt * (c * ly + gravity[1])
@@ -219,7 +220,9 @@ def number_density(x, offsets, nbr, re_n, d, walls, n):
                 s += weight(math.sqrt(r2), re_n)
         if d[i] < re_n:
             s += wall_sum(walls, x[i, 0], x[i, 1], x[i, 2], d[i], ZN, FIX_N)
-        n[i] = s + bodies_number_density(walls, re_n, x[i, 0], x[i, 1], x[i, 2])
+        if walls.pose.shape[0] > 0:
+            s += bodies_number_density(walls, re_n, x[i, 0], x[i, 1], x[i, 2])
+        n[i] = s
 
 
 @nb.njit(cache=True, parallel=True)
@@ -247,7 +250,8 @@ def divergence(x, v, offsets, nbr, re_n, grad_coef, d, walls, g_dt, div):
             s -= (v[i, 0] - g_dt[0]) * wall_sum(walls, xi, yi, zi, di, G, FIX_G)
             s -= (v[i, 1] - g_dt[1]) * wall_sum(walls, xi, yi, zi, di, G + 1, FIX_G)
             s -= (v[i, 2] - g_dt[2]) * wall_sum(walls, xi, yi, zi, di, G + 2, FIX_G)
-        s += bodies_divergence(walls, re_n, xi, yi, zi, v[i, 0] - g_dt[0], v[i, 1] - g_dt[1], v[i, 2] - g_dt[2])
+        if walls.pose.shape[0] > 0:
+            s += bodies_divergence(walls, re_n, xi, yi, zi, v[i, 0] - g_dt[0], v[i, 1] - g_dt[1], v[i, 2] - g_dt[2])
         div[i] = grad_coef * s
 
 
@@ -585,7 +589,8 @@ def project_out_of_walls(x, v, walls, r_rep, max_corr):
         vz = v[i, 2]
         px, py, pz, vx, vy, vz = push_out_of_walls(px, py, pz, vx, vy, vz, walls.sdf, walls.sdf_o, walls.sdf_inv,
                                                    r_rep, max_corr)
-        px, py, pz, vx, vy, vz = bodies_push_out(walls, px, py, pz, vx, vy, vz, r_rep, max_corr)
+        if walls.pose.shape[0] > 0:
+            px, py, pz, vx, vy, vz = bodies_push_out(walls, px, py, pz, vx, vy, vz, r_rep, max_corr)
         x[i, 0] = px
         x[i, 1] = py
         x[i, 2] = pz
