@@ -198,3 +198,22 @@ def test_the_mps_stage_moves_a_keyframed_wall_and_dfsph_refuses_it_in_one_line(t
     with pytest.raises(StageError) as e:
         run_stage(DFSPHSimulate, tmp_path / "dfsph", scene=scene, inputs={"sdf": sdf})
     assert "moving walls" in str(e.value) and "\n" not in str(e.value)
+
+
+def test_wall_reach_and_speed_bound_every_point_of_the_wall():
+    """motion.reach / wall_speed (the time step's and the blow-up guard's wall speed): no point of the rest box
+    is farther from the pivot than the reach, the farthest corner is at it, and no point of a turning,
+    gliding box moves faster than the bound |v| + |omega| reach (against sampled points)."""
+    from stages.common.motion import RigidMotion, reach, wall_speed
+    lo, hi, pivot = np.array([-0.1, 0.2, 0.0]), np.array([0.3, 0.5, 0.1]), np.array([0.05, 0.3, 0.2])
+    corners = np.array([[(lo, hi)[(c >> a) & 1][a] for a in range(3)] for c in range(8)])
+    r = reach(lo, hi, pivot)
+    assert r == pytest.approx(np.linalg.norm(corners - pivot, axis=1).max(), rel=1e-12)
+    m = RigidMotion.from_keyframes([{"time": 0.0}, {"time": 0.5, "translate": [0.2, 0.0, -0.1], "rotate": [30, 0, 60]}],
+                                   pivot)
+    pts = np.random.default_rng(0).uniform(lo, hi, (200, 3))
+    for t in (0.1, 0.3):
+        v, w = m.velocity(t)
+        x = m.to_world(pts, t)
+        speed = np.linalg.norm(v + np.cross(w, x - (pivot + m.pose(t)[1])), axis=1)
+        assert speed.max() <= wall_speed(m, r, t) * (1 + 1e-12)
