@@ -110,12 +110,14 @@ def test_a_body_at_rest_is_the_static_wall_and_moves_with_its_pose():
         assert np.abs(acc - acc0).max() < 1e-6 * np.abs(acc0).max()
 
 
-def sloshing_frequency(L=0.2, depth=0.1, width=0.2, l0=0.0125, amplitude=0.002, cycles=2, free=3.5):
+def sloshing_frequency(L=0.2, depth=0.1, width=0.2, l0=0.0125, amplitude=0.002, cycles=2, free=3.5, solver=SPHSolver,
+                       params=None):
     """Sway a tank at the linear f1 for ``cycles`` periods, stop it, and measure the free oscillation of
     the first sloshing mode by the zero crossings of its modal velocity over ``free`` periods: the
     particles' velocities projected on the mode's, u ~ (sin kx cosh kz, -cos kx sinh kz) from the floor
     and the left wall (orthogonal to the other modes; the tank is at rest then). Returns (measured,
-    theory) in Hz. (At l0 = 1 cm a tank 6 l0 wide rings 4-6 % fast, with free-slip walls too: the side
+    theory) in Hz. ``solver``: the solver class (SPHSolver's keywords), with ``params`` (its defaults without).
+    (At l0 = 1 cm a tank 6 l0 wide rings 4-6 % fast, with free-slip walls too: the side
     walls' share of the wall terms; 12 l0 wide, 3 %; 20 l0, 1-2 %. Here 16 l0: -1 % by the crossings.)"""
     k = math.pi / L
     f1 = math.sqrt(G * k * math.tanh(k * depth)) / (2.0 * math.pi)
@@ -125,9 +127,9 @@ def sloshing_frequency(L=0.2, depth=0.1, width=0.2, l0=0.0125, amplitude=0.002, 
     tank = grid_from_function(box_interior_sdf(lo, hi), lo, hi, 0.5 * l0)
     space = open_space(lo - 0.02, hi + [0.02 + 2 * amplitude, 0.02, 0.02], 0.5 * l0)
     x = lattice(lo, [L, width, depth], l0)
-    s = SPHSolver(x, np.zeros_like(x), np.arange(len(x)), space, spacing=l0, rho0=1000.0, params=SPHParams(),
-                  gravity=(0, 0, -G), mu=MU, v_ref=math.sqrt(2 * G * depth),
-                  bodies=[(tank, Sway(amplitude, w, stop, pivot=0.5 * (lo + hi)))])
+    s = solver(x, np.zeros_like(x), np.arange(len(x)), space, spacing=l0, rho0=1000.0,
+               params=params if params is not None else SPHParams(), gravity=(0, 0, -G), mu=MU,
+               v_ref=math.sqrt(2 * G * depth), bodies=[(tank, Sway(amplitude, w, stop, pivot=0.5 * (lo + hi)))])
     hydrostatic_start(s)
     fps = 120.0
     t, q = [], []

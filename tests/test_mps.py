@@ -87,7 +87,7 @@ def test_corrected_gradient_is_exact_for_a_linear_pressure_on_a_squeezed_lattice
     grads = {}
     for det_min in (0.0, 0.5):
         xo, vo = np.zeros_like(s.x), np.zeros_like(s.x)
-        K.correct(s.x, np.zeros_like(s.x), p, s.offsets, s.nbr, s.re_n, s.grad_coef, s.d, *s.wall_args, s.gravity,
+        K.correct(s.x, np.zeros_like(s.x), p, s.offsets, s.nbr, s.re_n, s.grad_coef, s.d, s.wall_terms, s.gravity,
                   1000.0, np.zeros(len(p), np.bool_), det_min, 1.0, xo, vo)
         grads[det_min] = -1000.0 * vo[inner] / (1000.0 * G)  # <grad p> in units of rho g
     plain, corrected = grads[0.0], grads[0.5]

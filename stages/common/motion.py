@@ -205,3 +205,17 @@ def rest_transform(motion: RigidMotion, t: float) -> tuple[np.ndarray, np.ndarra
     """``motion.rest_transform(t)``: (A, b) with x_rest = A @ x_world + b."""
     return motion.rest_transform(t)
 
+
+
+def reach(lo, hi, pivot) -> float:
+    """The farthest a point of the box [lo, hi] (a wall's rest box) is from ``pivot``: times the angular
+    speed it bounds the speed the rotation gives a point of the wall."""
+    lo, hi, pivot = (np.asarray(a, np.float64) for a in (lo, hi, pivot))
+    return float(np.linalg.norm(np.maximum(np.abs(lo - pivot), np.abs(hi - pivot))))
+
+
+def wall_speed(motion, reach: float, t: float) -> float:
+    """The fastest a wall point within ``reach`` of the pivot goes at t: |v| + |omega| reach (``motion``:
+    anything with RigidMotion's ``velocity(t)``)."""
+    v, w = motion.velocity(t)
+    return float(np.linalg.norm(v)) + float(np.linalg.norm(w)) * reach

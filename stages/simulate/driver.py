@@ -24,12 +24,14 @@ import numpy as np
 from pipeline.errors import PipelineError
 from pipeline.stage import Artifact, Context, StageError
 from stages.common.formats import ParticleFrame, ParticleMeta
+from stages.common.motion import reach, wall_speed
 from stages.common.sdf import SDFGrid, load_bodies, posed_field
 from stages.common.usd_points import write_points_layer
 
 from .emitters import drop_inside_walls, drop_overlaps, emit
 from .inflow import Inflow, Sink, from_config, in_sinks, overlapping
 from .kernels import count_blown
+from .walls.maps import set_pose
 from .output import iter_frames, latest_checkpoint, restore_frames, save_checkpoint, write_frame
 
 
@@ -147,6 +149,26 @@ class SolverBase:
     sinks: tuple = ()
     sunk = 0  # particles removed by the sinks
     log: logging.Logger | None = None
+    # moving walls: their motions (RigidMotion's pose(t), velocity(t), pivot; SI) and reach from the pivot;
+    # a solver with them keeps a walls bundle ``wall_terms`` with a ``pose`` array (walls.maps.set_pose)
+    motions: tuple = ()
+    body_reach: tuple = ()
+
+    def set_motions(self, bodies) -> None:
+        """The motions of ``bodies`` ((SDFGrid in its rest frame, motion) per moving wall) and their reach."""
+        self.motions = tuple(m for _, m in bodies)
+        self.body_reach = tuple(reach(b.origin, b.upper, m.pivot) for b, m in bodies)
+
+    def _pose_bodies(self, t: float) -> None:
+        for k, motion in enumerate(self.motions):
+            R, T = motion.pose(t)
+            v, w = motion.velocity(t)
+            set_pose(self.wall_terms, k, R, T, motion.pivot, v, w)
+
+    def wall_speed(self, t: float) -> float:
+        """The fastest any moving wall point goes at time t (0 without moving walls): a step must not let a
+        wall outrun the fluid (it would tunnel through particles)."""
+        return max((wall_speed(m, r, t) for m, r in zip(self.motions, self.body_reach)), default=0.0)
 
     def advance_to(self, t_end: float) -> int:
         n = 0
@@ -329,12 +351,11 @@ def wall_speed_bound(bodies) -> float:
     twice its own speed, an elastic bounce; ballistic_speed takes that)."""
     top = 0.0
     for sdf, m in bodies:
-        reach = float(np.linalg.norm(np.maximum(np.abs(sdf.origin - m.pivot), np.abs(sdf.upper - m.pivot))))
+        r = reach(sdf.origin, sdf.upper, m.pivot)
         span = np.asarray(m.times, float)
         ts = np.unique(np.concatenate([span, (span[:-1] + span[1:]) / 2.0])) if len(span) > 1 else span
         for t in ts:
-            v, w = m.velocity(float(t))
-            top = max(top, float(np.linalg.norm(v)) + float(np.linalg.norm(w)) * reach)
+            top = max(top, wall_speed(m, r, float(t)))
     return top
 
 
@@ -390,7 +411,7 @@ def prepare(ctx: Context, inputs: Mapping[str, Artifact], who: str, moving_walls
     bodies = load_bodies(inputs["sdf"].path)
     if bodies and not moving_walls:
         raise StageError(f"{who}: the scene has moving walls (walls[].motion or animated USD prims); only "
-                         "simulate: {use: sph} moves walls so far")
+                         "simulate: {use: sph} and {use: mps} move walls so far")
     x, v = emit(fluid.emitters, l0, ctx.resolve, mpu)
     x, v, _ = drop_overlaps(x, v, l0, ctx.log)
     # the moving walls where they stand at t = 0 count like the static ones

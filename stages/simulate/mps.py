@@ -21,7 +21,9 @@ pressure 3-7 % below rho g h at 8 layers deep after 1.3 s, 1.5 % with 0.01; the 
 the mean n/n0 (0.998 at 2 s) are the same with either.
 
 Walls: MPSWallMaps (walls/mps.py), the wall sums of every wall within re on a grid, calibrated to
-the flat-wall lattice tables; no wall particles.
+the flat-wall lattice tables; no wall particles. A moving rigid wall has its own map, baked once in its
+rest frame and sampled through its pose (walls/mps.MPSWalls); its wall particles move with it (viscosity,
+divergence and the eq. 16 projection take its velocity) and the step is limited by its speed.
 
 Effects: gravity and viscosity (with its no-slip wall term) only; a scene declaring any other effect
 is rejected with a StageError that names them.
@@ -44,7 +46,7 @@ from stages.common.sizes import simulate_estimate
 from . import mps_kernels as K
 from .driver import SolverBase, drive, prepare, set_threads
 from .kernels import lattice_mass
-from .walls.mps import MPSWallMaps, build_tables, lattice_constants
+from .walls.mps import MPSWallMaps, build_tables, lattice_constants, make_mps_walls
 from .neighbours import CellGrid, reorder
 from .timestep import stable_dt, step_to
 
@@ -90,7 +92,10 @@ class MPSSolver(SolverBase):
 
     def __init__(self, x, v, ids, sdf: SDFGrid, *, spacing: float, rho0: float, params: MPSParams,
                  gravity=(0.0, 0.0, 0.0), mu: float | None = None, wall_viscosity: bool = True,
-                 v_ref: float = 1.0, domain=None):
+                 v_ref: float = 1.0, domain=None, bodies=()):
+        """``bodies``: the moving rigid walls, each (SDFGrid baked in its rest frame, motion with ``pose(t)``,
+        ``velocity(t)`` and ``pivot`` as stages.common.motion.RigidMotion), all in SI; ``sdf`` holds the static
+        walls only."""
         self.p = params
         self.l0 = float(spacing)
         self.rho0 = float(rho0)
@@ -105,8 +110,10 @@ class MPSSolver(SolverBase):
         self.grad_coef = DIM / self.n0
         self.tables = build_tables(self.l0, self.re_n, self.re_l, params.table_samples)
         self.walls = MPSWallMaps(sdf, self.l0, self.re_n, self.re_l, self.tables)
-        w = self.walls
-        self.wall_args = (w.maps, w.origin, 1.0 / w.spacing, w.fix, w.inv_dr)
+        self.set_motions(bodies)
+        self.wall_terms = make_mps_walls(sdf, self.walls, [(b, MPSWallMaps(b, self.l0, self.re_n, self.re_l, self.tables))
+                                                           for b, _ in bodies])
+        self._pose_bodies(0.0)
         self.gravity = np.asarray(gravity, np.float64)
         self.g_dt = np.zeros(3)
         self.mu = float(mu) if mu is not None else None
@@ -168,16 +175,18 @@ class MPSSolver(SolverBase):
         K.fill_neighbours(*args, self.offsets, self.nbr)
 
     def _walls(self, x) -> None:
-        K.wall_distance(x, self.sdf.dist, self.sdf.origin, self.sdf_inv, self.d, self.nrm)
+        K.wall_distance(x, self.wall_terms, self.d, self.nrm)
 
     def number_density(self, x) -> None:
         self._walls(x)
-        K.number_density(x, self.offsets, self.nbr, self.re_n, self.d, *self.wall_args, self.n)
+        K.number_density(x, self.offsets, self.nbr, self.re_n, self.d, self.wall_terms, self.n)
 
     def stable_dt(self, dt_max: float) -> float:
         v = math.sqrt(K.max_speed2(self.v))
         nu = self.mu / self.rho0 if self.mu else None
-        return stable_dt(l0=self.l0, h=self.l0, v_max=max(v, self.v_ref), a_max=0.0, cfl=self.p.cfl,
+        # a moving wall must not outrun the fluid's step either (it would tunnel through particles)
+        v_max = max(v, self.v_ref, self.wall_speed(self.t), self.wall_speed(self.t + dt_max))
+        return stable_dt(l0=self.l0, h=self.l0, v_max=v_max, a_max=0.0, cfl=self.p.cfl,
                          sound_speed=None, nu=nu, dt_max=dt_max)
 
     def solve_pressure(self, dt: float) -> int:
@@ -189,12 +198,12 @@ class MPSSolver(SolverBase):
         div_coef = -(1.0 - gamma) * rho / dt if mixed else 0.0
         if mixed:
             np.multiply(self.gravity, dt, out=self.g_dt)
-            K.divergence(self.xs, self.vs, self.offsets, self.nbr, self.re_n, self.grad_coef, self.d, *self.wall_args,
+            K.divergence(self.xs, self.vs, self.offsets, self.nbr, self.re_n, self.grad_coef, self.d, self.wall_terms,
                          self.g_dt, self.div)
         diag_extra = self.p.compressibility * rho / dt ** 2
         while True:
             nnz = K.build_poisson(self.xs, self.offsets, self.nbr, self.re_l, self.lap_coef, self.dirichlet, self.n,
-                                  self.n0, src, self.div, div_coef, diag_extra, self.d, *self.wall_args, self.gravity, rho,
+                                  self.n0, src, self.div, div_coef, diag_extra, self.d, self.wall_terms, self.gravity, rho,
                                   self.row_counts, self.row_off, self.cols, self.vals, self.diag, self.b)
             if nnz >= 0:
                 break
@@ -211,12 +220,15 @@ class MPSSolver(SolverBase):
         """One step towards t_end (never past it); returns dt."""
         self.sort_and_neighbours()
         dt = step_to(self.t, t_end, self.p.time_step or self.stable_dt(t_end - self.t))
-        if self.mu is not None:
+        t_new = t_end if dt >= t_end - self.t else self.t + dt
+        if self.mu is not None:  # the moving walls where they are at the step's start
             self._walls(self.x)
             K.predict_viscosity(self.x, self.v, self.offsets, self.nbr, self.re_l, self.lap_coef, self.mu / self.rho0,
-                                self.d, *self.wall_args, self.wall_viscosity, self.gravity, dt, self.xs, self.vs)
+                                self.d, self.wall_terms, self.wall_viscosity, self.gravity, dt, self.xs, self.vs)
         else:
             K.predict(self.x, self.v, self.gravity, dt, self.xs, self.vs)
+        # the predicted positions x* are those at the step's end: so are the walls from here on
+        self._pose_bodies(t_new)
         if self.p.collision_distance > 0:
             K.collide(self.xs, self.vs, self.offsets, self.nbr, self.p.collision_distance * self.l0,
                       self.p.restitution, dt, self.xb, self.vb)
@@ -226,11 +238,10 @@ class MPSSolver(SolverBase):
         self.last_cg_iterations = self.solve_pressure(dt)
         self.cg_iterations += self.last_cg_iterations
         # the corrected state goes into the start-of-step buffers (x, v are no longer needed)
-        K.correct(self.xs, self.vs, self.pr, self.offsets, self.nbr, self.re_n, self.grad_coef, self.d, *self.wall_args,
+        K.correct(self.xs, self.vs, self.pr, self.offsets, self.nbr, self.re_n, self.grad_coef, self.d, self.wall_terms,
                   self.gravity, self.rho0, self.dirichlet, self.p.gradient_correction, dt, self.x, self.v)
-        K.project_out_of_walls(self.x, self.v, self.sdf.dist, self.sdf.origin, self.sdf_inv, self.p.r_rep * self.l0,
-                               0.5 * self.l0)
-        self.t = t_end if dt >= t_end - self.t else self.t + dt
+        K.project_out_of_walls(self.x, self.v, self.wall_terms, self.p.r_rep * self.l0, 0.5 * self.l0)
+        self.t = t_new
         self.steps += 1
         return dt
 
@@ -259,6 +270,7 @@ class MPSSolver(SolverBase):
         self.t = float(s["t"])
         self.steps = int(s["steps"])
         self.left_domain = int(s["left_domain"])
+        self._pose_bodies(self.t)
         self.load_flow_state(s)
         self.cg_iterations = int(s["cg_iterations"])
         self._scratch.clear()
@@ -298,13 +310,13 @@ class MPSSimulate(Stage):
     def run(self, ctx: Context, inputs: Mapping[str, Artifact], params: MPSParams) -> None:
         set_threads(params.threads or getattr(ctx, "threads", None))
         check_effects(ctx.scene["effects"])
-        setup = prepare(ctx, inputs, "simulate.mps")
+        setup = prepare(ctx, inputs, "simulate.mps", moving_walls=True)
         visc = setup.effects.viscosity
         solver = MPSSolver(setup.x, setup.v, np.arange(len(setup.x), dtype=np.int32), setup.sdf, spacing=setup.spacing,
                            rho0=setup.density, params=params, gravity=setup.gravity,
                            mu=visc.mu if visc is not None else None,
                            wall_viscosity=bool(visc.wall) if visc is not None else False, v_ref=setup.v_ref,
-                           domain=setup.domain)
+                           domain=setup.domain, bodies=setup.bodies)
         drive(ctx, solver, setup, solver_name="mps", checkpoint_every=params.checkpoint_every)
         ctx.log.info("mps: %d steps, %.1f CG iterations per step", solver.steps,
                      solver.cg_iterations / max(solver.steps, 1))

@@ -18,20 +18,11 @@ from stages.common.sdf import sdf_sample
 
 from .neighbours import cell_coords
 from .sph_kernels import push_out_of_walls
-from .walls.maps import map_sample
-from .walls.tables import table_lookup
+from .walls.maps import bodies_push_out
+from .walls.mps import (FIX_G, FIX_L, FIX_M, FIX_N, FIX_T, G, M, T, ZL, ZN, bodies_divergence, bodies_gradient,
+                        bodies_hydrostatic, bodies_laplacian, bodies_number_density, wall_sum)
 
 CG_BLOCKS = 128
-# channels of walls.mps.MPSWallMaps and rows of its ``fix``
-ZN, G, T, ZL, M = 0, 1, 4, 10, 11
-FIX_N, FIX_G, FIX_T, FIX_L, FIX_M = 0, 1, 2, 3, 4
-
-
-@nb.njit(cache=True, inline="always")
-def wall_sum(maps, m_o, m_inv, fix, inv_dr, x, y, z, d, c, row):
-    """Channel ``c`` of the wall maps at (x, y, z) times its flat-wall correction ``fix[row]`` at the
-    wall distance d (walls.mps.MPSWallMaps)."""
-    return map_sample(maps, m_o[0], m_o[1], m_o[2], m_inv, x, y, z, c) * table_lookup(fix[row], d, inv_dr)
 
 
 @nb.njit(cache=True, inline="always")
@@ -102,10 +93,12 @@ def prefix_sum(counts, offsets):
 
 # -- walls ------------------------------------------------------------------------------------------
 @nb.njit(cache=True, parallel=True)
-def wall_distance(x, sdf, sdf_o, sdf_inv, d, nrm):
-    """SDF distance and wall normal (into the fluid) of every particle."""
+def wall_distance(x, walls, d, nrm):
+    """The static walls' SDF distance and normal (into the fluid) of every particle (the moving walls'
+    terms find their own distance)."""
     for i in nb.prange(x.shape[0]):
-        dw, gx, gy, gz = sdf_sample(sdf, sdf_o[0], sdf_o[1], sdf_o[2], sdf_inv, x[i, 0], x[i, 1], x[i, 2])
+        dw, gx, gy, gz = sdf_sample(walls.sdf, walls.sdf_o[0], walls.sdf_o[1], walls.sdf_o[2], walls.sdf_inv, x[i, 0],
+                                    x[i, 1], x[i, 2])
         d[i] = dw
         nrm[i, 0] = gx
         nrm[i, 1] = gy
@@ -124,11 +117,11 @@ def predict(x, v, gravity, dt, xs, vs):
 
 
 @nb.njit(cache=True, parallel=True)
-def predict_viscosity(x, v, offsets, nbr, re_l, lap_coef, nu, d, maps, m_o, m_inv, fix, inv_dr, wall_visc, gravity,
-                      dt, xs, vs):
+def predict_viscosity(x, v, offsets, nbr, re_l, lap_coef, nu, d, walls, wall_visc, gravity, dt, xs, vs):
     """Explicit prediction with the MPS Laplacian of the velocity, <lap u>_i = (2 d / (lambda n0))
     [sum_j (u_j - u_i) w(r_ij) - u_i Zl(x_i)] (``lap_coef`` = 2 d / (lambda n0)); the wall term is the
-    resting no-slip wall (eq. 13-15 in MPS form, Zl from the wall maps), only with ``wall_visc``."""
+    resting no-slip wall (eq. 13-15 in MPS form, Zl from the wall maps), only with ``wall_visc``; a moving
+    wall's is sum_b (u_b - u_i) Zl_b, no-slip against the wall's velocity at the particle."""
     r2max = re_l * re_l
     for i in nb.prange(x.shape[0]):
         xi = x[i, 0]
@@ -148,11 +141,17 @@ def predict_viscosity(x, v, offsets, nbr, re_l, lap_coef, nu, d, maps, m_o, m_in
                 lx += (v[j, 0] - v[i, 0]) * w
                 ly += (v[j, 1] - v[i, 1]) * w
                 lz += (v[j, 2] - v[i, 2]) * w
-        if wall_visc and d[i] < re_l:
-            zw = wall_sum(maps, m_o, m_inv, fix, inv_dr, xi, yi, zi, d[i], ZL, FIX_L)
-            lx -= v[i, 0] * zw
-            ly -= v[i, 1] * zw
-            lz -= v[i, 2] * zw
+        if wall_visc:
+            if d[i] < re_l:
+                zw = wall_sum(walls, xi, yi, zi, d[i], ZL, FIX_L)
+                lx -= v[i, 0] * zw
+                ly -= v[i, 1] * zw
+                lz -= v[i, 2] * zw
+            if walls.pose.shape[0] > 0:  # moving walls (a call per particle costs even when it does nothing)
+                bx, by, bz = bodies_laplacian(walls, re_l, xi, yi, zi, v[i, 0], v[i, 1], v[i, 2])
+                lx += bx
+                ly += by
+                lz += bz
         c = nu * lap_coef
         ux = v[i, 0] + dt * (c * lx + gravity[0])
         uy = v[i, 1] + dt * (c * ly + gravity[1])
@@ -205,9 +204,9 @@ def collide(xs, vs, offsets, nbr, r_col, restitution, dt, x_out, v_out):
 
 
 @nb.njit(cache=True, parallel=True)
-def number_density(x, offsets, nbr, re_n, d, maps, m_o, m_inv, fix, inv_dr, n):
-    """n_i = sum_{j != i} w(r_ij) + Zn(x_i): the fluid neighbours plus the wall's share from the 3D map
-    (walls.mps.MPSWallMaps)."""
+def number_density(x, offsets, nbr, re_n, d, walls, n):
+    """n_i = sum_{j != i} w(r_ij) + Zn(x_i): the fluid neighbours plus the walls' share from the 3D maps
+    (walls.mps.MPSWallMaps; each moving wall's at the particle in its rest frame)."""
     r2max = re_n * re_n
     for i in nb.prange(x.shape[0]):
         s = 0.0
@@ -220,17 +219,20 @@ def number_density(x, offsets, nbr, re_n, d, maps, m_o, m_inv, fix, inv_dr, n):
             if r2 < r2max and r2 > 1e-24:
                 s += weight(math.sqrt(r2), re_n)
         if d[i] < re_n:
-            s += wall_sum(maps, m_o, m_inv, fix, inv_dr, x[i, 0], x[i, 1], x[i, 2], d[i], ZN, FIX_N)
+            s += wall_sum(walls, x[i, 0], x[i, 1], x[i, 2], d[i], ZN, FIX_N)
+        if walls.pose.shape[0] > 0:
+            s += bodies_number_density(walls, re_n, x[i, 0], x[i, 1], x[i, 2])
         n[i] = s
 
 
 @nb.njit(cache=True, parallel=True)
-def divergence(x, v, offsets, nbr, re_n, grad_coef, d, maps, m_o, m_inv, fix, inv_dr, g_dt, div):
+def divergence(x, v, offsets, nbr, re_n, grad_coef, d, walls, g_dt, div):
     """MPS divergence <div u>_i = (d / n0) [sum_j (u_j - u_i) . (x_j - x_i) / r_ij^2 w(r_ij)
     - (u_i - g dt) . G(x_i)] (``grad_coef`` = d / n0), G the wall maps' sum (x_w - x_i) / r^2 w over the
     resting walls (u_w = 0). The g dt part of u* into the wall is left out because the hydrostatic wall
     pressure (p_w = p_i + rho g . (x_w - x_i)) already balances it: counted twice, a tank at rest would
-    be driven towards twice rho g h at the floor."""
+    be driven towards twice rho g h at the floor. A moving wall's particles move with it: its term is
+    (u_b - (u_i - g dt)) . G_b, u_b the wall's velocity at the particle."""
     r2max = re_n * re_n
     for i in nb.prange(x.shape[0]):
         s = 0.0
@@ -243,11 +245,13 @@ def divergence(x, v, offsets, nbr, re_n, grad_coef, d, maps, m_o, m_inv, fix, in
             if r2 < r2max and r2 > 1e-24:
                 du = (v[j, 0] - v[i, 0]) * dx + (v[j, 1] - v[i, 1]) * dy + (v[j, 2] - v[i, 2]) * dz
                 s += du / r2 * weight(math.sqrt(r2), re_n)
-        if d[i] < re_n:
-            xi, yi, zi, di = x[i, 0], x[i, 1], x[i, 2], d[i]
-            s -= (v[i, 0] - g_dt[0]) * wall_sum(maps, m_o, m_inv, fix, inv_dr, xi, yi, zi, di, G, FIX_G)
-            s -= (v[i, 1] - g_dt[1]) * wall_sum(maps, m_o, m_inv, fix, inv_dr, xi, yi, zi, di, G + 1, FIX_G)
-            s -= (v[i, 2] - g_dt[2]) * wall_sum(maps, m_o, m_inv, fix, inv_dr, xi, yi, zi, di, G + 2, FIX_G)
+        xi, yi, zi, di = x[i, 0], x[i, 1], x[i, 2], d[i]
+        if di < re_n:
+            s -= (v[i, 0] - g_dt[0]) * wall_sum(walls, xi, yi, zi, di, G, FIX_G)
+            s -= (v[i, 1] - g_dt[1]) * wall_sum(walls, xi, yi, zi, di, G + 1, FIX_G)
+            s -= (v[i, 2] - g_dt[2]) * wall_sum(walls, xi, yi, zi, di, G + 2, FIX_G)
+        if walls.pose.shape[0] > 0:
+            s += bodies_divergence(walls, re_n, xi, yi, zi, v[i, 0] - g_dt[0], v[i, 1] - g_dt[1], v[i, 2] - g_dt[2])
         div[i] = grad_coef * s
 
 
@@ -272,8 +276,8 @@ def _count_rows(x, offsets, nbr, re_l, dirichlet, row_counts):
 
 
 @nb.njit(cache=True, parallel=True)
-def _fill_rows(x, offsets, nbr, re_l, lap_coef, dirichlet, n, n0, src_coef, div, div_coef, diag_extra, d, maps,
-               m_o, m_inv, fix, inv_dr, g_vec, rho, row_off, cols, vals, diag, b):
+def _fill_rows(x, offsets, nbr, re_l, lap_coef, dirichlet, n, n0, src_coef, div, div_coef, diag_extra, d, walls,
+               g_vec, rho, row_off, cols, vals, diag, b):
     r2max = re_l * re_l
     for i in nb.prange(x.shape[0]):
         if dirichlet[i]:
@@ -297,20 +301,22 @@ def _fill_rows(x, offsets, nbr, re_l, lap_coef, dirichlet, n, n0, src_coef, div,
                     k_out += 1
         diag[i] = s + diag_extra
         bi = src_coef * (n[i] - n0) / n0 + div_coef * div[i]
-        if d[i] < re_l:
-            # the wall's resting pressure p_w = p_i + rho g . (x_w - x_i) (walls/mps.py): the p_i part
-            # cancels, the hydrostatic part rho g . M is known and moves to the right-hand side
-            xi, yi, zi, di = x[i, 0], x[i, 1], x[i, 2], d[i]
-            gm = (g_vec[0] * wall_sum(maps, m_o, m_inv, fix, inv_dr, xi, yi, zi, di, M, FIX_M)
-                  + g_vec[1] * wall_sum(maps, m_o, m_inv, fix, inv_dr, xi, yi, zi, di, M + 1, FIX_M)
-                  + g_vec[2] * wall_sum(maps, m_o, m_inv, fix, inv_dr, xi, yi, zi, di, M + 2, FIX_M))
+        # the wall's resting pressure p_w = p_i + rho g . (x_w - x_i) (walls/mps.py): the p_i part
+        # cancels, the hydrostatic part rho g . M is known and moves to the right-hand side
+        xi, yi, zi, di = x[i, 0], x[i, 1], x[i, 2], d[i]
+        if di < re_l:
+            gm = (g_vec[0] * wall_sum(walls, xi, yi, zi, di, M, FIX_M)
+                  + g_vec[1] * wall_sum(walls, xi, yi, zi, di, M + 1, FIX_M)
+                  + g_vec[2] * wall_sum(walls, xi, yi, zi, di, M + 2, FIX_M))
             bi += lap_coef * rho * gm
+        if walls.pose.shape[0] > 0:
+            bi += lap_coef * rho * bodies_hydrostatic(walls, re_l, xi, yi, zi, g_vec)
         b[i] = bi
 
 
 @nb.njit(cache=True)
-def build_poisson(x, offsets, nbr, re_l, lap_coef, dirichlet, n, n0, src_coef, div, div_coef, diag_extra, d, maps,
-                  m_o, m_inv, fix, inv_dr, g_vec, rho, row_counts, row_off, cols, vals, diag, b):
+def build_poisson(x, offsets, nbr, re_l, lap_coef, dirichlet, n, n0, src_coef, div, div_coef, diag_extra, d, walls,
+                  g_vec, rho, row_counts, row_off, cols, vals, diag, b):
     """The PPE  -<lap p>_i + (alpha rho / dt^2) p_i = src_coef (n*_i - n0) / n0 + div_coef <div u*>_i  as a CSR
     matrix: off-diagonals -c w(r_ij) between non-Dirichlet particles, diagonal c sum_j w(r_ij) plus
     the compressibility term ``diag_extra``, c = 2 d / (lambda n0). Dirichlet rows (free surface,
@@ -320,8 +326,8 @@ def build_poisson(x, offsets, nbr, re_l, lap_coef, dirichlet, n, n0, src_coef, d
     nnz = prefix_sum(row_counts, row_off)
     if nnz > cols.shape[0]:
         return -1
-    _fill_rows(x, offsets, nbr, re_l, lap_coef, dirichlet, n, n0, src_coef, div, div_coef, diag_extra, d, maps,
-               m_o, m_inv, fix, inv_dr, g_vec, rho, row_off, cols, vals, diag, b)
+    _fill_rows(x, offsets, nbr, re_l, lap_coef, dirichlet, n, n0, src_coef, div, div_coef, diag_extra, d, walls,
+               g_vec, rho, row_off, cols, vals, diag, b)
     return nnz
 
 
@@ -439,12 +445,12 @@ def pcg(row_off, cols, vals, diag, b, x, r, z, p, q, partial, partial2, rtol, ma
 
 # -- correction ------------------------------------------------------------------------------------
 @nb.njit(cache=True, parallel=True)
-def correct(xs, vs, p, offsets, nbr, re_g, grad_coef, d, maps, m_o, m_inv, fix, inv_dr, g_vec, rho, dirichlet,
-            det_min, dt, x_out, v_out):
+def correct(xs, vs, p, offsets, nbr, re_g, grad_coef, d, walls, g_vec, rho, dirichlet, det_min, dt, x_out, v_out):
     """Pressure gradient <grad p>_i = C_i (d / n0) [sum_j (p_j - p_min_i) / r_ij^2 (x_j - x_i) w(r_ij)
     + (p_i - p_min_i) G(x_i) + rho T(x_i) g], p_min_i the smallest pressure of i and its neighbours; the
     wall terms are the wall maps' sums with the resting wall pressure p_w = p_i + rho g . (x_w - x_i)
-    (walls/mps.py); then u = u* - (dt / rho) <grad p>, x = x* + dt (u - u*).
+    (walls/mps.py; a moving wall's turned into the world by its pose); then u = u* - (dt / rho) <grad p>,
+    x = x* + dt (u - u*).
 
     C_i is the corrective matrix (Khayyer and Gotoh 2011; not yet in PHYSICS.md), the inverse of
     (d / n0) [sum_j (x_j - x_i)(x_j - x_i)^T / r_ij^2 w(r_ij) + T(x_i)] (identity on the cubic lattice),
@@ -492,21 +498,32 @@ def correct(xs, vs, p, offsets, nbr, re_g, grad_coef, d, maps, m_o, m_inv, fix, 
                 axy += wr * dx * dy
                 axz += wr * dx * dz
                 ayz += wr * dy * dz
+        dp = p[i] - pmin
         if d[i] < re_g:
             di = d[i]
-            dp = p[i] - pmin
-            gx += dp * wall_sum(maps, m_o, m_inv, fix, inv_dr, xi, yi, zi, di, G, FIX_G)
-            gy += dp * wall_sum(maps, m_o, m_inv, fix, inv_dr, xi, yi, zi, di, G + 1, FIX_G)
-            gz += dp * wall_sum(maps, m_o, m_inv, fix, inv_dr, xi, yi, zi, di, G + 2, FIX_G)
-            txx = wall_sum(maps, m_o, m_inv, fix, inv_dr, xi, yi, zi, di, T, FIX_T)
-            tyy = wall_sum(maps, m_o, m_inv, fix, inv_dr, xi, yi, zi, di, T + 1, FIX_T)
-            tzz = wall_sum(maps, m_o, m_inv, fix, inv_dr, xi, yi, zi, di, T + 2, FIX_T)
-            txy = wall_sum(maps, m_o, m_inv, fix, inv_dr, xi, yi, zi, di, T + 3, FIX_T)
-            txz = wall_sum(maps, m_o, m_inv, fix, inv_dr, xi, yi, zi, di, T + 4, FIX_T)
-            tyz = wall_sum(maps, m_o, m_inv, fix, inv_dr, xi, yi, zi, di, T + 5, FIX_T)
+            gx += dp * wall_sum(walls, xi, yi, zi, di, G, FIX_G)
+            gy += dp * wall_sum(walls, xi, yi, zi, di, G + 1, FIX_G)
+            gz += dp * wall_sum(walls, xi, yi, zi, di, G + 2, FIX_G)
+            txx = wall_sum(walls, xi, yi, zi, di, T, FIX_T)
+            tyy = wall_sum(walls, xi, yi, zi, di, T + 1, FIX_T)
+            tzz = wall_sum(walls, xi, yi, zi, di, T + 2, FIX_T)
+            txy = wall_sum(walls, xi, yi, zi, di, T + 3, FIX_T)
+            txz = wall_sum(walls, xi, yi, zi, di, T + 4, FIX_T)
+            tyz = wall_sum(walls, xi, yi, zi, di, T + 5, FIX_T)
             gx += rho * (txx * g_vec[0] + txy * g_vec[1] + txz * g_vec[2])
             gy += rho * (txy * g_vec[0] + tyy * g_vec[1] + tyz * g_vec[2])
             gz += rho * (txz * g_vec[0] + tyz * g_vec[1] + tzz * g_vec[2])
+            axx += txx
+            ayy += tyy
+            azz += tzz
+            axy += txy
+            axz += txz
+            ayz += tyz
+        if walls.pose.shape[0] > 0:
+            bx, by, bz, txx, tyy, tzz, txy, txz, tyz = bodies_gradient(walls, re_g, xi, yi, zi, dp, rho, g_vec)
+            gx += bx
+            gy += by
+            gz += bz
             axx += txx
             ayy += tyy
             azz += tzz
@@ -559,10 +576,10 @@ def mark_free_surface(n, threshold, dirichlet):
 
 
 @nb.njit(cache=True, parallel=True)
-def project_out_of_walls(x, v, sdf, sdf_o, sdf_inv, r_rep, max_corr):
+def project_out_of_walls(x, v, walls, r_rep, max_corr):
     """The (16) wall pressure as a position correction: a particle closer than r_rep moves back along
     the SDF normal (capped at max_corr per step; up to three projections for edges and corners) and
-    loses its velocity component into the wall."""
+    loses its velocity component into the wall (relative to a moving wall's own velocity: it pushes)."""
     for i in nb.prange(x.shape[0]):
         px = x[i, 0]
         py = x[i, 1]
@@ -570,7 +587,10 @@ def project_out_of_walls(x, v, sdf, sdf_o, sdf_inv, r_rep, max_corr):
         vx = v[i, 0]
         vy = v[i, 1]
         vz = v[i, 2]
-        px, py, pz, vx, vy, vz = push_out_of_walls(px, py, pz, vx, vy, vz, sdf, sdf_o, sdf_inv, r_rep, max_corr)
+        px, py, pz, vx, vy, vz = push_out_of_walls(px, py, pz, vx, vy, vz, walls.sdf, walls.sdf_o, walls.sdf_inv,
+                                                   r_rep, max_corr)
+        if walls.pose.shape[0] > 0:
+            px, py, pz, vx, vy, vz = bodies_push_out(walls, px, py, pz, vx, vy, vz, r_rep, max_corr)
         x[i, 0] = px
         x[i, 1] = py
         x[i, 2] = pz

@@ -21,7 +21,7 @@ from .effects import EffectConstants, compile_effects, cohesion_coef
 from .kernels import (lattice_mass, poly6_coef, spiky_grad_coef, spiky_lattice_factor, visc_lap_coef,
                       wall_gradient_tables)
 from .neighbours import CellGrid, neighbour_list, reorder
-from .walls.maps import BrickWallMaps, make_walls, set_pose
+from .walls.maps import BrickWallMaps, make_walls
 from .timestep import stable_dt, step_to
 
 
@@ -63,10 +63,6 @@ class SPHParams(Params):
 NEIGHBOUR_CAP = 48
 
 
-def _corners(lo, hi) -> list[np.ndarray]:
-    return [np.array([a, b, c]) for a in (lo[0], hi[0]) for b in (lo[1], hi[1]) for c in (lo[2], hi[2])]
-
-
 class SPHSolver(SolverBase):
     """State (x, v, id in cell order) plus the per-step kernels; every buffer is reused."""
 
@@ -98,11 +94,8 @@ class SPHSolver(SolverBase):
         if bodies and self.mirrored_wall:
             raise ValueError("simulate.sph: moving walls need the conservative wall pressure (wall_pressure: "
                              "conservative, without gradient_correction or wall_gradient)")
-        self.motions = [m for _, m in bodies]
+        self.set_motions(bodies)
         self.bodies = [(b, BrickWallMaps(b, self.l0, self.h, self.mass, self.rho0, params.table_samples)) for b, _ in bodies]
-        # each body's reach from its pivot: |omega| times it bounds the speed its rotation gives a wall point
-        self.body_reach = [max(float(np.linalg.norm(c - m.pivot)) for c in _corners(b.origin, b.upper))
-                           for b, m in bodies]
         self.wall_terms = make_walls(sdf, self.walls, self.bodies)
         self.wall_t = None
         if params.wall_gradient or params.gradient_correction:
@@ -226,20 +219,6 @@ class SPHSolver(SolverBase):
         self.t = t_new
         self.steps += 1
         return dt
-
-    def _pose_bodies(self, t: float) -> None:
-        for k, motion in enumerate(self.motions):
-            R, T = motion.pose(t)
-            v, w = motion.velocity(t)
-            set_pose(self.wall_terms, k, R, T, motion.pivot, v, w)
-
-    def wall_speed(self, t: float) -> float:
-        """The fastest any moving wall point goes at time t (0 without moving walls)."""
-        top = 0.0
-        for motion, reach in zip(self.motions, self.body_reach):
-            v, w = motion.velocity(t)
-            top = max(top, float(np.linalg.norm(v)) + float(np.linalg.norm(w)) * reach)
-        return top
 
     def density_ratio(self, p: np.ndarray) -> np.ndarray:
         """rho / rho0 at pressure p: eq. 5 (linear) or Tait."""

@@ -356,30 +356,40 @@ Walls = namedtuple("Walls", "sdf sdf_o sdf_inv index bricks shape wo winv fix_rh
 POSE_SIZE = 21
 
 
+def body_fields(grids) -> tuple:
+    """(b_sdf, b_grid, b_sdf_o, b_sdf_inv, pose) of a walls bundle: the moving walls' SDFGrids (each in its rest
+    frame) as one atlas, posed at rest until set_pose. Every solver's bundle has these fields, so to_body,
+    body_sample and bodies_push_out serve them all."""
+    n = len(grids)
+    grid, offs = [], [0]
+    for sb in grids:
+        grid.append([offs[-1], *sb.dist.shape])
+        offs.append(offs[-1] + sb.dist.size)
+    pose = np.zeros((n, POSE_SIZE))
+    pose[:, [0, 4, 8]] = 1.0
+    for k, sb in enumerate(grids):  # at rest: c = p0 = the box's lower corner (any point will do)
+        pose[k, 9:12] = pose[k, 12:15] = sb.origin
+    dist = np.concatenate([sb.dist.ravel() for sb in grids]).astype(np.float32) if grids else np.zeros(0, np.float32)
+    return (dist, np.array(grid, np.int64).reshape(n, 4), np.array([sb.origin for sb in grids], np.float64).reshape(n, 3),
+            np.array([1.0 / sb.spacing for sb in grids], np.float64), pose)
+
+
 def make_walls(sdf, maps, bodies=()) -> Walls:
     """The Walls of the static SDFGrid (SI) and its BrickWallMaps; ``bodies``: (SDFGrid in its rest frame,
     its BrickWallMaps) per moving wall, posed at rest until set_pose."""
-    grids, igrids, offs, ioffs, nbricks = [], [], [0], [0], 0
+    igrids, ioffs, nbricks = [], [0], 0
     index = []
     for sb, mb in bodies:
-        grids.append([offs[-1], *sb.dist.shape])
-        offs.append(offs[-1] + sb.dist.size)
         igrids.append([ioffs[-1], *mb.index.shape])
         ioffs.append(ioffs[-1] + mb.index.size)
         index.append(np.where(mb.index >= 0, mb.index + nbricks, -1).astype(np.int32).ravel())
         nbricks += len(mb.bricks)
     n = len(bodies)
-    pose = np.zeros((n, POSE_SIZE))
-    pose[:, [0, 4, 8]] = 1.0
-    for k, (sb, _) in enumerate(bodies):  # at rest: c = p0 = the box's lower corner (any point will do)
-        pose[k, 9:12] = pose[k, 12:15] = sb.origin
+    b_sdf, b_grid, b_sdf_o, b_sdf_inv, pose = body_fields([sb for sb, _ in bodies])
     cat = (lambda xs, dt, shape: np.concatenate(xs).astype(dt) if xs else np.zeros(shape, dt))
     return Walls(sdf.dist, np.asarray(sdf.origin, np.float64), 1.0 / sdf.spacing, maps.index, maps.bricks,
                  np.asarray(maps.shape, np.int64), np.asarray(maps.origin, np.float64), 1.0 / maps.spacing, maps.fix_rho,
-                 maps.inv_dr,
-                 cat([sb.dist.ravel() for sb, _ in bodies], np.float32, (0,)), np.array(grids, np.int64).reshape(n, 4),
-                 np.array([sb.origin for sb, _ in bodies], np.float64).reshape(n, 3),
-                 np.array([1.0 / sb.spacing for sb, _ in bodies], np.float64),
+                 maps.inv_dr, b_sdf, b_grid, b_sdf_o, b_sdf_inv,
                  cat(index, np.int32, (0,)), np.array(igrids, np.int64).reshape(n, 4),
                  cat([mb.bricks for _, mb in bodies], np.float32, (0, BRICK, BRICK, BRICK, 5)),
                  np.array([mb.shape for _, mb in bodies], np.int64).reshape(n, 3),

@@ -28,12 +28,14 @@ over-counted by a flat calibration too; the eq. 16 projection keeps every partic
 from __future__ import annotations
 
 import math
+from collections import namedtuple
 from dataclasses import dataclass
 
 import numba as nb
 import numpy as np
 
-from .tables import wall_lattice
+from .maps import body_direction, body_distance, body_fields, body_velocity, map_sample, to_body
+from .tables import table_lookup, wall_lattice
 
 
 def mps_weight_np(r: np.ndarray, re: float) -> np.ndarray:
@@ -188,3 +190,165 @@ class MPSWallMaps:
         lattice = np.stack([tables.zn, tables.zg, tables.zgz, tables.zl, tables.zlz], axis=1)
         self.fix = np.ascontiguousarray(np.where(flat > 1e-9, lattice / np.maximum(flat, 1e-300), 1.0).T)
         self.inv_dr = (len(r) - 1) / tables.r_max
+
+
+# -- the walls as the MPS kernels take them ---------------------------------------------------------
+# ``MPSWalls``: the static walls (SDF, dense MPSWallMaps and its flat-wall factors ``fix``) and the moving
+# rigid walls, each baked once in its own rest frame (its SDF and its own dense map, in an atlas: ``b_maps``
+# the maps concatenated flat, ``b_mgrid`` rows offset, nx, ny, nz) and sampled at the particle carried into
+# that frame by its pose (walls.maps: the same b_sdf ... pose fields as the WCSPH bundle, so to_body,
+# body_sample and bodies_push_out serve both). ``fix`` depends only on l0 and re: every field shares it.
+# A moving wall's vector sums (G, M) turn into the world with its rotation R, its tensor T as R T R^T; its
+# wall particles move with the wall's velocity at the particle (viscosity and divergence). No body = empty
+# arrays (the loops over them do nothing).
+MPSWalls = namedtuple("MPSWalls", "sdf sdf_o sdf_inv maps m_o m_inv fix inv_dr "
+                                  "b_sdf b_grid b_sdf_o b_sdf_inv b_maps b_mgrid b_mo b_minv pose")
+# rows of MPSWallMaps.fix
+FIX_N, FIX_G, FIX_T, FIX_L, FIX_M = 0, 1, 2, 3, 4
+
+
+def make_mps_walls(sdf, maps: MPSWallMaps, bodies=()) -> MPSWalls:
+    """The MPSWalls of the static SDFGrid (SI) and its MPSWallMaps; ``bodies``: (SDFGrid in its rest frame,
+    its MPSWallMaps) per moving wall, posed at rest until walls.maps.set_pose."""
+    n = len(bodies)
+    mgrid, offs = [], [0]
+    for _, mb in bodies:
+        mgrid.append([offs[-1], *mb.maps.shape[:3]])
+        offs.append(offs[-1] + mb.maps.size)
+    b_sdf, b_grid, b_sdf_o, b_sdf_inv, pose = body_fields([sb for sb, _ in bodies])
+    b_maps = np.concatenate([mb.maps.ravel() for _, mb in bodies]) if bodies else np.zeros(0)
+    return MPSWalls(sdf.dist, np.asarray(sdf.origin, np.float64), 1.0 / sdf.spacing, maps.maps, maps.origin,
+                    1.0 / maps.spacing, maps.fix, maps.inv_dr, b_sdf, b_grid, b_sdf_o, b_sdf_inv,
+                    b_maps.astype(np.float32), np.array(mgrid, np.int64).reshape(n, 4),
+                    np.array([mb.origin for _, mb in bodies], np.float64).reshape(n, 3),
+                    np.array([1.0 / mb.spacing for _, mb in bodies], np.float64), pose)
+
+
+@nb.njit(cache=True, inline="always")
+def wall_sum(w, x, y, z, d, c, row):
+    """Channel ``c`` of the static walls' map at (x, y, z) times its flat-wall factor ``fix[row]`` at the wall
+    distance d."""
+    return map_sample(w.maps, w.m_o[0], w.m_o[1], w.m_o[2], w.m_inv, x, y, z, c) * table_lookup(w.fix[row], d,
+                                                                                                 w.inv_dr)
+
+
+@nb.njit(cache=True, inline="always")
+def body_sum(w, k, lx, ly, lz, db, c, row):
+    """wall_sum of moving wall k at a point of its rest frame (lx, ly, lz), db its distance there."""
+    o, nx, ny, nz = w.b_mgrid[k, 0], w.b_mgrid[k, 1], w.b_mgrid[k, 2], w.b_mgrid[k, 3]
+    maps = w.b_maps[o:o + nx * ny * nz * CHANNELS].reshape((nx, ny, nz, CHANNELS))
+    mo = w.b_mo[k]
+    return map_sample(maps, mo[0], mo[1], mo[2], w.b_minv[k], lx, ly, lz, c) * table_lookup(w.fix[row], db, w.inv_dr)
+
+
+@nb.njit(cache=True, inline="always")
+def _near(w, k, x, y, z):
+    lx, ly, lz = to_body(w.pose[k], x, y, z)
+    db, _, _, _ = body_distance(w, k, lx, ly, lz)
+    return lx, ly, lz, db
+
+
+@nb.njit(cache=True)
+def bodies_number_density(w, re, x, y, z):
+    """The moving walls' share of the number density: sum_b Zn_b."""
+    s = 0.0
+    for k in range(w.pose.shape[0]):
+        lx, ly, lz, db = _near(w, k, x, y, z)
+        if db < re:
+            s += body_sum(w, k, lx, ly, lz, db, ZN, FIX_N)
+    return s
+
+
+@nb.njit(cache=True)
+def bodies_laplacian(w, re, x, y, z, vx, vy, vz):
+    """The moving walls' share of the velocity Laplacian sum: sum_b Zl_b (u_b(x) - v), no-slip against each
+    wall's own velocity."""
+    ax = 0.0
+    ay = 0.0
+    az = 0.0
+    for k in range(w.pose.shape[0]):
+        lx, ly, lz, db = _near(w, k, x, y, z)
+        if db < re:
+            zl = body_sum(w, k, lx, ly, lz, db, ZL, FIX_L)
+            ux, uy, uz = body_velocity(w.pose[k], x, y, z)
+            ax += zl * (ux - vx)
+            ay += zl * (uy - vy)
+            az += zl * (uz - vz)
+    return ax, ay, az
+
+
+@nb.njit(cache=True)
+def _body_vector(w, k, lx, ly, lz, db, c, row):
+    """A vector channel (G or M) of body k, turned into the world."""
+    return body_direction(w.pose[k], body_sum(w, k, lx, ly, lz, db, c, row), body_sum(w, k, lx, ly, lz, db, c + 1, row),
+                          body_sum(w, k, lx, ly, lz, db, c + 2, row))
+
+
+@nb.njit(cache=True)
+def bodies_divergence(w, re, x, y, z, ux, uy, uz):
+    """The moving walls' share of the divergence sum: sum_b (u_b(x) - u) . G_b (``u`` = u* - g dt, as for the
+    static walls)."""
+    s = 0.0
+    for k in range(w.pose.shape[0]):
+        lx, ly, lz, db = _near(w, k, x, y, z)
+        if db < re:
+            gx, gy, gz = _body_vector(w, k, lx, ly, lz, db, G, FIX_G)
+            bx, by, bz = body_velocity(w.pose[k], x, y, z)
+            s += (bx - ux) * gx + (by - uy) * gy + (bz - uz) * gz
+    return s
+
+
+@nb.njit(cache=True)
+def bodies_hydrostatic(w, re, x, y, z, g):
+    """The moving walls' share of g . M (the hydrostatic part of their resting pressure in the Laplacian)."""
+    s = 0.0
+    for k in range(w.pose.shape[0]):
+        lx, ly, lz, db = _near(w, k, x, y, z)
+        if db < re:
+            mx, my, mz = _body_vector(w, k, lx, ly, lz, db, M, FIX_M)
+            s += g[0] * mx + g[1] * my + g[2] * mz
+    return s
+
+
+@nb.njit(cache=True)
+def bodies_gradient(w, re, x, y, z, dp, rho, g):
+    """The moving walls' share of the pressure gradient sum, dp G + rho T g, and of the gradient tensor T
+    (xx yy zz xy xz yz), each wall's G and T turned into the world (R G, R T R^T)."""
+    gx = 0.0
+    gy = 0.0
+    gz = 0.0
+    txx = 0.0
+    tyy = 0.0
+    tzz = 0.0
+    txy = 0.0
+    txz = 0.0
+    tyz = 0.0
+    for k in range(w.pose.shape[0]):
+        lx, ly, lz, db = _near(w, k, x, y, z)
+        if db >= re:
+            continue
+        ax, ay, az = _body_vector(w, k, lx, ly, lz, db, G, FIX_G)
+        a = body_sum(w, k, lx, ly, lz, db, T, FIX_T)
+        b = body_sum(w, k, lx, ly, lz, db, T + 1, FIX_T)
+        c = body_sum(w, k, lx, ly, lz, db, T + 2, FIX_T)
+        e = body_sum(w, k, lx, ly, lz, db, T + 3, FIX_T)
+        f = body_sum(w, k, lx, ly, lz, db, T + 4, FIX_T)
+        h = body_sum(w, k, lx, ly, lz, db, T + 5, FIX_T)
+        # R T R^T column by column: R (T R^T e_j) = R (T row j of R)
+        p = w.pose[k]
+        c0x, c0y, c0z = body_direction(p, a * p[0] + e * p[1] + f * p[2], e * p[0] + b * p[1] + h * p[2],
+                                       f * p[0] + h * p[1] + c * p[2])
+        c1x, c1y, c1z = body_direction(p, a * p[3] + e * p[4] + f * p[5], e * p[3] + b * p[4] + h * p[5],
+                                       f * p[3] + h * p[4] + c * p[5])
+        c2x, c2y, c2z = body_direction(p, a * p[6] + e * p[7] + f * p[8], e * p[6] + b * p[7] + h * p[8],
+                                       f * p[6] + h * p[7] + c * p[8])
+        gx += dp * ax + rho * (c0x * g[0] + c1x * g[1] + c2x * g[2])
+        gy += dp * ay + rho * (c0y * g[0] + c1y * g[1] + c2y * g[2])
+        gz += dp * az + rho * (c0z * g[0] + c1z * g[1] + c2z * g[2])
+        txx += c0x
+        tyy += c1y
+        tzz += c2z
+        txy += c1x
+        txz += c2x
+        tyz += c2y
+    return gx, gy, gz, txx, tyy, tzz, txy, txz, tyz
