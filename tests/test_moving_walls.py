@@ -240,14 +240,14 @@ def test_an_animated_usd_prop_moves_the_fluid_as_its_keyframes_do(tmp_path):
 
 def test_friction_damps_the_velocity_relative_to_the_wall_it_touches():
     """One water layer in zero gravity on a plate (no pressure: a single layer's density is below rho0;
-    no viscosity: friction alone acts), wall friction rate 10 / s for 0.1 s. The contact velocity relative
+    no viscosity: friction alone acts), wall friction rate 20 / s for 0.05 s. The contact velocity relative
     to the plate decays as exp(-rate t): a layer carried at the plate's speed U is not braked (it keeps U
     within 1 %); a layer at rest on the moving plate is dragged to U (1 - e^-1); a layer sliding at U on
     the plate held still keeps U e^-1 (as on a static floor, test_effects)."""
     from pipeline.scene import Effects
     from stages.simulate.effects import compile_effects
 
-    l0, U, rate, t = 0.008, 0.5, 10.0, 0.1
+    l0, U, rate, t = 0.008, 0.5, 20.0, 0.05
     lo, hi = np.array([-0.06, -0.04, -0.03]), np.array([0.26, 0.08, 0.0])
     plate = slab_sdf(lo, hi, 0.5 * l0)
     layer = lattice([0.0, 0.0, 0.0], [0.12, 0.04, l0], l0)  # 15 x 5 particles, l0 / 2 above the plate
