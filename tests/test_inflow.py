@@ -308,7 +308,8 @@ ARM_FPS = 25
 # a 6 cm block over a tank, gliding 10 cm along x and tilting 30 degrees about y in 0.24 s; the nozzle sits
 # 1.5 l0 under its bottom face, pointing down
 ARM = {"builtin": "box_tank", "size": [0.06, 0.06, 0.06], "center": [0.08, 0.08, 0.2], "fluid": "outside",
-       "motion": {"keyframes": [{"time": 0.0}, {"time": 0.24, "translate": [0.1, 0.0, 0.0], "rotate": [0.0, 30.0, 0.0]}]}}
+       "motion": {"keyframes": [{"time": 0.0},
+                                {"time": 0.24, "translate": [0.1, 0.0, 0.0], "rotate": [0.0, 30.0, 0.0]}]}}
 NOZZLE = {"center": [0.08, 0.08, 0.185], "direction": [0, 0, -1], "radius": 0.02, "speed": 2.0, "start": 0.02,
           "end": 0.22, "attach": 1}
 ARM_SCENE = {

@@ -265,4 +265,5 @@ def test_friction_damps_the_velocity_relative_to_the_wall_it_touches():
                       effects=effects, bodies=[(plate, motion)])
         s.advance_to(t)
         assert len(s.x) == len(layer) and np.abs(s.x[:, 2] - 0.5 * l0).max() < 0.01 * l0
-        assert np.allclose(s.v[:, 0], expected, rtol=0.01, atol=1e-3 * U), (v0, expected, s.v[:, 0].min(), s.v[:, 0].max())
+        assert np.allclose(s.v[:, 0], expected, rtol=0.01, atol=1e-3 * U), (v0, expected, s.v[:, 0].min(),
+                                                                            s.v[:, 0].max())

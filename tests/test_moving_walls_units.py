@@ -42,7 +42,8 @@ def write_sheet(path, mpu: float, up: str) -> None:
     idx = np.arange(11 * 7).reshape(11, 7)
     a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
     faces = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)]) + 1
-    path.write_text("".join(f"v {x:.17g} {y:.17g} {z:.17g}\n" for x, y, z in v) + "".join(f"f {i} {j} {k}\n" for i, j, k in faces))
+    path.write_text("".join(f"v {x:.17g} {y:.17g} {z:.17g}\n" for x, y, z in v)
+                    + "".join(f"f {i} {j} {k}\n" for i, j, k in faces))
 
 
 def scene(mpu: float, up: str) -> dict:
@@ -55,9 +56,9 @@ def scene(mpu: float, up: str) -> dict:
         size = size[[0, 2, 1]]  # builtin sizes along the scene's axes
     # a turn about +y (Z-up) is a turn about -z in the Y-up frame (x, y, z) -> (x, z, -y)
     rotate = [0.0, TILT, 0.0] if up == "Z" else [0.0, 0.0, -TILT]
+    glide = (turn([GLIDE, 0.0, 0.0]) * s).tolist()
     sheet = {"file": "sheet.obj", "shell": {},
-             "motion": {"keyframes": [{"time": 0.0},
-                                      {"time": 0.2, "translate": (turn([GLIDE, 0.0, 0.0]) * s).tolist(), "rotate": rotate}]}}
+             "motion": {"keyframes": [{"time": 0.0}, {"time": 0.2, "translate": glide, "rotate": rotate}]}}
     return {"scene": {"name": "sheet", "frames": {"fps": FPS, "count": FRAMES},
                       "units": {"up_axis": up, "meters_per_unit": mpu}},
             "walls": [{"builtin": "box_tank", "size": size.tolist(), "fluid": "inside"}, sheet],
@@ -128,8 +129,9 @@ def test_a_moving_wall_moves_the_water_alike_in_every_unit_and_up_axis(runs, var
 def test_no_particle_crosses_the_moving_open_sheet(runs, variant):
     """In the sheet's own frame a particle is in front of it (x above the sheet's curve) or behind; one
     that goes from one side to the other between two frames while it stays over the sheet's extent
-    (more than a spacing inside its edges, where a particle moves less than 0.5 l0 a frame) went through
-    it. None does, and none is ever inside the shell; the sheet really pushes: water stays in contact with its front and is carried along."""
+    (more than a spacing inside its edges: one going round an edge leaves that region) went through it.
+    None does, and none is ever inside the shell; the sheet really pushes: water stays in contact with its
+    front and is carried along."""
     assert runs[variant]["inside"] >= 0.0  # never inside the shell where it stands at a frame
     rest, world = runs[variant]["rest"], runs[variant]["world"]
     margin = L0
