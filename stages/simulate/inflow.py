@@ -105,9 +105,9 @@ class Inflow:
         tau = t - tk
         _, n = self.frame_at(tk)
         p = self.disc_points(tk)[self.keep]
-        v0 = self.speed * n + self.wall_velocity(p, tk)
-        x = p + tau * v0 + (0.5 * tau * tau) * gravity
-        v = v0 + tau * gravity
+        u = self.wall_velocity(p, tk)  # zero for a fixed nozzle: then bitwise the fixed jet's arithmetic
+        x = p + (self.speed * tau) * n + tau * u + (0.5 * tau * tau) * gravity
+        v = self.speed * n + u + tau * gravity
         return np.ascontiguousarray(x), np.ascontiguousarray(v)
 
     def motion_times(self) -> np.ndarray:
