@@ -325,9 +325,9 @@ def test_a_nozzle_on_a_moving_wall_emits_where_the_wall_carries_it(tmp_path):
     layer younger than 1.5 periods in a frame lies where the wall's pose at its emission time t_k puts the
     disc, carried ballistically since (x = p(t_k) + (v n(t_k) + u_wall(p, t_k)) tau + g tau^2 / 2, tau the
     layer's age), within 0.1 l0, with that velocity within 2 % of v; the emitted volume is still
-    pi r^2 v (t1 - t0) within 1 %. The wall carries the nozzle up to 10 cm (10 l0) and adds up to 0.4 m/s
-    (20 % of v; 0.3 l0 over a layer's 1.5 periods): a fixed nozzle, or one leaving out the wall's velocity,
-    fails."""
+    pi r^2 v (t1 - t0) within 1 %. The wall carries the nozzle 6.5 cm (6.5 l0) while it runs and adds over
+    0.3 m/s to the jet (15 % of v; 0.25 l0 over a layer's 1.5 periods): a fixed nozzle, or one leaving out
+    the wall's velocity, fails."""
     from stages.common.sdf import load_bodies
     from stages.mesh_import.trimesh_import import TrimeshImport
     from stages.sdf_bake.open3d_bake import Open3dBake

@@ -112,7 +112,7 @@ class Inflow:
 
     def motion_times(self) -> np.ndarray:
         """The start and, for a moving nozzle, its wall's keys and the midpoints between them (the wall's
-        velocity is constant over a segment: these see its every pose and speed)."""
+        v and omega are constant over a segment)."""
         ts = [self.start]
         if self.motion is not None:
             keys = np.asarray(self.motion.times, float)
@@ -124,9 +124,13 @@ class Inflow:
         return np.concatenate([self.disc_points(t) for t in self.motion_times()])
 
     def top_speed(self) -> float:
-        """The fastest a particle leaves the nozzle: v plus the attached wall's top speed at the disc."""
-        return self.speed + max(float(np.linalg.norm(self.wall_velocity(self.disc_points(t), t), axis=1).max())
-                                for t in self.motion_times())
+        """A bound on the speed a particle leaves the nozzle with: v plus |v_pivot| + |omega| times the disc's
+        reach from the pivot (which the rigid motion keeps) on each segment of the attached wall's motion."""
+        if self.motion is None:
+            return self.speed
+        reach = float(np.linalg.norm(self.rest_disc - self.motion.pivot, axis=1).max())
+        return self.speed + max(float(np.linalg.norm(v) + np.linalg.norm(w) * reach)
+                                for v, w in (self.motion.velocity(t) for t in self.motion_times()))
 
     @property
     def volume_rate(self) -> float:
