@@ -11,6 +11,7 @@ import re
 from typing import Annotated, Literal, Union
 
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, field_validator, model_validator
+from pydantic_core import InitErrorDetails, PydanticCustomError, ValidationError
 
 Vec3 = tuple[float, float, float]
 
@@ -240,6 +241,9 @@ class Inflow(Model):
     speed: float = Field(gt=0, description="jet speed, scene units per second")
     start: float = Field(0.0, ge=0, description="when the jet starts, seconds")
     end: float | None = Field(None, gt=0, description="when the jet stops, seconds; default: the end of the shot")
+    attach: int | None = Field(None, ge=0, description="index into walls of the wall the nozzle rides on (a nozzle on "
+                               "an animated prop): center and direction are given at time 0 and move rigidly with it, "
+                               "and the jet leaves with the wall's velocity added; default: fixed in the scene")
 
     _fin = field_validator("center")(_finite)
 
@@ -393,3 +397,14 @@ class SceneConfig(Model):
     fluid: Fluid | None = None
     effects: Effects = Field(default_factory=Effects)
     camera: Camera = Field(default_factory=Camera)
+
+    @model_validator(mode="after")
+    def _attached_to_a_wall(self) -> "SceneConfig":
+        """An inflow's ``attach`` names one of the walls (one that does not move is fine: it stands still)."""
+        for i, jet in enumerate(self.fluid.inflow if self.fluid is not None else ()):
+            if jet.attach is not None and jet.attach >= len(self.walls):
+                raise ValidationError.from_exception_data("SceneConfig", [InitErrorDetails(
+                    type=PydanticCustomError("no_such_wall", "no wall {attach} to attach to: walls has {n} entries (from 0)",
+                                             {"attach": jet.attach, "n": len(self.walls)}),
+                    loc=("fluid", "inflow", i, "attach"), input=jet.attach)])
+        return self

@@ -309,3 +309,34 @@ def test_a_fast_thin_plate_sweeps_water_without_any_particle_tunnelling():
         worst = min(worst, float(d.min()))
     assert worst > 0.4 * l0, worst / l0  # kept r_rep = l0 / 2 off the plate
     assert (s.v[:, 0] > 0.5 * U).sum() > 0.2 * len(x)  # it swept the water along
+
+
+def test_friction_damps_the_velocity_relative_to_the_wall_it_touches():
+    """One water layer in zero gravity on a plate (no pressure: a single layer's density is below rho0;
+    no viscosity: friction alone acts), wall friction rate 20 / s for 0.05 s. The contact velocity relative
+    to the plate decays as exp(-rate t): a layer carried at the plate's speed U is not braked (it keeps U
+    within 1 %); a layer at rest on the moving plate is dragged to U (1 - e^-1); a layer sliding at U on
+    the plate held still keeps U e^-1 (as on a static floor, test_effects)."""
+    from pipeline.scene import Effects
+    from stages.simulate.effects import compile_effects
+
+    l0, U, rate, t = 0.008, 0.5, 20.0, 0.05
+    lo, hi = np.array([-0.06, -0.04, -0.03]), np.array([0.26, 0.08, 0.0])
+    plate = slab_sdf(lo, hi, 0.5 * l0)
+    layer = lattice([0.0, 0.0, 0.0], [0.12, 0.04, l0], l0)  # 15 x 5 particles, l0 / 2 above the plate
+    space = open_space([-0.12, -0.1, -0.1], [0.4, 0.14, 0.1], 0.5 * l0)
+    p = SPHParams()
+    effects = compile_effects(Effects(wall_friction={"rate": rate}), meters_per_unit=1.0, rho0=1000.0, l0=l0,
+                              h=p.support * l0)
+    decay = math.exp(-rate * t)
+    for motion, v0, expected in ((Glide([U, 0.0, 0.0], pivot=0.5 * (lo + hi)), U, U),
+                                 (Glide([U, 0.0, 0.0], pivot=0.5 * (lo + hi)), 0.0, U * (1.0 - decay)),
+                                 (Held([0.0, 0.0, 0.0], pivot=0.5 * (lo + hi)), U, U * decay)):
+        v = np.zeros_like(layer)
+        v[:, 0] = v0
+        s = SPHSolver(layer, v, np.arange(len(layer)), space, spacing=l0, rho0=1000.0, params=p, v_ref=1.0,
+                      effects=effects, bodies=[(plate, motion)])
+        s.advance_to(t)
+        assert len(s.x) == len(layer) and np.abs(s.x[:, 2] - 0.5 * l0).max() < 0.01 * l0
+        assert np.allclose(s.v[:, 0], expected, rtol=0.01, atol=1e-3 * U), (v0, expected, s.v[:, 0].min(),
+                                                                            s.v[:, 0].max())

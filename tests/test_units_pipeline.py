@@ -159,7 +159,9 @@ def test_every_stage_agrees_with_the_metre_z_up_scene(runs, variant):
             assert area(vb, sb.faces) == pytest.approx(area(va, sa.faces), rel=0.01)
             assert signed_volume(vb, sb.faces) == pytest.approx(signed_volume(va, sa.faces), rel=0.01)
             if up == "Z":  # the same arithmetic in other units: the same mesh (Y-up lists it in another order)
-                off = np.abs(vb - va).max(axis=1) > 1e-4 * L0
+                # to 3e-4 l0: where the field is flat across a cell, marching cubes' interpolation turns the
+                # particles' 3e-7 l0 of rounding into up to 6e-5 l0, and the snap into 1.2e-4 l0 (measured, mm)
+                off = np.abs(vb - va).max(axis=1) > 3e-4 * L0
                 if stage == "surface" and f == 0:
                     # frame 0 is an axis-aligned block: its top face meets the side walls at a right
                     # angle, so whether a vertex of that edge passes wall_snap's contact test (surface

@@ -106,6 +106,12 @@ def load_bodies(folder: Path) -> list[tuple[SDFGrid, RigidMotion]]:
             for b in json.loads(info.read_text())]
 
 
+def body_walls(folder: Path) -> list[int]:
+    """Each moving wall's index in walls.json (and the config's walls), in load_bodies' order."""
+    info = Path(folder) / BODIES_FILE
+    return [int(b["wall"]) for b in json.loads(info.read_text())] if info.is_file() else []
+
+
 def posed_field(static: SDFGrid, bodies: list[tuple[SDFGrid, RigidMotion]], t: float) -> SDFGrid:
     """One grid for a consumer that takes one field (surface_extract): ``static`` with every moving wall
     at time ``t`` (s) folded in by the minimum, each body sampled at the nodes' rest positions in its

@@ -25,7 +25,7 @@ from pipeline.errors import PipelineError
 from pipeline.stage import Artifact, Context, StageError
 from stages.common.formats import ParticleFrame, ParticleMeta
 from stages.common.motion import reach, wall_speed
-from stages.common.sdf import SDFGrid, load_bodies, posed_field
+from stages.common.sdf import SDFGrid, body_walls, load_bodies, posed_field
 from stages.common.usd_points import write_points_layer
 
 from .emitters import drop_inside_walls, drop_overlaps, emit
@@ -330,7 +330,7 @@ def ballistic_speed(setup: "Setup", effects=None) -> float:
     the bottom of the domain (the walls' box without one), plus the wind's speed and an attractor's escape
     speed sqrt(2 k / s)."""
     v0 = max([float(np.linalg.norm(setup.v, axis=1).max()) if len(setup.v) else 0.0]
-             + [jet.speed for jet in setup.inflows])
+             + [jet.top_speed() for jet in setup.inflows])
     g = float(np.linalg.norm(setup.gravity))
     lo = setup.domain[0] if setup.domain is not None else setup.sdf.origin
     hi = setup.domain[1] if setup.domain is not None else setup.sdf.upper
@@ -362,7 +362,7 @@ def wall_speed_bound(bodies) -> float:
 def _fluid_top(setup: "Setup") -> float:
     """The highest point of the fluid at the start or of an inflow's disc, along up."""
     tops = [float((setup.x @ setup.up).max())] if len(setup.x) else []
-    tops += [float((jet.disc_points(jet.start) @ setup.up).max()) for jet in setup.inflows]
+    tops += [float((jet.swept_points() @ setup.up).max()) for jet in setup.inflows]
     return max(tops)
 
 
@@ -421,40 +421,46 @@ def prepare(ctx: Context, inputs: Mapping[str, Artifact], who: str, moving_walls
                          "(fluid.emitters outside the walls or smaller than fluid.spacing?)")
     if mpu != 1.0:  # scene units -> metres
         x, v, l0 = x * mpu, v * mpu, l0 * mpu
-        sdf = SDFGrid(origin=sdf.origin * mpu, spacing=sdf.spacing * mpu, dist=sdf.dist * np.float32(mpu),
-                      band=sdf.band * mpu)
-        bodies = [(SDFGrid(origin=b.origin * mpu, spacing=b.spacing * mpu, dist=b.dist * np.float32(mpu),
-                           band=b.band * mpu), m.scaled(mpu)) for b, m in bodies]
+        # the distances scaled in float64 and rounded once: float32 times float32(mpu) rounds twice, and that
+        # ulp tipped a particle near a wall in millimetres into another path (tests/test_moving_walls_units.py)
+        to_si = lambda g: SDFGrid(origin=g.origin * mpu, spacing=g.spacing * mpu,  # noqa: E731
+                                  dist=(g.dist.astype(np.float64) * mpu).astype(np.float32), band=g.band * mpu)
+        sdf = to_si(sdf)
+        bodies = [(to_si(b), m.scaled(mpu)) for b, m in bodies]
     domain = None
     if scene.domain is not None:
         domain = (np.asarray(scene.domain.min, float) * mpu, np.asarray(scene.domain.max, float) * mpu)
-    inflows, sinks = from_config(fluid, mpu)
+    inflows, sinks = from_config(fluid, mpu, dict(zip(body_walls(inputs["sdf"].path), (m for _, m in bodies))))
     for i, jet in enumerate(inflows):
-        _clear_of_walls(jet, i, sdf, domain, l0, who, ctx.log)
+        _clear_of_walls(jet, i, sdf, bodies, domain, l0, who, ctx.log)
     gravity = np.zeros(3)
-    v_ref = max([float(np.linalg.norm(v, axis=1).max()) if len(v) else 0.0] + [jet.speed for jet in inflows])
+    v_ref = max([float(np.linalg.norm(v, axis=1).max()) if len(v) else 0.0] + [jet.top_speed() for jet in inflows])
     if effects.gravity is not None:
         g = effects.gravity.g
         gravity = -g * up
-        heights = [x @ up] + [jet.disc_points(jet.start) @ up for jet in inflows]
+        heights = [x @ up] + [jet.swept_points() @ up for jet in inflows]
         if inflows:  # a jet falls to the bottom of the domain
             lo, hi = domain if domain is not None else (sdf.origin, sdf.upper)
             heights.append(np.array([min(lo @ up, hi @ up)]))
         h = np.concatenate(heights)
         height = float(h.max() - h.min()) + l0
         # the fastest a particle gets falling from the top: a jet's speed adds (energy) to the free fall
-        v_top = max([jet.speed for jet in inflows], default=0.0)
+        v_top = max([jet.top_speed() for jet in inflows], default=0.0)
         v_ref = max(v_ref, math.sqrt(v_top ** 2 + 2.0 * g * height))
     return Setup(x=x, v=v, sdf=sdf, spacing=l0, density=fluid.density, gravity=gravity, up=up, v_ref=v_ref,
                  domain=domain, effects=effects, meters_per_unit=mpu, dropped=dropped, inflows=inflows, sinks=sinks,
                  bodies=bodies)
 
 
-def _clear_of_walls(jet: Inflow, i: int, sdf: SDFGrid, domain, l0: float, who: str, log: logging.Logger) -> None:
-    """Keep the disc points of an inflow at least l0 / 2 from a wall and inside the SDF grid and the
-    domain (as drop_inside_walls does for the emitters); an inflow with none left is a user error."""
+def _clear_of_walls(jet: Inflow, i: int, sdf: SDFGrid, bodies, domain, l0: float, who: str,
+                    log: logging.Logger) -> None:
+    """Keep the disc points of an inflow at least l0 / 2 from a wall (the moving ones where they stand at
+    the jet's start) and inside the SDF grid and the domain (as drop_inside_walls does for the emitters);
+    an inflow with none left is a user error. A nozzle on a moving wall keeps its clearance from that wall."""
     p = jet.disc_points(jet.start)
     d, _ = sdf.sample(p)
+    for grid, motion in bodies:
+        d = np.minimum(d, grid.sample(motion.to_rest(p, jet.start))[0])
     lo, hi = (sdf.origin, sdf.upper) if domain is None else (np.maximum(domain[0], sdf.origin),
                                                               np.minimum(domain[1], sdf.upper))
     jet.keep = (d >= (0.5 - 1e-3) * l0) & np.all((p >= lo) & (p <= hi), axis=1)

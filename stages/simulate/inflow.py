@@ -10,7 +10,12 @@ plane during [t0 + k T, t0 + (k + 1) T]; it is emitted when that slab's centre c
 t_k = t0 + (k + 0.5) T, for every t_k < t1. The number of layers by time t is then round((t - t0) / T)
 (never more than half a layer from the exact volume, and no drift: t_k is computed from k, not summed).
 A layer due during a step is emitted at the step's start time t >= t_k where it would be by then:
-x = centre + v (t - t_k) n + g (t - t_k)^2 / 2 (and its velocity v n + g (t - t_k))."""
+x = centre + v (t - t_k) n + g (t - t_k)^2 / 2 (and its velocity v n + g (t - t_k)).
+
+A nozzle on a moving wall (``attach``) carries its disc rigidly with the wall: layer k leaves the disc where
+the wall has it at t_k, along the turned direction n(t_k), each point with v n(t_k) + the wall's velocity
+there (u = v_pivot + omega x (p - pivot)). The volume per layer is unchanged (the jet's speed relative to the
+nozzle is v), so the volume rate stays pi r^2 v."""
 from __future__ import annotations
 
 import math
@@ -50,6 +55,7 @@ class Inflow:
     start: float
     end: float  # math.inf: the end of the shot
     l0: float
+    motion: object = None  # the RigidMotion (SI) of the wall the nozzle rides on; center/direction at rest
 
     def __post_init__(self) -> None:
         self.center = np.asarray(self.center, np.float64)
@@ -58,10 +64,25 @@ class Inflow:
         self.keep = np.ones(len(self.disc), bool)
         # the volume rate pi r^2 v exactly (module docstring): not the disc's lattice area
         self.period = len(self.disc) * self.l0 ** 3 / (math.pi * self.radius ** 2 * self.speed)
+        e1, e2 = plane_axes(self.direction)
+        # the disc at rest; a moving nozzle turns it with the wall (not plane_axes of the turned direction,
+        # whose axes jump when the direction passes between world axes)
+        self.rest_disc = self.center + np.outer(self.disc[:, 0], e1) + np.outer(self.disc[:, 1], e2)
 
     def frame_at(self, t: float) -> tuple[np.ndarray, np.ndarray]:
-        """The emitter's centre and direction at time t (constant: the hook for a nozzle on a moving wall)."""
-        return self.center, self.direction
+        """The emitter's centre and direction at time t (carried by the wall it is attached to)."""
+        if self.motion is None:
+            return self.center, self.direction
+        r, tr = self.motion.pose(t)
+        return r @ (self.center - self.motion.pivot) + self.motion.pivot + tr, r @ self.direction
+
+    def wall_velocity(self, points: np.ndarray, t: float) -> np.ndarray:
+        """The attached wall's velocity (N, 3) at world ``points`` at time t (zero for a fixed nozzle)."""
+        if self.motion is None:
+            return np.zeros_like(points)
+        _, tr = self.motion.pose(t)
+        v, w = self.motion.velocity(t)
+        return v + np.cross(w, points - (self.motion.pivot + tr))
 
     def layer_time(self, k: int) -> float:
         return self.start + (k + 0.5) * self.period
@@ -73,19 +94,43 @@ class Inflow:
 
     def disc_points(self, t: float) -> np.ndarray:
         """The disc's lattice points in space at time t (all of them, walls or not)."""
-        c, n = self.frame_at(t)
-        e1, e2 = plane_axes(n)
-        return c + np.outer(self.disc[:, 0], e1) + np.outer(self.disc[:, 1], e2)
+        if self.motion is None:
+            return self.rest_disc
+        r, tr = self.motion.pose(t)
+        return (self.rest_disc - self.motion.pivot) @ r.T + self.motion.pivot + tr
 
     def layer(self, k: int, t: float, gravity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Positions and velocities at time t of layer k (emitted at its time t_k <= t)."""
         tk = self.layer_time(k)
         tau = t - tk
-        c, n = self.frame_at(tk)
+        _, n = self.frame_at(tk)
         p = self.disc_points(tk)[self.keep]
-        x = p + (self.speed * tau) * n + (0.5 * tau * tau) * gravity
-        v = np.broadcast_to(self.speed * n + tau * gravity, x.shape)
+        u = self.wall_velocity(p, tk)  # zero for a fixed nozzle: then bitwise the fixed jet's arithmetic
+        x = p + (self.speed * tau) * n + tau * u + (0.5 * tau * tau) * gravity
+        v = self.speed * n + u + tau * gravity
         return np.ascontiguousarray(x), np.ascontiguousarray(v)
+
+    def motion_times(self) -> np.ndarray:
+        """The start and, for a moving nozzle, its wall's keys and the midpoints between them (the wall's
+        v and omega are constant over a segment)."""
+        ts = [self.start]
+        if self.motion is not None:
+            keys = np.asarray(self.motion.times, float)
+            ts += [*keys, *(0.5 * (keys[:-1] + keys[1:]))]
+        return np.array(ts)
+
+    def swept_points(self) -> np.ndarray:
+        """The disc at motion_times: where the jet can start from (the scene's height bounds)."""
+        return np.concatenate([self.disc_points(t) for t in self.motion_times()])
+
+    def top_speed(self) -> float:
+        """A bound on the speed a particle leaves the nozzle with: v plus |v_pivot| + |omega| times the disc's
+        reach from the pivot (which the rigid motion keeps) on each segment of the attached wall's motion."""
+        if self.motion is None:
+            return self.speed
+        reach = float(np.linalg.norm(self.rest_disc - self.motion.pivot, axis=1).max())
+        return self.speed + max(float(np.linalg.norm(v) + np.linalg.norm(w) * reach)
+                                for v, w in (self.motion.velocity(t) for t in self.motion_times()))
 
     @property
     def volume_rate(self) -> float:
@@ -133,11 +178,14 @@ def overlapping(new: np.ndarray, x: np.ndarray, min_distance: float) -> bool:
     return bool(np.any(d < min_distance))
 
 
-def from_config(fluid, meters_per_unit: float) -> tuple[list[Inflow], list[Sink]]:
-    """The scene's inflows and sinks (pipeline.scene.Inflow / Sink, scene units) in SI."""
+def from_config(fluid, meters_per_unit: float, motions: dict | None = None) -> tuple[list[Inflow], list[Sink]]:
+    """The scene's inflows and sinks (pipeline.scene.Inflow / Sink, scene units) in SI. ``motions``: the
+    moving walls' RigidMotion (SI) by their index in walls; an inflow attached to a wall not in it stands still."""
     m = meters_per_unit
+    motions = motions or {}
     inflows = [Inflow(center=np.asarray(j.center, float) * m, direction=np.asarray(j.direction, float),
                       radius=j.radius * m, speed=j.speed * m, start=j.start,
-                      end=j.end if j.end is not None else math.inf, l0=fluid.spacing * m) for j in fluid.inflow]
+                      end=j.end if j.end is not None else math.inf, l0=fluid.spacing * m,
+                      motion=motions.get(j.attach) if j.attach is not None else None) for j in fluid.inflow]
     sinks = [Sink(lo=np.asarray(s.box.min, float) * m, hi=np.asarray(s.box.max, float) * m) for s in fluid.sinks]
     return inflows, sinks

@@ -56,7 +56,7 @@ from stages.common.sdf import sdf_sample
 from .kernels import FASTMATH
 from .neighbours import cell_coords
 from .walls.maps import (bodies_density, bodies_nearest, bodies_push_out, bodies_viscous, brick_sample,
-                         brick_sample_1234, static_distance, wall_density)
+                         brick_sample_1234, nearest_wall_velocity, static_distance, wall_density)
 from .walls.tables import table_lookup
 
 EOS_LINEAR = 0
@@ -593,10 +593,15 @@ def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, walls, 
         if friction is not None:
             if near_wall:  # contact weight 1 up to d = h/2 (first layer), 0 at h
                 wc = min(2.0 - 2.0 * d[i] / h, 1.0) * fr_rate
-                vn = vxi * nrm[i, 0] + vyi * nrm[i, 1] + vzi * nrm[i, 2]
-                ax -= wc * (vxi - vn * nrm[i, 0])
-                ay -= wc * (vyi - vn * nrm[i, 1])
-                az -= wc * (vzi - vn * nrm[i, 2])
+                # the tangential velocity relative to the nearest wall (a moving wall carries its contact layer)
+                wvx, wvy, wvz = nearest_wall_velocity(walls, xi, yi, zi)
+                rx = vxi - wvx
+                ry = vyi - wvy
+                rz = vzi - wvz
+                vn = rx * nrm[i, 0] + ry * nrm[i, 1] + rz * nrm[i, 2]
+                ax -= wc * (rx - vn * nrm[i, 0])
+                ay -= wc * (ry - vn * nrm[i, 1])
+                az -= wc * (rz - vn * nrm[i, 2])
         if wind is not None:
             # free surface = density deficit: full drag below 0.77 rho0, none above 0.97 rho0
             s = min(max((0.97 * rho0 - rhoi) / (0.2 * rho0), 0.0), 1.0) * drag

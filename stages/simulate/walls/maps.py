@@ -506,6 +506,25 @@ def bodies_nearest(w, x, y, z, d, nx, ny, nz):
 
 
 @nb.njit(cache=True)
+def nearest_wall_velocity(w, x, y, z):
+    """The velocity at x of the nearest wall: a moving wall's if one is nearer than the static walls,
+    else zero (the wall friction damps the velocity relative to it)."""
+    if w.pose.shape[0] == 0:
+        return 0.0, 0.0, 0.0
+    best, _, _, _ = sdf_sample(w.sdf, w.sdf_o[0], w.sdf_o[1], w.sdf_o[2], w.sdf_inv, x, y, z)
+    near = -1
+    for k in range(w.pose.shape[0]):
+        lx, ly, lz = to_body(w.pose[k], x, y, z)
+        db, _, _, _ = body_distance(w, k, lx, ly, lz)
+        if db < best:
+            best = db
+            near = k
+    if near < 0:
+        return 0.0, 0.0, 0.0
+    return body_velocity(w.pose[near], x, y, z)
+
+
+@nb.njit(cache=True)
 def static_distance(w, d, x, y, z):
     """The static walls' SDF distance at x, given ``d`` the nearest wall's (the same without moving walls)."""
     if w.pose.shape[0] == 0:
