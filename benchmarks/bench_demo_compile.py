@@ -63,6 +63,7 @@ def main() -> None:
 
     event.register("numba:compile", Compiles())
     work = Path(tempfile.mkdtemp(prefix="demo-profile-"))
+    print(f"caches and outputs in {work}, numba cache {nb_cache}", flush=True)
     result = {"numba_cache": str(nb_cache), "load": os.getloadavg(), "scenes": []}
     for cfg in args.configs:
         scene = cfg.stem

@@ -337,7 +337,7 @@ def _wall_sample(wmap, ox, oy, oz, inv_h, x, y, z, c):
                                                                     x, y, z, c)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)  # called, not inlined: the DFSPH density pass calls it 7 times (compile time)
 def map_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, x, y, z):
     """Z_rho of one wall field at a point (eq. 12): its 3D map times the flat-wall factor at its SDF distance
     (DFSPH's density and wall gradient differentiate it)."""
