@@ -59,7 +59,10 @@ def _segment_sq(px, py, pz, ax, ay, az, bx, by, bz):
     return dx * dx + dy * dy + dz * dz
 
 
-@nb.njit(cache=True, inline="always")
+# called, not inlined (as _best_of_neighbours below): numba inlines at its IR level, so every kernel that
+# inlined them compiled their bodies again (the SDF bake's build was 40 s of a cold demo); LLVM still
+# inlines the machine code, and without fastmath the arithmetic is the same
+@nb.njit(cache=True)
 def _triangle_sq(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
     """Squared distance from p to the (non-degenerate) triangle abc: Ericson's closest point by
     Voronoi regions (vertices, edges, face)."""
@@ -258,7 +261,7 @@ def _node_triangle(tri, degenerate, t, px, py, pz):
     return math.sqrt(d2)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _best_of_neighbours(tri, degenerate, normals, spheres, origin, h, dims, node, layer, lay, dist, ids, ids_other,
                         use_other, seen):
     """The closest triangle to ``node`` among its own and those of its 26 neighbours: ``ids`` of the
@@ -585,5 +588,9 @@ def inside_votes(tri: np.ndarray, origin: np.ndarray, h: float, shape: tuple[int
         start, items = _row_lists(lo[:, 1].copy(), hi[:, 1].copy(), origin[b], h, shape[b])
         toggles = np.zeros((shape[a] + 1, shape[b], shape[c]), np.uint8)
         _line_crossings(t3, lo[:, 2].copy(), hi[:, 2].copy(), start, items, origin[a], origin[b], origin[c], float(h), toggles)
-        _add_votes(toggles, votes.transpose(perm))
+        # into a C-ordered array along this axis, then added: _add_votes compiles for one layout only
+        # (a transposed view is an 'A' array, a second build); the same integer sums
+        along = np.zeros(tuple(shape[i] for i in perm), np.uint8)
+        _add_votes(toggles, along)
+        votes += along.transpose(np.argsort(perm))
     return votes

@@ -622,7 +622,11 @@ def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, walls, 
         acc[i, 2] = az
 
 
-@nb.njit(cache=True, inline="always")
+# push_out_of_walls and move_near_walls are called, not inlined: numba inlines at its own IR level, so each
+# kernel that inlined them typed and compiled their bodies again (integrate's two builds in the demo 27 -> 14 s);
+# LLVM still inlines the machine code, and their callers are not fastmath, so the arithmetic is the same.
+# (_walls_and_pressure above stays inlined: called, numba built it twice, for more than it saved.)
+@nb.njit(cache=True)
 def push_out_of_walls(px, py, pz, vx, vy, vz, sdf, sdf_o, sdf_inv, r_rep, max_corr):
     """Eq. 16: a particle closer to a wall than r_rep moves out along the SDF normal (at most max_corr
     per projection) and loses its velocity into the wall; up to three projections, since in an edge or
@@ -643,7 +647,7 @@ def push_out_of_walls(px, py, pz, vx, vy, vz, sdf, sdf_o, sdf_inv, r_rep, max_co
     return px, py, pz, vx, vy, vz
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def move_near_walls(x0, y0, z0, vx, vy, vz, dt, walls, r_rep, max_corr, max_move):
     """x += dt v for a particle near a wall, in sub-steps no longer than ``max_move``, each followed by
     the eq. 16 push-out: a thin wall or shell on the trilinear SDF grid holds only against moves that

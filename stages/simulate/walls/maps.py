@@ -107,21 +107,29 @@ class WallMaps:
         scale = dq ** 3 / l0 ** 3  # quadrature volume in units of one wall particle's volume
         args = (h, dq, offsets, poly6_coef(h), spiky_grad_coef(h), visc_lap_coef(h), scale, mass, rho0)
         _build(sdf.dist, sdf.origin, 1.0 / sdf.spacing, self.origin, self.spacing, shape, *args, self.maps)
-        # flat-wall correction: the quadrature of a half space against the lattice-sum table
-        _, z_rho, z_vis, z_press = build_tables(l0, h, mass, rho0, samples)
-        r = np.linspace(0.0, h, samples)
-        flat = np.zeros((samples, 5))
-        lo = np.array([-2 * h, -2 * h, -2 * h])
-        from stages.common.sdf import grid_from_function
-        plane = grid_from_function(lambda p: p[:, 2], lo, -lo, dq / 2)
-        out = np.zeros(5)
-        for s, ri in enumerate(r):
-            quadrature_at(plane.dist, plane.origin, 1.0 / plane.spacing, 0.0, 0.0, ri, *args, out)
-            flat[s] = out
-        self.fix_rho = np.where(flat[:, 0] > 1e-12, z_rho / np.maximum(flat[:, 0], 1e-300), 1.0)
-        self.fix_press = np.where(flat[:, 3] > 1e-12, z_press / np.maximum(flat[:, 3], 1e-300), 1.0)
-        self.fix_vis = np.where(flat[:, 4] > 1e-12, z_vis / np.maximum(flat[:, 4], 1e-300), 1.0)
-        self.inv_dr = (samples - 1) / h
+        self.fix_rho, self.fix_press, self.fix_vis, self.inv_dr = flat_wall_factors(l0, h, mass, rho0, samples)
+
+
+def flat_wall_factors(l0: float, h: float, mass: float, rho0: float, samples: int):
+    """(fix_rho, fix_press, fix_vis, inv_dr): per wall distance over [0, h], the lattice-sum table of
+    walls/tables.py over the map's quadrature of a half space (they do not depend on the SDF)."""
+    dq = 0.5 * l0
+    args = (h, dq, quadrature_offsets(h, dq), poly6_coef(h), spiky_grad_coef(h), visc_lap_coef(h), dq ** 3 / l0 ** 3,
+            mass, rho0)
+    _, z_rho, z_vis, z_press = build_tables(l0, h, mass, rho0, samples)
+    r = np.linspace(0.0, h, samples)
+    flat = np.zeros((samples, 5))
+    lo = np.array([-2 * h, -2 * h, -2 * h])
+    from stages.common.sdf import grid_from_function
+    plane = grid_from_function(lambda p: p[:, 2], lo, -lo, dq / 2)
+    out = np.zeros(5)
+    for s, ri in enumerate(r):
+        quadrature_at(plane.dist, plane.origin, 1.0 / plane.spacing, 0.0, 0.0, ri, *args, out)
+        flat[s] = out
+    fix_rho = np.where(flat[:, 0] > 1e-12, z_rho / np.maximum(flat[:, 0], 1e-300), 1.0)
+    fix_press = np.where(flat[:, 3] > 1e-12, z_press / np.maximum(flat[:, 3], 1e-300), 1.0)
+    fix_vis = np.where(flat[:, 4] > 1e-12, z_vis / np.maximum(flat[:, 4], 1e-300), 1.0)
+    return fix_rho, fix_press, fix_vis, (samples - 1) / h
 
 
 @nb.njit(cache=True, inline="always")
@@ -329,7 +337,7 @@ def _wall_sample(wmap, ox, oy, oz, inv_h, x, y, z, c):
                                                                     x, y, z, c)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)  # called, not inlined: the DFSPH density pass calls it 7 times (compile time)
 def map_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, x, y, z):
     """Z_rho of one wall field at a point (eq. 12): its 3D map times the flat-wall factor at its SDF distance
     (DFSPH's density and wall gradient differentiate it)."""
@@ -581,10 +589,8 @@ class BrickWallMaps:
     ``wmap`` is what the kernels take: (index, bricks, shape)."""
 
     def __init__(self, sdf: SDFGrid, l0: float, h: float, mass: float, rho0: float, samples: int = 256):
-        # the flat-wall factors do not depend on the SDF: a WallMaps of a tiny grid gives exactly them
-        tiny = SDFGrid(origin=np.zeros(3), spacing=l0, dist=np.ones((2, 2, 2), np.float32), band=1.0)
-        flat = WallMaps(tiny, l0, h, mass, rho0, samples)
-        self.fix_rho, self.fix_press, self.fix_vis, self.inv_dr = flat.fix_rho, flat.fix_press, flat.fix_vis, flat.inv_dr
+        # the flat-wall factors do not depend on the SDF (no dense map built, nor its kernel compiled)
+        self.fix_rho, self.fix_press, self.fix_vis, self.inv_dr = flat_wall_factors(l0, h, mass, rho0, samples)
         self.h = h
         slots = self._allocate(sdf, l0, h)
         dq = self.spacing
