@@ -184,29 +184,50 @@ def test_batch_of_shots_with_a_broken_one(tmp_path, plugin, scheduler):
     assert_consistent(tmp_path / "cache")
 
 
-def test_the_readme_slurm_recipe_starts_workers_that_run_a_batch(tmp_path, plugin, monkeypatch):
+# runs the README's SLURM code block in its own process, which keeps the cluster's scheduler: importing
+# dask_jobqueue replaces the importing process's SIGINT handler (its runner module), which a test process
+# that sends Ctrl-C to its children must not inherit any state of
+RECIPE_HOST = """
+import re, sys
+from pathlib import Path
+import dask_jobqueue
+
+block = next(b for b in re.findall(r"```python\\n(.*?)```", Path(sys.argv[1]).read_text(), re.S) if "SLURMCluster" in b)
+scaled = []
+dask_jobqueue.SLURMCluster.scale = lambda self, *a, **kw: scaled.append(kw or a)  # sbatch is not here
+scope = {}
+exec(compile(block, "README.md", "exec"), scope)
+cluster = scope["cluster"]
+Path(sys.argv[2]).write_text(cluster.job_script())
+print("recipe:", cluster.scheduler_address, scaled[0], flush=True)
+sys.stdin.read()  # until the test is done
+cluster.close()
+"""
+
+
+def test_the_readme_slurm_recipe_starts_workers_that_run_a_batch(tmp_path, plugin):
     """The README's SLURM recipe, executed as written (only ``scale``, which would call sbatch, is held
     back): the job script it makes, run by bash as SLURM would run it, starts a worker with one task
     thread, the declared resources and the numba threads; a batch of shots sent to its scheduler
     completes."""
-    import re
-
-    jobqueue = pytest.importorskip("dask_jobqueue")
+    pytest.importorskip("dask_jobqueue")
     from distributed import Client
 
-    block = next(b for b in re.findall(r"```python\n(.*?)```", (REPO / "README.md").read_text(), re.S)
-                 if "SLURMCluster" in b)
-    scaled = []
-    monkeypatch.setattr(jobqueue.SLURMCluster, "scale", lambda self, *a, **kw: scaled.append(kw or a))
-    scope: dict = {}
-    exec(compile(block, "README.md", "exec"), scope)
-    cluster = scope["cluster"]
     script = tmp_path / "job.sh"
-    script.write_text(cluster.job_script())
-    worker = subprocess.Popen(["bash", str(script)], env=_env(plugin), stdout=subprocess.DEVNULL,
-                              stderr=subprocess.DEVNULL, start_new_session=True)
+    host = subprocess.Popen([sys.executable, "-c", RECIPE_HOST, str(REPO / "README.md"), str(script)],
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
+                            env=_env(plugin), start_new_session=True)  # the scheduler unpickles toy stages too
+    worker = None
     try:
-        client = Client(cluster.scheduler_address, timeout="30s")
+        line = ""
+        while not line.startswith("recipe:"):  # the recipe prints the address itself first
+            line = host.stdout.readline()
+            assert line, "the recipe's process ended"
+        _, address, scaled = line.split(" ", 2)
+        assert scaled.strip() == "{'jobs': 4}"  # what the recipe asks of SLURM
+        worker = subprocess.Popen(["bash", str(script)], env=_env(plugin), stdout=subprocess.DEVNULL,
+                                  stderr=subprocess.DEVNULL, start_new_session=True)
+        client = Client(address, timeout="30s")
         client.wait_for_workers(1, timeout=60)
         (info,) = client.scheduler_info(n_workers=-1)["workers"].values()
         assert info["nthreads"] == 1  # one shot per worker at a time: the cores are numba's
@@ -214,14 +235,18 @@ def test_the_readme_slurm_recipe_starts_workers_that_run_a_batch(tmp_path, plugi
         assert set(client.run(lambda: os.environ.get("NUMBA_NUM_THREADS")).values()) == {"8"}
         shots = [write_config(tmp_path / n, name=n, count=2) for n in ("a", "b")]
         r = subprocess.run([sys.executable, "-m", "pipeline.cli", "run", *map(str, shots), "--executor", "dask",
-                            "--scheduler", cluster.scheduler_address, "--cache", str(tmp_path / "cache"), "-q"],
+                            "--scheduler", address, "--cache", str(tmp_path / "cache"), "-q"],
                            env=_env(plugin), capture_output=True, text=True, timeout=120)
         assert r.returncode == 0, r.stderr
         for cfg in shots:
             assert len(list((cfg.parent / "out" / cfg.stem / "frames").glob("frame_*.txt"))) == 2
-        assert scaled[0] == {"jobs": 4}  # what the recipe asks of SLURM
         client.close()
     finally:
-        os.killpg(worker.pid, signal.SIGTERM)
-        worker.wait(30)
-        cluster.close()
+        if worker is not None:
+            os.killpg(worker.pid, signal.SIGTERM)
+            worker.wait(30)
+        host.stdin.close()
+        try:
+            host.wait(30)
+        except subprocess.TimeoutExpired:
+            os.killpg(host.pid, signal.SIGKILL)
