@@ -3,10 +3,14 @@ importing numba, VTK or open3d (the reliability tests launch it dozens of times)
 from __future__ import annotations
 
 import os
+import signal
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/, for toy_stages (also in workers)
+# Ctrl-C as a terminal gives it to its foreground job: the suite itself may run as a background job of a
+# shell without job control, whose children inherit SIGINT ignored (the Ctrl-C tests then hung)
+signal.signal(signal.SIGINT, signal.default_int_handler)
 
 from pipeline.registry import Registry  # noqa: E402
 from toy_stages import TOY_STAGES  # noqa: E402
