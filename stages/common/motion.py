@@ -214,6 +214,22 @@ def reach(lo, hi, pivot) -> float:
     return float(np.linalg.norm(np.maximum(np.abs(lo - pivot), np.abs(hi - pivot))))
 
 
+def top_wall_speed(motion, reach: float) -> float:
+    """The fastest a wall point within ``reach`` of the pivot goes over the whole motion: the pivot's velocity
+    and the angular velocity are constant over a segment, so the keys and the segments' midpoints cover it."""
+    keys = np.asarray(motion.times, np.float64)
+    ts = np.concatenate([keys, 0.5 * (keys[:-1] + keys[1:])])
+    return max(wall_speed(motion, reach, float(t)) for t in ts)
+
+
+def config_motion(motion, rest_points) -> "RigidMotion":
+    """The RigidMotion of a config ``motion`` (pipeline.scene.Motion) of a wall whose rest pose has the points
+    ``rest_points``: about its pivot, by default the centre of their bounding box."""
+    pts = np.asarray(rest_points, np.float64)
+    pivot = 0.5 * (pts.min(axis=0) + pts.max(axis=0)) if motion.pivot is None else motion.pivot
+    return RigidMotion.from_keyframes(motion.keyframes, pivot)
+
+
 def wall_speed(motion, reach: float, t: float) -> float:
     """The fastest a wall point within ``reach`` of the pivot goes at t: |v| + |omega| reach (``motion``:
     anything with RigidMotion's ``velocity(t)``)."""

@@ -19,7 +19,7 @@ from pydantic import Field
 from pipeline.scene import BuiltinWall, UsdWall
 from pipeline.stage import Artifact, Context, Params, Stage, StageError
 from stages.common.formats import WallMesh
-from stages.common.motion import RigidMotion
+from stages.common.motion import RigidMotion, config_motion
 from stages.common.sdf import DEFAULT_SHELL_THICKNESS
 
 from .builtin import builtin_mesh
@@ -157,9 +157,9 @@ class TrimeshImport(Stage):
         centre of the rest bounding box."""
         if w.motion is None and animation is None:
             return None
-        pivot = 0.5 * (v.min(axis=0) + v.max(axis=0))
         if w.motion is not None:
-            return RigidMotion.from_keyframes(w.motion.keyframes, pivot if w.motion.pivot is None else w.motion.pivot)
+            return config_motion(w.motion, v)
+        pivot = 0.5 * (v.min(axis=0) + v.max(axis=0))
         try:
             return RigidMotion.from_matrices(*animation, pivot)
         except ValueError as e:

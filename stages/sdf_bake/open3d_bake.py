@@ -334,17 +334,13 @@ def grids_estimate(wm: WallMesh | None, domain, l0: float, p: BakeParams) -> tup
 def builtin_boxes(corners: np.ndarray, walls: list) -> WallMesh:
     """The builtin walls as their placed boxes' corners (8 per wall, three triangles using all 8) with
     their config motions: enough for grid_box and body_boxes before mesh_import has run."""
-    from stages.common.motion import RigidMotion
+    from stages.common.motion import config_motion
 
     n = len(corners) // 8
     faces = (np.arange(n)[:, None, None] * 8 + np.array([[0, 1, 2], [3, 4, 5], [6, 7, 0]])).reshape(-1, 3)
     info = []
     for k, w in enumerate(walls):
-        motion = None
-        if w.motion is not None:
-            box = corners[8 * k:8 * k + 8]
-            pivot = 0.5 * (box.min(axis=0) + box.max(axis=0)) if w.motion.pivot is None else w.motion.pivot
-            motion = RigidMotion.from_keyframes(w.motion.keyframes, pivot).to_json()
+        motion = None if w.motion is None else config_motion(w.motion, corners[8 * k:8 * k + 8]).to_json()
         info.append({"motion": motion})
     return WallMesh(corners, faces.astype(np.int32), np.repeat(np.arange(n), 3).astype(np.int32), info)
 

@@ -24,7 +24,7 @@ import numpy as np
 from pipeline.errors import PipelineError
 from pipeline.stage import Artifact, Context, StageError
 from stages.common.formats import ParticleFrame, ParticleMeta
-from stages.common.motion import reach, wall_speed
+from stages.common.motion import reach, top_wall_speed, wall_speed
 from stages.common.sdf import SDFGrid, body_walls, load_bodies, posed_field
 from stages.common.usd_points import write_points_layer
 
@@ -349,14 +349,7 @@ def wall_speed_bound(bodies) -> float:
     """The fastest a point of a moving wall goes over its whole motion (m/s): its pivot's speed plus its
     angular speed times its reach from the pivot, at every key and between (a wall can fling the fluid at
     twice its own speed, an elastic bounce; ballistic_speed takes that)."""
-    top = 0.0
-    for sdf, m in bodies:
-        r = reach(sdf.origin, sdf.upper, m.pivot)
-        span = np.asarray(m.times, float)
-        ts = np.unique(np.concatenate([span, (span[:-1] + span[1:]) / 2.0])) if len(span) > 1 else span
-        for t in ts:
-            top = max(top, wall_speed(m, r, float(t)))
-    return top
+    return max((top_wall_speed(m, reach(sdf.origin, sdf.upper, m.pivot)) for sdf, m in bodies), default=0.0)
 
 
 def _fluid_top(setup: "Setup") -> float:

@@ -24,6 +24,8 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
+from stages.common.motion import top_wall_speed
+
 
 def disc_lattice(radius: float, l0: float) -> np.ndarray:
     """(N_disc, 2) in-plane offsets: the l0 lattice points (one on the axis) within ``radius``."""
@@ -129,8 +131,7 @@ class Inflow:
         if self.motion is None:
             return self.speed
         reach = float(np.linalg.norm(self.rest_disc - self.motion.pivot, axis=1).max())
-        return self.speed + max(float(np.linalg.norm(v) + np.linalg.norm(w) * reach)
-                                for v, w in (self.motion.velocity(t) for t in self.motion_times()))
+        return self.speed + top_wall_speed(self.motion, reach)
 
     @property
     def volume_rate(self) -> float:

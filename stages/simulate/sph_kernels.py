@@ -594,7 +594,7 @@ def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, walls, 
             if near_wall:  # contact weight 1 up to d = h/2 (first layer), 0 at h
                 wc = min(2.0 - 2.0 * d[i] / h, 1.0) * fr_rate
                 # the tangential velocity relative to the nearest wall (a moving wall carries its contact layer)
-                wvx, wvy, wvz = nearest_wall_velocity(walls, xi, yi, zi)
+                wvx, wvy, wvz = nearest_wall_velocity(walls, d[i], xi, yi, zi)
                 rx = vxi - wvx
                 ry = vyi - wvy
                 rz = vzi - wvz

@@ -514,20 +514,19 @@ def bodies_nearest(w, x, y, z, d, nx, ny, nz):
 
 
 @nb.njit(cache=True)
-def nearest_wall_velocity(w, x, y, z):
-    """The velocity at x of the nearest wall: a moving wall's if one is nearer than the static walls,
-    else zero (the wall friction damps the velocity relative to it)."""
-    if w.pose.shape[0] == 0:
-        return 0.0, 0.0, 0.0
-    best, _, _, _ = sdf_sample(w.sdf, w.sdf_o[0], w.sdf_o[1], w.sdf_o[2], w.sdf_inv, x, y, z)
+def nearest_wall_velocity(w, d, x, y, z):
+    """The velocity at x of the nearest wall, given ``d`` its distance (bodies_nearest's): the nearest moving
+    wall's if it is at that distance (to rounding: another kernel's arithmetic), else a static wall's (zero).
+    The wall friction damps the velocity relative to it."""
     near = -1
+    best = np.inf
     for k in range(w.pose.shape[0]):
         lx, ly, lz = to_body(w.pose[k], x, y, z)
         db, _, _, _ = body_distance(w, k, lx, ly, lz)
         if db < best:
             best = db
             near = k
-    if near < 0:
+    if near < 0 or best > d + 1e-9 * (abs(d) + w.b_sdf_inv[near] ** -1):
         return 0.0, 0.0, 0.0
     return body_velocity(w.pose[near], x, y, z)
 
