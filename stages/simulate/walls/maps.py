@@ -33,99 +33,46 @@ def wall_weight(d, half_width):
     return min(max(t, 0.0), 1.0)
 
 
-@nb.njit(cache=True)
-def quadrature_at(sdf, so, sinv, px, py, pz, h, dq, offsets, c6, cs, cv, scale, mass, rho0, out):
-    out[0] = 0.0
-    out[1] = 0.0
-    out[2] = 0.0
-    out[3] = 0.0
-    out[4] = 0.0
-    h2 = h * h
-    for k in range(offsets.shape[0]):
-        ox = offsets[k, 0]
-        oy = offsets[k, 1]
-        oz = offsets[k, 2]
-        r2 = ox * ox + oy * oy + oz * oz
-        if r2 >= h2:
-            continue
-        d, _, _, _ = sdf_sample(sdf, so[0], so[1], so[2], sinv, px + ox, py + oy, pz + oz)
-        w = wall_weight(d, 0.5 * dq)
-        if w == 0.0:
-            continue
-        r = math.sqrt(r2)
-        q = h2 - r2
-        out[0] += w * scale * mass * c6 * q * q * q
-        if r > 1e-12:
-            g = w * scale * (mass / rho0) * cs * (h - r) * (h - r) / r
-            # -grad W points from the wall sample (x + o) to the particle: along -o
-            out[1] -= g * ox
-            out[2] -= g * oy
-            out[3] -= g * oz
-        out[4] += w * scale * (mass / rho0) * cv * (h - r)
-
-
-@nb.njit(cache=True, parallel=True)
-def _build(sdf, so, sinv, mo, mh, shape, h, dq, offsets, c6, cs, cv, scale, mass, rho0, maps):
-    nx, ny, nz = shape[0], shape[1], shape[2]
-    for i in nb.prange(nx):
-        out = np.zeros(5)
-        for j in range(ny):
-            for k in range(nz):
-                px = mo[0] + i * mh
-                py = mo[1] + j * mh
-                pz = mo[2] + k * mh
-                d, _, _, _ = sdf_sample(sdf, so[0], so[1], so[2], sinv, px, py, pz)
-                if d >= h + dq:
-                    for c in range(5):
-                        maps[i, j, k, c] = 0.0
-                    continue
-                quadrature_at(sdf, so, sinv, px, py, pz, h, dq, offsets, c6, cs, cv, scale, mass, rho0, out)
-                for c in range(5):
-                    maps[i, j, k, c] = out[c]
-
-
-def quadrature_offsets(h: float, dq: float) -> np.ndarray:
+def quadrature_stencil(h: float, dq: float, scale: float, mass: float, rho0: float, kernel=None):
+    """The quadrature of the wall region as a stencil on the staggered lattice of spacing ``dq``
+    (points half a cell off the nodes): (idx, w), a node's map = sum_s occ(node + idx_s + 1/2) w_s with
+    occ the wall occupancy (wall_weight) there. ``kernel(r) -> (W, f)``, -grad W = -f o pointing from the
+    wall sample at offset o to the node, gives channels 0-3 (default Poly6 and Spiky); channel 4 is the
+    viscosity Laplacian. ``scale``: the quadrature volume in units of one wall particle's."""
     k = int(math.ceil(h / dq)) + 1
-    g = (np.arange(-k, k) + 0.5) * dq  # cell-centred, symmetric about 0
-    X, Y, Z = np.meshgrid(g, g, g, indexing="ij")
-    o = np.stack([X.ravel(), Y.ravel(), Z.ravel()], 1)
-    return np.ascontiguousarray(o[np.linalg.norm(o, axis=1) < h + dq])
+    m = np.arange(-k, k)
+    idx = np.stack([g.ravel() for g in np.meshgrid(m, m, m, indexing="ij")], 1)
+    o = (idx + 0.5) * dq  # cell-centred, symmetric about 0
+    r = np.linalg.norm(o, axis=1)
+    keep = r < h
+    idx, o, r = idx[keep], o[keep], r[keep]
+    if kernel is None:
+        W = mass * poly6_coef(h) * (h * h - r * r) ** 3
+        f = (mass / rho0) * spiky_grad_coef(h) * (h - r) ** 2 / r
+    else:
+        W, f = kernel(r)
+    w = np.empty((len(r), 5))
+    w[:, 0] = scale * W
+    w[:, 1:4] = -scale * f[:, None] * o
+    w[:, 4] = scale * (mass / rho0) * visc_lap_coef(h) * (h - r)
+    return np.ascontiguousarray(idx.astype(np.int64)), np.ascontiguousarray(w)
 
 
-class WallMaps:
-    """The wall terms on a node grid of spacing ``l0 / 2`` over the SDF grid, plus the flat-wall
-    correction factors (1D, indexed by the wall distance)."""
-
-    def __init__(self, sdf, l0: float, h: float, mass: float, rho0: float, samples: int = 256):
-        self.h = h
-        dq = 0.5 * l0
-        self.spacing = 0.5 * l0
-        self.origin = np.asarray(sdf.origin, np.float64)
-        shape = np.floor((sdf.upper - sdf.origin) / self.spacing).astype(np.int64) + 1
-        self.maps = np.zeros((*shape, 5), np.float32)
-        offsets = quadrature_offsets(h, dq)
-        scale = dq ** 3 / l0 ** 3  # quadrature volume in units of one wall particle's volume
-        args = (h, dq, offsets, poly6_coef(h), spiky_grad_coef(h), visc_lap_coef(h), scale, mass, rho0)
-        _build(sdf.dist, sdf.origin, 1.0 / sdf.spacing, self.origin, self.spacing, shape, *args, self.maps)
-        self.fix_rho, self.fix_press, self.fix_vis, self.inv_dr = flat_wall_factors(l0, h, mass, rho0, samples)
+def flat_wall_sums(idx: np.ndarray, w: np.ndarray, dq: float, r: np.ndarray) -> np.ndarray:
+    """The stencil's sums (len(r), 5) at a node a height r above the flat floor z = 0 (the wall below it)."""
+    out = np.zeros((len(r), w.shape[1]))
+    for s, ri in enumerate(r):
+        out[s] = np.clip(0.5 - (ri + (idx[:, 2] + 0.5) * dq) / dq, 0.0, 1.0) @ w  # wall_weight(d, dq / 2)
+    return out
 
 
 def flat_wall_factors(l0: float, h: float, mass: float, rho0: float, samples: int):
     """(fix_rho, fix_press, fix_vis, inv_dr): per wall distance over [0, h], the lattice-sum table of
     walls/tables.py over the map's quadrature of a half space (they do not depend on the SDF)."""
     dq = 0.5 * l0
-    args = (h, dq, quadrature_offsets(h, dq), poly6_coef(h), spiky_grad_coef(h), visc_lap_coef(h), dq ** 3 / l0 ** 3,
-            mass, rho0)
+    idx, w = quadrature_stencil(h, dq, dq ** 3 / l0 ** 3, mass, rho0)
     _, z_rho, z_vis, z_press = build_tables(l0, h, mass, rho0, samples)
-    r = np.linspace(0.0, h, samples)
-    flat = np.zeros((samples, 5))
-    lo = np.array([-2 * h, -2 * h, -2 * h])
-    from stages.common.sdf import grid_from_function
-    plane = grid_from_function(lambda p: p[:, 2], lo, -lo, dq / 2)
-    out = np.zeros(5)
-    for s, ri in enumerate(r):
-        quadrature_at(plane.dist, plane.origin, 1.0 / plane.spacing, 0.0, 0.0, ri, *args, out)
-        flat[s] = out
+    flat = flat_wall_sums(idx, w, dq, np.linspace(0.0, h, samples))
     fix_rho = np.where(flat[:, 0] > 1e-12, z_rho / np.maximum(flat[:, 0], 1e-300), 1.0)
     fix_press = np.where(flat[:, 3] > 1e-12, z_press / np.maximum(flat[:, 3], 1e-300), 1.0)
     fix_vis = np.where(flat[:, 4] > 1e-12, z_vis / np.maximum(flat[:, 4], 1e-300), 1.0)
@@ -185,35 +132,58 @@ def bricks_needed(sdf, so, sinv, mo, mh, shape, reach, need):
 
 
 @nb.njit(cache=True, parallel=True)
-def build_bricks(sdf, so, sinv, mo, mh, shape, index, slots, h, dq, offsets, c6, cs, cv, scale, mass, rho0, bricks):
-    """Fill every allocated brick (slots[s] = its flat brick index) node by node as maps._build
-    fills the dense map (zero at d >= h + dq, else the quadrature)."""
+def build_bricks(sdf, so, sinv, mo, mh, shape, index, slots, reach, idx, w, bricks):
+    """Fill every allocated brick (slots[s] = its flat brick index): a node closer to a wall than ``reach``
+    gets the stencil's sum (quadrature_stencil) over the wall occupancy on the staggered lattice, sampled
+    once per brick with its halo (not once per node and offset: the halo is 5x the brick, the stencil
+    ~500 offsets); the others are zero."""
     nby, nbz = index.shape[1], index.shape[2]
+    lo = 0
+    hi = 0
+    for s in range(idx.shape[0]):
+        lo = min(lo, idx[s, 0], idx[s, 1], idx[s, 2])
+        hi = max(hi, idx[s, 0], idx[s, 1], idx[s, 2])
+    n = BRICK + hi - lo
     for s in nb.prange(slots.shape[0]):
         b = slots[s]
-        bx = b // (nby * nbz)
-        by = (b // nbz) % nby
-        bz = b % nbz
-        out = np.zeros(5)
+        i0 = (b // (nby * nbz)) * BRICK
+        j0 = ((b // nbz) % nby) * BRICK
+        k0 = (b % nbz) * BRICK
+        occ = np.empty((n, n, n))
+        for a in range(n):
+            x = mo[0] + (i0 + lo + a + 0.5) * mh
+            for c in range(n):
+                y = mo[1] + (j0 + lo + c + 0.5) * mh
+                for e in range(n):
+                    d, _, _, _ = sdf_sample(sdf, so[0], so[1], so[2], sinv, x, y, mo[2] + (k0 + lo + e + 0.5) * mh)
+                    occ[a, c, e] = wall_weight(d, 0.5 * mh)
         for a in range(BRICK):
-            i = bx * BRICK + a
             for c in range(BRICK):
-                j = by * BRICK + c
                 for e in range(BRICK):
-                    k = bz * BRICK + e
                     for ch in range(5):
                         bricks[s, a, c, e, ch] = 0.0
+                    i = i0 + a
+                    j = j0 + c
+                    k = k0 + e
                     if i >= shape[0] or j >= shape[1] or k >= shape[2]:
                         continue
-                    px = mo[0] + i * mh
-                    py = mo[1] + j * mh
-                    pz = mo[2] + k * mh
-                    d, _, _, _ = sdf_sample(sdf, so[0], so[1], so[2], sinv, px, py, pz)
-                    if d >= h + dq:
+                    d, _, _, _ = sdf_sample(sdf, so[0], so[1], so[2], sinv, mo[0] + i * mh, mo[1] + j * mh, mo[2] + k * mh)
+                    if d >= reach:
                         continue
-                    quadrature_at(sdf, so, sinv, px, py, pz, h, dq, offsets, c6, cs, cv, scale, mass, rho0, out)
-                    for ch in range(5):
-                        bricks[s, a, c, e, ch] = out[ch]
+                    o0 = o1 = o2 = o3 = o4 = 0.0
+                    for t in range(idx.shape[0]):
+                        o = occ[a - lo + idx[t, 0], c - lo + idx[t, 1], e - lo + idx[t, 2]]
+                        if o > 0.0:
+                            o0 += o * w[t, 0]
+                            o1 += o * w[t, 1]
+                            o2 += o * w[t, 2]
+                            o3 += o * w[t, 3]
+                            o4 += o * w[t, 4]
+                    bricks[s, a, c, e, 0] = o0
+                    bricks[s, a, c, e, 1] = o1
+                    bricks[s, a, c, e, 2] = o2
+                    bricks[s, a, c, e, 3] = o3
+                    bricks[s, a, c, e, 4] = o4
 
 
 @nb.njit(cache=True, inline="always")
@@ -587,15 +557,17 @@ class BrickWallMaps:
     over the whole SDF box (1.3 KB per particle in the PEERS dam break, and built at that size).
     ``wmap`` is what the kernels take: (index, bricks, shape)."""
 
+    every_brick = False
+
     def __init__(self, sdf: SDFGrid, l0: float, h: float, mass: float, rho0: float, samples: int = 256):
         # the flat-wall factors do not depend on the SDF (no dense map built, nor its kernel compiled)
         self.fix_rho, self.fix_press, self.fix_vis, self.inv_dr = flat_wall_factors(l0, h, mass, rho0, samples)
         self.h = h
         slots = self._allocate(sdf, l0, h)
         dq = self.spacing
-        build_bricks(sdf.dist, sdf.origin, 1.0 / sdf.spacing, self.origin, dq, self.shape, self.index, slots, h,
-                     dq, quadrature_offsets(h, dq), poly6_coef(h), spiky_grad_coef(h), visc_lap_coef(h), dq ** 3 / l0 ** 3,
-                     mass, rho0, self.bricks)
+        idx, w = quadrature_stencil(h, dq, dq ** 3 / l0 ** 3, mass, rho0)
+        build_bricks(sdf.dist, sdf.origin, 1.0 / sdf.spacing, self.origin, dq, self.shape, self.index, slots, h + dq,
+                     idx, w, self.bricks)
 
     def _allocate(self, sdf: SDFGrid, l0: float, h: float) -> np.ndarray:
         """Nodes every l0/2 over the SDF box (as WallMaps); zeroed bricks for those holding a node within
@@ -605,7 +577,7 @@ class BrickWallMaps:
         self.shape = np.floor((sdf.upper - sdf.origin) / self.spacing).astype(np.int64) + 1
         need = np.zeros(tuple(-(-self.shape // BRICK)), np.uint8)
         bricks_needed(sdf.dist, sdf.origin, 1.0 / sdf.spacing, self.origin, self.spacing, self.shape,
-                        h + self.spacing, need)
+                      np.inf if self.every_brick else h + self.spacing, need)
         slots = np.flatnonzero(need.ravel()).astype(np.int64)
         self.index = np.full(need.shape, -1, np.int32)
         self.index.ravel()[slots] = np.arange(len(slots), dtype=np.int32)
@@ -633,3 +605,9 @@ class BrickWallMaps:
     @property
     def nbytes(self) -> int:
         return self.index.nbytes + self.bricks.nbytes
+
+
+class WallMaps(BrickWallMaps):
+    """The dense form: every brick of the SDF box built, zeros included (``maps``; tests check that the
+    bricks BrickWallMaps leaves out are zero)."""
+    every_brick = True

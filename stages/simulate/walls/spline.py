@@ -25,10 +25,10 @@ import math
 import numba as nb
 import numpy as np
 
-from stages.common.sdf import SDFGrid, grid_from_function, sdf_sample
+from stages.common.sdf import SDFGrid
 
-from ..kernels import visc_lap_coef, visc_lap_np
-from .maps import BrickWallMaps, quadrature_offsets, wall_weight
+from ..kernels import visc_lap_np
+from .maps import BrickWallMaps, build_bricks, flat_wall_sums, quadrature_stencil
 from .tables import wall_lattice
 
 
@@ -104,68 +104,6 @@ def flat_wall_tables(l0: float, h: float, mass: float, rho0: float, samples: int
     return z_rho, z_grad, z_vis
 
 
-@nb.njit(cache=True)
-def _quadrature_at(sdf, so, sinv, px, py, pz, h, dq, offsets, k, l, cv, scale, mass, rho0, out):
-    """maps._quadrature_at with the cubic spline and its gradient (channels 0-3) and the
-    viscosity Laplacian (channel 4) over the wall region around (px, py, pz)."""
-    for c in range(5):
-        out[c] = 0.0
-    h2 = h * h
-    for n in range(offsets.shape[0]):
-        ox = offsets[n, 0]
-        oy = offsets[n, 1]
-        oz = offsets[n, 2]
-        r2 = ox * ox + oy * oy + oz * oz
-        if r2 >= h2:
-            continue
-        d, _, _, _ = sdf_sample(sdf, so[0], so[1], so[2], sinv, px + ox, py + oy, pz + oz)
-        w = wall_weight(d, 0.5 * dq)
-        if w == 0.0:
-            continue
-        r = math.sqrt(r2)
-        out[0] += w * scale * mass * spline_w(r, h, k)
-        g = w * scale * (mass / rho0) * spline_f(r, h, l)
-        # -grad_i W = f (x_i - x_w) = -f o: points from the wall sample to the particle
-        out[1] -= g * ox
-        out[2] -= g * oy
-        out[3] -= g * oz
-        out[4] += w * scale * (mass / rho0) * cv * (h - r)
-
-
-@nb.njit(cache=True, parallel=True)
-def _build_bricks(sdf, so, sinv, mo, mh, shape, index, slots, h, dq, offsets, k, l, cv, scale, mass, rho0, bricks):
-    """maps.build_bricks with this module's quadrature. (Passing the quadrature to one shared
-    kernel as an argument works, but numba cannot cache a kernel that takes a function: 2.4 s of
-    compilation in every process.)"""
-    nby, nbz = index.shape[1], index.shape[2]
-    B = bricks.shape[1]
-    for s in nb.prange(slots.shape[0]):
-        b = slots[s]
-        bx = b // (nby * nbz)
-        by = (b // nbz) % nby
-        bz = b % nbz
-        out = np.zeros(5)
-        for a in range(B):
-            i = bx * B + a
-            for c in range(B):
-                j = by * B + c
-                for e in range(B):
-                    kk = bz * B + e
-                    for ch in range(5):
-                        bricks[s, a, c, e, ch] = 0.0
-                    if i >= shape[0] or j >= shape[1] or kk >= shape[2]:
-                        continue
-                    px = mo[0] + i * mh
-                    py = mo[1] + j * mh
-                    pz = mo[2] + kk * mh
-                    d, _, _, _ = sdf_sample(sdf, so[0], so[1], so[2], sinv, px, py, pz)
-                    if d >= h + dq:
-                        continue
-                    _quadrature_at(sdf, so, sinv, px, py, pz, h, dq, offsets, k, l, cv, scale, mass, rho0, out)
-                    for ch in range(5):
-                        bricks[s, a, c, e, ch] = out[ch]
-
-
 class SplineWallMaps(BrickWallMaps):
     """The wall map of this module, bricked as walls.maps.BrickWallMaps (whose storage and lookups it shares),
     with the flat-wall factors fix_rho, fix_press (for G), fix_vis indexed by the wall distance."""
@@ -174,19 +112,13 @@ class SplineWallMaps(BrickWallMaps):
         self.h = h
         slots = self._allocate(sdf, l0, h)
         dq = self.spacing
-        k, l = spline_coefs(h)
-        args = (h, dq, quadrature_offsets(h, dq), k, l, visc_lap_coef(h), dq ** 3 / l0 ** 3, mass, rho0)
-        _build_bricks(sdf.dist, sdf.origin, 1.0 / sdf.spacing, self.origin, dq, self.shape, self.index, slots, *args,
-                      self.bricks)
+        idx, w = quadrature_stencil(h, dq, dq ** 3 / l0 ** 3, mass, rho0,
+                                    kernel=lambda r: (mass * spline_np(r, h), (mass / rho0) * spline_f_np(r, h)))
+        build_bricks(sdf.dist, sdf.origin, 1.0 / sdf.spacing, self.origin, dq, self.shape, self.index, slots, h + dq,
+                     idx, w, self.bricks)
         # flat-wall factors: the lattice sums over the quadrature of a half space, per wall distance
         z_rho, z_grad, z_vis = flat_wall_tables(l0, h, mass, rho0, samples)
-        lo = np.array([-2 * h, -2 * h, -2 * h])
-        plane = grid_from_function(lambda p: p[:, 2], lo, -lo, dq / 2)
-        flat = np.zeros((samples, 5))
-        out = np.zeros(5)
-        for s, ri in enumerate(np.linspace(0.0, h, samples)):
-            _quadrature_at(plane.dist, plane.origin, 1.0 / plane.spacing, 0.0, 0.0, ri, *args, out)
-            flat[s] = out
+        flat = flat_wall_sums(idx, w, dq, np.linspace(0.0, h, samples))
         self.fix_rho = np.where(flat[:, 0] > 1e-12, z_rho / np.maximum(flat[:, 0], 1e-300), 1.0)
         self.fix_press = np.where(flat[:, 3] > 1e-12, z_grad / np.maximum(flat[:, 3], 1e-300), 1.0)
         self.fix_vis = np.where(flat[:, 4] > 1e-12, z_vis / np.maximum(flat[:, 4], 1e-300), 1.0)
