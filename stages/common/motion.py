@@ -81,6 +81,9 @@ class RigidMotion:
             raise ValueError(f"RigidMotion: {k} times, {len(self.translate)} translations, {len(self.quat)} rotations")
         if (np.diff(self.times) <= 0).any():
             raise ValueError("RigidMotion: times must be strictly increasing")
+        # per key its rotation matrix, per segment its arc: a solver poses its walls every step
+        self._rot = [quat_to_matrix(q) for q in self.quat]
+        self._arc = [_segment(self.quat[i], self.quat[i + 1]) for i in range(k - 1)]
 
     # -- evaluation ----------------------------------------------------------------------------
     def _where(self, t: float) -> tuple[int, float] | None:
@@ -97,10 +100,10 @@ class RigidMotion:
         seg = self._where(float(t))
         if seg is None:
             k = 0 if t < self.times[0] else -1
-            return quat_to_matrix(self.quat[k]), self.translate[k].copy()
+            return self._rot[k].copy(), self.translate[k].copy()
         i, s = seg
-        axis, angle = _segment(self.quat[i], self.quat[i + 1])
-        r = quat_to_matrix(self.quat[i]) @ _axis_angle(axis, s * angle)
+        axis, angle = self._arc[i]
+        r = self._rot[i] @ _axis_angle(axis, s * angle)
         return r, (1.0 - s) * self.translate[i] + s * self.translate[i + 1]
 
     def velocity(self, t: float) -> tuple[np.ndarray, np.ndarray]:
@@ -112,9 +115,9 @@ class RigidMotion:
             return np.zeros(3), np.zeros(3)
         i, _ = seg
         dt = self.times[i + 1] - self.times[i]
-        axis, angle = _segment(self.quat[i], self.quat[i + 1])
+        axis, angle = self._arc[i]
         # R(s) = R_i Rot(axis, s angle): R' R^T = (angle / dt) [R_i axis]x, constant over the segment
-        return (self.translate[i + 1] - self.translate[i]) / dt, quat_to_matrix(self.quat[i]) @ axis * (angle / dt)
+        return (self.translate[i + 1] - self.translate[i]) / dt, self._rot[i] @ axis * (angle / dt)
 
     def matrix(self, t: float) -> np.ndarray:
         """4x4 (column vectors) taking rest positions to world positions at t."""
@@ -153,7 +156,7 @@ class RigidMotion:
         corners = np.array([[(lo, hi)[(c >> a) & 1][a] for a in range(3)] for c in range(8)])
         times = [self.times]
         for i in range(len(self.times) - 1):
-            _, angle = _segment(self.quat[i], self.quat[i + 1])
+            _, angle = self._arc[i]
             n = max(8, int(np.ceil(np.degrees(angle) / 5.0)))
             times.append(np.linspace(self.times[i], self.times[i + 1], n + 1)[1:-1])
         pts = np.concatenate([self.to_world(corners, t) for t in np.concatenate(times)])
