@@ -214,8 +214,9 @@ class PyvistaRender(Stage):
         cloud = pv.PolyData(np.asarray(p.x, np.float64))
         cloud[params.color_by] = particle_values(p, params.color_by)
         clim = params.color_range or (0.0, max(run_max(folder, params.color_by), 1e-9))
+        bar = {"color": "white", "vertical": True, "position_x": 0.86, "width": 0.06, "render": False}
         plotter.add_mesh(cloud, render_points_as_spheres=True, point_size=params.point_size, cmap="viridis", clim=clim,
-                         render=False, scalar_bar_args={"color": "white", "vertical": True, "position_x": 0.86, "width": 0.06})
+                         render=False, scalar_bar_args=bar)
 
 
 # -- one plotter kept across the frames of a process ------------------------------------------------
