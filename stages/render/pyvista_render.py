@@ -18,6 +18,7 @@ import ctypes.util
 import functools
 import os
 import threading
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Literal, Mapping
 
@@ -26,8 +27,8 @@ from pydantic import Field
 
 from pipeline.stage import Artifact, Context, Params, Stage, StageError
 from stages.common.camera import shot_camera
-from stages.common.formats import (WALLS_FILE, WALLS_INFO, ParticleMeta, WallMesh, load_particle_frame,
-                                   load_surface)
+from stages.common.formats import (WALLS_FILE, WALLS_INFO, ParticleMeta, SurfaceMesh, WallMesh, load_particle_frame,
+                                   load_surface, surface_file)
 
 Vec3 = tuple[float, float, float]
 
@@ -101,6 +102,27 @@ def polydata(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray | None
         mesh.point_data["Normals"] = np.asarray(normals, np.float32)
         mesh.point_data.active_normals_name = "Normals"
     return mesh
+
+
+def surface_folder(inputs: Mapping[str, Artifact], frame: int) -> Path:
+    if "surface" not in inputs:
+        raise StageError("render.pyvista: show: surface needs the 'surface' artifact (wall_snap stage)")
+    return inputs["surface"].frame(frame)
+
+
+def read_surface(folder: Path, frame: int) -> SurfaceMesh:
+    try:
+        return load_surface(folder, frame)
+    except FileNotFoundError:
+        raise StageError(f"render.pyvista: {folder} has no surface for frame {frame}") from None
+
+
+def file_state(path: Path) -> tuple[int, int] | None:
+    try:
+        st = path.stat()
+    except OSError:
+        return None
+    return st.st_mtime_ns, st.st_size
 
 
 def walls_identity(folder: Path) -> tuple:
@@ -187,14 +209,7 @@ class PyvistaRender(Stage):
                                  render=False, **style)
 
     @staticmethod
-    def _add_surface(plotter, inputs: Mapping[str, Artifact], frame: int, params: RenderParams) -> None:
-        if "surface" not in inputs:
-            raise StageError("render.pyvista: show: surface needs the 'surface' artifact (wall_snap stage)")
-        folder = inputs["surface"].frame(frame)
-        try:
-            mesh = load_surface(folder, frame)
-        except FileNotFoundError:
-            raise StageError(f"render.pyvista: {folder} has no surface for frame {frame}") from None
+    def _add_surface(plotter, mesh: SurfaceMesh, params: RenderParams) -> None:
         if len(mesh.faces) == 0:
             return
         plotter.add_mesh(polydata(mesh.vertices, mesh.faces, mesh.normals), color=WATER_RGB,
@@ -235,6 +250,7 @@ class View:
         self.plotter = pv.Plotter(off_screen=True, window_size=(int(w), int(h)), lighting="three lights")
         self.moving = bool(walls.motions())
         self.frame_actors: list[str] = []  # names of the actors the last frame added
+        self.ahead: tuple[Path, int, tuple | None, Future] | None = None  # the next frame's surface, being read
         try:
             self.plotter.set_background(params.background)
             if not self.moving:
@@ -258,7 +274,8 @@ class View:
             if self.moving:  # the camera frames the walls at rest; moving walls drawn at the frame's time
                 PyvistaRender._add_walls(plotter, walls.posed(frame / fps), eye, params)
             if params.show == "surface":
-                PyvistaRender._add_surface(plotter, inputs, frame, params)
+                PyvistaRender._add_surface(plotter, self.surface(surface_folder(inputs, frame), frame), params)
+                self.read_ahead(inputs, frame + params.every)
             else:
                 PyvistaRender._add_particles(plotter, inputs, frame, params)
             if params.label:
@@ -274,6 +291,22 @@ class View:
             if not plotter._first_time:
                 plotter.render_window.ReleaseCurrent()
 
+    def surface(self, folder: Path, frame: int) -> SurfaceMesh:
+        """The frame's surface: the one read ahead if it is that frame's file as it is now."""
+        ahead, self.ahead = self.ahead, None
+        path = folder / surface_file(frame)
+        if ahead is not None and ahead[:3] == (folder, frame, file_state(path)):
+            return ahead[3].result()
+        return read_surface(folder, frame)
+
+    def read_ahead(self, inputs: Mapping[str, Artifact], frame: int) -> None:
+        """Start reading ``frame``'s surface on a thread: VTK lets go of the GIL while it renders this frame."""
+        art = inputs["surface"]
+        folder = art.path if art.path is not None else art.frames.get(frame)
+        state = None if folder is None else file_state(folder / surface_file(frame))
+        if state is not None:
+            self.ahead = (folder, frame, state, _reader().submit(read_surface, folder, frame))
+
     def close(self) -> None:
         if not self.plotter._first_time and self.plotter.render_window is not None:
             self.plotter.render_window.MakeCurrent()  # released after the last frame, maybe by another thread
@@ -282,6 +315,11 @@ class View:
 
 _LOCK = threading.Lock()  # VTK is not thread safe: one frame at a time per process
 _view: View | None = None
+
+
+@functools.cache
+def _reader() -> ThreadPoolExecutor:
+    return ThreadPoolExecutor(max_workers=1, thread_name_prefix="render-read-ahead")
 
 
 def view_for(key: tuple, walls: WallMesh, eye: np.ndarray, params: RenderParams) -> View:
