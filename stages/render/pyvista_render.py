@@ -250,6 +250,7 @@ class View:
         self.plotter = pv.Plotter(off_screen=True, window_size=(int(w), int(h)), lighting="three lights")
         self.moving = bool(walls.motions())
         self.frame_actors: list[str] = []  # names of the actors the last frame added
+        self.rendered = False  # the GL context exists once the first frame is rendered
         self.ahead: tuple[Path, int, tuple | None, Future] | None = None  # the next frame's surface, being read
         try:
             self.plotter.set_background(params.background)
@@ -265,7 +266,7 @@ class View:
         plotter = self.plotter
         eye, centre, up, view_angle = camera
         fps = ctx.scene["scene"].frames.fps
-        if not plotter._first_time:
+        if self.rendered:
             plotter.render_window.MakeCurrent()  # removing an actor frees its GL buffers: in this context
         try:
             for name in self.frame_actors:
@@ -285,10 +286,12 @@ class View:
             plotter.camera_position = [tuple(eye), tuple(centre), tuple(up)]
             plotter.camera.view_angle = view_angle
             plotter.reset_camera_clipping_range()
-            plotter.render()  # a no-op before the first frame: screenshot renders that one
-            return np.asarray(plotter.screenshot(None, return_img=True))[..., :3]
+            plotter.render()  # pyvista renders a plotter's first frame in screenshot, this does the others
+            image = np.asarray(plotter.screenshot(None, return_img=True))[..., :3]
+            self.rendered = True
+            return image
         finally:
-            if not plotter._first_time:
+            if self.rendered:
                 plotter.render_window.ReleaseCurrent()
 
     def surface(self, folder: Path, frame: int) -> SurfaceMesh:
@@ -308,7 +311,7 @@ class View:
             self.ahead = (folder, frame, state, _reader().submit(read_surface, folder, frame))
 
     def close(self) -> None:
-        if not self.plotter._first_time and self.plotter.render_window is not None:
+        if self.rendered:
             self.plotter.render_window.MakeCurrent()  # released after the last frame, maybe by another thread
         self.plotter.close()
 
