@@ -187,12 +187,13 @@ class PyvistaRender(Stage):
 
     # -- pieces of the picture -------------------------------------------------------------------
     @staticmethod
-    def _add_walls(plotter, walls: WallMesh, eye: np.ndarray, params: RenderParams) -> None:
+    def _add_walls(plotter, walls: WallMesh, eye: np.ndarray, params: RenderParams, moving: bool) -> None:
+        """The walls that move (``moving``) or the ones that stay."""
         style = dict(color=WALL_RGB, ambient=0.25, diffuse=0.75, specular=0.0, smooth_shading=False, culling=False)
         plotter.renderer.SetTwoSidedLighting(True)  # VTK's default, made explicit: back faces of shells lit
         for index, info in enumerate(walls.walls):
             faces = walls.faces[walls.wall_id == index]
-            if len(faces) == 0:
+            if len(faces) == 0 or (info.get("motion") is not None) != moving:
                 continue
             near = np.zeros(len(faces), bool)
             # mesh_import builds an open box as a thick solid the fluid is "outside" of; it holds fluid all the
@@ -238,8 +239,9 @@ class PyvistaRender(Stage):
 class View:
     """An offscreen plotter kept from frame to frame: a new plotter per frame (a new EGL/OSMesa context,
     every shader compiled again by llvmpipe) cost more than drawing the frame. Static walls are added
-    once; each frame replaces the fluid, the moving walls and the time label, added in the order a
-    fresh plotter would get them (walls, fluid, label), so the picture is the one a fresh plotter draws.
+    once; each frame replaces the moving walls, the fluid and the time label, added in that order after
+    the static walls (translucent layers are blended order-independently, VTK's default, so the picture
+    is the one a fresh plotter draws).
     The GL context is released after every frame: the next frame may come from another thread."""
 
     def __init__(self, key: tuple, walls: WallMesh, eye: np.ndarray, params: RenderParams) -> None:
@@ -248,14 +250,13 @@ class View:
         self.key = key
         w, h = params.resolution
         self.plotter = pv.Plotter(off_screen=True, window_size=(int(w), int(h)), lighting="three lights")
-        self.moving = bool(walls.motions())
+        self.moving = bool(walls.motions())  # walls that move are added anew every frame
         self.frame_actors: list[str] = []  # names of the actors the last frame added
         self.rendered = False  # the GL context exists once the first frame is rendered
         self.ahead: tuple[Path, int, tuple | None, Future] | None = None  # the next frame's surface, being read
         try:
             self.plotter.set_background(params.background)
-            if not self.moving:
-                PyvistaRender._add_walls(self.plotter, walls, eye, params)
+            PyvistaRender._add_walls(self.plotter, walls, eye, params, moving=False)
         except BaseException:
             self.plotter.close()
             raise
@@ -273,7 +274,7 @@ class View:
                 plotter.remove_actor(name, reset_camera=False, render=False)  # its scalar bar goes with it
             before = set(plotter.renderer.actors)
             if self.moving:  # the camera frames the walls at rest; moving walls drawn at the frame's time
-                PyvistaRender._add_walls(plotter, walls.posed(frame / fps), eye, params)
+                PyvistaRender._add_walls(plotter, walls.posed(frame / fps), eye, params, moving=True)
             if params.show == "surface":
                 PyvistaRender._add_surface(plotter, self.surface(surface_folder(inputs, frame), frame), params)
                 self.read_ahead(inputs, frame + params.every)
