@@ -241,3 +241,41 @@ def test_a_single_sided_sheet_is_drawn_the_same_from_either_side(tmp_path, input
         counts.append(int(wall.sum()))
     assert min(counts) > 0.3 * 160 * 120, counts  # the sheet fills much of the view, seen from either side
     assert np.abs(images[0] - images[1]).max(axis=2).mean() < 2.0  # and is lit the same
+
+
+def test_a_kept_plotter_draws_what_a_fresh_one_draws(tmp_path, inputs):
+    """Issue 20: one plotter is kept across a process's frames (static walls added once, the fluid and
+    label replaced). Its frames are pixel for pixel those of a fresh plotter, after a failed frame too
+    (the half-changed plotter is dropped) and when the next frame comes from another thread (the
+    engine runs each stage on a thread of its own)."""
+    import threading
+
+    import imageio.v3 as iio
+
+    from stages.render import pyvista_render
+
+    scene = {"scene": {"name": "t", "frames": {"fps": 10, "count": 8}}}
+    params = {"resolution": [160, 90]}
+    pyvista_render.close_view()
+    kept = run_stage(PyvistaRender, tmp_path / "kept", scene=scene, params=params, inputs=inputs, frames=(0, 1, 2))
+    assert pyvista_render._view is not None
+    with pytest.raises(StageError, match="frame 7"):  # no surface for frame 7
+        run_stage(PyvistaRender, tmp_path / "bad", scene=scene, params=params, inputs=inputs, frames=(7,))
+    assert pyvista_render._view is None
+    run_stage(PyvistaRender, tmp_path / "after", scene=scene, params=params, inputs=inputs, frames=(0, 1))
+    # frame 2 on another thread with the plotter the main thread made
+    results = []
+    thread = threading.Thread(target=lambda: results.append(run_stage(
+        PyvistaRender, tmp_path / "thread", scene=scene, params=params, inputs=inputs, frames=(2,))))
+    thread.start()
+    thread.join()
+    assert len(results) == 1  # the thread finished its frame
+    for name, frames in (("after", (1,)), ("thread", (2,))):
+        for f in frames:
+            pyvista_render.close_view()
+            fresh = run_stage(PyvistaRender, tmp_path / f"fresh{f}", scene=scene, params=params, inputs=inputs,
+                              frames=(f,))
+            img = iio.imread(tmp_path / name / f"frame_{f:05d}.png")
+            np.testing.assert_array_equal(img, iio.imread(fresh / f"frame_{f:05d}.png"))
+            np.testing.assert_array_equal(img, iio.imread(kept / f"frame_{f:05d}.png"))
+            assert water_mask(img[..., :3]).sum() > 50  # not blank
