@@ -415,7 +415,7 @@ def _refine(tri, degenerate, normals, spheres, origin, h, dims, dist, ids, layer
         for q in nb.prange(lo, hi):
             node = order[q]
             d, t = _best_of_neighbours(tri, degenerate, normals, spheres, origin, h, dims, node, layer,
-                                       layer[node], dist, ids, ids, False, seen[nb.get_thread_id()])
+                                       np.int64(layer[node]), dist, ids, ids, False, seen[nb.get_thread_id()])
             dist[node] = d
             ids[node] = t
 

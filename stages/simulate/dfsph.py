@@ -236,7 +236,7 @@ class DFSPHSolver(SolverBase):
         last pass). Returns (iterations, final average error / rho0)."""
         p = self.p
         kappa, kr = (self.kappa_v, self.kr_v) if divergence else (self.kappa, self.kr)
-        acc = None if divergence else self.acc
+        acc = self.zero_acc if divergence else self.acc  # zeros, not None: one build of predict_velocity, not two
         eta = p.max_divergence_error if divergence else p.max_density_error
         least = 1 if divergence else p.min_iterations
         lists = (self.nbr, self.fac, self.count, self.cap, self.mass, self.psi)

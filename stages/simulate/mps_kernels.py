@@ -590,7 +590,7 @@ def project_out_of_walls(x, v, walls, r_rep, max_corr):
         px, py, pz, vx, vy, vz = push_out_of_walls(px, py, pz, vx, vy, vz, walls.sdf, walls.sdf_o, walls.sdf_inv,
                                                    r_rep, max_corr)
         if walls.pose.shape[0] > 0:
-            px, py, pz, vx, vy, vz = bodies_push_out(walls, px, py, pz, vx, vy, vz, r_rep, max_corr)
+            px, py, pz, vx, vy, vz = bodies_push_out(walls, walls.pose, px, py, pz, vx, vy, vz, r_rep, max_corr)
         x[i, 0] = px
         x[i, 1] = py
         x[i, 2] = pz

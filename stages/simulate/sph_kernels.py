@@ -80,8 +80,8 @@ def _walls_and_pressure(i, s, xi, yi, zi, h, poly6_coef, mass, rho0, walls, eos,
         if dw < h:  # only particles within h of a wall have wall terms
             zw = brick_sample(walls.index, walls.bricks, walls.shape, walls.wo[0], walls.wo[1], walls.wo[2], walls.winv,
                               xi, yi, zi, 0) * table_lookup(walls.fix_rho, dw, walls.inv_dr)
-        zw += bodies_density(walls, h, xi, yi, zi)
-        dw, gx, gy, gz = bodies_nearest(walls, xi, yi, zi, dw, gx, gy, gz)
+        zw += bodies_density(walls, walls.pose, h, xi, yi, zi)
+        dw, gx, gy, gz = bodies_nearest(walls, walls.pose, xi, yi, zi, dw, gx, gy, gz)
         d[i] = dw
         nrm[i, 0] = gx
         nrm[i, 1] = gy
@@ -559,14 +559,14 @@ def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, walls, 
         if viscosity is not None:
             if near_wall:
                 # eq. 13-14: the resting wall's viscous term -mu v_i Z_vis(r_iw); a moving wall's -mu (v_i - v_w) Z_vis
-                ds = static_distance(walls, d[i], xi, yi, zi)
+                ds = static_distance(walls, walls.pose, d[i], xi, yi, zi)
                 zw = 0.0
                 if ds < h:
                     zw = mu * inv_rhoi * table_lookup(fix_vis, ds, inv_dr) * w4
                 ax -= zw * vxi
                 ay -= zw * vyi
                 az -= zw * vzi
-                mx, my, mz = bodies_viscous(walls, fix_vis, h, xi, yi, zi, vxi, vyi, vzi)
+                mx, my, mz = bodies_viscous(walls, walls.pose, fix_vis, h, xi, yi, zi, vxi, vyi, vzi)
                 cm = mu * inv_rhoi
                 ax += cm * mx
                 ay += cm * my
@@ -594,7 +594,7 @@ def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, walls, 
             if near_wall:  # contact weight 1 up to d = h/2 (first layer), 0 at h
                 wc = min(2.0 - 2.0 * d[i] / h, 1.0) * fr_rate
                 # the tangential velocity relative to the nearest wall (a moving wall carries its contact layer)
-                wvx, wvy, wvz = nearest_wall_velocity(walls, d[i], xi, yi, zi)
+                wvx, wvy, wvz = nearest_wall_velocity(walls, walls.pose, d[i], xi, yi, zi)
                 rx = vxi - wvx
                 ry = vyi - wvy
                 rz = vzi - wvz
@@ -668,7 +668,7 @@ def move_near_walls(x0, y0, z0, vx, vy, vz, dt, walls, r_rep, max_corr, max_move
         pz += h * vz
         px, py, pz, vx, vy, vz = push_out_of_walls(px, py, pz, vx, vy, vz, walls.sdf, walls.sdf_o, walls.sdf_inv,
                                                    r_rep, max_corr)
-        px, py, pz, vx, vy, vz = bodies_push_out(walls, px, py, pz, vx, vy, vz, r_rep, max_corr)
+        px, py, pz, vx, vy, vz = bodies_push_out(walls, walls.pose, px, py, pz, vx, vy, vz, r_rep, max_corr)
     return px, py, pz, vx, vy, vz
 
 

@@ -354,7 +354,8 @@ def body_fields(grids) -> tuple:
 
 def make_walls(sdf, maps, bodies=()) -> Walls:
     """The Walls of the static SDFGrid (SI) and its BrickWallMaps; ``bodies``: (SDFGrid in its rest frame,
-    its BrickWallMaps) per moving wall, posed at rest until set_pose."""
+    its BrickWallMaps) per moving wall, posed at rest until set_pose. Without moving walls ``pose`` is None:
+    the kernels' moving-wall terms are then pruned by numba, not compiled (~10 s of a cold run)."""
     igrids, ioffs, nbricks = [], [0], 0
     index = []
     for sb, mb in bodies:
@@ -372,7 +373,7 @@ def make_walls(sdf, maps, bodies=()) -> Walls:
                  cat([mb.bricks for _, mb in bodies], np.float32, (0, BRICK, BRICK, BRICK, 5)),
                  np.array([mb.shape for _, mb in bodies], np.int64).reshape(n, 3),
                  np.array([mb.origin for _, mb in bodies], np.float64).reshape(n, 3),
-                 np.array([1.0 / mb.spacing for _, mb in bodies], np.float64), pose)
+                 np.array([1.0 / mb.spacing for _, mb in bodies], np.float64), pose if n else None)
 
 
 def set_pose(walls: Walls, k: int, R, T, pivot, v, omega) -> None:
@@ -458,15 +459,17 @@ def wall_density(w, h, x, y, z):
     if dw < h:
         s = brick_sample(w.index, w.bricks, w.shape, w.wo[0], w.wo[1], w.wo[2], w.winv, x, y, z, 0) * table_lookup(
             w.fix_rho, dw, w.inv_dr)
-    return s + bodies_density(w, h, x, y, z)
+    return s + bodies_density(w, w.pose, h, x, y, z)
 
 
 @nb.njit(cache=True)
-def bodies_density(w, h, x, y, z):
+def bodies_density(w, pose, h, x, y, z):
     """The moving walls' share of wall_density."""
+    if pose is None:  # no moving walls: numba prunes the rest (not compiled)
+        return 0.0
     s = 0.0
-    for k in range(w.pose.shape[0]):
-        lx, ly, lz = to_body(w.pose[k], x, y, z)
+    for k in range(pose.shape[0]):
+        lx, ly, lz = to_body(pose[k], x, y, z)
         db, _, _, _ = body_distance(w, k, lx, ly, lz)
         if db < h:
             s += body_map(w, k, lx, ly, lz, 0) * table_lookup(w.fix_rho, db, w.inv_dr)
@@ -474,9 +477,11 @@ def bodies_density(w, h, x, y, z):
 
 
 @nb.njit(cache=True)
-def bodies_nearest(w, x, y, z, d, nx, ny, nz):
+def bodies_nearest(w, pose, x, y, z, d, nx, ny, nz):
     """(d, nx, ny, nz) of the nearest wall: the given static wall's, or a moving wall's if nearer."""
-    for k in range(w.pose.shape[0]):
+    if pose is None:  # no moving walls: numba prunes the rest (not compiled)
+        return d, nx, ny, nz
+    for k in range(pose.shape[0]):
         db, bx, by, bz = body_sample(w, k, x, y, z)
         if db < d:
             d, nx, ny, nz = db, bx, by, bz
@@ -484,45 +489,51 @@ def bodies_nearest(w, x, y, z, d, nx, ny, nz):
 
 
 @nb.njit(cache=True)
-def nearest_wall_velocity(w, d, x, y, z):
+def nearest_wall_velocity(w, pose, d, x, y, z):
     """The velocity at x of the nearest wall, given ``d`` its distance (bodies_nearest's): the nearest moving
     wall's if it is at that distance (to rounding: another kernel's arithmetic), else a static wall's (zero).
     The wall friction damps the velocity relative to it."""
+    if pose is None:  # no moving walls: numba prunes the rest (not compiled)
+        return 0.0, 0.0, 0.0
     near = -1
     best = np.inf
-    for k in range(w.pose.shape[0]):
-        lx, ly, lz = to_body(w.pose[k], x, y, z)
+    for k in range(pose.shape[0]):
+        lx, ly, lz = to_body(pose[k], x, y, z)
         db, _, _, _ = body_distance(w, k, lx, ly, lz)
         if db < best:
             best = db
             near = k
     if near < 0 or best > d + 1e-9 * (abs(d) + w.b_sdf_inv[near] ** -1):
         return 0.0, 0.0, 0.0
-    return body_velocity(w.pose[near], x, y, z)
+    return body_velocity(pose[near], x, y, z)
 
 
 @nb.njit(cache=True)
-def static_distance(w, d, x, y, z):
+def static_distance(w, pose, d, x, y, z):
     """The static walls' SDF distance at x, given ``d`` the nearest wall's (the same without moving walls)."""
-    if w.pose.shape[0] == 0:
+    if pose is None:  # no moving walls: numba prunes the rest (not compiled)
+        return d
+    if pose.shape[0] == 0:
         return d
     ds, _, _, _ = sdf_sample(w.sdf, w.sdf_o[0], w.sdf_o[1], w.sdf_o[2], w.sdf_inv, x, y, z)
     return ds
 
 
 @nb.njit(cache=True)
-def bodies_viscous(w, fix_vis, h, x, y, z, vx, vy, vz):
+def bodies_viscous(w, pose, fix_vis, h, x, y, z, vx, vy, vz):
     """sum over the moving walls within h of fix_vis(d_b) Z_vis,b (v_b(x) - v): the no-slip term of eq. 13-15
     against each wall's own velocity."""
+    if pose is None:  # no moving walls: numba prunes the rest (not compiled)
+        return 0.0, 0.0, 0.0
     ax = 0.0
     ay = 0.0
     az = 0.0
-    for k in range(w.pose.shape[0]):
-        lx, ly, lz = to_body(w.pose[k], x, y, z)
+    for k in range(pose.shape[0]):
+        lx, ly, lz = to_body(pose[k], x, y, z)
         db, _, _, _ = body_distance(w, k, lx, ly, lz)
         if db < h:
             c = table_lookup(fix_vis, db, w.inv_dr) * body_map(w, k, lx, ly, lz, 4)
-            ux, uy, uz = body_velocity(w.pose[k], x, y, z)
+            ux, uy, uz = body_velocity(pose[k], x, y, z)
             ax += c * (ux - vx)
             ay += c * (uy - vy)
             az += c * (uz - vz)
@@ -530,10 +541,12 @@ def bodies_viscous(w, fix_vis, h, x, y, z, vx, vy, vz):
 
 
 @nb.njit(cache=True)
-def bodies_push_out(w, px, py, pz, vx, vy, vz, r_rep, max_corr):
+def bodies_push_out(w, pose, px, py, pz, vx, vy, vz, r_rep, max_corr):
     """Eq. 16 against every moving wall: out along its normal to r_rep (at most max_corr per projection), and
     the velocity into the wall relative to the wall's own removed (the wall pushes the fluid)."""
-    for k in range(w.pose.shape[0]):
+    if pose is None:  # no moving walls: numba prunes the rest (not compiled)
+        return px, py, pz, vx, vy, vz
+    for k in range(pose.shape[0]):
         for _ in range(3):
             dw, nx, ny, nz = body_sample(w, k, px, py, pz)
             if dw >= r_rep * 0.999:
@@ -542,7 +555,7 @@ def bodies_push_out(w, px, py, pz, vx, vy, vz, r_rep, max_corr):
             px += corr * nx
             py += corr * ny
             pz += corr * nz
-            ux, uy, uz = body_velocity(w.pose[k], px, py, pz)
+            ux, uy, uz = body_velocity(pose[k], px, py, pz)
             vn = (vx - ux) * nx + (vy - uy) * ny + (vz - uz) * nz
             if vn < 0.0:
                 vx -= vn * nx
