@@ -106,11 +106,11 @@ BRICK = 4  # wall-map brick edge, in nodes
 
 
 # -- wall maps stored as bricks (memory) ------------------------------------------------------------
-# The dense wall map of walls/maps.py covers the whole SDF box at l0/2 with 5 float32 channels, 1.3 KB
-# per particle in the PEERS dam break, yet it is non-zero only within h + l0/2 of a wall. The bricked
-# form keeps only the BRICK^3-node blocks that hold a node of that band: the same node values (the
-# same quadrature, maps._quadrature_at) and the same trilinear arithmetic, so every lookup
-# returns the same bits as the dense map. ``wmap`` arguments below take either form.
+# A dense wall map (WallMaps) covers the whole SDF box at l0/2 with 5 float32 channels, 1.3 KB per
+# particle in the PEERS dam break, yet it is non-zero only within h + l0/2 of a wall. The bricked form
+# keeps only the BRICK^3-node blocks that hold a node of that band: the same node values (the same
+# quadrature_stencil) and the same trilinear arithmetic, so every lookup returns the same bits as the
+# dense map. ``wmap`` arguments below take either form.
 
 @nb.njit(cache=True, parallel=True)
 def bricks_needed(sdf, so, sinv, mo, mh, shape, reach, need):
