@@ -120,8 +120,9 @@ def sloshing_frequency(L=0.2, depth=0.1, width=0.2, l0=0.0125, amplitude=0.002, 
     Returns (measured by the velocity, measured at the wall, theory) in Hz. ``solver``: the solver class
     (SPHSolver's keywords), with ``params`` (its defaults without).
     (At l0 = 1 cm a tank 6 l0 wide rang 4-6 % fast by zero crossings, with free-slip walls too; 12 l0 wide,
-    3 %; 20 l0, 1-2 %. Here, 16 l0 wide, the fit gives -0.8 % by the velocity and +1.4 % at the wall, and a
-    decay delta ~ 2.2 / s: damping ratio 0.19, far above water's; the solver's artificial viscosity.)"""
+    3 %; 20 l0, 1-2 %. Here, 16 l0 wide, the fit gives +0.6 % by the velocity and +0.6 % at the wall (MPS, 8 l0
+    wide: -1.6 % and -1.7 %), and a decay delta ~ 2.2 / s: damping ratio 0.19, far above water's; the
+    solver's artificial viscosity.)"""
     k = math.pi / L
     f1 = math.sqrt(G * k * math.tanh(k * depth)) / (2.0 * math.pi)
     w = 2.0 * math.pi * f1

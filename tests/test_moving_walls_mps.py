@@ -103,7 +103,7 @@ def test_a_body_at_rest_is_the_static_wall_and_moves_with_its_pose():
 def test_sloshing_rings_at_the_first_natural_frequency():
     """test_moving_walls.sloshing_frequency with MPS: the same tank length and depth (f1 depends on those alone),
     half as wide (8 l0: the first mode is planar; MPS steps at 0.2 l0 / sqrt(2 g h), ~1600 steps with a Poisson
-    solve each, so the full 0.2 m width takes ~100 s of CPU). Fitted: -1.6 % by the mode's velocity, -2.3 %
+    solve each, so the full 0.2 m width takes ~100 s of CPU). Fitted: -1.6 % by the mode's velocity, -1.7 %
     at the wall (by zero crossings, the full width: -0.6 %)."""
     measured, at_wall, f1 = sloshing_frequency(width=0.1, solver=MPSSolver, params=MPSParams())
     print("MPS sloshing: %.4f Hz, at the wall %.4f Hz, f1 %.4f Hz (%+.2f %%, %+.2f %%)"
