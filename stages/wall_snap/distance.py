@@ -275,72 +275,210 @@ def collapse_flipped(n_ref: np.ndarray, raw: np.ndarray, after: np.ndarray, face
     end (shortest edge first). A collapse drops the two triangles of the edge and is made only when
     the surface stays a closed manifold there (the link condition: the two ends share no neighbour but
     the edge's two opposite vertices) and fewer triangles around it are flipped or degenerate than
-    before. Works on ``faces`` and ``alive`` in place (Python loop over the few flipped triangles);
-    returns the (kept, dropped) vertex pairs."""
-    order = np.argsort(faces.ravel(), kind="stable")
-    start = np.searchsorted(faces.ravel()[order], np.arange(len(after) + 1))
-    changed: dict[int, set[int]] = {}
+    before. Works on ``faces`` and ``alive`` in place (numba: ``_collapse``); returns the (kept,
+    dropped) vertex pairs."""
+    assert faces.flags.c_contiguous and alive.flags.c_contiguous  # changed in place
+    merged = np.empty((len(faces) // 2 + 1, 2), np.int64)
+    n = _collapse(np.ascontiguousarray(n_ref, np.float64), np.ascontiguousarray(raw, np.float64),
+                  np.ascontiguousarray(after, np.float64), stored(after), faces, np.ascontiguousarray(on_wall),
+                  alive, passes, merged)
+    return [(int(a), int(b)) for a, b in merged[:n]]
 
-    def faces_of(a: int) -> set[int]:
-        if a not in changed:
-            changed[a] = {int(t) for t in order[start[a]:start[a + 1]] // 3 if alive[t]}
-        return changed[a]
 
-    at_stored = stored(after)
-    dot = np.empty(1)
+@nb.njit(cache=True)
+def _turn(v, a, b, c, n_ref, t):
+    """n_ref[t] . (normal of the triangle (a, b, c) at ``v``), unnormalised (see ``orientation``)."""
+    ux = v[b, 0] - v[a, 0]
+    uy = v[b, 1] - v[a, 1]
+    uz = v[b, 2] - v[a, 2]
+    wx = v[c, 0] - v[a, 0]
+    wy = v[c, 1] - v[a, 1]
+    wz = v[c, 2] - v[a, 2]
+    return (n_ref[t, 0] * (uy * wz - uz * wy) + n_ref[t, 1] * (uz * wx - ux * wz)
+            + n_ref[t, 2] * (ux * wy - uy * wx))
 
-    def bad(t: int, tri, at: np.ndarray = at_stored) -> bool:
-        orientation(at, tri.reshape(1, 3), n_ref[t:t + 1], dot)
-        return dot[0] <= 0.0
 
-    def try_collapse(keep: int, drop: int) -> bool:
-        fk, fd = faces_of(keep), faces_of(drop)
-        shared = fk & fd
-        if len(shared) != 2:
-            return False
-        opposite = {int(x) for t in shared for x in faces[t]} - {keep, drop}
-        ring_k = {int(x) for t in fk for x in faces[t]} - {keep}
-        ring_d = {int(x) for t in fd for x in faces[t]} - {drop}
-        if len(opposite) != 2 or (ring_k & ring_d) != opposite or len(ring_k | ring_d) < 5:
-            return False  # would pinch the surface (or close a tetrahedron)
-        moved = fd - shared
-        new = {t: np.where(faces[t] == drop, keep, faces[t]) for t in moved}
-        before = sum(bad(t, faces[t]) for t in fk | fd)
-        if sum(bad(t, tri) for t, tri in new.items()) + sum(bad(t, faces[t]) for t in fk - shared) >= before:
-            return False
-        if any(bad(t, tri, raw) for t, tri in new.items()):
-            return False  # the fallback (undo_flips) moves vertices back towards the raw surface
-        for t, tri in new.items():
-            faces[t] = tri
-        for t in shared:
+@nb.njit(cache=True)
+def _faces_of(a, head, nxt, start, adj, alive, mark, stamp, out):
+    """The alive triangles around vertex ``a`` into ``out`` (returns how many): those around every
+    vertex merged into it (its member list ``head``/``nxt``), as listed at the start (``start``/``adj``),
+    since a collapse renames the dropped vertex in each of its triangles that stays."""
+    n = 0
+    m = head[a]
+    while m >= 0:
+        for s in range(start[m], start[m + 1]):
+            t = adj[s]
+            if alive[t] and mark[t] != stamp:
+                mark[t] = stamp
+                out[n] = t
+                n += 1
+        m = nxt[m]
+    return n
+
+
+@nb.njit(cache=True)
+def _try_collapse(keep, drop, n_ref, raw, at, faces, alive, head, nxt, tail, start, adj, mark_k, mark_d,
+                  vmark_k, vmark_d, fk, fd, stamp):
+    """Collapse the edge (keep, drop) into ``keep`` if the link condition holds, fewer triangles
+    around it are flipped or degenerate at ``at`` afterwards and none of the renamed triangles is
+    at ``raw`` (see collapse_flipped). ``stamp``: a value the mark arrays do not hold yet."""
+    nk = _faces_of(keep, head, nxt, start, adj, alive, mark_k, stamp, fk)
+    nd = _faces_of(drop, head, nxt, start, adj, alive, mark_d, stamp, fd)
+    n_shared = 0
+    o1 = -1
+    o2 = -1
+    n_opp = 0
+    for i in range(nd):
+        t = fd[i]
+        if mark_k[t] == stamp:
+            n_shared += 1
+            for k in range(3):
+                x = faces[t, k]
+                if x != keep and x != drop and x != o1 and x != o2:
+                    n_opp += 1
+                    if o1 < 0:
+                        o1 = x
+                    else:
+                        o2 = x
+    if n_shared != 2 or n_opp != 2:
+        return False
+    # link condition: the one-rings of the two ends share the two opposite vertices only (both rings
+    # hold them), and the union has at least 5 vertices (else the collapse closes a tetrahedron)
+    n_ring_k = 0
+    for i in range(nk):
+        for k in range(3):
+            x = faces[fk[i], k]
+            if x != keep and vmark_k[x] != stamp:
+                vmark_k[x] = stamp
+                n_ring_k += 1
+    n_ring_d = 0
+    n_both = 0
+    for i in range(nd):
+        for k in range(3):
+            x = faces[fd[i], k]
+            if x != drop and vmark_d[x] != stamp:
+                vmark_d[x] = stamp
+                n_ring_d += 1
+                if vmark_k[x] == stamp:
+                    n_both += 1
+    if n_both != 2 or n_ring_k + n_ring_d - n_both < 5:
+        return False
+    before = 0
+    after = 0
+    for i in range(nk):
+        t = fk[i]
+        bad = _turn(at, faces[t, 0], faces[t, 1], faces[t, 2], n_ref, t) <= 0.0
+        before += bad
+        if mark_d[t] != stamp:
+            after += bad
+    for i in range(nd):
+        t = fd[i]
+        if mark_k[t] == stamp:
+            continue
+        before += _turn(at, faces[t, 0], faces[t, 1], faces[t, 2], n_ref, t) <= 0.0
+        a = keep if faces[t, 0] == drop else faces[t, 0]
+        b = keep if faces[t, 1] == drop else faces[t, 1]
+        c = keep if faces[t, 2] == drop else faces[t, 2]
+        after += _turn(at, a, b, c, n_ref, t) <= 0.0
+    if after >= before:
+        return False
+    for i in range(nd):
+        t = fd[i]
+        if mark_k[t] != stamp:
+            a = keep if faces[t, 0] == drop else faces[t, 0]
+            b = keep if faces[t, 1] == drop else faces[t, 1]
+            c = keep if faces[t, 2] == drop else faces[t, 2]
+            if _turn(raw, a, b, c, n_ref, t) <= 0.0:
+                return False  # the fallback (undo_flips) moves vertices back towards the raw surface
+    for i in range(nd):
+        t = fd[i]
+        if mark_k[t] == stamp:
             alive[t] = False
-        changed[keep] = (fk | fd) - shared
-        changed[drop] = set()
-        for o in opposite:
-            changed[o] = faces_of(o) - shared
-        return True
+        else:
+            for k in range(3):
+                if faces[t, k] == drop:
+                    faces[t, k] = keep
+    nxt[tail[keep]] = head[drop]  # drop's members (and their triangles) are keep's now
+    tail[keep] = tail[drop]
+    head[drop] = -1
+    return True
 
-    merged: list[tuple[int, int]] = []
+
+@nb.njit(cache=True)
+def _collapse(n_ref, raw, after, at, faces, on_wall, alive, passes, merged):
+    """collapse_flipped's loop: ``at`` is ``after`` as stored; the (kept, dropped) pairs go to
+    ``merged``; returns how many."""
+    nv = after.shape[0]
+    nf = faces.shape[0]
+    start = np.zeros(nv + 1, np.int64)  # vertex -> triangles at the start, as CSR
+    for t in range(nf):
+        for k in range(3):
+            start[faces[t, k] + 1] += 1
+    for a in range(nv):
+        start[a + 1] += start[a]
+    fill = start[:-1].copy()
+    adj = np.empty(3 * nf, np.int64)
+    for t in range(nf):
+        for k in range(3):
+            a = faces[t, k]
+            adj[fill[a]] = t
+            fill[a] += 1
+    head = np.arange(nv)  # member lists: the vertices merged into each vertex, itself first
+    tail = np.arange(nv)
+    nxt = np.full(nv, -1, np.int64)
+    mark_k = np.zeros(nf, np.int64)
+    mark_d = np.zeros(nf, np.int64)
+    vmark_k = np.zeros(nv, np.int64)
+    vmark_d = np.zeros(nv, np.int64)
+    fk = np.empty(nf, np.int64)
+    fd = np.empty(nf, np.int64)
+    stamp = 0
+    n = 0
+    length = np.empty(3)
     for _ in range(passes):
-        n_before = len(merged)
-        for t in np.flatnonzero(alive & flipped_faces(n_ref, after, faces)):
-            tri = faces[t]
-            if not alive[t] or not bad(t, tri):
+        n_before = n
+        todo = np.empty(nf, np.int64)
+        n_todo = 0
+        for t in range(nf):
+            if alive[t] and _turn(at, faces[t, 0], faces[t, 1], faces[t, 2], n_ref, t) < 0.0:
+                todo[n_todo] = t
+                n_todo += 1
+        for i in range(n_todo):
+            t = todo[i]
+            if not alive[t] or not _turn(at, faces[t, 0], faces[t, 1], faces[t, 2], n_ref, t) <= 0.0:
                 continue
-            edges = sorted(((tri[i], tri[(i + 1) % 3]) for i in range(3)),
-                           key=lambda e: float(np.sum((after[e[0]] - after[e[1]]) ** 2)))
+            for e in range(3):  # squared edge lengths, shortest first (stable)
+                p = faces[t, e]
+                q = faces[t, (e + 1) % 3]
+                dx = after[p, 0] - after[q, 0]
+                dy = after[p, 1] - after[q, 1]
+                dz = after[p, 2] - after[q, 2]
+                length[e] = dx * dx + dy * dy + dz * dz
+            order = np.arange(3)
+            for e in range(1, 3):
+                j = e
+                while j > 0 and length[order[j - 1]] > length[order[j]]:
+                    order[j - 1], order[j] = order[j], order[j - 1]
+                    j -= 1
             done = False
-            for a, b in edges:
-                for keep, drop in ((int(a), int(b)), (int(b), int(a))):
-                    if on_wall[keep] and try_collapse(keep, drop):
-                        merged.append((keep, drop))
-                        done = True
-                        break
+            for e in order:
+                p = faces[t, e]
+                q = faces[t, (e + 1) % 3]
+                for keep, drop in ((p, q), (q, p)):
+                    if on_wall[keep]:
+                        stamp += 1
+                        if _try_collapse(keep, drop, n_ref, raw, at, faces, alive, head, nxt, tail, start, adj,
+                                         mark_k, mark_d, vmark_k, vmark_d, fk, fd, stamp):
+                            merged[n, 0] = keep
+                            merged[n, 1] = drop
+                            n += 1
+                            done = True
+                            break
                 if done:
                     break
-        if len(merged) == n_before:
+        if n == n_before:
             break
-    return merged
+    return n
 
 
 def revert_collapses(raw_faces: np.ndarray, faces: np.ndarray, alive: np.ndarray, merged: list[tuple[int, int]],
