@@ -133,23 +133,24 @@ def snap_to_walls(v: np.ndarray, normals: np.ndarray, sdf: SDFGrid, bodies: list
 
 
 def undo_flips(before: np.ndarray, after: np.ndarray, faces: np.ndarray, halvings: int = 8,
-               n_ref: np.ndarray | None = None) -> int:
+               n_ref: np.ndarray | None = None, alive: np.ndarray | None = None) -> int:
     """Halve the move of the vertex that moved most in each triangle whose orientation flipped, until
     none does; after ``halvings`` rounds such vertices go back where they were (which ends with no flip
     at the latest when every vertex is back). Only the largest mover of a triangle is held back, so
     its neighbours stay on the wall (on the dragon scene this damps 1.4 % of the projected vertices
-    instead of 3.9 %). ``n_ref``: the faces' reference normals (default: from ``before``). Works in
-    place on ``after``; returns how many vertices were damped."""
+    instead of 3.9 %). ``n_ref``: the faces' reference normals (default: from ``before``); ``alive``:
+    the faces that count (default: all). Works in place on ``after``; returns how many vertices were
+    damped."""
     if n_ref is None:
         n_ref = face_normals(before, faces)
     damped = np.zeros(len(before), np.bool_)
     k = 0
     while True:
-        flipped = flipped_faces(n_ref, after, faces)
+        flipped = flipped_faces(n_ref, after, faces, alive)
         if not flipped.any():
             return int(damped.sum())
         tri = faces[flipped]
-        moves = np.linalg.norm(after - before, axis=1)[tri]
+        moves = np.linalg.norm(after[tri] - before[tri], axis=2)
         if not moves.any():  # all back where they were (only a collapsed edge can flip there)
             return int(damped.sum())
         bad = np.unique(tri[np.arange(len(tri)), moves.argmax(axis=1)])
@@ -198,75 +199,103 @@ def closest_points_on(walls: WallMesh, points: np.ndarray, shells: np.ndarray | 
     return WallProjector(walls, shells)(points)[0]
 
 
-@nb.njit(cache=True)
-def orientation(v, faces, n_ref, out):
-    """out[t] = n_ref[t] . (normal of triangle ``faces[t]`` at ``v``), unnormalised: negative when the
-    triangle flipped against its reference normal, zero when it is degenerate."""
-    for t in range(faces.shape[0]):
-        a = faces[t, 0]
-        b = faces[t, 1]
-        c = faces[t, 2]
-        ux = v[b, 0] - v[a, 0]
-        uy = v[b, 1] - v[a, 1]
-        uz = v[b, 2] - v[a, 2]
-        wx = v[c, 0] - v[a, 0]
-        wy = v[c, 1] - v[a, 1]
-        wz = v[c, 2] - v[a, 2]
-        out[t] = (n_ref[t, 0] * (uy * wz - uz * wy) + n_ref[t, 1] * (uz * wx - ux * wz)
-                  + n_ref[t, 2] * (ux * wy - uy * wx))
-
-
 def stored(v: np.ndarray) -> np.ndarray:
     """``v`` as the surface stores it (float32), back in float64: a sliver can flip in the rounding."""
     return v.astype(np.float32).astype(np.float64)
 
 
-def flipped_faces(n_ref: np.ndarray, v: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Triangles whose normal turned by more than 90 degrees from ``n_ref``, at the stored positions."""
-    out = np.empty(len(faces))
-    orientation(stored(v), np.ascontiguousarray(faces), np.ascontiguousarray(n_ref), out)
-    return out < 0
+def flipped_faces(n_ref: np.ndarray, v: np.ndarray, faces: np.ndarray, alive: np.ndarray | None = None) -> np.ndarray:
+    """Triangles (of the ``alive`` ones, default all) whose normal turned by more than 90 degrees from
+    ``n_ref``, at the stored positions."""
+    out = np.empty(len(faces), np.bool_)
+    _flipped(np.ascontiguousarray(v, np.float64), np.ascontiguousarray(faces), np.ascontiguousarray(n_ref, np.float64),
+             np.ones(len(faces), np.bool_) if alive is None else np.ascontiguousarray(alive), out)
+    return out
 
 
-def ring_means(v: np.ndarray, faces: np.ndarray, active: np.ndarray) -> np.ndarray:
-    """Mean of the one-ring neighbours of each ``active`` vertex (rows of the others are undefined).
-    Each edge is counted once per triangle it borders, i.e. twice inside a closed surface."""
-    tri = faces[active[faces].any(axis=1)]
-    src = tri[:, [0, 0, 1, 1, 2, 2]].ravel()
-    dst = tri[:, [1, 2, 0, 2, 0, 1]].ravel()
-    keep = active[src]
-    src, dst = src[keep], dst[keep]
-    count = np.maximum(np.bincount(src, minlength=len(v)), 1)
-    return np.stack([np.bincount(src, v[dst, k], minlength=len(v)) for k in range(3)], axis=1) / count[:, None]
+def ring_means(v: np.ndarray, faces: np.ndarray, active: np.ndarray, alive: np.ndarray | None = None) -> np.ndarray:
+    """Mean of the one-ring neighbours of each ``active`` vertex over the ``alive`` triangles (default
+    all; rows of the other vertices are undefined). Each edge is counted once per triangle it borders,
+    i.e. twice inside a closed surface."""
+    out = np.empty((len(v), 3), np.float64)
+    _ring_means(np.ascontiguousarray(v, np.float64), np.ascontiguousarray(faces),
+                np.ones(len(faces), np.bool_) if alive is None else np.ascontiguousarray(alive),
+                np.ascontiguousarray(active), out)
+    return out
 
 
 def relax_on_wall(n_ref: np.ndarray, after: np.ndarray, faces: np.ndarray, on_wall: np.ndarray,
-                  project: WallProjector, rounds: int, step: float = 0.5) -> int:
+                  project: WallProjector, rounds: int, step: float = 0.5, alive: np.ndarray | None = None) -> int:
     """Untangle folds of the snapped surface without leaving the wall: each on-wall vertex of a flipped
     triangle (and of the triangles around it) moves ``step`` of the way to the mean of its one-ring,
-    within the wall's tangent plane, and back onto the exact wall (closest point). In place on
-    ``after``; returns how many vertices were moved."""
+    within the wall's tangent plane, and back onto the exact wall (closest point). ``alive``: the
+    triangles that count (default all). In place on ``after``; returns how many vertices were moved."""
+    alive = np.ones(len(faces), np.bool_) if alive is None else alive
     relaxed = np.zeros(len(after), np.bool_)
     n_flipped = len(faces) + 1
     for _ in range(rounds):
-        flipped = flipped_faces(n_ref, after, faces)
+        flipped = flipped_faces(n_ref, after, faces, alive)
         if flipped.sum() >= n_flipped:  # done, or stuck: what is left is for the collapse
             break
         n_flipped = flipped.sum()
         active = np.zeros(len(after), np.bool_)
         active[faces[flipped]] = True
-        active[faces[active[faces].any(axis=1)]] = True  # and their one-ring: room to spread the fold
+        _one_ring(faces, alive, active)  # and their one-ring: room to spread the fold
         active &= on_wall
         idx = np.flatnonzero(active)
         if len(idx) == 0:
             break
-        target = ring_means(after, faces, active)[idx]
+        target = ring_means(after, faces, active, alive)[idx]
         _, n = project(after[idx])
         move = target - after[idx]
         move -= np.einsum("ij,ij->i", move, n)[:, None] * n
         after[idx], _ = project(after[idx] + step * move)
         relaxed[idx] = True
     return int(relaxed.sum())
+
+
+@nb.njit(cache=True)
+def _flipped(v, faces, n_ref, alive, out):
+    """out[t]: triangle t is alive and flipped against n_ref[t] at ``v`` rounded to float32 (stored)."""
+    for t in range(faces.shape[0]):
+        out[t] = alive[t] and _turn(v, faces[t, 0], faces[t, 1], faces[t, 2], n_ref, t, True) < 0.0
+
+
+@nb.njit(cache=True)
+def _one_ring(faces, alive, active):
+    """Add to ``active`` every vertex of an alive triangle that has an active vertex (in place)."""
+    seed = active.copy()
+    for t in range(faces.shape[0]):
+        if alive[t] and (seed[faces[t, 0]] or seed[faces[t, 1]] or seed[faces[t, 2]]):
+            active[faces[t, 0]] = True
+            active[faces[t, 1]] = True
+            active[faces[t, 2]] = True
+
+
+@nb.njit(cache=True)
+def _ring_means(v, faces, alive, active, out):
+    """ring_means into ``out``: each alive triangle adds its other two vertices to each active vertex of
+    it, in triangle order."""
+    count = np.zeros(v.shape[0], np.int64)
+    out[:] = 0.0
+    for t in range(faces.shape[0]):
+        if not alive[t]:
+            continue
+        for k in range(3):
+            p = faces[t, k]
+            if active[p]:
+                q = faces[t, (k + 1) % 3]
+                r = faces[t, (k + 2) % 3]
+                if k == 1:  # the one-ring in the triangle's vertex order: (b, c), (a, c), (a, b)
+                    q, r = r, q
+                for j in range(3):
+                    out[p, j] += v[q, j]
+                    out[p, j] += v[r, j]
+                count[p] += 2
+    for p in range(v.shape[0]):
+        if count[p] > 0:
+            for j in range(3):
+                out[p, j] /= count[p]
 
 
 def collapse_flipped(n_ref: np.ndarray, raw: np.ndarray, after: np.ndarray, faces: np.ndarray,
@@ -286,14 +315,23 @@ def collapse_flipped(n_ref: np.ndarray, raw: np.ndarray, after: np.ndarray, face
 
 
 @nb.njit(cache=True)
-def _turn(v, a, b, c, n_ref, t):
-    """n_ref[t] . (normal of the triangle (a, b, c) at ``v``), unnormalised (see ``orientation``)."""
-    ux = v[b, 0] - v[a, 0]
-    uy = v[b, 1] - v[a, 1]
-    uz = v[b, 2] - v[a, 2]
-    wx = v[c, 0] - v[a, 0]
-    wy = v[c, 1] - v[a, 1]
-    wz = v[c, 2] - v[a, 2]
+def _at(v, a, k, round32):
+    """v[a, k], rounded to float32 (as the surface is stored) with ``round32``."""
+    return np.float64(np.float32(v[a, k])) if round32 else v[a, k]
+
+
+@nb.njit(cache=True)
+def _turn(v, a, b, c, n_ref, t, round32=False):
+    """n_ref[t] . (normal of the triangle (a, b, c) at ``v``), unnormalised: negative when the triangle
+    flipped against its reference normal, zero when it is degenerate. ``round32``: at ``v`` rounded to
+    float32."""
+    ax, ay, az = _at(v, a, 0, round32), _at(v, a, 1, round32), _at(v, a, 2, round32)
+    ux = _at(v, b, 0, round32) - ax
+    uy = _at(v, b, 1, round32) - ay
+    uz = _at(v, b, 2, round32) - az
+    wx = _at(v, c, 0, round32) - ax
+    wy = _at(v, c, 1, round32) - ay
+    wz = _at(v, c, 2, round32) - az
     return (n_ref[t, 0] * (uy * wz - uz * wy) + n_ref[t, 1] * (uz * wx - ux * wz)
             + n_ref[t, 2] * (ux * wy - uy * wx))
 
@@ -553,11 +591,11 @@ def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapPa
                 out[ends[close]] = near[close]
                 on_wall[ends[close]] = True
                 counts["grown"] += int(close.sum())
-            counts["relaxed"] += relax_on_wall(n_ref[alive], out, f[alive], on_wall, project, params.relax_rounds)
+            counts["relaxed"] += relax_on_wall(n_ref, out, f, on_wall, project, params.relax_rounds, alive=alive)
             if params.collapse:
                 merged += collapse_flipped(n_ref, v, out, f, on_wall, alive)
     while True:
-        counts["damped"] += undo_flips(v, out, f[alive], n_ref=n_ref[alive])
+        counts["damped"] += undo_flips(v, out, f, n_ref=n_ref, alive=alive)
         left = alive & flipped_faces(n_ref, out, f)
         if not left.any() or not merged:
             break
