@@ -8,7 +8,7 @@ step are below ``tolerance``. Vertices inside a wall (d < 0) are always projecte
 
 The SDF is a trilinear field on a grid: its zero level rounds concave creases and is off the true
 wall by up to about half a grid cell there. With the wall mesh at hand (``exact``), every projected
-vertex finishes on the mesh's exact closest point (open3d), so it lies on the wall itself; on a shell
+vertex finishes on the mesh's exact closest point (stages.common.closest), so it lies on the wall itself; on a shell
 wall, on the face of the shell the fluid touches (thickness/2 off the mesh, on the vertex's side).
 
 Moving walls (sdf_bake's bodies): at frame f (time f / fps) each vertex snaps onto the nearest wall,
@@ -30,6 +30,9 @@ triangles flipped (a few hundred of 200k on the dragon scene):
 """
 from __future__ import annotations
 
+import functools
+import os
+from pathlib import Path
 from typing import Mapping
 
 import numba as nb
@@ -37,6 +40,7 @@ import numpy as np
 from pydantic import Field
 
 from pipeline.stage import Artifact, Context, Params, Stage
+from stages.common.closest import ClosestPoints
 from stages.common.formats import ParticleMeta, SurfaceMesh, WallMesh, load_surface, save_surface
 from stages.common.meshes import face_normals, vertex_normals
 from stages.common.motion import RigidMotion
@@ -160,29 +164,25 @@ def undo_flips(before: np.ndarray, after: np.ndarray, faces: np.ndarray, halving
 
 
 class WallProjector:
-    """Closest points of the exact walls and their normals there (open3d RaycastingScene, built once and
-    queried by every pass of a frame). A shell wall (``shells``: per wall its thickness, 0 for a solid)
-    is the set of points within thickness/2 of its mesh: its closest point lies thickness/2 from the
-    mesh's closest point towards the query point, on the face of the shell on the query's side (the
-    fluid's), and its normal points that way."""
+    """Closest points of the exact walls and their normals there (stages.common.closest: built once per
+    walls, fastest for points within ``reach`` of them, exact for all; default reach: 1/32 of the
+    walls' extent). A shell wall (``shells``: per wall its thickness, 0 for a solid) is the set of
+    points within thickness/2 of its mesh: its closest point lies thickness/2 from the mesh's closest
+    point towards the query point, on the face of the shell on the query's side (the fluid's), and its
+    normal points that way."""
 
-    def __init__(self, walls: WallMesh, shells: np.ndarray | None = None):
-        import open3d as o3d
-
-        self._o3d = o3d
-        self.scene = o3d.t.geometry.RaycastingScene()
-        self.scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(walls.vertices, np.float32)),
-                                 o3d.core.Tensor(np.ascontiguousarray(walls.faces, np.uint32)))
+    def __init__(self, walls: WallMesh, shells: np.ndarray | None = None, reach: float | None = None):
+        if reach is None:
+            extent = np.ptp(walls.vertices, axis=0).max() if len(walls.vertices) else 1.0
+            reach = extent / 32.0
+        self.closest = ClosestPoints(walls.vertices, walls.faces, reach)
         half = 0.5 * np.asarray(walls.shell_thickness() if shells is None else shells, np.float64)
         self.offset = half[walls.wall_id] if len(half) and half.any() else None  # per face
 
     def __call__(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        q = self._o3d.core.Tensor(np.ascontiguousarray(points, np.float32))
-        r = self.scene.compute_closest_points(q)
-        near = r["points"].numpy().astype(np.float64)
-        normals = r["primitive_normals"].numpy().astype(np.float64)
+        near, normals, ids = self.closest(points)
         if self.offset is not None:
-            off = self.offset[r["primitive_ids"].numpy().astype(np.int64)]
+            off = self.offset[ids]
             idx = np.flatnonzero(off > 0)
             away = np.asarray(points, np.float64)[idx] - near[idx]
             length = np.linalg.norm(away, axis=1)
@@ -194,8 +194,14 @@ class WallProjector:
         return near, normals
 
 
+def wall_projector(walls: WallMesh, sdf: SDFGrid, t: float) -> WallProjector:
+    """The projector snap_mesh uses: the walls posed at ``t``, shells as baked into ``sdf``, fastest within
+    a grid cell of the walls (where the SDF step leaves the vertices)."""
+    return WallProjector(walls.posed(t), sdf.shell_thickness, reach=sdf.spacing)
+
+
 def closest_points_on(walls: WallMesh, points: np.ndarray, shells: np.ndarray | None = None) -> np.ndarray:
-    """The exact closest points of ``walls`` to ``points`` (open3d RaycastingScene; a shell's face)."""
+    """The exact closest points of ``walls`` to ``points`` (a shell's face)."""
     return WallProjector(walls, shells)(points)[0]
 
 
@@ -546,14 +552,15 @@ def revert_collapses(raw_faces: np.ndarray, faces: np.ndarray, alive: np.ndarray
 
 def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapParams,
               walls: WallMesh | None = None, bodies: list[tuple[SDFGrid, RigidMotion]] = (),
-              t: float = 0.0) -> tuple[SurfaceMesh, dict]:
+              t: float = 0.0, project: WallProjector | None = None) -> tuple[SurfaceMesh, dict]:
     """The mesh with its near-wall vertices on the walls; and a report: counts (snapped by the contact
     test, grown at folded contact lines, relaxation moves summed over the passes, collapsed edges,
     damped) and ``kept_faces``, the indices of the input's triangles that the output keeps
     (in order; a kept triangle may have had one vertex replaced by a collapse).
 
     Vertices keep their indices: a vertex merged away by a collapse stays in the array, unreferenced,
-    at the position of the vertex it was merged into."""
+    at the position of the vertex it was merged into. ``project``: the walls' projector at ``t`` if
+    the caller keeps one (default: built from ``walls``)."""
     counts = {"snapped": 0, "grown": 0, "relaxed": 0, "collapsed": 0, "damped": 0,
               "kept_faces": np.arange(len(mesh.faces))}
     if len(mesh.vertices) == 0:
@@ -569,7 +576,8 @@ def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapPa
     alive = np.ones(len(f), np.bool_)
     merged: list[tuple[int, int]] = []
     if params.exact and walls is not None and len(walls.faces) and moved.any():
-        project = WallProjector(walls.posed(t), sdf.shell_thickness)  # shells as baked; moving walls at t
+        if project is None:
+            project = wall_projector(walls, sdf, t)
         near, _ = project(out[moved])
         # only where the SDF step landed on this wall (not on a far one through a thin gap)
         ok = np.linalg.norm(near - out[moved], axis=1) < 1.5 * sdf.spacing
@@ -617,6 +625,31 @@ def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapPa
     return SurfaceMesh(out.astype(np.float32), f, normals.astype(np.float32)), counts
 
 
+# Per process (a worker runs many frames of one shot): the inputs every frame shares, loaded once. Cache
+# entries are written once and moved in whole, so a folder with the same files' times and sizes holds
+# the same data.
+def file_stamps(folder: Path) -> tuple:
+    """(name, mtime_ns, size) of each file in ``folder``: the key of what was loaded from it."""
+    return tuple(sorted((e.name, e.stat().st_mtime_ns, e.stat().st_size) for e in os.scandir(folder) if e.is_file()))
+
+
+@functools.lru_cache(maxsize=2)
+def field(folder: Path, stamps: tuple) -> tuple[SDFGrid, list[tuple[SDFGrid, RigidMotion]]]:
+    """The static SDF and the moving walls' fields of an sdf artifact."""
+    return SDFGrid.load(folder), load_bodies(folder)
+
+
+@functools.lru_cache(maxsize=2)
+def wall_mesh(folder: Path, stamps: tuple) -> WallMesh:
+    return WallMesh.load(folder)
+
+
+@functools.lru_cache(maxsize=4)
+def projector(walls_dir: Path, walls_stamps: tuple, sdf_dir: Path, sdf_stamps: tuple, t: float | None) -> WallProjector:
+    """snap_mesh's projector for the walls at time ``t`` (None: static walls, any time)."""
+    return wall_projector(wall_mesh(walls_dir, walls_stamps), field(sdf_dir, sdf_stamps)[0], 0.0 if t is None else t)
+
+
 class DistanceSnap(Stage):
     kind = "wall_snap"
     name = "distance"
@@ -631,11 +664,16 @@ class DistanceSnap(Stage):
 
     def run_frame(self, ctx: Context, inputs: Mapping[str, Artifact], params: DistanceSnapParams, frame: int) -> None:
         meta = ParticleMeta.load(inputs["particles"].frame(frame))
-        sdf = SDFGrid.load(inputs["sdf"].frame(frame))
-        bodies = load_bodies(inputs["sdf"].frame(frame))  # moving walls, posed at the frame's time
+        sdf_dir = inputs["sdf"].frame(frame)
+        sdf, bodies = field(sdf_dir, file_stamps(sdf_dir))  # moving walls: posed at the frame's time by snap_mesh
         mesh = load_surface(inputs["raw_surface"].frame(frame), frame)
-        walls = WallMesh.load(inputs["walls"].path) if params.exact and inputs.get("walls") is not None else None
-        snapped, report = snap_mesh(mesh, sdf, meta.spacing, params, walls, bodies, frame / meta.fps)
+        walls = project = None
+        if params.exact and inputs.get("walls") is not None:
+            walls_dir = inputs["walls"].path
+            walls = wall_mesh(walls_dir, file_stamps(walls_dir))
+            t = frame / meta.fps if walls.motions() else None  # static walls: one projector for every frame
+            project = projector(walls_dir, file_stamps(walls_dir), sdf_dir, file_stamps(sdf_dir), t)
+        snapped, report = snap_mesh(mesh, sdf, meta.spacing, params, walls, bodies, frame / meta.fps, project)
         ctx.log.debug("frame %d: %d vertices snapped, %d relaxed, %d edges collapsed, %d damped", frame,
                       report["snapped"], report["relaxed"], report["collapsed"], report["damped"])
         save_surface(ctx.out_dir, frame, snapped)
