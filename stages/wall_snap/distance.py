@@ -136,33 +136,6 @@ def snap_to_walls(v: np.ndarray, normals: np.ndarray, sdf: SDFGrid, bodies: list
         moved[idx] = mv
 
 
-def undo_flips(before: np.ndarray, after: np.ndarray, faces: np.ndarray, halvings: int = 8,
-               n_ref: np.ndarray | None = None, alive: np.ndarray | None = None) -> int:
-    """Halve the move of the vertex that moved most in each triangle whose orientation flipped, until
-    none does; after ``halvings`` rounds such vertices go back where they were (which ends with no flip
-    at the latest when every vertex is back). Only the largest mover of a triangle is held back, so
-    its neighbours stay on the wall (on the dragon scene this damps 1.4 % of the projected vertices
-    instead of 3.9 %). ``n_ref``: the faces' reference normals (default: from ``before``); ``alive``:
-    the faces that count (default: all). Works in place on ``after``; returns how many vertices were
-    damped."""
-    if n_ref is None:
-        n_ref = face_normals(before, faces)
-    damped = np.zeros(len(before), np.bool_)
-    k = 0
-    while True:
-        flipped = flipped_faces(n_ref, after, faces, alive)
-        if not flipped.any():
-            return int(damped.sum())
-        tri = faces[flipped]
-        moves = np.linalg.norm(after[tri] - before[tri], axis=2)
-        if not moves.any():  # all back where they were (only a collapsed edge can flip there)
-            return int(damped.sum())
-        bad = np.unique(tri[np.arange(len(tri)), moves.argmax(axis=1)])
-        damped[bad] = True
-        after[bad] = 0.5 * (after[bad] + before[bad]) if k < halvings else before[bad]
-        k += 1
-
-
 class WallProjector:
     """Closest points of the exact walls and their normals there (stages.common.closest: built once per
     walls, fastest for points within ``reach`` of them, exact for all; default reach: 1/32 of the
@@ -219,104 +192,104 @@ def flipped_faces(n_ref: np.ndarray, v: np.ndarray, faces: np.ndarray, alive: np
     return out
 
 
-def ring_means(v: np.ndarray, faces: np.ndarray, active: np.ndarray, alive: np.ndarray | None = None) -> np.ndarray:
-    """Mean of the one-ring neighbours of each ``active`` vertex over the ``alive`` triangles (default
-    all; rows of the other vertices are undefined). Each edge is counted once per triangle it borders,
-    i.e. twice inside a closed surface."""
-    out = np.empty((len(v), 3), np.float64)
-    _ring_means(np.ascontiguousarray(v, np.float64), np.ascontiguousarray(faces),
-                np.ones(len(faces), np.bool_) if alive is None else np.ascontiguousarray(alive),
-                np.ascontiguousarray(active), out)
-    return out
+class Folds:
+    """The snapped surface while its folds are removed: ``v`` (float64, moved in place), its triangles
+    ``faces`` (in place: a collapse renames a vertex in some and kills two, ``alive``), which of them are
+    flipped against ``n_ref`` at the stored positions (``flip``, kept up to date around the vertices
+    that move, so no pass looks at the whole surface), and the triangles around each vertex: those
+    listed around it at the start and around every vertex merged into it since (``head``, ``nxt``,
+    ``tail``: linked member lists), as a collapse renames the dropped vertex in its triangles."""
+
+    def __init__(self, n_ref: np.ndarray, v: np.ndarray, faces: np.ndarray, alive: np.ndarray):
+        assert v.dtype == np.float64 and v.flags.c_contiguous and faces.flags.c_contiguous and alive.flags.c_contiguous
+        self.n_ref, self.v, self.faces, self.alive = np.ascontiguousarray(n_ref, np.float64), v, faces, alive
+        self.start, self.adj = _vertex_triangles(faces, len(v))
+        self.head = np.arange(len(v))
+        self.tail = np.arange(len(v))
+        self.nxt = np.full(len(v), -1, np.int64)
+        self.seen = np.zeros(len(faces), np.bool_)  # scratch of _around, left all False
+        self.flip = flipped_faces(self.n_ref, v, faces, alive)
+
+    def around(self, vertices: np.ndarray) -> np.ndarray:
+        """The alive triangles that have a vertex in ``vertices``, each once."""
+        return _around(np.ascontiguousarray(vertices, np.int64), self.head, self.nxt, self.start, self.adj, self.alive,
+                       self.seen)
+
+    def moved(self, vertices: np.ndarray) -> None:
+        """``vertices`` moved: their triangles' ``flip`` anew."""
+        _update_flips(self.v, self.faces, self.n_ref, self.around(vertices), self.flip)
+
+    def ring_means(self, vertices: np.ndarray) -> np.ndarray:
+        """Mean of the one-ring neighbours of each of ``vertices`` (N, 3). Each edge is counted once per
+        triangle it borders, i.e. twice inside a closed surface."""
+        out = np.empty((len(vertices), 3), np.float64)
+        _ring_means(self.v, self.faces, np.ascontiguousarray(vertices, np.int64), self.head, self.nxt, self.start,
+                    self.adj, self.alive, self.seen, out)
+        return out
 
 
-def relax_on_wall(n_ref: np.ndarray, after: np.ndarray, faces: np.ndarray, on_wall: np.ndarray,
-                  project: WallProjector, rounds: int, step: float = 0.5, alive: np.ndarray | None = None) -> int:
+def undo_flips(before: np.ndarray, folds: Folds, halvings: int = 8) -> int:
+    """Halve the move of the vertex that moved most in each triangle whose orientation flipped, until
+    none does; after ``halvings`` rounds such vertices go back where they were (which ends with no flip
+    at the latest when every vertex is back). Only the largest mover of a triangle is held back, so
+    its neighbours stay on the wall (on the dragon scene this damps 1.4 % of the projected vertices
+    instead of 3.9 %). Works in place on ``folds.v``; returns how many vertices were damped; what
+    ``folds.flip`` still holds can only be a collapsed edge's triangles."""
+    after = folds.v
+    damped = np.zeros(len(before), np.bool_)
+    k = 0
+    while True:
+        tri = folds.faces[folds.flip]
+        if not len(tri):
+            return int(damped.sum())
+        moves = np.linalg.norm(after[tri] - before[tri], axis=2)
+        if not moves.any():  # all back where they were (only a collapsed edge can flip there)
+            return int(damped.sum())
+        bad = np.unique(tri[np.arange(len(tri)), moves.argmax(axis=1)])
+        damped[bad] = True
+        after[bad] = 0.5 * (after[bad] + before[bad]) if k < halvings else before[bad]
+        folds.moved(bad)
+        k += 1
+
+
+def relax_on_wall(folds: Folds, on_wall: np.ndarray, project: WallProjector, rounds: int, step: float = 0.5) -> int:
     """Untangle folds of the snapped surface without leaving the wall: each on-wall vertex of a flipped
     triangle (and of the triangles around it) moves ``step`` of the way to the mean of its one-ring,
-    within the wall's tangent plane, and back onto the exact wall (closest point). ``alive``: the
-    triangles that count (default all). In place on ``after``; returns how many vertices were moved."""
-    alive = np.ones(len(faces), np.bool_) if alive is None else alive
+    within the wall's tangent plane, and back onto the exact wall (closest point). In place on
+    ``folds.v``; returns how many vertices were moved."""
+    after, faces = folds.v, folds.faces
     relaxed = np.zeros(len(after), np.bool_)
     n_flipped = len(faces) + 1
     for _ in range(rounds):
-        flipped = flipped_faces(n_ref, after, faces, alive)
-        if flipped.sum() >= n_flipped:  # done, or stuck: what is left is for the collapse
+        n = np.count_nonzero(folds.flip)
+        if n >= n_flipped:  # done, or stuck: what is left is for the collapse
             break
-        n_flipped = flipped.sum()
-        active = np.zeros(len(after), np.bool_)
-        active[faces[flipped]] = True
-        _one_ring(faces, alive, active)  # and their one-ring: room to spread the fold
-        active &= on_wall
-        idx = np.flatnonzero(active)
+        n_flipped = n
+        # the vertices of the flipped triangles and their one-ring (room to spread the fold) on the wall
+        ring = np.unique(faces[folds.around(np.unique(faces[folds.flip]))])
+        idx = ring[on_wall[ring]]
         if len(idx) == 0:
             break
-        target = ring_means(after, faces, active, alive)[idx]
-        _, n = project(after[idx])
+        target = folds.ring_means(idx)
+        _, normal = project(after[idx])
         move = target - after[idx]
-        move -= np.einsum("ij,ij->i", move, n)[:, None] * n
+        move -= np.einsum("ij,ij->i", move, normal)[:, None] * normal
         after[idx], _ = project(after[idx] + step * move)
         relaxed[idx] = True
+        folds.moved(idx)
     return int(relaxed.sum())
 
 
-@nb.njit(cache=True)
-def _flipped(v, faces, n_ref, alive, out):
-    """out[t]: triangle t is alive and flipped against n_ref[t] at ``v`` rounded to float32 (stored)."""
-    for t in range(faces.shape[0]):
-        out[t] = alive[t] and _turn(v, faces[t, 0], faces[t, 1], faces[t, 2], n_ref, t, True) < 0.0
-
-
-@nb.njit(cache=True)
-def _one_ring(faces, alive, active):
-    """Add to ``active`` every vertex of an alive triangle that has an active vertex (in place)."""
-    seed = active.copy()
-    for t in range(faces.shape[0]):
-        if alive[t] and (seed[faces[t, 0]] or seed[faces[t, 1]] or seed[faces[t, 2]]):
-            active[faces[t, 0]] = True
-            active[faces[t, 1]] = True
-            active[faces[t, 2]] = True
-
-
-@nb.njit(cache=True)
-def _ring_means(v, faces, alive, active, out):
-    """ring_means into ``out``: each alive triangle adds its other two vertices to each active vertex of
-    it, in triangle order."""
-    count = np.zeros(v.shape[0], np.int64)
-    out[:] = 0.0
-    for t in range(faces.shape[0]):
-        if not alive[t]:
-            continue
-        for k in range(3):
-            p = faces[t, k]
-            if active[p]:
-                q = faces[t, (k + 1) % 3]
-                r = faces[t, (k + 2) % 3]
-                if k == 1:  # the one-ring in the triangle's vertex order: (b, c), (a, c), (a, b)
-                    q, r = r, q
-                for j in range(3):
-                    out[p, j] += v[q, j]
-                    out[p, j] += v[r, j]
-                count[p] += 2
-    for p in range(v.shape[0]):
-        if count[p] > 0:
-            for j in range(3):
-                out[p, j] /= count[p]
-
-
-def collapse_flipped(n_ref: np.ndarray, raw: np.ndarray, after: np.ndarray, faces: np.ndarray,
-                     on_wall: np.ndarray, alive: np.ndarray, passes: int = 4) -> list[tuple[int, int]]:
+def collapse_flipped(folds: Folds, raw: np.ndarray, on_wall: np.ndarray, passes: int = 4) -> list[tuple[int, int]]:
     """Remove flipped triangles that lie on the wall by collapsing one of their edges into an on-wall
     end (shortest edge first). A collapse drops the two triangles of the edge and is made only when
     the surface stays a closed manifold there (the link condition: the two ends share no neighbour but
     the edge's two opposite vertices) and fewer triangles around it are flipped or degenerate than
-    before. Works on ``faces`` and ``alive`` in place (numba: ``_collapse``); returns the (kept,
-    dropped) vertex pairs."""
-    assert faces.flags.c_contiguous and alive.flags.c_contiguous  # changed in place
-    merged = np.empty((len(faces) // 2 + 1, 2), np.int64)
-    n = _collapse(np.ascontiguousarray(n_ref, np.float64), np.ascontiguousarray(raw, np.float64),
-                  np.ascontiguousarray(after, np.float64), stored(after), faces, np.ascontiguousarray(on_wall),
-                  alive, passes, merged)
+    before. Works on ``folds`` in place (numba: ``_collapse``); returns the (kept, dropped) vertex
+    pairs."""
+    merged = np.empty((len(folds.faces) // 2 + 1, 2), np.int64)
+    n = _collapse(folds.n_ref, np.ascontiguousarray(raw, np.float64), folds.v, folds.faces, np.ascontiguousarray(on_wall),
+                  folds.alive, folds.flip, folds.start, folds.adj, folds.head, folds.nxt, folds.tail, passes, merged)
     return [(int(a), int(b)) for a, b in merged[:n]]
 
 
@@ -343,17 +316,48 @@ def _turn(v, a, b, c, n_ref, t, round32=False):
 
 
 @nb.njit(cache=True)
-def _faces_of(a, head, nxt, start, adj, alive, mark, stamp, out):
-    """The alive triangles around vertex ``a`` into ``out`` (returns how many): those around every
-    vertex merged into it (its member list ``head``/``nxt``), as listed at the start (``start``/``adj``),
-    since a collapse renames the dropped vertex in each of its triangles that stays."""
-    n = 0
+def _flipped(v, faces, n_ref, alive, out):
+    """out[t]: triangle t is alive and flipped against n_ref[t] at ``v`` rounded to float32 (stored)."""
+    for t in range(faces.shape[0]):
+        out[t] = alive[t] and _turn(v, faces[t, 0], faces[t, 1], faces[t, 2], n_ref, t, True) < 0.0
+
+
+@nb.njit(cache=True)
+def _update_flips(v, faces, n_ref, tris, flip):
+    """flip[t] anew for the (alive) triangles ``tris``."""
+    for t in tris:
+        flip[t] = _turn(v, faces[t, 0], faces[t, 1], faces[t, 2], n_ref, t, True) < 0.0
+
+
+@nb.njit(cache=True)
+def _vertex_triangles(faces, nv):
+    """The triangles around each vertex as CSR lists (start (nv + 1,), items), in triangle order."""
+    start = np.zeros(nv + 1, np.int64)
+    for t in range(faces.shape[0]):
+        for k in range(3):
+            start[faces[t, k] + 1] += 1
+    for a in range(nv):
+        start[a + 1] += start[a]
+    fill = start[:-1].copy()
+    adj = np.empty(start[nv], np.int64)
+    for t in range(faces.shape[0]):
+        for k in range(3):
+            a = faces[t, k]
+            adj[fill[a]] = t
+            fill[a] += 1
+    return start, adj
+
+
+@nb.njit(cache=True)
+def _faces_of(a, head, nxt, start, adj, alive, seen, out, n):
+    """Append the alive triangles around vertex ``a`` not ``seen`` yet to ``out[n:]`` (marking them);
+    returns the new length. Around ``a``: around every vertex merged into it (its member list)."""
     m = head[a]
     while m >= 0:
         for s in range(start[m], start[m + 1]):
             t = adj[s]
-            if alive[t] and mark[t] != stamp:
-                mark[t] = stamp
+            if alive[t] and not seen[t]:
+                seen[t] = True
                 out[n] = t
                 n += 1
         m = nxt[m]
@@ -361,20 +365,100 @@ def _faces_of(a, head, nxt, start, adj, alive, mark, stamp, out):
 
 
 @nb.njit(cache=True)
-def _try_collapse(keep, drop, n_ref, raw, at, faces, alive, head, nxt, tail, start, adj, mark_k, mark_d,
+def _count_around(vertices, head, nxt, start):
+    """An upper bound of the number of triangles around ``vertices``."""
+    n = 0
+    for a in vertices:
+        m = head[a]
+        while m >= 0:
+            n += start[m + 1] - start[m]
+            m = nxt[m]
+    return n
+
+
+@nb.njit(cache=True)
+def _around(vertices, head, nxt, start, adj, alive, seen):
+    """The alive triangles around ``vertices``, each once (``seen`` is left all False)."""
+    out = np.empty(_count_around(vertices, head, nxt, start), np.int64)
+    n = 0
+    for a in vertices:
+        n = _faces_of(a, head, nxt, start, adj, alive, seen, out, n)
+    for i in range(n):
+        seen[out[i]] = False
+    return out[:n]
+
+
+@nb.njit(cache=True)
+def _ring_means(v, faces, vertices, head, nxt, start, adj, alive, seen, out):
+    """out[i]: the mean over the alive triangles around vertices[i], in triangle order, of the other two
+    vertices of each (each in the triangle's vertex order)."""
+    for i in range(vertices.shape[0]):
+        p = vertices[i]
+        tris = _around(vertices[i:i + 1], head, nxt, start, adj, alive, seen)
+        tris.sort()
+        sx = 0.0
+        sy = 0.0
+        sz = 0.0
+        count = 0
+        for t in tris:
+            for k in range(3):
+                if faces[t, k] != p:
+                    continue
+                for j in range(3):
+                    if j != k:
+                        q = faces[t, j]
+                        sx += v[q, 0]
+                        sy += v[q, 1]
+                        sz += v[q, 2]
+                        count += 1
+        count = max(count, 1)
+        out[i, 0] = sx / count
+        out[i, 1] = sy / count
+        out[i, 2] = sz / count
+
+
+@nb.njit(cache=True)
+def _try_collapse(keep, drop, n_ref, raw, at, faces, alive, flip, head, nxt, tail, start, adj, seen_k, seen_d,
                   vmark_k, vmark_d, fk, fd, stamp):
     """Collapse the edge (keep, drop) into ``keep`` if the link condition holds, fewer triangles
-    around it are flipped or degenerate at ``at`` afterwards and none of the renamed triangles is
-    at ``raw`` (see collapse_flipped). ``stamp``: a value the mark arrays do not hold yet."""
-    nk = _faces_of(keep, head, nxt, start, adj, alive, mark_k, stamp, fk)
-    nd = _faces_of(drop, head, nxt, start, adj, alive, mark_d, stamp, fd)
+    around it are flipped or degenerate at ``at`` (stored) afterwards and none of the renamed triangles
+    is at ``raw`` (see collapse_flipped). ``stamp``: a value the vertex marks do not hold yet; the
+    triangle marks ``seen_k``/``seen_d`` are all False and are left so."""
+    nk = _faces_of(keep, head, nxt, start, adj, alive, seen_k, fk, 0)
+    nd = _faces_of(drop, head, nxt, start, adj, alive, seen_d, fd, 0)
+    ok = _collapse_ok(keep, drop, n_ref, raw, at, faces, seen_k, seen_d, vmark_k, vmark_d, fk, fd, nk, nd, stamp)
+    if ok:
+        for i in range(nd):
+            t = fd[i]
+            if seen_k[t]:
+                alive[t] = False
+                flip[t] = False
+            else:
+                for k in range(3):
+                    if faces[t, k] == drop:
+                        faces[t, k] = keep
+                flip[t] = _turn(at, faces[t, 0], faces[t, 1], faces[t, 2], n_ref, t) < 0.0
+        nxt[tail[keep]] = head[drop]  # drop's members (and their triangles) are keep's now
+        tail[keep] = tail[drop]
+        head[drop] = -1
+    for i in range(nk):
+        seen_k[fk[i]] = False
+    for i in range(nd):
+        seen_d[fd[i]] = False
+    return ok
+
+
+@nb.njit(cache=True)
+def _collapse_ok(keep, drop, n_ref, raw, at, faces, seen_k, seen_d, vmark_k, vmark_d, fk, fd, nk, nd, stamp):
+    """_try_collapse's conditions, with the triangles around keep (fk[:nk], marked in seen_k) and
+    around drop (fd[:nd], seen_d)."""
     n_shared = 0
     o1 = -1
     o2 = -1
     n_opp = 0
     for i in range(nd):
         t = fd[i]
-        if mark_k[t] == stamp:
+        if seen_k[t]:
             n_shared += 1
             for k in range(3):
                 x = faces[t, k]
@@ -413,11 +497,11 @@ def _try_collapse(keep, drop, n_ref, raw, at, faces, alive, head, nxt, tail, sta
         t = fk[i]
         bad = _turn(at, faces[t, 0], faces[t, 1], faces[t, 2], n_ref, t) <= 0.0
         before += bad
-        if mark_d[t] != stamp:
+        if not seen_d[t]:
             after += bad
     for i in range(nd):
         t = fd[i]
-        if mark_k[t] == stamp:
+        if seen_k[t]:
             continue
         before += _turn(at, faces[t, 0], faces[t, 1], faces[t, 2], n_ref, t) <= 0.0
         a = keep if faces[t, 0] == drop else faces[t, 0]
@@ -428,50 +512,26 @@ def _try_collapse(keep, drop, n_ref, raw, at, faces, alive, head, nxt, tail, sta
         return False
     for i in range(nd):
         t = fd[i]
-        if mark_k[t] != stamp:
+        if not seen_k[t]:
             a = keep if faces[t, 0] == drop else faces[t, 0]
             b = keep if faces[t, 1] == drop else faces[t, 1]
             c = keep if faces[t, 2] == drop else faces[t, 2]
             if _turn(raw, a, b, c, n_ref, t) <= 0.0:
                 return False  # the fallback (undo_flips) moves vertices back towards the raw surface
-    for i in range(nd):
-        t = fd[i]
-        if mark_k[t] == stamp:
-            alive[t] = False
-        else:
-            for k in range(3):
-                if faces[t, k] == drop:
-                    faces[t, k] = keep
-    nxt[tail[keep]] = head[drop]  # drop's members (and their triangles) are keep's now
-    tail[keep] = tail[drop]
-    head[drop] = -1
     return True
 
 
 @nb.njit(cache=True)
-def _collapse(n_ref, raw, after, at, faces, on_wall, alive, passes, merged):
-    """collapse_flipped's loop: ``at`` is ``after`` as stored; the (kept, dropped) pairs go to
-    ``merged``; returns how many."""
+def _collapse(n_ref, raw, after, faces, on_wall, alive, flip, start, adj, head, nxt, tail, passes, merged):
+    """collapse_flipped's loop; the (kept, dropped) pairs go to ``merged``; returns how many."""
     nv = after.shape[0]
     nf = faces.shape[0]
-    start = np.zeros(nv + 1, np.int64)  # vertex -> triangles at the start, as CSR
-    for t in range(nf):
-        for k in range(3):
-            start[faces[t, k] + 1] += 1
+    at = np.empty_like(after)  # as stored
     for a in range(nv):
-        start[a + 1] += start[a]
-    fill = start[:-1].copy()
-    adj = np.empty(3 * nf, np.int64)
-    for t in range(nf):
         for k in range(3):
-            a = faces[t, k]
-            adj[fill[a]] = t
-            fill[a] += 1
-    head = np.arange(nv)  # member lists: the vertices merged into each vertex, itself first
-    tail = np.arange(nv)
-    nxt = np.full(nv, -1, np.int64)
-    mark_k = np.zeros(nf, np.int64)
-    mark_d = np.zeros(nf, np.int64)
+            at[a, k] = _at(after, a, k, True)
+    seen_k = np.zeros(nf, np.bool_)
+    seen_d = np.zeros(nf, np.bool_)
     vmark_k = np.zeros(nv, np.int64)
     vmark_d = np.zeros(nv, np.int64)
     fk = np.empty(nf, np.int64)
@@ -481,14 +541,8 @@ def _collapse(n_ref, raw, after, at, faces, on_wall, alive, passes, merged):
     length = np.empty(3)
     for _ in range(passes):
         n_before = n
-        todo = np.empty(nf, np.int64)
-        n_todo = 0
-        for t in range(nf):
-            if alive[t] and _turn(at, faces[t, 0], faces[t, 1], faces[t, 2], n_ref, t) < 0.0:
-                todo[n_todo] = t
-                n_todo += 1
-        for i in range(n_todo):
-            t = todo[i]
+        todo = np.flatnonzero(flip)
+        for t in todo:
             if not alive[t] or not _turn(at, faces[t, 0], faces[t, 1], faces[t, 2], n_ref, t) <= 0.0:
                 continue
             for e in range(3):  # squared edge lengths, shortest first (stable)
@@ -511,8 +565,8 @@ def _collapse(n_ref, raw, after, at, faces, on_wall, alive, passes, merged):
                 for keep, drop in ((p, q), (q, p)):
                     if on_wall[keep]:
                         stamp += 1
-                        if _try_collapse(keep, drop, n_ref, raw, at, faces, alive, head, nxt, tail, start, adj,
-                                         mark_k, mark_d, vmark_k, vmark_d, fk, fd, stamp):
+                        if _try_collapse(keep, drop, n_ref, raw, at, faces, alive, flip, head, nxt, tail, start, adj,
+                                         seen_k, seen_d, vmark_k, vmark_d, fk, fd, stamp):
                             merged[n, 0] = keep
                             merged[n, 1] = drop
                             n += 1
@@ -575,7 +629,9 @@ def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapPa
     n_ref = face_normals(v, f)
     alive = np.ones(len(f), np.bool_)
     merged: list[tuple[int, int]] = []
-    if params.exact and walls is not None and len(walls.faces) and moved.any():
+    exact = params.exact and walls is not None and len(walls.faces) > 0 and moved.any()
+    on_wall = np.zeros(len(v), np.bool_)
+    if exact:
         if project is None:
             project = wall_projector(walls, sdf, t)
         near, _ = project(out[moved])
@@ -583,14 +639,15 @@ def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapPa
         ok = np.linalg.norm(near - out[moved], axis=1) < 1.5 * sdf.spacing
         idx = np.flatnonzero(moved)[ok]
         out[idx] = near[ok]
-        on_wall = np.zeros(len(v), np.bool_)
         on_wall[idx] = True
+    folds = Folds(n_ref, out, f, alive)
+    if exact:
         for grow in range(3 if params.relax_rounds or params.collapse else 1):
             if grow:
                 # a vertex the contact test left out (its normal does not face the wall) can pin a
                 # fold at the contact line: the off-wall vertices of flipped triangles within the band
                 # join the snapped ones
-                ends = np.unique(f[alive & flipped_faces(n_ref, out, f)])
+                ends = np.unique(f[folds.flip])
                 ends = ends[~on_wall[ends]]
                 near, _ = project(out[ends]) if len(ends) else (out[ends], None)
                 close = np.linalg.norm(near - out[ends], axis=1) < params.band * l0
@@ -598,18 +655,19 @@ def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapPa
                     break
                 out[ends[close]] = near[close]
                 on_wall[ends[close]] = True
+                folds.moved(ends[close])
                 counts["grown"] += int(close.sum())
-            counts["relaxed"] += relax_on_wall(n_ref, out, f, on_wall, project, params.relax_rounds, alive=alive)
+            counts["relaxed"] += relax_on_wall(folds, on_wall, project, params.relax_rounds)
             if params.collapse:
-                merged += collapse_flipped(n_ref, v, out, f, on_wall, alive)
+                merged += collapse_flipped(folds, v, on_wall)
     while True:
-        counts["damped"] += undo_flips(v, out, f, n_ref=n_ref, alive=alive)
-        left = alive & flipped_faces(n_ref, out, f)
-        if not left.any() or not merged:
+        counts["damped"] += undo_flips(v, folds)
+        if not folds.flip.any() or not merged:
             break
         # what is still flipped has every vertex back on the raw surface but a merged edge: undo
-        # those collapses and let undo_flips finish
-        merged = revert_collapses(mesh.faces, f, alive, merged, np.unique(f[left]))
+        # those collapses and let undo_flips finish (over triangles listed anew)
+        merged = revert_collapses(mesh.faces, f, alive, merged, np.unique(f[folds.flip]))
+        folds = Folds(n_ref, out, f, alive)
     counts["collapsed"] = len(merged)
     counts["kept_faces"] = np.flatnonzero(alive)
     f = f[alive]
