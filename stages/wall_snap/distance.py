@@ -210,6 +210,10 @@ class Folds:
         self.seen = np.zeros(len(faces), np.bool_)  # scratch of _around, left all False
         self.flip = flipped_faces(self.n_ref, v, faces, alive)
 
+    def flipped(self) -> np.ndarray:
+        """The flipped triangles' indices."""
+        return np.flatnonzero(self.flip)
+
     def around(self, vertices: np.ndarray) -> np.ndarray:
         """The alive triangles that have a vertex in ``vertices``, each once."""
         return _around(np.ascontiguousarray(vertices, np.int64), self.head, self.nxt, self.start, self.adj, self.alive,
@@ -239,7 +243,7 @@ def undo_flips(before: np.ndarray, folds: Folds, halvings: int = 8) -> int:
     damped = np.zeros(len(before), np.bool_)
     k = 0
     while True:
-        tri = folds.faces[folds.flip]
+        tri = folds.faces[folds.flipped()]
         if not len(tri):
             return int(damped.sum())
         moves = np.linalg.norm(after[tri] - before[tri], axis=2)
@@ -266,7 +270,7 @@ def relax_on_wall(folds: Folds, on_wall: np.ndarray, project: WallProjector, rou
             break
         n_flipped = n
         # the vertices of the flipped triangles and their one-ring (room to spread the fold) on the wall
-        ring = np.unique(faces[folds.around(np.unique(faces[folds.flip]))])
+        ring = np.unique(faces[folds.around(np.unique(faces[folds.flipped()]))])
         idx = ring[on_wall[ring]]
         if len(idx) == 0:
             break
@@ -418,15 +422,16 @@ def _ring_means(v, faces, vertices, head, nxt, start, adj, alive, seen, out):
 
 
 @nb.njit(cache=True)
-def _try_collapse(keep, drop, n_ref, raw, at, faces, alive, flip, head, nxt, tail, start, adj, seen_k, seen_d,
+def _try_collapse(keep, drop, n_ref, raw, after, faces, alive, flip, head, nxt, tail, start, adj, seen_k, seen_d,
                   vmark_k, vmark_d, fk, fd, stamp):
     """Collapse the edge (keep, drop) into ``keep`` if the link condition holds, fewer triangles
-    around it are flipped or degenerate at ``at`` (stored) afterwards and none of the renamed triangles
-    is at ``raw`` (see collapse_flipped). ``stamp``: a value the vertex marks do not hold yet; the
+    around it are flipped or degenerate at ``after`` (as stored) afterwards and none of the renamed
+    triangles is at ``raw`` (see collapse_flipped). ``stamp``: a value the vertex marks do not hold yet;
+    the
     triangle marks ``seen_k``/``seen_d`` are all False and are left so."""
     nk = _faces_of(keep, head, nxt, start, adj, alive, seen_k, fk, 0)
     nd = _faces_of(drop, head, nxt, start, adj, alive, seen_d, fd, 0)
-    ok = _collapse_ok(keep, drop, n_ref, raw, at, faces, seen_k, seen_d, vmark_k, vmark_d, fk, fd, nk, nd, stamp)
+    ok = _collapse_ok(keep, drop, n_ref, raw, after, faces, seen_k, seen_d, vmark_k, vmark_d, fk, fd, nk, nd, stamp)
     if ok:
         for i in range(nd):
             t = fd[i]
@@ -437,7 +442,7 @@ def _try_collapse(keep, drop, n_ref, raw, at, faces, alive, flip, head, nxt, tai
                 for k in range(3):
                     if faces[t, k] == drop:
                         faces[t, k] = keep
-                flip[t] = _turn(at, faces[t, 0], faces[t, 1], faces[t, 2], n_ref, t) < 0.0
+                flip[t] = _turn(after, faces[t, 0], faces[t, 1], faces[t, 2], n_ref, t, True) < 0.0
         nxt[tail[keep]] = head[drop]  # drop's members (and their triangles) are keep's now
         tail[keep] = tail[drop]
         head[drop] = -1
@@ -449,7 +454,7 @@ def _try_collapse(keep, drop, n_ref, raw, at, faces, alive, flip, head, nxt, tai
 
 
 @nb.njit(cache=True)
-def _collapse_ok(keep, drop, n_ref, raw, at, faces, seen_k, seen_d, vmark_k, vmark_d, fk, fd, nk, nd, stamp):
+def _collapse_ok(keep, drop, n_ref, raw, after, faces, seen_k, seen_d, vmark_k, vmark_d, fk, fd, nk, nd, stamp):
     """_try_collapse's conditions, with the triangles around keep (fk[:nk], marked in seen_k) and
     around drop (fd[:nd], seen_d)."""
     n_shared = 0
@@ -491,24 +496,24 @@ def _collapse_ok(keep, drop, n_ref, raw, at, faces, seen_k, seen_d, vmark_k, vma
                     n_both += 1
     if n_both != 2 or n_ring_k + n_ring_d - n_both < 5:
         return False
-    before = 0
-    after = 0
+    bad_before = 0
+    bad_after = 0
     for i in range(nk):
         t = fk[i]
-        bad = _turn(at, faces[t, 0], faces[t, 1], faces[t, 2], n_ref, t) <= 0.0
-        before += bad
+        bad = _turn(after, faces[t, 0], faces[t, 1], faces[t, 2], n_ref, t, True) <= 0.0
+        bad_before += bad
         if not seen_d[t]:
-            after += bad
+            bad_after += bad
     for i in range(nd):
         t = fd[i]
         if seen_k[t]:
             continue
-        before += _turn(at, faces[t, 0], faces[t, 1], faces[t, 2], n_ref, t) <= 0.0
+        bad_before += _turn(after, faces[t, 0], faces[t, 1], faces[t, 2], n_ref, t, True) <= 0.0
         a = keep if faces[t, 0] == drop else faces[t, 0]
         b = keep if faces[t, 1] == drop else faces[t, 1]
         c = keep if faces[t, 2] == drop else faces[t, 2]
-        after += _turn(at, a, b, c, n_ref, t) <= 0.0
-    if after >= before:
+        bad_after += _turn(after, a, b, c, n_ref, t, True) <= 0.0
+    if bad_after >= bad_before:
         return False
     for i in range(nd):
         t = fd[i]
@@ -526,10 +531,6 @@ def _collapse(n_ref, raw, after, faces, on_wall, alive, flip, start, adj, head, 
     """collapse_flipped's loop; the (kept, dropped) pairs go to ``merged``; returns how many."""
     nv = after.shape[0]
     nf = faces.shape[0]
-    at = np.empty_like(after)  # as stored
-    for a in range(nv):
-        for k in range(3):
-            at[a, k] = _at(after, a, k, True)
     seen_k = np.zeros(nf, np.bool_)
     seen_d = np.zeros(nf, np.bool_)
     vmark_k = np.zeros(nv, np.int64)
@@ -543,7 +544,7 @@ def _collapse(n_ref, raw, after, faces, on_wall, alive, flip, start, adj, head, 
         n_before = n
         todo = np.flatnonzero(flip)
         for t in todo:
-            if not alive[t] or not _turn(at, faces[t, 0], faces[t, 1], faces[t, 2], n_ref, t) <= 0.0:
+            if not alive[t] or not _turn(after, faces[t, 0], faces[t, 1], faces[t, 2], n_ref, t, True) <= 0.0:
                 continue
             for e in range(3):  # squared edge lengths, shortest first (stable)
                 p = faces[t, e]
@@ -565,7 +566,7 @@ def _collapse(n_ref, raw, after, faces, on_wall, alive, flip, start, adj, head, 
                 for keep, drop in ((p, q), (q, p)):
                     if on_wall[keep]:
                         stamp += 1
-                        if _try_collapse(keep, drop, n_ref, raw, at, faces, alive, flip, head, nxt, tail, start, adj,
+                        if _try_collapse(keep, drop, n_ref, raw, after, faces, alive, flip, head, nxt, tail, start, adj,
                                          seen_k, seen_d, vmark_k, vmark_d, fk, fd, stamp):
                             merged[n, 0] = keep
                             merged[n, 1] = drop
@@ -634,10 +635,12 @@ def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapPa
     if exact:
         if project is None:
             project = wall_projector(walls, sdf, t)
-        near, _ = project(out[moved])
+        idx = np.flatnonzero(moved)
+        landed = out[idx]
+        near, _ = project(landed)
         # only where the SDF step landed on this wall (not on a far one through a thin gap)
-        ok = np.linalg.norm(near - out[moved], axis=1) < 1.5 * sdf.spacing
-        idx = np.flatnonzero(moved)[ok]
+        ok = np.linalg.norm(near - landed, axis=1) < 1.5 * sdf.spacing
+        idx = idx[ok]
         out[idx] = near[ok]
         on_wall[idx] = True
     folds = Folds(n_ref, out, f, alive)
@@ -647,7 +650,7 @@ def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapPa
                 # a vertex the contact test left out (its normal does not face the wall) can pin a
                 # fold at the contact line: the off-wall vertices of flipped triangles within the band
                 # join the snapped ones
-                ends = np.unique(f[folds.flip])
+                ends = np.unique(f[folds.flipped()])
                 ends = ends[~on_wall[ends]]
                 near, _ = project(out[ends]) if len(ends) else (out[ends], None)
                 close = np.linalg.norm(near - out[ends], axis=1) < params.band * l0
@@ -666,20 +669,20 @@ def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapPa
             break
         # what is still flipped has every vertex back on the raw surface but a merged edge: undo
         # those collapses and let undo_flips finish (over triangles listed anew)
-        merged = revert_collapses(mesh.faces, f, alive, merged, np.unique(f[folds.flip]))
+        merged = revert_collapses(mesh.faces, f, alive, merged, np.unique(f[folds.flipped()]))
         folds = Folds(n_ref, out, f, alive)
     counts["collapsed"] = len(merged)
-    counts["kept_faces"] = np.flatnonzero(alive)
-    f = f[alive]
+    counts["kept_faces"] = kept = np.flatnonzero(alive)
+    f = f[kept]
     normals = vertex_normals(out, f)
     if merged:
+        keep, drop = np.array(merged, np.int64).T
         into = np.arange(len(v))
-        for keep, drop in merged:
-            into[drop] = keep
-        while (into[into] != into).any():  # a kept vertex may have been merged on later
-            into = into[into]
-        out = out[into]
-        normals = normals[into]
+        into[drop] = keep
+        while (into[into[drop]] != into[drop]).any():  # a kept vertex may have been merged on later
+            into[drop] = into[into[drop]]
+        out[drop] = out[into[drop]]
+        normals[drop] = normals[into[drop]]
     return SurfaceMesh(out.astype(np.float32), f, normals.astype(np.float32)), counts
 
 
