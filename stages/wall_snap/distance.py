@@ -426,9 +426,8 @@ def _try_collapse(keep, drop, n_ref, raw, after, faces, alive, flip, head, nxt, 
                   vmark_k, vmark_d, fk, fd, stamp):
     """Collapse the edge (keep, drop) into ``keep`` if the link condition holds, fewer triangles
     around it are flipped or degenerate at ``after`` (as stored) afterwards and none of the renamed
-    triangles is at ``raw`` (see collapse_flipped). ``stamp``: a value the vertex marks do not hold yet;
-    the
-    triangle marks ``seen_k``/``seen_d`` are all False and are left so."""
+    triangles is at ``raw`` (see collapse_flipped). ``stamp``: a value the vertex marks do not hold
+    yet; the triangle marks ``seen_k``/``seen_d`` are all False and are left so."""
     nk = _faces_of(keep, head, nxt, start, adj, alive, seen_k, fk, 0)
     nd = _faces_of(drop, head, nxt, start, adj, alive, seen_d, fd, 0)
     ok = _collapse_ok(keep, drop, n_ref, raw, after, faces, seen_k, seen_d, vmark_k, vmark_d, fk, fd, nk, nd, stamp)
