@@ -298,23 +298,20 @@ def collapse_flipped(folds: Folds, raw: np.ndarray, on_wall: np.ndarray, passes:
 
 
 @nb.njit(cache=True)
-def _at(v, a, k, round32):
-    """v[a, k], rounded to float32 (as the surface is stored) with ``round32``."""
-    return np.float64(np.float32(v[a, k])) if round32 else v[a, k]
-
-
-@nb.njit(cache=True)
-def _turn(v, a, b, c, n_ref, t, round32=False):
-    """n_ref[t] . (normal of the triangle (a, b, c) at ``v``), unnormalised: negative when the triangle
-    flipped against its reference normal, zero when it is degenerate. ``round32``: at ``v`` rounded to
-    float32."""
-    ax, ay, az = _at(v, a, 0, round32), _at(v, a, 1, round32), _at(v, a, 2, round32)
-    ux = _at(v, b, 0, round32) - ax
-    uy = _at(v, b, 1, round32) - ay
-    uz = _at(v, b, 2, round32) - az
-    wx = _at(v, c, 0, round32) - ax
-    wy = _at(v, c, 1, round32) - ay
-    wz = _at(v, c, 2, round32) - az
+def _turn(v, faces, t, n_ref, drop, keep):
+    """n_ref[t] . (normal of triangle t at ``v`` rounded to float32, as the surface stores it; with
+    vertex ``drop`` renamed ``keep``, -1: none), unnormalised: negative when the triangle flipped against
+    its reference normal, zero when it is degenerate. (Called, not inlined: one build for every use.)"""
+    a = keep if faces[t, 0] == drop else faces[t, 0]
+    b = keep if faces[t, 1] == drop else faces[t, 1]
+    c = keep if faces[t, 2] == drop else faces[t, 2]
+    ax, ay, az = np.float64(np.float32(v[a, 0])), np.float64(np.float32(v[a, 1])), np.float64(np.float32(v[a, 2]))
+    ux = np.float64(np.float32(v[b, 0])) - ax
+    uy = np.float64(np.float32(v[b, 1])) - ay
+    uz = np.float64(np.float32(v[b, 2])) - az
+    wx = np.float64(np.float32(v[c, 0])) - ax
+    wy = np.float64(np.float32(v[c, 1])) - ay
+    wz = np.float64(np.float32(v[c, 2])) - az
     return (n_ref[t, 0] * (uy * wz - uz * wy) + n_ref[t, 1] * (uz * wx - ux * wz)
             + n_ref[t, 2] * (ux * wy - uy * wx))
 
@@ -323,14 +320,14 @@ def _turn(v, a, b, c, n_ref, t, round32=False):
 def _flipped(v, faces, n_ref, alive, out):
     """out[t]: triangle t is alive and flipped against n_ref[t] at ``v`` rounded to float32 (stored)."""
     for t in range(faces.shape[0]):
-        out[t] = alive[t] and _turn(v, faces[t, 0], faces[t, 1], faces[t, 2], n_ref, t, True) < 0.0
+        out[t] = alive[t] and _turn(v, faces, t, n_ref, np.int64(-1), np.int64(-1)) < 0.0
 
 
 @nb.njit(cache=True)
 def _update_flips(v, faces, n_ref, tris, flip):
     """flip[t] anew for the (alive) triangles ``tris``."""
     for t in tris:
-        flip[t] = _turn(v, faces[t, 0], faces[t, 1], faces[t, 2], n_ref, t, True) < 0.0
+        flip[t] = _turn(v, faces, t, n_ref, np.int64(-1), np.int64(-1)) < 0.0
 
 
 @nb.njit(cache=True)
@@ -399,7 +396,11 @@ def _ring_means(v, faces, vertices, head, nxt, start, adj, alive, seen, out):
     for i in range(vertices.shape[0]):
         p = vertices[i]
         tris = _around(vertices[i:i + 1], head, nxt, start, adj, alive, seen)
-        tris.sort()
+        for j in range(1, len(tris)):  # in triangle order (a few: insertion)
+            k = j
+            while k > 0 and tris[k - 1] > tris[k]:
+                tris[k - 1], tris[k] = tris[k], tris[k - 1]
+                k -= 1
         sx = 0.0
         sy = 0.0
         sz = 0.0
@@ -428,8 +429,8 @@ def _try_collapse(keep, drop, n_ref, raw, after, faces, alive, flip, head, nxt, 
     around it are flipped or degenerate at ``after`` (as stored) afterwards and none of the renamed
     triangles is at ``raw`` (see collapse_flipped). ``stamp``: a value the vertex marks do not hold
     yet; the triangle marks ``seen_k``/``seen_d`` are all False and are left so."""
-    nk = _faces_of(keep, head, nxt, start, adj, alive, seen_k, fk, 0)
-    nd = _faces_of(drop, head, nxt, start, adj, alive, seen_d, fd, 0)
+    nk = _faces_of(keep, head, nxt, start, adj, alive, seen_k, fk, np.int64(0))
+    nd = _faces_of(drop, head, nxt, start, adj, alive, seen_d, fd, np.int64(0))
     ok = _collapse_ok(keep, drop, n_ref, raw, after, faces, seen_k, seen_d, vmark_k, vmark_d, fk, fd, nk, nd, stamp)
     if ok:
         for i in range(nd):
@@ -441,7 +442,7 @@ def _try_collapse(keep, drop, n_ref, raw, after, faces, alive, flip, head, nxt, 
                 for k in range(3):
                     if faces[t, k] == drop:
                         faces[t, k] = keep
-                flip[t] = _turn(after, faces[t, 0], faces[t, 1], faces[t, 2], n_ref, t, True) < 0.0
+                flip[t] = _turn(after, faces, t, n_ref, np.int64(-1), np.int64(-1)) < 0.0
         nxt[tail[keep]] = head[drop]  # drop's members (and their triangles) are keep's now
         tail[keep] = tail[drop]
         head[drop] = -1
@@ -499,7 +500,7 @@ def _collapse_ok(keep, drop, n_ref, raw, after, faces, seen_k, seen_d, vmark_k, 
     bad_after = 0
     for i in range(nk):
         t = fk[i]
-        bad = _turn(after, faces[t, 0], faces[t, 1], faces[t, 2], n_ref, t, True) <= 0.0
+        bad = _turn(after, faces, t, n_ref, np.int64(-1), np.int64(-1)) <= 0.0
         bad_before += bad
         if not seen_d[t]:
             bad_after += bad
@@ -507,20 +508,14 @@ def _collapse_ok(keep, drop, n_ref, raw, after, faces, seen_k, seen_d, vmark_k, 
         t = fd[i]
         if seen_k[t]:
             continue
-        bad_before += _turn(after, faces[t, 0], faces[t, 1], faces[t, 2], n_ref, t, True) <= 0.0
-        a = keep if faces[t, 0] == drop else faces[t, 0]
-        b = keep if faces[t, 1] == drop else faces[t, 1]
-        c = keep if faces[t, 2] == drop else faces[t, 2]
-        bad_after += _turn(after, a, b, c, n_ref, t, True) <= 0.0
+        bad_before += _turn(after, faces, t, n_ref, np.int64(-1), np.int64(-1)) <= 0.0
+        bad_after += _turn(after, faces, t, n_ref, drop, keep) <= 0.0
     if bad_after >= bad_before:
         return False
     for i in range(nd):
         t = fd[i]
         if not seen_k[t]:
-            a = keep if faces[t, 0] == drop else faces[t, 0]
-            b = keep if faces[t, 1] == drop else faces[t, 1]
-            c = keep if faces[t, 2] == drop else faces[t, 2]
-            if _turn(raw, a, b, c, n_ref, t) <= 0.0:
+            if _turn(raw, faces, t, n_ref, drop, keep) <= 0.0:
                 return False  # the fallback (undo_flips) moves vertices back towards the raw surface
     return True
 
@@ -539,20 +534,27 @@ def _collapse(n_ref, raw, after, faces, on_wall, alive, flip, start, adj, head, 
     stamp = 0
     n = 0
     length = np.empty(3)
+    order = np.empty(3, np.int64)
+    todo = np.empty(nf, np.int64)
     for _ in range(passes):
         n_before = n
-        todo = np.flatnonzero(flip)
-        for t in todo:
-            if not alive[t] or not _turn(after, faces[t, 0], faces[t, 1], faces[t, 2], n_ref, t, True) <= 0.0:
+        n_todo = 0
+        for t in range(nf):  # the triangles flipped at the pass's start
+            if flip[t]:
+                todo[n_todo] = t
+                n_todo += 1
+        for t in todo[:n_todo]:
+            if not alive[t] or not _turn(after, faces, t, n_ref, np.int64(-1), np.int64(-1)) <= 0.0:
                 continue
             for e in range(3):  # squared edge lengths, shortest first (stable)
-                p = faces[t, e]
-                q = faces[t, (e + 1) % 3]
+                p = np.int64(faces[t, e])
+                q = np.int64(faces[t, (e + 1) % 3])
                 dx = after[p, 0] - after[q, 0]
                 dy = after[p, 1] - after[q, 1]
                 dz = after[p, 2] - after[q, 2]
                 length[e] = dx * dx + dy * dy + dz * dz
-            order = np.arange(3)
+            for e in range(3):
+                order[e] = e
             for e in range(1, 3):
                 j = e
                 while j > 0 and length[order[j - 1]] > length[order[j]]:
@@ -560,9 +562,10 @@ def _collapse(n_ref, raw, after, faces, on_wall, alive, flip, start, adj, head, 
                     j -= 1
             done = False
             for e in order:
-                p = faces[t, e]
-                q = faces[t, (e + 1) % 3]
-                for keep, drop in ((p, q), (q, p)):
+                p = np.int64(faces[t, e])
+                q = np.int64(faces[t, (e + 1) % 3])
+                for swap in range(2):
+                    keep, drop = (q, p) if swap else (p, q)
                     if on_wall[keep]:
                         stamp += 1
                         if _try_collapse(keep, drop, n_ref, raw, after, faces, alive, flip, head, nxt, tail, start, adj,
