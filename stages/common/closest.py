@@ -63,8 +63,8 @@ def _cell_lists(tri, origin, cell, dims, reach):
         for a in range(3):
             lo = min(tri[t, 0, a], tri[t, 1, a], tri[t, 2, a]) - reach
             hi = max(tri[t, 0, a], tri[t, 1, a], tri[t, 2, a]) + reach
-            box[t, a] = max(int(math.floor((lo - origin[a]) / cell)), 0)
-            box[t, 3 + a] = min(int(math.floor((hi - origin[a]) / cell)), dims[a] - 1)
+            box[t, a] = max(math.floor((lo - origin[a]) / cell), 0)
+            box[t, 3 + a] = min(math.floor((hi - origin[a]) / cell), dims[a] - 1)
         for i in range(box[t, 0], box[t, 3] + 1):
             for j in range(box[t, 1], box[t, 4] + 1):
                 for k in range(box[t, 2], box[t, 5] + 1):
@@ -155,9 +155,9 @@ def _closest(tri, degenerate, start, items, origin, cell, dims, reach, points, n
         best = np.inf
         best_t = -1
         qx, qy, qz = px, py, pz
-        ci = int(math.floor((px - origin[0]) / cell))
-        cj = int(math.floor((py - origin[1]) / cell))
-        ck = int(math.floor((pz - origin[2]) / cell))
+        ci = math.floor((px - origin[0]) / cell)
+        cj = math.floor((py - origin[1]) / cell)
+        ck = math.floor((pz - origin[2]) / cell)
         inside = 0 <= ci < dims[0] and 0 <= cj < dims[1] and 0 <= ck < dims[2]
         r = 0
         while True:

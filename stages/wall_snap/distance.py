@@ -178,14 +178,9 @@ def closest_points_on(walls: WallMesh, points: np.ndarray, shells: np.ndarray | 
     return WallProjector(walls, shells)(points)[0]
 
 
-def stored(v: np.ndarray) -> np.ndarray:
-    """``v`` as the surface stores it (float32), back in float64: a sliver can flip in the rounding."""
-    return v.astype(np.float32).astype(np.float64)
-
-
 def flipped_faces(n_ref: np.ndarray, v: np.ndarray, faces: np.ndarray, alive: np.ndarray | None = None) -> np.ndarray:
     """Triangles (of the ``alive`` ones, default all) whose normal turned by more than 90 degrees from
-    ``n_ref``, at the stored positions."""
+    ``n_ref``, at the stored positions (float32: a sliver can flip in the rounding)."""
     out = np.empty(len(faces), np.bool_)
     _flipped(np.ascontiguousarray(v, np.float64), np.ascontiguousarray(faces), np.ascontiguousarray(n_ref, np.float64),
              np.ones(len(faces), np.bool_) if alive is None else np.ascontiguousarray(alive), out)
@@ -514,9 +509,8 @@ def _collapse_ok(keep, drop, n_ref, raw, after, faces, seen_k, seen_d, vmark_k, 
         return False
     for i in range(nd):
         t = fd[i]
-        if not seen_k[t]:
-            if _turn(raw, faces, t, n_ref, drop, keep) <= 0.0:
-                return False  # the fallback (undo_flips) moves vertices back towards the raw surface
+        if not seen_k[t] and _turn(raw, faces, t, n_ref, drop, keep) <= 0.0:
+            return False  # the fallback (undo_flips) moves vertices back towards the raw surface
     return True
 
 
@@ -716,7 +710,7 @@ def projector(walls_dir: Path, walls_stamps: tuple, sdf_dir: Path, sdf_stamps: t
 class DistanceSnap(Stage):
     kind = "wall_snap"
     name = "distance"
-    version = "9"
+    version = "10"
     Params = DistanceSnapParams
     inputs = ("raw_surface", "sdf", "particles")  # particles: for l0 (band and tolerance are in l0)
     optional_inputs = ("walls",)
