@@ -3,11 +3,12 @@
 The triangles are listed in the cells of a uniform grid (cell >= ``reach``) whose boxes their bounding
 boxes, widened by ``reach``, overlap. A query looks at the triangles of its own cell first: any
 triangle within ``reach`` of it is listed there, so when the best of them is within ``reach`` it is
-the closest of all. Otherwise the search widens cell shell by cell shell (a triangle at distance D
-is listed in a cell at most (D - reach) / cell + 1 cells away) and, outside the grid, checks every
-triangle. Closest point on a triangle: Ericson, Real-Time Collision Detection 5.1.5 (Voronoi regions);
-a degenerate triangle is the closest of its three edges. Ties go to the lower triangle index.
-All in float64 (open3d's RaycastingScene works in float32).
+the closest of all. Otherwise the search widens by a shell of cells or two (a triangle at distance D
+is listed in a cell at most (D - reach) / cell cells away); beyond that, or outside the grid, it
+checks every triangle whose bounding box is no farther than the best so far. Closest point on a
+triangle: Ericson, Real-Time Collision Detection 5.1.5 (Voronoi regions); a degenerate triangle is
+the closest of its three edges. Ties go to the lower triangle index. All in float64 (open3d's
+RaycastingScene works in float32).
 """
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ import numba as nb
 import numpy as np
 
 MAX_CELLS = 128  # per axis: the grid stays a few MB whatever the reach
+SHELLS = 2  # cell shells searched around a query before every triangle is (pruned by its box)
 
 
 class ClosestPoints:
@@ -31,6 +33,7 @@ class ClosestPoints:
         self.degenerate = length <= 1e-12 * scale * scale
         self.normals = n / np.where(self.degenerate, 1.0, length)[:, None]
         self.normals[self.degenerate] = 0.0
+        self.box = np.ascontiguousarray(np.hstack([self.tri.min(axis=1), self.tri.max(axis=1)]))  # (F, 6)
         lo = self.tri.min(axis=(0, 1)) if len(self.tri) else np.zeros(3)
         hi = self.tri.max(axis=(0, 1)) if len(self.tri) else np.zeros(3)
         self.reach = float(reach)
@@ -47,8 +50,8 @@ class ClosestPoints:
         ids = np.empty(len(p), np.int64)
         if len(self.tri) == 0:
             raise ValueError("no triangles to project onto")
-        _closest(self.tri, self.degenerate, self.start, self.items, self.origin, self.cell, self.dims, self.reach,
-                 p, near, ids)
+        _closest(self.tri, self.degenerate, self.box, self.start, self.items, self.origin, self.cell, self.dims,
+                 self.reach, SHELLS, p, near, ids)
         return near, self.normals[ids], ids
 
 
@@ -148,7 +151,17 @@ def _on_triangle(tri, degenerate, t, px, py, pz):
 
 
 @nb.njit(cache=True)
-def _closest(tri, degenerate, start, items, origin, cell, dims, reach, points, near, ids):
+def _nearer(tri, degenerate, t, px, py, pz, best, best_t, qx, qy, qz):
+    """The closer of triangle t and the best so far (distance squared, triangle, point); ties: lower t."""
+    x, y, z = _on_triangle(tri, degenerate, t, px, py, pz)
+    d = (x - px) ** 2 + (y - py) ** 2 + (z - pz) ** 2
+    if d < best or (d == best and t < best_t):
+        return d, t, x, y, z
+    return best, best_t, qx, qy, qz
+
+
+@nb.njit(cache=True)
+def _closest(tri, degenerate, box, start, items, origin, cell, dims, reach, shells, points, near, ids):
     """near[p], ids[p]: the closest point of the mesh to points[p] and its triangle (see the module)."""
     for p in range(points.shape[0]):
         px, py, pz = points[p, 0], points[p, 1], points[p, 2]
@@ -158,38 +171,30 @@ def _closest(tri, degenerate, start, items, origin, cell, dims, reach, points, n
         ci = math.floor((px - origin[0]) / cell)
         cj = math.floor((py - origin[1]) / cell)
         ck = math.floor((pz - origin[2]) / cell)
-        inside = 0 <= ci < dims[0] and 0 <= cj < dims[1] and 0 <= ck < dims[2]
-        r = 0
-        while True:
-            if inside:  # the cells r away (Chebyshev) from the point's
+        found = False
+        if 0 <= ci < dims[0] and 0 <= cj < dims[1] and 0 <= ck < dims[2]:
+            for r in range(shells + 1):  # the cells r away (Chebyshev) from the point's
                 for i in range(max(ci - r, 0), min(ci + r, dims[0] - 1) + 1):
                     for j in range(max(cj - r, 0), min(cj + r, dims[1] - 1) + 1):
                         # the whole column on the shell's sides, its two ends inside them
                         step = 1 if abs(i - ci) == r or abs(j - cj) == r else 2 * r
                         for k in range(ck - r, ck + r + 1, step):
-                            if k < 0 or k >= dims[2]:
-                                continue
-                            c = (i * dims[1] + j) * dims[2] + k
-                            for s in range(start[c], start[c + 1]):
-                                t = items[s]
-                                x, y, z = _on_triangle(tri, degenerate, t, px, py, pz)
-                                d = (x - px) ** 2 + (y - py) ** 2 + (z - pz) ** 2
-                                if d < best or (d == best and t < best_t):
-                                    best, best_t = d, t
-                                    qx, qy, qz = x, y, z
+                            if 0 <= k < dims[2]:
+                                c = (i * dims[1] + j) * dims[2] + k
+                                for s in range(start[c], start[c + 1]):
+                                    best, best_t, qx, qy, qz = _nearer(tri, degenerate, items[s], px, py, pz, best,
+                                                                       best_t, qx, qy, qz)
                 # a triangle D away is listed within (D - reach) / cell cells: all up to here are seen
-                covered = reach + r * cell
-                if best <= covered * covered or r > max(dims[0], dims[1], dims[2]):
+                if best <= (reach + r * cell) ** 2:
+                    found = True
                     break
-                r += 1
-            else:  # far from every triangle: all of them
-                for t in range(tri.shape[0]):
-                    x, y, z = _on_triangle(tri, degenerate, t, px, py, pz)
-                    d = (x - px) ** 2 + (y - py) ** 2 + (z - pz) ** 2
-                    if d < best or (d == best and t < best_t):
-                        best, best_t = d, t
-                        qx, qy, qz = x, y, z
-                break
+        if not found:  # far from the walls: every triangle whose box is not farther than the best so far
+            for t in range(tri.shape[0]):
+                dx = max(box[t, 0] - px, 0.0, px - box[t, 3])
+                dy = max(box[t, 1] - py, 0.0, py - box[t, 4])
+                dz = max(box[t, 2] - pz, 0.0, pz - box[t, 5])
+                if dx * dx + dy * dy + dz * dz <= best:
+                    best, best_t, qx, qy, qz = _nearer(tri, degenerate, t, px, py, pz, best, best_t, qx, qy, qz)
         near[p, 0] = qx
         near[p, 1] = qy
         near[p, 2] = qz
