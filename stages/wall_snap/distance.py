@@ -296,7 +296,7 @@ def collapse_flipped(folds: Folds, raw: np.ndarray, on_wall: np.ndarray, passes:
 def _turn(v, faces, t, n_ref, drop, keep):
     """n_ref[t] . (normal of triangle t at ``v`` rounded to float32, as the surface stores it; with
     vertex ``drop`` renamed ``keep``, -1: none), unnormalised: negative when the triangle flipped against
-    its reference normal, zero when it is degenerate. (Called, not inlined: one build for every use.)"""
+    its reference normal, zero when it is degenerate."""
     a = keep if faces[t, 0] == drop else faces[t, 0]
     b = keep if faces[t, 1] == drop else faces[t, 1]
     c = keep if faces[t, 2] == drop else faces[t, 2]
@@ -632,7 +632,7 @@ def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapPa
         if project is None:
             project = wall_projector(walls, sdf, t)
         idx = np.flatnonzero(moved)
-        landed = out[idx]
+        landed = out.take(idx, axis=0)  # (take: several times faster than [] on rows)
         near, _ = project(landed)
         # only where the SDF step landed on this wall (not on a far one through a thin gap)
         ok = np.linalg.norm(near - landed, axis=1) < 1.5 * sdf.spacing
@@ -669,7 +669,7 @@ def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapPa
         folds = Folds(n_ref, out, f, alive)
     counts["collapsed"] = len(merged)
     counts["kept_faces"] = kept = np.flatnonzero(alive)
-    f = f[kept]
+    f = f.take(kept, axis=0)
     normals = vertex_normals(out, f)
     if merged:
         keep, drop = np.array(merged, np.int64).T
