@@ -75,7 +75,7 @@ def _cell_lists(tri, origin, cell, dims, reach):
     for c in range(n_cells):
         count[c + 1] += count[c]
     fill = count[:-1].copy()
-    items = np.empty(count[n_cells], np.int64)
+    items = np.empty(count[n_cells], np.int32)  # a small triangle sits in up to 27 cells: int32 halves them
     for t in range(tri.shape[0]):
         for i in range(box[t, 0], box[t, 3] + 1):
             for j in range(box[t, 1], box[t, 4] + 1):
@@ -182,8 +182,9 @@ def _closest(tri, degenerate, box, start, items, origin, cell, dims, reach, shel
                             if 0 <= k < dims[2]:
                                 c = (i * dims[1] + j) * dims[2] + k
                                 for s in range(start[c], start[c + 1]):
-                                    best, best_t, qx, qy, qz = _nearer(tri, degenerate, items[s], px, py, pz, best,
-                                                                       best_t, qx, qy, qz)
+                                    t = np.int64(items[s])
+                                    best, best_t, qx, qy, qz = _nearer(tri, degenerate, t, px, py, pz, best, best_t,
+                                                                       qx, qy, qz)
                 # a triangle D away is listed within (D - reach) / cell cells: all up to here are seen
                 if best <= (reach + r * cell) ** 2:
                     found = True
