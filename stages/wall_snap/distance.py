@@ -722,14 +722,16 @@ class DistanceSnap(Stage):
     def run_frame(self, ctx: Context, inputs: Mapping[str, Artifact], params: DistanceSnapParams, frame: int) -> None:
         meta = ParticleMeta.load(inputs["particles"].frame(frame))
         sdf_dir = inputs["sdf"].frame(frame)
-        sdf, bodies = field(sdf_dir, file_stamps(sdf_dir))  # moving walls: posed at the frame's time by snap_mesh
+        sdf_stamps = file_stamps(sdf_dir)
+        sdf, bodies = field(sdf_dir, sdf_stamps)  # moving walls: posed at the frame's time by snap_mesh
         mesh = load_surface(inputs["raw_surface"].frame(frame), frame)
         walls = project = None
         if params.exact and inputs.get("walls") is not None:
             walls_dir = inputs["walls"].path
-            walls = wall_mesh(walls_dir, file_stamps(walls_dir))
+            walls_stamps = file_stamps(walls_dir)
+            walls = wall_mesh(walls_dir, walls_stamps)
             t = frame / meta.fps if walls.motions() else None  # static walls: one projector for every frame
-            project = projector(walls_dir, file_stamps(walls_dir), sdf_dir, file_stamps(sdf_dir), t)
+            project = projector(walls_dir, walls_stamps, sdf_dir, sdf_stamps, t)
         snapped, report = snap_mesh(mesh, sdf, meta.spacing, params, walls, bodies, frame / meta.fps, project)
         ctx.log.debug("frame %d: %d vertices snapped, %d relaxed, %d edges collapsed, %d damped", frame,
                       report["snapped"], report["relaxed"], report["collapsed"], report["damped"])
