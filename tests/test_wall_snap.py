@@ -148,3 +148,38 @@ def test_fluid_in_a_cylinder_around_a_sphere_ends_on_both(tmp_path, wall_term):
     assert on_ball.sum() > 50 and on_side.sum() > 100
     # a 96-gon is off its circle by R (1 - cos(pi / 96)) = 0.0027 l0, the icosphere by less
     assert_on_the_walls(raw, snapped, report, walls, band, cylinder_with_sphere, 4e-3 * L0)
+
+
+def test_closest_points_agree_with_open3d_near_and_far():
+    """stages.common.closest (wall_snap's exact finish) against open3d's RaycastingScene: the same
+    distance to a sphere standing in a tank, for points near the walls (where the grid answers from the
+    point's own cell) and anywhere in and around the tank (where the search widens or checks every
+    triangle); a degenerate triangle (a sliver with a repeated vertex) is only its edges."""
+    import open3d as o3d
+    import trimesh
+
+    from stages.common.closest import ClosestPoints
+
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=0.05)
+    ball.apply_translation([0.1, 0.1, 0.06])
+    tank = trimesh.creation.box(bounds=[LO, HI])
+    m = trimesh.util.concatenate([tank, ball])
+    v = np.asarray(m.vertices)
+    f = np.vstack([m.faces, [[0, 0, 1]]])  # a degenerate triangle: the tank's edge 0-1
+    rng = np.random.default_rng(0)
+    on = trimesh.sample.sample_surface(m, 3000, seed=1)[0]
+    points = np.vstack([on + rng.normal(scale=0.002, size=on.shape),  # near: within a cell
+                        rng.uniform(-0.1, 0.3, (1000, 3))])  # anywhere, also outside the tank's box
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)), o3d.core.Tensor(f.astype(np.uint32)))
+    ref = scene.compute_closest_points(o3d.core.Tensor(points.astype(np.float32)))["points"].numpy()
+    for reach in (0.005, 0.05):
+        near, normals, ids = ClosestPoints(v, f, reach)(points)
+        d = np.linalg.norm(near - points, axis=1)
+        assert np.abs(d - np.linalg.norm(ref - points, axis=1)).max() < 1e-6  # open3d rounds to float32
+        sliver = ids == len(f) - 1  # the sliver's points lie on the edge, as do its neighbour's
+        assert not normals[sliver].any()
+        tri = v[f[ids[~sliver]]]
+        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        assert np.allclose(normals[~sliver], n / np.linalg.norm(n, axis=1)[:, None])  # the triangle it lies on
+        assert np.abs(np.einsum("ij,ij->i", near[~sliver] - tri[:, 0], normals[~sliver])).max() < 1e-12

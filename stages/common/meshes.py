@@ -13,8 +13,10 @@ def signed_volume(v: np.ndarray, f: np.ndarray) -> float:
 
 
 def face_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
-    """Unnormalised face normals (length = twice the area)."""
-    return np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    """Unnormalised face normals (length = twice the area), float64."""
+    out = np.empty((len(f), 3), np.float64)
+    _face_normals(np.ascontiguousarray(v, np.float64), np.ascontiguousarray(f), out)
+    return out
 
 
 def vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
@@ -30,6 +32,24 @@ def boundary_edge_count(f: np.ndarray) -> int:
     e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
     _, counts = np.unique(e, axis=0, return_counts=True)
     return int((counts == 1).sum())
+
+
+@nb.njit(cache=True)
+def _face_normals(v, f, out):
+    """(b - a) x (c - a) of each triangle (a, b, c) of ``f`` into ``out``."""
+    for t in range(f.shape[0]):
+        a = f[t, 0]
+        b = f[t, 1]
+        c = f[t, 2]
+        ux = v[b, 0] - v[a, 0]
+        uy = v[b, 1] - v[a, 1]
+        uz = v[b, 2] - v[a, 2]
+        wx = v[c, 0] - v[a, 0]
+        wy = v[c, 1] - v[a, 1]
+        wz = v[c, 2] - v[a, 2]
+        out[t, 0] = uy * wz - uz * wy
+        out[t, 1] = uz * wx - ux * wz
+        out[t, 2] = ux * wy - uy * wx
 
 
 @nb.njit(cache=True)

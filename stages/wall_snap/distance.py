@@ -8,7 +8,7 @@ step are below ``tolerance``. Vertices inside a wall (d < 0) are always projecte
 
 The SDF is a trilinear field on a grid: its zero level rounds concave creases and is off the true
 wall by up to about half a grid cell there. With the wall mesh at hand (``exact``), every projected
-vertex finishes on the mesh's exact closest point (open3d), so it lies on the wall itself; on a shell
+vertex finishes on the mesh's exact closest point (stages.common.closest), so it lies on the wall itself; on a shell
 wall, on the face of the shell the fluid touches (thickness/2 off the mesh, on the vertex's side).
 
 Moving walls (sdf_bake's bodies): at frame f (time f / fps) each vertex snaps onto the nearest wall,
@@ -30,6 +30,9 @@ triangles flipped (a few hundred of 200k on the dragon scene):
 """
 from __future__ import annotations
 
+import functools
+import os
+from pathlib import Path
 from typing import Mapping
 
 import numba as nb
@@ -37,6 +40,7 @@ import numpy as np
 from pydantic import Field
 
 from pipeline.stage import Artifact, Context, Params, Stage
+from stages.common.closest import ClosestPoints
 from stages.common.formats import ParticleMeta, SurfaceMesh, WallMesh, load_surface, save_surface
 from stages.common.meshes import face_normals, vertex_normals
 from stages.common.motion import RigidMotion
@@ -132,56 +136,26 @@ def snap_to_walls(v: np.ndarray, normals: np.ndarray, sdf: SDFGrid, bodies: list
         moved[idx] = mv
 
 
-def undo_flips(before: np.ndarray, after: np.ndarray, faces: np.ndarray, halvings: int = 8,
-               n_ref: np.ndarray | None = None) -> int:
-    """Halve the move of the vertex that moved most in each triangle whose orientation flipped, until
-    none does; after ``halvings`` rounds such vertices go back where they were (which ends with no flip
-    at the latest when every vertex is back). Only the largest mover of a triangle is held back, so
-    its neighbours stay on the wall (on the dragon scene this damps 1.4 % of the projected vertices
-    instead of 3.9 %). ``n_ref``: the faces' reference normals (default: from ``before``). Works in
-    place on ``after``; returns how many vertices were damped."""
-    if n_ref is None:
-        n_ref = face_normals(before, faces)
-    damped = np.zeros(len(before), np.bool_)
-    k = 0
-    while True:
-        flipped = flipped_faces(n_ref, after, faces)
-        if not flipped.any():
-            return int(damped.sum())
-        tri = faces[flipped]
-        moves = np.linalg.norm(after - before, axis=1)[tri]
-        if not moves.any():  # all back where they were (only a collapsed edge can flip there)
-            return int(damped.sum())
-        bad = np.unique(tri[np.arange(len(tri)), moves.argmax(axis=1)])
-        damped[bad] = True
-        after[bad] = 0.5 * (after[bad] + before[bad]) if k < halvings else before[bad]
-        k += 1
-
-
 class WallProjector:
-    """Closest points of the exact walls and their normals there (open3d RaycastingScene, built once and
-    queried by every pass of a frame). A shell wall (``shells``: per wall its thickness, 0 for a solid)
-    is the set of points within thickness/2 of its mesh: its closest point lies thickness/2 from the
-    mesh's closest point towards the query point, on the face of the shell on the query's side (the
-    fluid's), and its normal points that way."""
+    """Closest points of the exact walls and their normals there (stages.common.closest: built once per
+    walls, fastest for points within ``reach`` of them, exact for all; default reach: 1/32 of the
+    walls' extent). A shell wall (``shells``: per wall its thickness, 0 for a solid) is the set of
+    points within thickness/2 of its mesh: its closest point lies thickness/2 from the mesh's closest
+    point towards the query point, on the face of the shell on the query's side (the fluid's), and its
+    normal points that way."""
 
-    def __init__(self, walls: WallMesh, shells: np.ndarray | None = None):
-        import open3d as o3d
-
-        self._o3d = o3d
-        self.scene = o3d.t.geometry.RaycastingScene()
-        self.scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(walls.vertices, np.float32)),
-                                 o3d.core.Tensor(np.ascontiguousarray(walls.faces, np.uint32)))
+    def __init__(self, walls: WallMesh, shells: np.ndarray | None = None, reach: float | None = None):
+        if reach is None:
+            extent = np.ptp(walls.vertices, axis=0).max() if len(walls.vertices) else 1.0
+            reach = extent / 32.0
+        self.closest = ClosestPoints(walls.vertices, walls.faces, reach)
         half = 0.5 * np.asarray(walls.shell_thickness() if shells is None else shells, np.float64)
         self.offset = half[walls.wall_id] if len(half) and half.any() else None  # per face
 
     def __call__(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        q = self._o3d.core.Tensor(np.ascontiguousarray(points, np.float32))
-        r = self.scene.compute_closest_points(q)
-        near = r["points"].numpy().astype(np.float64)
-        normals = r["primitive_normals"].numpy().astype(np.float64)
+        near, normals, ids = self.closest(points)
         if self.offset is not None:
-            off = self.offset[r["primitive_ids"].numpy().astype(np.int64)]
+            off = self.offset[ids]
             idx = np.flatnonzero(off > 0)
             away = np.asarray(points, np.float64)[idx] - near[idx]
             length = np.linalg.norm(away, axis=1)
@@ -193,154 +167,413 @@ class WallProjector:
         return near, normals
 
 
+def wall_projector(walls: WallMesh, sdf: SDFGrid, t: float) -> WallProjector:
+    """The projector snap_mesh uses: the walls posed at ``t``, shells as baked into ``sdf``, fastest within
+    a grid cell of the walls (where the SDF step leaves the vertices)."""
+    return WallProjector(walls.posed(t), sdf.shell_thickness, reach=sdf.spacing)
+
+
 def closest_points_on(walls: WallMesh, points: np.ndarray, shells: np.ndarray | None = None) -> np.ndarray:
-    """The exact closest points of ``walls`` to ``points`` (open3d RaycastingScene; a shell's face)."""
+    """The exact closest points of ``walls`` to ``points`` (a shell's face)."""
     return WallProjector(walls, shells)(points)[0]
 
 
-@nb.njit(cache=True)
-def orientation(v, faces, n_ref, out):
-    """out[t] = n_ref[t] . (normal of triangle ``faces[t]`` at ``v``), unnormalised: negative when the
-    triangle flipped against its reference normal, zero when it is degenerate."""
-    for t in range(faces.shape[0]):
-        a = faces[t, 0]
-        b = faces[t, 1]
-        c = faces[t, 2]
-        ux = v[b, 0] - v[a, 0]
-        uy = v[b, 1] - v[a, 1]
-        uz = v[b, 2] - v[a, 2]
-        wx = v[c, 0] - v[a, 0]
-        wy = v[c, 1] - v[a, 1]
-        wz = v[c, 2] - v[a, 2]
-        out[t] = (n_ref[t, 0] * (uy * wz - uz * wy) + n_ref[t, 1] * (uz * wx - ux * wz)
-                  + n_ref[t, 2] * (ux * wy - uy * wx))
+def flipped_faces(n_ref: np.ndarray, v: np.ndarray, faces: np.ndarray, alive: np.ndarray | None = None) -> np.ndarray:
+    """Triangles (of the ``alive`` ones, default all) whose normal turned by more than 90 degrees from
+    ``n_ref``, at the stored positions (float32: a sliver can flip in the rounding)."""
+    out = np.empty(len(faces), np.bool_)
+    _flipped(np.ascontiguousarray(v, np.float64), np.ascontiguousarray(faces), np.ascontiguousarray(n_ref, np.float64),
+             np.ones(len(faces), np.bool_) if alive is None else np.ascontiguousarray(alive), out)
+    return out
 
 
-def stored(v: np.ndarray) -> np.ndarray:
-    """``v`` as the surface stores it (float32), back in float64: a sliver can flip in the rounding."""
-    return v.astype(np.float32).astype(np.float64)
+class Folds:
+    """The snapped surface while its folds are removed: ``v`` (float64, moved in place), its triangles
+    ``faces`` (in place: a collapse renames a vertex in some and kills two, ``alive``), which of them are
+    flipped against ``n_ref`` at the stored positions (``flip``, kept up to date around the vertices
+    that move, so no pass looks at the whole surface), and the triangles around each vertex: those
+    listed around it at the start and around every vertex merged into it since (``head``, ``nxt``,
+    ``tail``: linked member lists), as a collapse renames the dropped vertex in its triangles."""
+
+    def __init__(self, n_ref: np.ndarray, v: np.ndarray, faces: np.ndarray, alive: np.ndarray):
+        assert v.dtype == np.float64 and v.flags.c_contiguous and faces.flags.c_contiguous and alive.flags.c_contiguous
+        self.n_ref, self.v, self.faces, self.alive = np.ascontiguousarray(n_ref, np.float64), v, faces, alive
+        self.start, self.adj = _vertex_triangles(faces, len(v))
+        self.head = np.arange(len(v))
+        self.tail = np.arange(len(v))
+        self.nxt = np.full(len(v), -1, np.int64)
+        self.seen = np.zeros(len(faces), np.bool_)  # scratch of _around, left all False
+        self.flip = flipped_faces(self.n_ref, v, faces, alive)
+
+    def flipped(self) -> np.ndarray:
+        """The flipped triangles' indices."""
+        return np.flatnonzero(self.flip)
+
+    def around(self, vertices: np.ndarray) -> np.ndarray:
+        """The alive triangles that have a vertex in ``vertices``, each once."""
+        return _around(np.ascontiguousarray(vertices, np.int64), self.head, self.nxt, self.start, self.adj, self.alive,
+                       self.seen)
+
+    def moved(self, vertices: np.ndarray) -> None:
+        """``vertices`` moved: their triangles' ``flip`` anew."""
+        _update_flips(self.v, self.faces, self.n_ref, self.around(vertices), self.flip)
+
+    def ring_means(self, vertices: np.ndarray) -> np.ndarray:
+        """Mean of the one-ring neighbours of each of ``vertices`` (N, 3). Each edge is counted once per
+        triangle it borders, i.e. twice inside a closed surface."""
+        out = np.empty((len(vertices), 3), np.float64)
+        _ring_means(self.v, self.faces, np.ascontiguousarray(vertices, np.int64), self.head, self.nxt, self.start,
+                    self.adj, self.alive, self.seen, out)
+        return out
 
 
-def flipped_faces(n_ref: np.ndarray, v: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Triangles whose normal turned by more than 90 degrees from ``n_ref``, at the stored positions."""
-    out = np.empty(len(faces))
-    orientation(stored(v), np.ascontiguousarray(faces), np.ascontiguousarray(n_ref), out)
-    return out < 0
+def undo_flips(before: np.ndarray, folds: Folds, halvings: int = 8) -> int:
+    """Halve the move of the vertex that moved most in each triangle whose orientation flipped, until
+    none does; after ``halvings`` rounds such vertices go back where they were (which ends with no flip
+    at the latest when every vertex is back). Only the largest mover of a triangle is held back, so
+    its neighbours stay on the wall (on the dragon scene this damps 1.4 % of the projected vertices
+    instead of 3.9 %). Works in place on ``folds.v``; returns how many vertices were damped; what
+    ``folds.flip`` still holds can only be a collapsed edge's triangles."""
+    after = folds.v
+    damped = np.zeros(len(before), np.bool_)
+    k = 0
+    while True:
+        tri = folds.faces[folds.flipped()]
+        if not len(tri):
+            return int(damped.sum())
+        moves = np.linalg.norm(after[tri] - before[tri], axis=2)
+        if not moves.any():  # all back where they were (only a collapsed edge can flip there)
+            return int(damped.sum())
+        bad = np.unique(tri[np.arange(len(tri)), moves.argmax(axis=1)])
+        damped[bad] = True
+        after[bad] = 0.5 * (after[bad] + before[bad]) if k < halvings else before[bad]
+        folds.moved(bad)
+        k += 1
 
 
-def ring_means(v: np.ndarray, faces: np.ndarray, active: np.ndarray) -> np.ndarray:
-    """Mean of the one-ring neighbours of each ``active`` vertex (rows of the others are undefined).
-    Each edge is counted once per triangle it borders, i.e. twice inside a closed surface."""
-    tri = faces[active[faces].any(axis=1)]
-    src = tri[:, [0, 0, 1, 1, 2, 2]].ravel()
-    dst = tri[:, [1, 2, 0, 2, 0, 1]].ravel()
-    keep = active[src]
-    src, dst = src[keep], dst[keep]
-    count = np.maximum(np.bincount(src, minlength=len(v)), 1)
-    return np.stack([np.bincount(src, v[dst, k], minlength=len(v)) for k in range(3)], axis=1) / count[:, None]
-
-
-def relax_on_wall(n_ref: np.ndarray, after: np.ndarray, faces: np.ndarray, on_wall: np.ndarray,
-                  project: WallProjector, rounds: int, step: float = 0.5) -> int:
+def relax_on_wall(folds: Folds, on_wall: np.ndarray, project: WallProjector, rounds: int, step: float = 0.5) -> int:
     """Untangle folds of the snapped surface without leaving the wall: each on-wall vertex of a flipped
     triangle (and of the triangles around it) moves ``step`` of the way to the mean of its one-ring,
     within the wall's tangent plane, and back onto the exact wall (closest point). In place on
-    ``after``; returns how many vertices were moved."""
+    ``folds.v``; returns how many vertices were moved."""
+    after, faces = folds.v, folds.faces
     relaxed = np.zeros(len(after), np.bool_)
     n_flipped = len(faces) + 1
     for _ in range(rounds):
-        flipped = flipped_faces(n_ref, after, faces)
-        if flipped.sum() >= n_flipped:  # done, or stuck: what is left is for the collapse
+        n = np.count_nonzero(folds.flip)
+        if n >= n_flipped:  # done, or stuck: what is left is for the collapse
             break
-        n_flipped = flipped.sum()
-        active = np.zeros(len(after), np.bool_)
-        active[faces[flipped]] = True
-        active[faces[active[faces].any(axis=1)]] = True  # and their one-ring: room to spread the fold
-        active &= on_wall
-        idx = np.flatnonzero(active)
+        n_flipped = n
+        # the vertices of the flipped triangles and their one-ring (room to spread the fold) on the wall
+        ring = np.unique(faces[folds.around(np.unique(faces[folds.flipped()]))])
+        idx = ring[on_wall[ring]]
         if len(idx) == 0:
             break
-        target = ring_means(after, faces, active)[idx]
-        _, n = project(after[idx])
+        target = folds.ring_means(idx)
+        _, normal = project(after[idx])
         move = target - after[idx]
-        move -= np.einsum("ij,ij->i", move, n)[:, None] * n
+        move -= np.einsum("ij,ij->i", move, normal)[:, None] * normal
         after[idx], _ = project(after[idx] + step * move)
         relaxed[idx] = True
+        folds.moved(idx)
     return int(relaxed.sum())
 
 
-def collapse_flipped(n_ref: np.ndarray, raw: np.ndarray, after: np.ndarray, faces: np.ndarray,
-                     on_wall: np.ndarray, alive: np.ndarray, passes: int = 4) -> list[tuple[int, int]]:
+def collapse_flipped(folds: Folds, raw: np.ndarray, on_wall: np.ndarray, passes: int = 4) -> list[tuple[int, int]]:
     """Remove flipped triangles that lie on the wall by collapsing one of their edges into an on-wall
     end (shortest edge first). A collapse drops the two triangles of the edge and is made only when
     the surface stays a closed manifold there (the link condition: the two ends share no neighbour but
     the edge's two opposite vertices) and fewer triangles around it are flipped or degenerate than
-    before. Works on ``faces`` and ``alive`` in place (Python loop over the few flipped triangles);
-    returns the (kept, dropped) vertex pairs."""
-    order = np.argsort(faces.ravel(), kind="stable")
-    start = np.searchsorted(faces.ravel()[order], np.arange(len(after) + 1))
-    changed: dict[int, set[int]] = {}
+    before. Works on ``folds`` in place (numba: ``_collapse``); returns the (kept, dropped) vertex
+    pairs."""
+    merged = np.empty((len(folds.faces) // 2 + 1, 2), np.int64)
+    n = _collapse(folds.n_ref, np.ascontiguousarray(raw, np.float64), folds.v, folds.faces, np.ascontiguousarray(on_wall),
+                  folds.alive, folds.flip, folds.start, folds.adj, folds.head, folds.nxt, folds.tail, passes, merged)
+    return [(int(a), int(b)) for a, b in merged[:n]]
 
-    def faces_of(a: int) -> set[int]:
-        if a not in changed:
-            changed[a] = {int(t) for t in order[start[a]:start[a + 1]] // 3 if alive[t]}
-        return changed[a]
 
-    at_stored = stored(after)
-    dot = np.empty(1)
+@nb.njit(cache=True)
+def _turn(v, faces, t, n_ref, drop, keep):
+    """n_ref[t] . (normal of triangle t at ``v`` rounded to float32, as the surface stores it; with
+    vertex ``drop`` renamed ``keep``, -1: none), unnormalised: negative when the triangle flipped against
+    its reference normal, zero when it is degenerate."""
+    a = keep if faces[t, 0] == drop else faces[t, 0]
+    b = keep if faces[t, 1] == drop else faces[t, 1]
+    c = keep if faces[t, 2] == drop else faces[t, 2]
+    ax, ay, az = np.float64(np.float32(v[a, 0])), np.float64(np.float32(v[a, 1])), np.float64(np.float32(v[a, 2]))
+    ux = np.float64(np.float32(v[b, 0])) - ax
+    uy = np.float64(np.float32(v[b, 1])) - ay
+    uz = np.float64(np.float32(v[b, 2])) - az
+    wx = np.float64(np.float32(v[c, 0])) - ax
+    wy = np.float64(np.float32(v[c, 1])) - ay
+    wz = np.float64(np.float32(v[c, 2])) - az
+    return (n_ref[t, 0] * (uy * wz - uz * wy) + n_ref[t, 1] * (uz * wx - ux * wz)
+            + n_ref[t, 2] * (ux * wy - uy * wx))
 
-    def bad(t: int, tri, at: np.ndarray = at_stored) -> bool:
-        orientation(at, tri.reshape(1, 3), n_ref[t:t + 1], dot)
-        return dot[0] <= 0.0
 
-    def try_collapse(keep: int, drop: int) -> bool:
-        fk, fd = faces_of(keep), faces_of(drop)
-        shared = fk & fd
-        if len(shared) != 2:
-            return False
-        opposite = {int(x) for t in shared for x in faces[t]} - {keep, drop}
-        ring_k = {int(x) for t in fk for x in faces[t]} - {keep}
-        ring_d = {int(x) for t in fd for x in faces[t]} - {drop}
-        if len(opposite) != 2 or (ring_k & ring_d) != opposite or len(ring_k | ring_d) < 5:
-            return False  # would pinch the surface (or close a tetrahedron)
-        moved = fd - shared
-        new = {t: np.where(faces[t] == drop, keep, faces[t]) for t in moved}
-        before = sum(bad(t, faces[t]) for t in fk | fd)
-        if sum(bad(t, tri) for t, tri in new.items()) + sum(bad(t, faces[t]) for t in fk - shared) >= before:
-            return False
-        if any(bad(t, tri, raw) for t, tri in new.items()):
+@nb.njit(cache=True)
+def _flipped(v, faces, n_ref, alive, out):
+    """out[t]: triangle t is alive and flipped against n_ref[t] at ``v`` rounded to float32 (stored)."""
+    for t in range(faces.shape[0]):
+        out[t] = alive[t] and _turn(v, faces, t, n_ref, np.int64(-1), np.int64(-1)) < 0.0
+
+
+@nb.njit(cache=True)
+def _update_flips(v, faces, n_ref, tris, flip):
+    """flip[t] anew for the (alive) triangles ``tris``."""
+    for t in tris:
+        flip[t] = _turn(v, faces, t, n_ref, np.int64(-1), np.int64(-1)) < 0.0
+
+
+@nb.njit(cache=True)
+def _vertex_triangles(faces, nv):
+    """The triangles around each vertex as CSR lists (start (nv + 1,), items), in triangle order."""
+    start = np.zeros(nv + 1, np.int64)
+    for t in range(faces.shape[0]):
+        for k in range(3):
+            start[faces[t, k] + 1] += 1
+    for a in range(nv):
+        start[a + 1] += start[a]
+    fill = start[:-1].copy()
+    adj = np.empty(start[nv], np.int64)
+    for t in range(faces.shape[0]):
+        for k in range(3):
+            a = faces[t, k]
+            adj[fill[a]] = t
+            fill[a] += 1
+    return start, adj
+
+
+@nb.njit(cache=True)
+def _faces_of(a, head, nxt, start, adj, alive, seen, out, n):
+    """Append the alive triangles around vertex ``a`` not ``seen`` yet to ``out[n:]`` (marking them);
+    returns the new length. Around ``a``: around every vertex merged into it (its member list)."""
+    m = head[a]
+    while m >= 0:
+        for s in range(start[m], start[m + 1]):
+            t = adj[s]
+            if alive[t] and not seen[t]:
+                seen[t] = True
+                out[n] = t
+                n += 1
+        m = nxt[m]
+    return n
+
+
+@nb.njit(cache=True)
+def _count_around(vertices, head, nxt, start):
+    """An upper bound of the number of triangles around ``vertices``."""
+    n = 0
+    for a in vertices:
+        m = head[a]
+        while m >= 0:
+            n += start[m + 1] - start[m]
+            m = nxt[m]
+    return n
+
+
+@nb.njit(cache=True)
+def _around(vertices, head, nxt, start, adj, alive, seen):
+    """The alive triangles around ``vertices``, each once (``seen`` is left all False)."""
+    out = np.empty(_count_around(vertices, head, nxt, start), np.int64)
+    n = 0
+    for a in vertices:
+        n = _faces_of(a, head, nxt, start, adj, alive, seen, out, n)
+    for i in range(n):
+        seen[out[i]] = False
+    return out[:n]
+
+
+@nb.njit(cache=True)
+def _ring_means(v, faces, vertices, head, nxt, start, adj, alive, seen, out):
+    """out[i]: the mean over the alive triangles around vertices[i], in triangle order, of the other two
+    vertices of each (each in the triangle's vertex order)."""
+    for i in range(vertices.shape[0]):
+        p = vertices[i]
+        tris = _around(vertices[i:i + 1], head, nxt, start, adj, alive, seen)
+        for j in range(1, len(tris)):  # in triangle order (a few: insertion)
+            k = j
+            while k > 0 and tris[k - 1] > tris[k]:
+                tris[k - 1], tris[k] = tris[k], tris[k - 1]
+                k -= 1
+        sx = 0.0
+        sy = 0.0
+        sz = 0.0
+        count = 0
+        for t in tris:
+            for k in range(3):
+                if faces[t, k] != p:
+                    continue
+                for j in range(3):
+                    if j != k:
+                        q = faces[t, j]
+                        sx += v[q, 0]
+                        sy += v[q, 1]
+                        sz += v[q, 2]
+                        count += 1
+        count = max(count, 1)
+        out[i, 0] = sx / count
+        out[i, 1] = sy / count
+        out[i, 2] = sz / count
+
+
+@nb.njit(cache=True)
+def _try_collapse(keep, drop, n_ref, raw, after, faces, alive, flip, head, nxt, tail, start, adj, seen_k, seen_d,
+                  vmark_k, vmark_d, fk, fd, stamp):
+    """Collapse the edge (keep, drop) into ``keep`` if the link condition holds, fewer triangles
+    around it are flipped or degenerate at ``after`` (as stored) afterwards and none of the renamed
+    triangles is at ``raw`` (see collapse_flipped). ``stamp``: a value the vertex marks do not hold
+    yet; the triangle marks ``seen_k``/``seen_d`` are all False and are left so."""
+    nk = _faces_of(keep, head, nxt, start, adj, alive, seen_k, fk, np.int64(0))
+    nd = _faces_of(drop, head, nxt, start, adj, alive, seen_d, fd, np.int64(0))
+    ok = _collapse_ok(keep, drop, n_ref, raw, after, faces, seen_k, seen_d, vmark_k, vmark_d, fk, fd, nk, nd, stamp)
+    if ok:
+        for i in range(nd):
+            t = fd[i]
+            if seen_k[t]:
+                alive[t] = False
+                flip[t] = False
+            else:
+                for k in range(3):
+                    if faces[t, k] == drop:
+                        faces[t, k] = keep
+                flip[t] = _turn(after, faces, t, n_ref, np.int64(-1), np.int64(-1)) < 0.0
+        nxt[tail[keep]] = head[drop]  # drop's members (and their triangles) are keep's now
+        tail[keep] = tail[drop]
+        head[drop] = -1
+    for i in range(nk):
+        seen_k[fk[i]] = False
+    for i in range(nd):
+        seen_d[fd[i]] = False
+    return ok
+
+
+@nb.njit(cache=True)
+def _collapse_ok(keep, drop, n_ref, raw, after, faces, seen_k, seen_d, vmark_k, vmark_d, fk, fd, nk, nd, stamp):
+    """_try_collapse's conditions, with the triangles around keep (fk[:nk], marked in seen_k) and
+    around drop (fd[:nd], seen_d)."""
+    n_shared = 0
+    o1 = -1
+    o2 = -1
+    n_opp = 0
+    for i in range(nd):
+        t = fd[i]
+        if seen_k[t]:
+            n_shared += 1
+            for k in range(3):
+                x = faces[t, k]
+                if x != keep and x != drop and x != o1 and x != o2:
+                    n_opp += 1
+                    if o1 < 0:
+                        o1 = x
+                    else:
+                        o2 = x
+    if n_shared != 2 or n_opp != 2:
+        return False
+    # link condition: the one-rings of the two ends share the two opposite vertices only (both rings
+    # hold them), and the union has at least 5 vertices (else the collapse closes a tetrahedron)
+    n_ring_k = 0
+    for i in range(nk):
+        for k in range(3):
+            x = faces[fk[i], k]
+            if x != keep and vmark_k[x] != stamp:
+                vmark_k[x] = stamp
+                n_ring_k += 1
+    n_ring_d = 0
+    n_both = 0
+    for i in range(nd):
+        for k in range(3):
+            x = faces[fd[i], k]
+            if x != drop and vmark_d[x] != stamp:
+                vmark_d[x] = stamp
+                n_ring_d += 1
+                if vmark_k[x] == stamp:
+                    n_both += 1
+    if n_both != 2 or n_ring_k + n_ring_d - n_both < 5:
+        return False
+    bad_before = 0
+    bad_after = 0
+    for i in range(nk):
+        t = fk[i]
+        bad = _turn(after, faces, t, n_ref, np.int64(-1), np.int64(-1)) <= 0.0
+        bad_before += bad
+        if not seen_d[t]:
+            bad_after += bad
+    for i in range(nd):
+        t = fd[i]
+        if seen_k[t]:
+            continue
+        bad_before += _turn(after, faces, t, n_ref, np.int64(-1), np.int64(-1)) <= 0.0
+        bad_after += _turn(after, faces, t, n_ref, drop, keep) <= 0.0
+    if bad_after >= bad_before:
+        return False
+    for i in range(nd):
+        t = fd[i]
+        if not seen_k[t] and _turn(raw, faces, t, n_ref, drop, keep) <= 0.0:
             return False  # the fallback (undo_flips) moves vertices back towards the raw surface
-        for t, tri in new.items():
-            faces[t] = tri
-        for t in shared:
-            alive[t] = False
-        changed[keep] = (fk | fd) - shared
-        changed[drop] = set()
-        for o in opposite:
-            changed[o] = faces_of(o) - shared
-        return True
+    return True
 
-    merged: list[tuple[int, int]] = []
+
+@nb.njit(cache=True)
+def _collapse(n_ref, raw, after, faces, on_wall, alive, flip, start, adj, head, nxt, tail, passes, merged):
+    """collapse_flipped's loop; the (kept, dropped) pairs go to ``merged``; returns how many."""
+    nv = after.shape[0]
+    nf = faces.shape[0]
+    seen_k = np.zeros(nf, np.bool_)
+    seen_d = np.zeros(nf, np.bool_)
+    vmark_k = np.zeros(nv, np.int64)
+    vmark_d = np.zeros(nv, np.int64)
+    fk = np.empty(nf, np.int64)
+    fd = np.empty(nf, np.int64)
+    stamp = 0
+    n = 0
+    length = np.empty(3)
+    order = np.empty(3, np.int64)
+    todo = np.empty(nf, np.int64)
     for _ in range(passes):
-        n_before = len(merged)
-        for t in np.flatnonzero(alive & flipped_faces(n_ref, after, faces)):
-            tri = faces[t]
-            if not alive[t] or not bad(t, tri):
+        n_before = n
+        n_todo = 0
+        for t in range(nf):  # the triangles flipped at the pass's start
+            if flip[t]:
+                todo[n_todo] = t
+                n_todo += 1
+        for t in todo[:n_todo]:
+            if not alive[t] or not _turn(after, faces, t, n_ref, np.int64(-1), np.int64(-1)) <= 0.0:
                 continue
-            edges = sorted(((tri[i], tri[(i + 1) % 3]) for i in range(3)),
-                           key=lambda e: float(np.sum((after[e[0]] - after[e[1]]) ** 2)))
+            for e in range(3):  # squared edge lengths, shortest first (stable)
+                p = np.int64(faces[t, e])
+                q = np.int64(faces[t, (e + 1) % 3])
+                dx = after[p, 0] - after[q, 0]
+                dy = after[p, 1] - after[q, 1]
+                dz = after[p, 2] - after[q, 2]
+                length[e] = dx * dx + dy * dy + dz * dz
+            for e in range(3):
+                order[e] = e
+            for e in range(1, 3):
+                j = e
+                while j > 0 and length[order[j - 1]] > length[order[j]]:
+                    order[j - 1], order[j] = order[j], order[j - 1]
+                    j -= 1
             done = False
-            for a, b in edges:
-                for keep, drop in ((int(a), int(b)), (int(b), int(a))):
-                    if on_wall[keep] and try_collapse(keep, drop):
-                        merged.append((keep, drop))
-                        done = True
-                        break
+            for e in order:
+                p = np.int64(faces[t, e])
+                q = np.int64(faces[t, (e + 1) % 3])
+                for swap in range(2):
+                    keep, drop = (q, p) if swap else (p, q)
+                    if on_wall[keep]:
+                        stamp += 1
+                        if _try_collapse(keep, drop, n_ref, raw, after, faces, alive, flip, head, nxt, tail, start, adj,
+                                         seen_k, seen_d, vmark_k, vmark_d, fk, fd, stamp):
+                            merged[n, 0] = keep
+                            merged[n, 1] = drop
+                            n += 1
+                            done = True
+                            break
                 if done:
                     break
-        if len(merged) == n_before:
+        if n == n_before:
             break
-    return merged
+    return n
 
 
 def revert_collapses(raw_faces: np.ndarray, faces: np.ndarray, alive: np.ndarray, merged: list[tuple[int, int]],
@@ -370,14 +603,15 @@ def revert_collapses(raw_faces: np.ndarray, faces: np.ndarray, alive: np.ndarray
 
 def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapParams,
               walls: WallMesh | None = None, bodies: list[tuple[SDFGrid, RigidMotion]] = (),
-              t: float = 0.0) -> tuple[SurfaceMesh, dict]:
+              t: float = 0.0, project: WallProjector | None = None) -> tuple[SurfaceMesh, dict]:
     """The mesh with its near-wall vertices on the walls; and a report: counts (snapped by the contact
     test, grown at folded contact lines, relaxation moves summed over the passes, collapsed edges,
     damped) and ``kept_faces``, the indices of the input's triangles that the output keeps
     (in order; a kept triangle may have had one vertex replaced by a collapse).
 
     Vertices keep their indices: a vertex merged away by a collapse stays in the array, unreferenced,
-    at the position of the vertex it was merged into."""
+    at the position of the vertex it was merged into. ``project``: the walls' projector at ``t`` if
+    the caller keeps one (default: built from ``walls``)."""
     counts = {"snapped": 0, "grown": 0, "relaxed": 0, "collapsed": 0, "damped": 0,
               "kept_faces": np.arange(len(mesh.faces))}
     if len(mesh.vertices) == 0:
@@ -392,21 +626,27 @@ def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapPa
     n_ref = face_normals(v, f)
     alive = np.ones(len(f), np.bool_)
     merged: list[tuple[int, int]] = []
-    if params.exact and walls is not None and len(walls.faces) and moved.any():
-        project = WallProjector(walls.posed(t), sdf.shell_thickness)  # shells as baked; moving walls at t
-        near, _ = project(out[moved])
+    exact = params.exact and walls is not None and len(walls.faces) > 0 and moved.any()
+    on_wall = np.zeros(len(v), np.bool_)
+    if exact:
+        if project is None:
+            project = wall_projector(walls, sdf, t)
+        idx = np.flatnonzero(moved)
+        landed = out.take(idx, axis=0)  # (take: several times faster than [] on rows)
+        near, _ = project(landed)
         # only where the SDF step landed on this wall (not on a far one through a thin gap)
-        ok = np.linalg.norm(near - out[moved], axis=1) < 1.5 * sdf.spacing
-        idx = np.flatnonzero(moved)[ok]
+        ok = np.linalg.norm(near - landed, axis=1) < 1.5 * sdf.spacing
+        idx = idx[ok]
         out[idx] = near[ok]
-        on_wall = np.zeros(len(v), np.bool_)
         on_wall[idx] = True
+    folds = Folds(n_ref, out, f, alive)
+    if exact:
         for grow in range(3 if params.relax_rounds or params.collapse else 1):
             if grow:
                 # a vertex the contact test left out (its normal does not face the wall) can pin a
                 # fold at the contact line: the off-wall vertices of flipped triangles within the band
                 # join the snapped ones
-                ends = np.unique(f[alive & flipped_faces(n_ref, out, f)])
+                ends = np.unique(f[folds.flipped()])
                 ends = ends[~on_wall[ends]]
                 near, _ = project(out[ends]) if len(ends) else (out[ends], None)
                 close = np.linalg.norm(near - out[ends], axis=1) < params.band * l0
@@ -414,37 +654,63 @@ def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapPa
                     break
                 out[ends[close]] = near[close]
                 on_wall[ends[close]] = True
+                folds.moved(ends[close])
                 counts["grown"] += int(close.sum())
-            counts["relaxed"] += relax_on_wall(n_ref[alive], out, f[alive], on_wall, project, params.relax_rounds)
+            counts["relaxed"] += relax_on_wall(folds, on_wall, project, params.relax_rounds)
             if params.collapse:
-                merged += collapse_flipped(n_ref, v, out, f, on_wall, alive)
+                merged += collapse_flipped(folds, v, on_wall)
     while True:
-        counts["damped"] += undo_flips(v, out, f[alive], n_ref=n_ref[alive])
-        left = alive & flipped_faces(n_ref, out, f)
-        if not left.any() or not merged:
+        counts["damped"] += undo_flips(v, folds)
+        if not folds.flip.any() or not merged:
             break
         # what is still flipped has every vertex back on the raw surface but a merged edge: undo
-        # those collapses and let undo_flips finish
-        merged = revert_collapses(mesh.faces, f, alive, merged, np.unique(f[left]))
+        # those collapses and let undo_flips finish (over triangles listed anew)
+        merged = revert_collapses(mesh.faces, f, alive, merged, np.unique(f[folds.flipped()]))
+        folds = Folds(n_ref, out, f, alive)
     counts["collapsed"] = len(merged)
-    counts["kept_faces"] = np.flatnonzero(alive)
-    f = f[alive]
+    counts["kept_faces"] = kept = np.flatnonzero(alive)
+    f = f.take(kept, axis=0)
     normals = vertex_normals(out, f)
     if merged:
+        keep, drop = np.array(merged, np.int64).T
         into = np.arange(len(v))
-        for keep, drop in merged:
-            into[drop] = keep
-        while (into[into] != into).any():  # a kept vertex may have been merged on later
-            into = into[into]
-        out = out[into]
-        normals = normals[into]
+        into[drop] = keep
+        while (into[into[drop]] != into[drop]).any():  # a kept vertex may have been merged on later
+            into[drop] = into[into[drop]]
+        out[drop] = out[into[drop]]
+        normals[drop] = normals[into[drop]]
     return SurfaceMesh(out.astype(np.float32), f, normals.astype(np.float32)), counts
+
+
+# Per process (a worker runs many frames of one shot): the inputs every frame shares, loaded once. Cache
+# entries are written once and moved in whole, so a folder with the same files' times and sizes holds
+# the same data.
+def file_stamps(folder: Path) -> tuple:
+    """(name, mtime_ns, size) of each file in ``folder``: the key of what was loaded from it."""
+    return tuple(sorted((e.name, e.stat().st_mtime_ns, e.stat().st_size) for e in os.scandir(folder) if e.is_file()))
+
+
+@functools.lru_cache(maxsize=2)
+def field(folder: Path, stamps: tuple) -> tuple[SDFGrid, list[tuple[SDFGrid, RigidMotion]]]:
+    """The static SDF and the moving walls' fields of an sdf artifact."""
+    return SDFGrid.load(folder), load_bodies(folder)
+
+
+@functools.lru_cache(maxsize=2)
+def wall_mesh(folder: Path, stamps: tuple) -> WallMesh:
+    return WallMesh.load(folder)
+
+
+@functools.lru_cache(maxsize=4)
+def projector(walls_dir: Path, walls_stamps: tuple, sdf_dir: Path, sdf_stamps: tuple, t: float | None) -> WallProjector:
+    """snap_mesh's projector for the walls at time ``t`` (None: static walls, any time)."""
+    return wall_projector(wall_mesh(walls_dir, walls_stamps), field(sdf_dir, sdf_stamps)[0], 0.0 if t is None else t)
 
 
 class DistanceSnap(Stage):
     kind = "wall_snap"
     name = "distance"
-    version = "9"
+    version = "10"
     Params = DistanceSnapParams
     inputs = ("raw_surface", "sdf", "particles")  # particles: for l0 (band and tolerance are in l0)
     optional_inputs = ("walls",)
@@ -455,11 +721,18 @@ class DistanceSnap(Stage):
 
     def run_frame(self, ctx: Context, inputs: Mapping[str, Artifact], params: DistanceSnapParams, frame: int) -> None:
         meta = ParticleMeta.load(inputs["particles"].frame(frame))
-        sdf = SDFGrid.load(inputs["sdf"].frame(frame))
-        bodies = load_bodies(inputs["sdf"].frame(frame))  # moving walls, posed at the frame's time
+        sdf_dir = inputs["sdf"].frame(frame)
+        sdf_stamps = file_stamps(sdf_dir)
+        sdf, bodies = field(sdf_dir, sdf_stamps)  # moving walls: posed at the frame's time by snap_mesh
         mesh = load_surface(inputs["raw_surface"].frame(frame), frame)
-        walls = WallMesh.load(inputs["walls"].path) if params.exact and inputs.get("walls") is not None else None
-        snapped, report = snap_mesh(mesh, sdf, meta.spacing, params, walls, bodies, frame / meta.fps)
+        walls = project = None
+        if params.exact and inputs.get("walls") is not None:
+            walls_dir = inputs["walls"].path
+            walls_stamps = file_stamps(walls_dir)
+            walls = wall_mesh(walls_dir, walls_stamps)
+            t = frame / meta.fps if walls.motions() else None  # static walls: one projector for every frame
+            project = projector(walls_dir, walls_stamps, sdf_dir, sdf_stamps, t)
+        snapped, report = snap_mesh(mesh, sdf, meta.spacing, params, walls, bodies, frame / meta.fps, project)
         ctx.log.debug("frame %d: %d vertices snapped, %d relaxed, %d edges collapsed, %d damped", frame,
                       report["snapped"], report["relaxed"], report["collapsed"], report["damped"])
         save_surface(ctx.out_dir, frame, snapped)
