@@ -57,8 +57,12 @@ def test_absent_effects_bitwise_identical_to_hand_written_kernel():
     # the same to rounding (both fastmath builds; the wall term's sums may contract differently: 1 ulp)
     assert np.abs(ref.x - gen.x).max() <= 1e-13 * np.abs(ref.x).max()
     assert np.abs(ref.v - gen.v).max() <= 1e-13 * np.abs(ref.v).max()
-    # declared at zero strength: every term adds an exact 0.0, and no time-step limit applies
-    assert np.array_equal(gen.x, zero.x) and np.array_equal(gen.v, zero.v) and gen.t == zero.t
+    # declared at zero strength: every term adds 0.0 and no time-step limit applies (the same steps). To
+    # rounding, not bitwise: with fastmath's reassociation the viscosity's accumulators in the neighbour loop
+    # change how LLVM groups the pressure sums (1 ulp in 92 of 1,331 particles after one step)
+    assert gen.t == zero.t and gen.steps == zero.steps
+    assert np.abs(gen.x - zero.x).max() <= 1e-13 * np.abs(gen.x).max()
+    assert np.abs(gen.v - zero.v).max() <= 1e-13 * np.abs(gen.v).max()
 
 
 # -- viscosity ---------------------------------------------------------------------------------------
