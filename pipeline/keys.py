@@ -110,11 +110,22 @@ def _files(config: Config, node: Node, values: dict[str, Any], frames: tuple[int
     found += [("external file", Path(f)) for f in extra]
     files: dict[str, str] = {}
     for where, path in found:
-        if str(path) not in files:
+        name = _file_name(path, config.dir)
+        if name not in files:
             if not path.is_file():
                 raise StageFailed(f"stage {node.label}: {where}: input file not found: {path}", user_error=True)
-            files[str(path)] = _file_hash(path)
+            files[name] = _file_hash(path)
     return files
+
+
+def _file_name(path: Path, config_dir: Path) -> str:
+    """A file's name in a key: its path relative to the config's folder, so a project moved or cloned
+    elsewhere (with its assets where they were beside it) keeps its keys and its cache; absolute only
+    where no relative path exists (another drive)."""
+    try:
+        return Path(os.path.relpath(Path(path).resolve(), Path(config_dir).resolve())).as_posix()
+    except ValueError:
+        return str(Path(path).resolve())
 
 
 _FILE_HASHES: dict[tuple[str, int, int], str] = {}
