@@ -34,22 +34,23 @@ def boundary_edge_count(f: np.ndarray) -> int:
     return int((counts == 1).sum())
 
 
+@nb.njit(cache=True, inline="always")
+def _triangle_normal(v, a, b, c):
+    """(b - a) x (c - a) of the triangle (a, b, c) of ``v``: its normal, twice its area long."""
+    ux = v[b, 0] - v[a, 0]
+    uy = v[b, 1] - v[a, 1]
+    uz = v[b, 2] - v[a, 2]
+    wx = v[c, 0] - v[a, 0]
+    wy = v[c, 1] - v[a, 1]
+    wz = v[c, 2] - v[a, 2]
+    return uy * wz - uz * wy, uz * wx - ux * wz, ux * wy - uy * wx
+
+
 @nb.njit(cache=True)
 def _face_normals(v, f, out):
-    """(b - a) x (c - a) of each triangle (a, b, c) of ``f`` into ``out``."""
+    """The normal of each triangle of ``f`` into ``out``."""
     for t in range(f.shape[0]):
-        a = f[t, 0]
-        b = f[t, 1]
-        c = f[t, 2]
-        ux = v[b, 0] - v[a, 0]
-        uy = v[b, 1] - v[a, 1]
-        uz = v[b, 2] - v[a, 2]
-        wx = v[c, 0] - v[a, 0]
-        wy = v[c, 1] - v[a, 1]
-        wz = v[c, 2] - v[a, 2]
-        out[t, 0] = uy * wz - uz * wy
-        out[t, 1] = uz * wx - ux * wz
-        out[t, 2] = ux * wy - uy * wx
+        out[t, 0], out[t, 1], out[t, 2] = _triangle_normal(v, f[t, 0], f[t, 1], f[t, 2])
 
 
 @nb.njit(cache=True)
@@ -63,15 +64,7 @@ def _vertex_normals(v, f, out):
         a = f[t, 0]
         b = f[t, 1]
         c = f[t, 2]
-        ux = v[b, 0] - v[a, 0]
-        uy = v[b, 1] - v[a, 1]
-        uz = v[b, 2] - v[a, 2]
-        wx = v[c, 0] - v[a, 0]
-        wy = v[c, 1] - v[a, 1]
-        wz = v[c, 2] - v[a, 2]
-        nx = uy * wz - uz * wy
-        ny = uz * wx - ux * wz
-        nz = ux * wy - uy * wx
+        nx, ny, nz = _triangle_normal(v, a, b, c)
         for p in (a, b, c):
             out[p, 0] += nx
             out[p, 1] += ny
