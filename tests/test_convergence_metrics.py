@@ -103,3 +103,66 @@ def test_observed_order_and_cost_per_halving():
     assert val.cost_per_halving(t, 0.1 * t) == math.inf  # error rising with cost: no halving at any price
     with pytest.raises(ValueError):
         val.observed_order([0.01, 0.02], [0.0, 0.1])
+
+
+def sloshing_run(folder, *, f, delta, mpu=1.0, axis=0, L=0.2, W=0.04, H=0.1, l0=0.01, fps=60.0, frames=90):
+    """A lattice of water L x W x H (metres) whose particles are displaced along ``axis`` by
+    eps(t) sin(k x), eps = 1e-4 L exp(-delta t) cos(2 pi f t): the first mode's elevation at the wall is then
+    -eps k H to first order, so it rings at f and decays at delta. Stored in scene
+    units of ``mpu`` metres."""
+    k = math.pi / L
+    nx, ny, nz = round(L / l0), round(W / l0), round(H / l0)
+    g = np.meshgrid((np.arange(nx) + 0.5) * l0, (np.arange(ny) + 0.5) * l0, (np.arange(nz) + 0.5) * l0, indexing="ij")
+    base = np.stack([a.ravel() for a in g], 1)
+    if axis == 1:  # the tank's length along y (and its width along x)
+        base = base[:, [1, 0, 2]]
+    out = []
+    for n in range(frames):
+        t = n / fps
+        eps = 1e-4 * L * math.exp(-delta * t) * math.cos(2 * math.pi * f * t)
+        x = base.copy()
+        x[:, axis] += eps * np.sin(k * base[:, axis])
+        x /= mpu
+        out.append(ParticleFrame(x=x, v=np.zeros_like(x), rho=np.full(len(x), 1000.0), p=np.zeros(len(x)),
+                                 id=np.arange(len(x))))
+    return write_run(folder, front=[0.0] * frames, spacing=l0 / mpu, fps=fps, mpu=mpu, frames=out)
+
+
+@pytest.mark.parametrize("mpu,axis", [(1.0, 0), (0.01, 0), (0.001, 1)])
+@pytest.mark.parametrize("factor,zeta", [(1.0, 0.02), (1.05, 0.006), (0.97, -0.004)])
+def test_sloshing_metrics_recover_a_known_mode(tmp_path, mpu, axis, factor, zeta):
+    """A mode ringing at factor x f1 with damping ratio zeta (negative: growing) is measured as such, in
+    metres, centimetres and millimetres, along x or y."""
+    f1 = val.sloshing_f1(0.2, 0.1)
+    f = factor * f1
+    run = sloshing_run(tmp_path / "r", f=f, delta=zeta * 2 * math.pi * f, mpu=mpu, axis=axis)
+    kw = dict(length=0.2 / mpu, width=0.04 / mpu, axis="xyz"[axis])
+    assert val.sloshing_frequency_error(run, depth=0.1 / mpu, **kw) == pytest.approx(abs(factor - 1.0), abs=1e-3)
+    assert val.sloshing_damping(run, **kw) == pytest.approx(zeta, abs=1e-3)
+    water = val.sloshing_viscous_damping(0.2, 0.04, 0.1)
+    assert val.sloshing_damping_error(run, depth=0.1 / mpu, **kw) == pytest.approx(abs(zeta - water), abs=1e-3)
+    t, eta, _ = val.sloshing_history(run, **kw)
+    assert eta[0] == pytest.approx(-1e-4 * 0.2 * math.pi / 0.2 * 0.1 / mpu, rel=1e-3)  # -eps k H
+
+
+def test_sloshing_f1_and_the_walls_damping_against_quadrature():
+    """f1 from linear theory (f1 = 1.892 Hz for 0.1 m of water in a 0.2 m tank), and the Stokes-layer damping
+    ratio against a direct quadrature of the mode's |grad phi|^2 over the volume and the wetted walls."""
+    L, W, H, nu = 0.2, 0.04, 0.1, 1e-6
+    assert val.sloshing_f1(L, H) == pytest.approx(1.8921, abs=1e-4)
+    k = math.pi / L
+    w = 2 * math.pi * val.sloshing_f1(L, H)
+    n = 400
+    x = (np.arange(n) + 0.5) / n * L
+    z = (np.arange(n) + 0.5) / n * H
+    X, Z = np.meshgrid(x, z, indexing="ij")
+    u2 = (k * np.sin(k * X) * np.cosh(k * Z)) ** 2  # phi = cos(kx) cosh(kz)
+    w2 = (k * np.cos(k * X) * np.sinh(k * Z)) ** 2
+    dx, dz = L / n, H / n
+    energy = (u2 + w2).sum() * dx * dz * W
+    walls = ((k * np.sin(k * x)) ** 2).sum() * dx * W  # the floor: u only
+    walls += 2 * ((k * np.sinh(k * z)) ** 2).sum() * dz * W  # the end walls x = 0, L: w only
+    walls += 2 * (u2 + w2).sum() * dx * dz  # the side walls: both
+    zeta = math.sqrt(nu * w / 2) * walls / (2 * energy) / w
+    assert val.sloshing_viscous_damping(L, W, H, nu) == pytest.approx(zeta, rel=1e-4)
+    assert 0.005 < zeta < 0.007

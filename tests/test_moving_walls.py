@@ -17,6 +17,7 @@ from stages.common.sdf import SDFGrid, box_interior_sdf, grid_from_function
 from stages.simulate.driver import hydrostatic_start
 from stages.simulate.emitters import lattice
 from stages.simulate.sph import SPHParams, SPHSolver
+from stages.simulate.validation import damped_frequency, sloshing_f1
 
 G = 9.81
 MU = 0.001  # water
@@ -124,7 +125,7 @@ def sloshing_frequency(L=0.2, depth=0.1, width=0.2, l0=0.0125, amplitude=0.002, 
     wide: -1.6 % and -1.7 %), and a decay delta ~ 2.2 / s: damping ratio 0.19, far above water's; the
     solver's artificial viscosity.)"""
     k = math.pi / L
-    f1 = math.sqrt(G * k * math.tanh(k * depth)) / (2.0 * math.pi)
+    f1 = sloshing_f1(L, depth, G)
     w = 2.0 * math.pi * f1
     stop = cycles / f1
     lo, hi = np.array([0.0, 0.0, 0.0]), np.array([L, width, 2.0 * depth])
@@ -153,29 +154,6 @@ def sloshing_frequency(L=0.2, depth=0.1, width=0.2, l0=0.0125, amplitude=0.002, 
     t = np.array(t)
     assert np.ptp(q) > 0.02 and np.ptp(eta) > 0.002  # it sloshes (m/s; m at the wall)
     return damped_frequency(t, np.array(q))[0], damped_frequency(t, np.array(eta))[0], f1
-
-
-def damped_frequency(t: np.ndarray, y: np.ndarray) -> tuple[float, float]:
-    """(f, delta): the free decay y ~ A exp(-delta t) cos(2 pi f t + phase) + c0 + c1 t fitted by least squares
-    (linear in A cos, A sin, c0, c1 for given f and delta: those two by a grid, then a finer grid around the
-    best). Zero crossings about the mean are biased by a decay this strong (delta ~ 2 / s) and by the slow
-    settling of the surface; the fit is not."""
-    t = t - t[0]
-
-    def residual(f, delta):
-        e = np.exp(-delta * t)
-        a = np.stack([e * np.cos(2 * np.pi * f * t), e * np.sin(2 * np.pi * f * t), np.ones_like(t), t], axis=1)
-        return float(np.linalg.lstsq(a, y, rcond=None)[1].sum())
-
-    f0 = 1.0 / (2.0 * np.median(np.diff(t[np.flatnonzero(np.diff(np.signbit(y - y.mean())))])))  # a first guess
-    fs, ds = np.linspace(0.7 * f0, 1.3 * f0, 61), np.linspace(0.0, 6.0, 31)
-    for _ in range(3):
-        r = np.array([[residual(f, d) for d in ds] for f in fs])
-        i, j = np.unravel_index(np.argmin(r), r.shape)
-        f, d = fs[i], ds[j]
-        fs = np.linspace(f - 2 * (fs[1] - fs[0]), f + 2 * (fs[1] - fs[0]), 41)
-        ds = np.linspace(max(d - 2 * (ds[1] - ds[0]), 0.0), d + 2 * (ds[1] - ds[0]), 21)
-    return float(f), float(d)
 
 
 def test_sloshing_rings_at_the_first_natural_frequency():

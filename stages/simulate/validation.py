@@ -105,6 +105,116 @@ def hydrostatic_pressure_error(out_dir: Path, *, study_dir: Path | None = None, 
     return abs(num / den - 1.0)
 
 
+def damped_frequency(t: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """(f, delta): the free decay y ~ A exp(-delta t) cos(2 pi f t + phase) + c0 + c1 t fitted by least squares
+    (delta in 1/s, negative for a growing oscillation)
+    (linear in A cos, A sin, c0, c1 for given f and delta: those two by a grid, then a finer grid around the
+    best). Zero crossings about the mean are biased by a decay this strong (delta ~ 2 / s) and by the slow
+    settling of the surface; the fit is not."""
+    t = np.asarray(t, float) - float(t[0])
+    y = np.asarray(y, float)
+
+    def residual(f, delta):
+        e = np.exp(-delta * t)
+        a = np.stack([e * np.cos(2 * np.pi * f * t), e * np.sin(2 * np.pi * f * t), np.ones_like(t), t], axis=1)
+        return float(np.linalg.lstsq(a, y, rcond=None)[1].sum())
+
+    crossings = np.flatnonzero(np.diff(np.signbit(y - y.mean())))
+    if len(crossings) < 3:
+        raise ValueError("damped frequency: fewer than three crossings of the mean (no oscillation to fit)")
+    f0 = 1.0 / (2.0 * np.median(np.diff(t[crossings])))  # a first guess
+    # delta < 0: a growing oscillation, which a solver that creates energy shows (fitted, not clamped at 0)
+    fs, ds = np.linspace(0.7 * f0, 1.3 * f0, 61), np.linspace(-2.0, 6.0, 41)
+    for _ in range(3):
+        r = np.array([[residual(f, d) for d in ds] for f in fs])
+        i, j = np.unravel_index(np.argmin(r), r.shape)
+        f, d = fs[i], ds[j]
+        fs = np.linspace(f - 2 * (fs[1] - fs[0]), f + 2 * (fs[1] - fs[0]), 41)
+        ds = np.linspace(d - 2 * (ds[1] - ds[0]), d + 2 * (ds[1] - ds[0]), 21)
+    return float(f), float(d)
+
+
+def sloshing_f1(length: float, depth: float, g: float = 9.81) -> float:
+    """Linear theory's first sloshing frequency of a rectangular tank (Hz; SI lengths):
+    f1 = sqrt(g k tanh(k H)) / 2 pi, k = pi / L."""
+    k = math.pi / length
+    return math.sqrt(g * k * math.tanh(k * depth)) / (2.0 * math.pi)
+
+
+def sloshing_history(out_dir: Path, *, length: float, width: float, axis: str = "x",
+                     wall: float = 0.0) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Per frame: time (s) and the first mode's surface elevation at the wall x = ``wall`` (scene units),
+    eta1 = (2 / L) sum_i V_i cos(k (x_i - wall)) / width, k = pi / L, V_i = l0^3 each particle's volume. The
+    first mode's amplitude: the cos-weighted volume of the water per unit width, blind to the other modes
+    (orthogonal to them) and smooth in the positions, unlike the top particle at the wall."""
+    from stages.common.formats import load_particle_frame
+    folder = Path(out_dir) / "particles"
+    meta = json.loads((folder / "meta.json").read_text())
+    l0 = float(meta["spacing"])
+    k = math.pi / length
+    a = AXES[axis]
+    eta = []
+    for f in range(int(meta["frame_count"])):
+        x = np.asarray(load_particle_frame(folder, f).x, float)[:, a]
+        eta.append(2.0 / length * l0 ** 3 * float(np.cos(k * (x - wall)).sum()) / width)
+    return np.arange(len(eta)) / float(meta["fps"]), np.asarray(eta), meta
+
+
+def _sloshing_fit(out_dir: Path, length: float, width: float, axis: str, wall: float, t_min: float):
+    t, eta, meta = sloshing_history(out_dir, length=length, width=width, axis=axis, wall=wall)
+    sel = t >= t_min - 1e-9
+    if sel.sum() < 8:
+        raise ValueError(f"{out_dir}: fewer than 8 frames after t = {t_min} s to fit the sloshing mode")
+    return damped_frequency(t[sel], eta[sel]), float(meta.get("meters_per_unit", 1.0))
+
+
+def sloshing_frequency_error(out_dir: Path, *, study_dir: Path | None = None, length: float, depth: float,
+                             width: float, axis: str = "x", wall: float = 0.0, t_min: float = 0.0,
+                             g: float = 9.81) -> float:
+    """|f / f1 - 1|: the first sloshing mode's frequency f, a damped sinusoid fitted to its elevation at the
+    wall (sloshing_history) from ``t_min`` s on, against linear theory's f1 for a tank ``length`` long with
+    water ``depth`` deep (scene units). Linear theory is the limit the solvers converge to for small
+    amplitudes (k A << 1: the weakly nonlinear shift is O((k A)^2))."""
+    (f, _), mpu = _sloshing_fit(out_dir, length, width, axis, wall, t_min)
+    return abs(f / sloshing_f1(length * mpu, depth * mpu, g) - 1.0)
+
+
+def sloshing_damping(out_dir: Path, *, study_dir: Path | None = None, length: float, width: float,
+                     axis: str = "x", wall: float = 0.0, t_min: float = 0.0) -> float:
+    """The first sloshing mode's damping ratio zeta = delta / (2 pi f) from the same fit (negative: the
+    oscillation grows)."""
+    (f, delta), _ = _sloshing_fit(out_dir, length, width, axis, wall, t_min)
+    return delta / (2.0 * math.pi * f)
+
+
+def sloshing_damping_error(out_dir: Path, *, study_dir: Path | None = None, length: float, depth: float,
+                           width: float, axis: str = "x", wall: float = 0.0, t_min: float = 0.0,
+                           nu: float = 1.0e-6, g: float = 9.81) -> float:
+    """|zeta - zeta_water|: the first mode's damping ratio against the one water's viscosity gives through
+    the walls' boundary layers (sloshing_viscous_damping: 0.006 in configs/sloshing.yaml's tank). The rest
+    is the method's numerical dissipation (or, negative, energy it creates), which a convergent solver loses
+    with resolution."""
+    (f, delta), mpu = _sloshing_fit(out_dir, length, width, axis, wall, t_min)
+    water = sloshing_viscous_damping(length * mpu, width * mpu, depth * mpu, nu, g)
+    return abs(delta / (2.0 * math.pi * f) - water)
+
+
+def sloshing_viscous_damping(length: float, width: float, depth: float, nu: float = 1.0e-6,
+                             g: float = 9.81) -> float:
+    """Damping ratio of the first mode from the laminar Stokes layers on the floor and the four walls of a
+    clean rectangular tank (SI): the mean dissipation (rho / 2) sqrt(nu w / 2) |U_t|^2 per unit wall area
+    over twice the mode's energy (rho / 2) int |U|^2 dV, U = grad(cos kx cosh kz), divided by w."""
+    k = math.pi / length
+    w = 2.0 * math.pi * sloshing_f1(length, depth, g)
+    s = math.sinh(2.0 * k * depth)
+    volume = width * length * k * s / 4.0  # int |U|^2 dV
+    floor = length * width / 2.0  # the walls' int |U_t|^2 dA, each over k^2
+    ends = 2.0 * width * (s / (4.0 * k) - depth / 2.0)
+    sides = 2.0 * (length / 2.0) * s / (2.0 * k)
+    gamma = math.sqrt(nu * w / 2.0) * k * k * (floor + ends + sides) / (2.0 * volume)
+    return gamma / w
+
+
 def finest_variant(out_dir: Path, finest: dict) -> Path:
     """The study variant folder beside ``out_dir`` whose swept values ``finest`` (last part of the override
     path -> value, e.g. {spacing: 0.015625}) replace this one's: names are "key-value" joined by "_"."""
