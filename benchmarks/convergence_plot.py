@@ -1,14 +1,15 @@
-"""The convergence study's figure (issue 20): error against simulate time for each solver, with each solver's
+"""A convergence study's figure (issue 20): error against simulate time for each solver, with each solver's
 observed order of convergence and what each halving of the error costs.
 
-    python benchmarks/convergence_plot.py [--study-json configs/studies/out/convergence/study.json] [--run]
+    python benchmarks/convergence_plot.py [--study convergence|sloshing] [--study-json STUDY.json] [--run]
 
-``--run`` runs `pipeline study configs/studies/convergence.yaml` first (through the cache). Writes
-benchmarks/results/convergence.json, convergence.md and images/convergence.png."""
+``--run`` runs `pipeline study configs/studies/<study>.yaml` first (through the cache). Writes
+benchmarks/results/<study>.json, <study>.md and images/<study>.png."""
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 from pathlib import Path
@@ -19,9 +20,16 @@ sys.path.insert(0, str(ROOT))
 
 from stages.simulate.validation import cost_per_halving, observed_order  # noqa: E402
 
-STUDY = ROOT / "configs" / "studies" / "convergence.yaml"
-METRICS = {"front_speed_error": "|front speed / 2 sqrt(gH) - 1|, 0.1-0.2 s",
-           "distance_to_finest": "surge front RMS distance to the finest run / a"}
+# per study: its metrics (name -> axis label) and the figure's title
+STUDIES = {
+    "convergence": ({"front_speed_error": "|front speed / 2 sqrt(gH) - 1|, 0.1-0.2 s",
+                     "distance_to_finest": "surge front RMS distance to the finest run / a"},
+                    "Martin & Moyce dam break at a/8, a/12, a/16: error against cost"),
+    "sloshing": ({"frequency_error": "|f / f1 - 1|, first sloshing mode vs linear theory",
+                  "damping_error": "|damping ratio - water's (0.006)|, first mode"},
+                 "Free sloshing, 10 / 15 / 20 particles of depth: error against cost"),
+}
+METRICS: dict = STUDIES["convergence"][0]
 
 
 def summarise(results: list[dict]) -> dict:
@@ -44,13 +52,16 @@ def summarise(results: list[dict]) -> dict:
 
 
 def halving(x: float | None) -> str:
-    """A time factor per halving of the error; above 100x the error is flat (or rising) over these runs."""
+    """A time factor per halving of the error: above 100x the error barely falls over these runs; infinite, it
+    is flat or rising."""
     if x is None:
         return "-"
-    return f"x{x:.1f}" if x <= 100 else "none (flat or rising)"
+    if x <= 100:
+        return f"x{x:.1f}"
+    return "> x100" if math.isfinite(x) else "none (flat or rising)"
 
 
-def plot(summary: dict, path: Path) -> None:
+def plot(summary: dict, path: Path, title: str) -> None:
     os.environ.setdefault("MPLBACKEND", "Agg")
     import matplotlib.pyplot as plt
 
@@ -67,7 +78,7 @@ def plot(summary: dict, path: Path) -> None:
         ax.set_ylabel(label)
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7)
-    fig.suptitle("Martin & Moyce dam break at a/8, a/12, a/16: error against cost")
+    fig.suptitle(title)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path)
@@ -75,35 +86,40 @@ def plot(summary: dict, path: Path) -> None:
 
 
 def markdown(summary: dict) -> str:
-    lines = ["| solver | spacing | simulate s | front speed error | distance to finest / a |", "|---|---|---|---|---|"]
+    names = list(METRICS)
+    lines = ["| solver | spacing | simulate s | " + " | ".join(names) + " |", "|---" * (3 + len(names)) + "|"]
     for solver, row in summary.items():
-        for h, t, e1, e2 in zip(row["spacing"], row["seconds"], row["front_speed_error"], row["distance_to_finest"]):
-            lines.append(f"| {solver} | {h:.4g} | {t:.1f} | {e1:.3f} | {e2:.4f} |")
-    lines += ["", "| solver | observed order (front speed) | time per halving (front speed) | observed order (distance) | "
-              "time per halving (distance) |", "|---|---|---|---|---|"]
+        for k, (h, t) in enumerate(zip(row["spacing"], row["seconds"])):
+            lines.append(f"| {solver} | {h:.4g} | {t:.1f} | " + " | ".join(f"{row[m][k]:.4f}" for m in names) + " |")
+    lines += ["", "| solver | " + " | ".join(f"observed order ({m}) | time per halving ({m})" for m in names) + " |",
+              "|---" * (1 + 2 * len(names)) + "|"]
     for solver, row in summary.items():
-        cells = [row.get(k) for k in ("front_speed_error_order", "front_speed_error_time_per_halving",
-                                      "distance_to_finest_order", "distance_to_finest_time_per_halving")]
+        cells = [row.get(f"{m}_{k}") for m in names for k in ("order", "time_per_halving")]
         lines.append(f"| {solver} | " + " | ".join("-" if c is None else (f"{c:.2f}" if i % 2 == 0 else halving(c))
                                                    for i, c in enumerate(cells)) + " |")
     return "\n".join(lines) + "\n"
 
 
 def main() -> None:
+    global METRICS
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--study-json", type=Path, default=STUDY.parent / "out" / "convergence" / "study.json")
+    ap.add_argument("--study", choices=sorted(STUDIES), default="convergence")
+    ap.add_argument("--study-json", type=Path, help="default: configs/studies/out/<study>/study.json")
     ap.add_argument("--run", action="store_true", help="run the study first")
     a = ap.parse_args()
+    study = ROOT / "configs" / "studies" / f"{a.study}.yaml"
+    METRICS, title = STUDIES[a.study]
     if a.run:
         from pipeline.study import run_study
-        _, out = run_study(STUDY)
+        _, out = run_study(study)
         a.study_json = out / "study.json"
+    a.study_json = a.study_json or study.parent / "out" / a.study / "study.json"
     summary = summarise(json.loads(a.study_json.read_text())["results"])
-    (HERE / "results" / "convergence.json").write_text(json.dumps(summary, indent=1) + "\n")
+    (HERE / "results" / f"{a.study}.json").write_text(json.dumps(summary, indent=1) + "\n")
     md = markdown(summary)
-    (HERE / "results" / "convergence.md").write_text("# Convergence study (configs/studies/convergence.yaml)\n\n" + md)
+    (HERE / "results" / f"{a.study}.md").write_text(f"# {a.study} study (configs/studies/{a.study}.yaml)\n\n" + md)
     print(md)
-    plot(summary, HERE / "results" / "images" / "convergence.png")
+    plot(summary, HERE / "results" / "images" / f"{a.study}.png", title)
 
 
 if __name__ == "__main__":
