@@ -4,6 +4,7 @@ Timings are measured here, never asserted in tests: this machine is shared and n
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -12,7 +13,8 @@ HERE = Path(__file__).parent
 RESULTS = HERE / "results"
 BENCHES = ["bench_sdf.py", "bench_sph.py", "bench_dfsph.py", "bench_mps.py", "bench_hydrostatic.py", "bench_effects.py", "bench_walls.py", "bench_wall_maps.py",
            "bench_surface.py", "bench_render.py", "compare_sph_mps.py", "dragon_snap_figure.py",
-           "bench_peers.py", "bench_shot.py", "peers_accuracy_plot.py", "convergence_plot.py --run"]
+           "bench_peers.py", "bench_shot.py", "peers_accuracy_plot.py", "convergence_plot.py --run",
+           "convergence_plot.py --study sloshing --run"]
 
 
 def _load(name: str) -> dict | None:
@@ -68,14 +70,17 @@ def summary_rows() -> list[tuple[str, str, str, str, str, str]]:
                              f"times from separate runs)", f"{o['seconds']:.1f} ({o['surge_front_error']:.3f})",
                              f"{q['seconds']:.1f} ({q['surge_front_error']:.3f})", f"{o['seconds'] / q['seconds']:.2f}",
                              "-", "-"))
-    c = _load("convergence.json")
-    if c:
-        for solver, row in c.items():
-            for m, what in (("distance_to_finest", "distance to finest"), ("front_speed_error", "front speed vs Ritter")):
+    for study, metrics in (("convergence", (("distance_to_finest", "distance to finest"),
+                                            ("front_speed_error", "front speed vs Ritter"))),
+                           ("sloshing", (("frequency_error", "frequency vs linear theory"),
+                                         ("damping_error", "damping vs water's")))):
+        c = _load(f"{study}.json")
+        for solver, row in (c or {}).items():
+            for m, what in metrics:
                 if f"{m}_order" in row:
                     x = row[f"{m}_time_per_halving"]
-                    rows.append((f"convergence {solver}: {what}: observed order, time per halving of the error",
-                                 f"{row[f'{m}_order']:.2f}, " + (f"x{x:.1f}" if x <= 100 else "none"), "-", "-",
+                    rows.append((f"{study} {solver}: {what}: observed order, time per halving of the error",
+                                 f"{row[f'{m}_order']:.2f}, " + (f"x{x:.1f}" if x <= 100 else "> x100" if math.isfinite(x) else "none"), "-", "-",
                                  "error falls with cost", "yes" if x <= 100 else "no"))
     return rows
 
