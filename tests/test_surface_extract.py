@@ -94,3 +94,32 @@ def test_wall_term_puts_the_raw_surface_on_the_walls(tmp_path):
     assert abs(results["wall"][0]) < 0.01 * L0 and results["none"][0] < -0.02 * L0
     assert abs(results["wall"][1] - 1.0) < 0.03 and results["none"][1] < results["wall"][1] - 0.01
     assert results["wall"][2] > -1e-3 * L0  # the cut keeps the surface out of the walls
+
+
+def test_a_kept_grid_buffer_leaves_nothing_of_the_last_frame():
+    """The grid buffer is kept across frames (marching_cubes.grid_buffer) and not cleared between them: a small
+    frame after a large one, in the same buffer filled with leftovers, is the same surface as with a fresh
+    buffer (isotropic and anisotropic), and the number of threads (numba's and VTK's) does not change it."""
+    import numba as nb
+
+    from stages.surface_extract import marching_cubes as mc
+
+    rng = np.random.default_rng(4)
+    big = rng.uniform(0.0, 1.0, (4000, 3))  # a cloud: a large grid full of values
+    small = lattice([0.0, 0.0, 0.0], [0.2, 0.16, 0.12], L0) + rng.uniform(-0.1, 0.1, (480, 3)) * L0
+    vol = np.full(len(small), L0 ** 3)
+    for anisotropic in (False, True):
+        params = mc.MarchingCubesParams(cell=0.25, anisotropic=anisotropic)
+        mc._kept.phi = None
+        fresh = mc.extract(small, vol, L0, params)
+        mc.extract(big, np.full(len(big), L0 ** 3), L0, params)
+        assert mc._kept.phi.size > 100 * len(small)  # the big grid's buffer is the one reused
+        mc._kept.phi[:] = 7.0  # whatever a last frame left anywhere in it
+        threads = nb.get_num_threads()
+        nb.set_num_threads(1)
+        try:
+            again = mc.extract(small, vol, L0, params)
+        finally:
+            nb.set_num_threads(threads)
+        assert np.array_equal(again.faces, fresh.faces)
+        assert np.array_equal(again.vertices, fresh.vertices)

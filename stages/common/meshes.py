@@ -7,9 +7,14 @@ import numba as nb
 import numpy as np
 
 
+def _coords(v: np.ndarray) -> np.ndarray:
+    """``v`` as a contiguous float32 or float64 array: float32 vertices (a surface's) are not copied to float64."""
+    return np.ascontiguousarray(v, np.float32 if np.asarray(v).dtype == np.float32 else np.float64)
+
+
 def signed_volume(v: np.ndarray, f: np.ndarray) -> float:
-    """Volume enclosed by a closed mesh; positive when the faces are oriented outwards."""
-    return float(_signed_volume(np.ascontiguousarray(v, np.float64), np.ascontiguousarray(f)))
+    """Volume enclosed by a closed mesh; positive when the faces are oriented outwards (summed in float64)."""
+    return float(_signed_volume(_coords(v), np.ascontiguousarray(f)))
 
 
 def face_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
@@ -20,8 +25,9 @@ def face_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
 
 
 def vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals (zero for isolated vertices)."""
-    v = np.ascontiguousarray(v, np.float64)
+    """Area-weighted unit vertex normals (zero for isolated vertices), in the vertices' precision (float32 or
+    float64)."""
+    v = _coords(v)
     out = np.empty_like(v)
     _vertex_normals(v, np.ascontiguousarray(f), out)
     return out

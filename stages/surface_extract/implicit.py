@@ -73,7 +73,8 @@ def particle_volumes(x: np.ndarray, vol: np.ndarray, radius: float) -> np.ndarra
 
 @nb.njit(cache=True, parallel=True, fastmath=True)
 def scatter_implicit(x, vol, chunk_first, chunk_last, chunk_k0, grid_lo, inv_h, radius, phi):
-    """Add sum_j vol_j W(|node - x_j|) (eq. 17-18, Poly6 eq. 10 of support ``radius``) into ``phi``.
+    """phi = sum_j vol_j W(|node - x_j|) (eq. 17-18, Poly6 eq. 10 of support ``radius``); ``phi`` may come
+    uninitialised (each chunk zeroes its own slabs first: in parallel, and warm in the cache it scatters into).
 
     ``x`` (N, 3) in ``order_and_chunks`` order, ``vol`` (N,) = m / rho_j in the same order. Chunk c owns the z slabs
     ``chunk_k0[c] <= k < chunk_k0[c + 1]`` and visits particles ``chunk_first[c] <= q < chunk_last[c]``
@@ -86,6 +87,7 @@ def scatter_implicit(x, vol, chunk_first, chunk_last, chunk_k0, grid_lo, inv_h, 
     for c in nb.prange(len(chunk_first)):
         kc0 = chunk_k0[c]
         kc1 = chunk_k0[c + 1]
+        phi[kc0:kc1] = 0.0
         for q in range(chunk_first[c], chunk_last[c]):
             px = x[q, 0]
             py = x[q, 1]

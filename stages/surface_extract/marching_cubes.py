@@ -33,9 +33,11 @@ bodies) are folded into the field at the frame's time (sdf.posed_field).
 """
 from __future__ import annotations
 
+import threading
 import time
 from typing import Mapping
 
+import numba as nb
 import numpy as np
 from pydantic import Field
 
@@ -48,6 +50,30 @@ from .anisotropic import anisotropic_kernels, scatter_anisotropic
 from .implicit import cut_by_walls, ghost_particles, order_and_chunks, particle_volumes, scatter_implicit
 
 SLABS_PER_CHUNK = 4  # z slabs per parallel task: many tasks for balance, each particle in ~ 2R / (4 h) of them
+_kept = threading.local()  # per thread: the grid buffer kept across frames (grid_buffer)
+
+
+def vtk_threads(n: int) -> None:
+    """Run VTK's filters (flying edges) on ``n`` threads, as many as numba's: the VTK wheel's default SMP
+    backend is Sequential, one core (the splash's contour took 0.50 s on one core, 0.39 s on two). Flying
+    edges writes the same triangles in the same order on any number of threads."""
+    from vtkmodules.vtkCommonCore import vtkSMPTools
+    if vtkSMPTools.GetBackend() != "STDThread":
+        vtkSMPTools.SetBackend("STDThread")
+    if vtkSMPTools.GetEstimatedNumberOfThreads() != n:
+        vtkSMPTools.Initialize(n)
+
+
+def grid_buffer(shape) -> np.ndarray:
+    """An uninitialised float32 (nz, ny, nx) grid, a view of a buffer this thread keeps across frames. A
+    fresh array as large (220 MB for a 100k-particle splash at cell 0.25 l0) paid its page faults again on
+    every frame: a tenth of a second, and most of the run-to-run spread of the surface's time."""
+    n = int(np.prod(shape))
+    buf = getattr(_kept, "phi", None)
+    if buf is None or buf.size < n:
+        _kept.phi = None  # let the old one go before the new one is made
+        buf = _kept.phi = np.empty(n, np.float32)
+    return buf[:n].reshape(tuple(int(s) for s in shape))
 
 
 class MarchingCubesParams(Params):
@@ -112,8 +138,9 @@ def extract(x: np.ndarray, vol: np.ndarray, l0: float, params: MarchingCubesPara
     order, first, last, bounds = order_and_chunks(x, grid_lo, h, reach, shape, SLABS_PER_CHUNK)
     xs = np.ascontiguousarray(x[order])
     vs = np.ascontiguousarray(vol[order])
-    phi = np.zeros((shape[2], shape[1], shape[0]), np.float32)
+    phi = grid_buffer((shape[2], shape[1], shape[0]))  # scatter_implicit zeroes it
     if params.anisotropic:
+        phi[:] = 0.0
         scatter_anisotropic(xs, vs, np.ascontiguousarray(metric[order]), np.ascontiguousarray(extent[order]),
                             first, last, bounds, grid_lo, 1.0 / h, R, phi)
     else:
@@ -122,6 +149,7 @@ def extract(x: np.ndarray, vol: np.ndarray, l0: float, params: MarchingCubesPara
         cut_by_walls(phi, grid_lo, h, params.iso, R, sdf.dist, sdf.origin, 1.0 / sdf.spacing)
     t1 = time.perf_counter()
 
+    vtk_threads(nb.get_num_threads())
     img = pv.ImageData(dimensions=tuple(int(s) for s in shape), spacing=(h, h, h), origin=tuple(grid_lo))
     img.point_data["phi"] = phi.reshape(-1)  # (z, y, x) C order = VTK's x-fastest point order, no copy
     surf = img.contour([params.iso], scalars="phi", method="flying_edges", compute_normals=False,
@@ -131,7 +159,7 @@ def extract(x: np.ndarray, vol: np.ndarray, l0: float, params: MarchingCubesPara
         return SurfaceMesh.empty()
     if params.smoothing_iterations:
         surf = surf.smooth_taubin(n_iter=params.smoothing_iterations, pass_band=0.1)
-    verts = np.asarray(surf.points, np.float64)
+    verts = np.asarray(surf.points)  # float32 from VTK, kept: no float64 copy of millions of vertices
     # flying edges makes triangles only: the cells' connectivity, without pyvista's legacy (n, i, j, k)
     # array (building it took a third of a second at 4M triangles)
     faces = vtk_to_numpy(surf.GetPolys().GetConnectivityArray()).astype(np.int32).reshape(-1, 3)
@@ -141,7 +169,7 @@ def extract(x: np.ndarray, vol: np.ndarray, l0: float, params: MarchingCubesPara
     t3 = time.perf_counter()
     if timings is not None:
         timings.update({"volumes": t_vol - t0, "phi": t1 - t_vol, "contour": t2 - t1, "finish": t3 - t2})
-    return SurfaceMesh(verts.astype(np.float32), faces, normals.astype(np.float32))
+    return SurfaceMesh(verts.astype(np.float32, copy=False), faces, normals.astype(np.float32, copy=False))
 
 
 class MarchingCubes(Stage):
