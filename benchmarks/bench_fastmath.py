@@ -25,7 +25,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from bench_sph import dam_break, make_solver  # noqa: E402
 from stages.simulate.sph import SPHSolver  # noqa: E402
 from stages.simulate import sph_kernels as K  # noqa: E402
-from stages.simulate.kernels import FASTMATH, count_blown  # noqa: E402
+from stages.simulate.kernels import count_blown  # noqa: E402
 
 
 def main() -> None:

@@ -257,7 +257,7 @@ def test_independent_branches_run_concurrently_with_a_pool(toy_config):
 
 def test_dask_executor_gives_same_result(toy_config, toy_plugin):
     """A real (local, in-process) Dask cluster runs the per-frame jobs; outputs equal the inline run."""
-    from distributed import Client, LocalCluster
+    from distributed import LocalCluster
 
     from pipeline.executors import DaskExecutor
 

@@ -220,7 +220,7 @@ def test_asset_placed_by_the_real_mesh_import_lines_up(tmp_path, placement):
     run_stage(trimesh_import.TrimeshImport, inputs["walls"], scene=sc, config_dir=tmp_path)
     walls = WallMesh.load(inputs["walls"])
     lo_w, hi_w = walls.vertices.min(0), walls.vertices.max(0)
-    surf = surfaces(inputs["surface"], 0.5 * (lo_w + hi_w))
+    surfaces(inputs["surface"], 0.5 * (lo_w + hi_w))
     particles(inputs["particles"], 0.5 * (lo_w + hi_w))
 
     out = run_stage(UsdExport, tmp_path / "scene_units", scene=sc, inputs=inputs, config_dir=tmp_path,

@@ -3,10 +3,8 @@ input files, the code; a longer shot continues from the cached shorter one, bitw
 from __future__ import annotations
 
 import logging
-import textwrap
 from pathlib import Path
 
-import numpy as np
 import pytest
 import trimesh
 

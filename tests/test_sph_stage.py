@@ -4,7 +4,6 @@ import shutil
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from pipeline.stage import Artifact, Context
 from pipeline.testing import run_stage, scene_sections, stage_context

@@ -100,7 +100,7 @@ def _tank_energy_trace(**params):
     """Total energy (kinetic + gravitational + the compression energy of the linear EOS, clamped at
     rho0 like the pressure) of a resting tank sampled every 0.05 s over 0.5 s, relative to the start;
     and the energy scale M g l0."""
-    w, h, l0, c = 0.15, 0.2, 0.0125, None
+    w, h, l0 = 0.15, 0.2, 0.0125
     sdf = grid_from_function(box_interior_sdf([0, 0, 0], [w, 0.1, 0.3]), [0, 0, 0], [w, 0.1, 0.3], l0 / 2)
     x = lattice([0, 0, 0], [w, 0.1, h], l0)
     s = SPHSolver(x, np.zeros_like(x), np.arange(len(x)), sdf, spacing=l0, rho0=1000.0,

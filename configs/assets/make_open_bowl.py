@@ -24,7 +24,7 @@ Path(__file__).with_name("open_bowl.obj").write_text("\n".join(lines) + "\n")
 
 # The same bowl as a studio would hand it over (configs/open_bowl.yaml): a USD set in centimetres,
 # Y up, quads around the rings, under two transformed ancestors (25 cm radius, its bottom 3 cm up).
-from pxr import Gf, Sdf, Usd, UsdGeom  # noqa: E402
+from pxr import Gf, Usd, UsdGeom  # noqa: E402
 
 stage = Usd.Stage.CreateNew(str(Path(__file__).with_name("open_bowl_set.usda")))
 UsdGeom.SetStageMetersPerUnit(stage, 0.01)

@@ -6,9 +6,14 @@ Meshes come out with outward normals of the solid they bound; the caller orients
 """
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from pipeline.scene import BuiltinWall
+
+if TYPE_CHECKING:  # imported where used; here for the annotations only
+    import trimesh
 
 
 def _axes(up_axis: str) -> tuple[int, int, int]:

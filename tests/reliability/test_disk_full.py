@@ -18,7 +18,7 @@ from click.testing import CliRunner
 
 from pipeline.cli import main
 from pipeline.registry import Registry
-from rel_helpers import assert_consistent, entries, run_cli, tree, write_config
+from rel_helpers import assert_consistent, entries, tree, write_config
 from toy_stages import TOY_STAGES
 
 WRITE_MODES = set("wax+")

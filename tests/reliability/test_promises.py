@@ -192,7 +192,7 @@ def test_size_refusal_of_a_builtin_tank_whose_sdf_exceeds_memory_before_anything
     cfg = tmp_path / "km.yaml"
     cfg.write_text(KM_CONFIG.format(wall="{builtin: box_tank, size: [1000, 1000, 1000], center: [500, 500, 0]}"))
     err = _one_line_exit(_run(cfg), 2)
-    assert f"stage sdf_bake would need about" in err and f"sdf_bake: {KM_NODES:,} SDF nodes, ~" in err, err
+    assert "stage sdf_bake would need about" in err and f"sdf_bake: {KM_NODES:,} SDF nodes, ~" in err, err
     assert "PB of memory" in err and "--yes" in err and sorted(p.name for p in tmp_path.iterdir()) == [cfg.name]
     err = _one_line_exit(_run(cfg, "--yes", "--until", "sdf_bake"), 2)
     assert err.endswith("stage sdf_bake.open3d: bake reached") and bake_calls == [(200_025,) * 3], (err, bake_calls)
