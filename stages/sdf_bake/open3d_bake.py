@@ -47,19 +47,18 @@ from typing import Mapping
 from typing import TYPE_CHECKING, Literal
 
 import numpy as np
-
 from pydantic import Field, field_validator
 
 from pipeline.stage import Artifact, Context, Params, Stage, StageError
 from stages.common.formats import WallMesh
-
-if TYPE_CHECKING:  # imported where used (about 1.7 s); here for the annotations only
-    import open3d as o3d
 from stages.common.sdf import BODIES_DIR, BODIES_FILE, DEFAULT_SHELL_THICKNESS, SDFGrid, min_shell_thickness
 from stages.common.sizes import sdf_estimate
 from stages.mesh_import.builtin import builtin_corners
 
 from .mesh_distance import band_distance, inside_votes
+
+if TYPE_CHECKING:  # imported where used (about 1.7 s); here for the annotations only
+    import open3d as o3d
 
 MAX_NODES = 100_000_000  # ~27 bytes per node while baking: beyond this the spacing is surely a mistake
 
