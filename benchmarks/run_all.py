@@ -79,9 +79,10 @@ def summary_rows() -> list[tuple[str, str, str, str, str, str]]:
             for m, what in metrics:
                 if f"{m}_order" in row:
                     x = row[f"{m}_time_per_halving"]
+                    per_halving = f"x{x:.1f}" if x <= 100 else "> x100" if math.isfinite(x) else "none"
                     rows.append((f"{study} {solver}: {what}: observed order, time per halving of the error",
-                                 f"{row[f'{m}_order']:.2f}, " + (f"x{x:.1f}" if x <= 100 else "> x100" if math.isfinite(x) else "none"), "-", "-",
-                                 "error falls with cost", "yes" if x <= 100 else "no"))
+                                 f"{row[f'{m}_order']:.2f}, {per_halving}", "-", "-", "error falls with cost",
+                                 "yes" if x <= 100 else "no"))
     return rows
 
 

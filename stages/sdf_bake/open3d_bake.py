@@ -42,9 +42,7 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
-from typing import Mapping
-
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, Literal, Mapping
 
 import numpy as np
 from pydantic import Field, field_validator

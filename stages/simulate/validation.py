@@ -107,10 +107,9 @@ def hydrostatic_pressure_error(out_dir: Path, *, study_dir: Path | None = None, 
 
 def damped_frequency(t: np.ndarray, y: np.ndarray) -> tuple[float, float]:
     """(f, delta): the free decay y ~ A exp(-delta t) cos(2 pi f t + phase) + c0 + c1 t fitted by least squares
-    (delta in 1/s, negative for a growing oscillation)
     (linear in A cos, A sin, c0, c1 for given f and delta: those two by a grid, then a finer grid around the
-    best). Zero crossings about the mean are biased by a decay this strong (delta ~ 2 / s) and by the slow
-    settling of the surface; the fit is not."""
+    best); delta in 1/s, negative for a growing oscillation. Zero crossings about the mean are biased by a
+    decay this strong (delta ~ 2 / s) and by the slow settling of the surface; the fit is not."""
     t = np.asarray(t, float) - float(t[0])
     y = np.asarray(y, float)
 
