@@ -29,10 +29,7 @@ STUDIES = {
                   "damping_error": "|damping ratio - water's (0.006)|, first mode"},
                  "Free sloshing, 10 / 15 / 20 particles of depth: error against cost"),
 }
-METRICS: dict = STUDIES["convergence"][0]
-
-
-def summarise(results: list[dict]) -> dict:
+def summarise(results: list[dict], metrics: dict) -> dict:
     out = {}
     for solver in sorted({r["overrides"]["simulate.use"] for r in results}):
         rs = sorted((r for r in results if r["overrides"]["simulate.use"] == solver),
@@ -40,7 +37,7 @@ def summarise(results: list[dict]) -> dict:
         h = [r["overrides"]["fluid.spacing"] for r in rs]
         t = [r["seconds"] for r in rs]
         row = {"spacing": h, "seconds": t}
-        for m in METRICS:
+        for m in metrics:
             e = [r["metrics"][m] for r in rs]
             row[m] = e
             pts = [(hh, tt, ee) for hh, tt, ee in zip(h, t, e) if ee is not None and ee > 0]
@@ -61,12 +58,12 @@ def halving(x: float | None) -> str:
     return "> x100" if math.isfinite(x) else "none (flat or rising)"
 
 
-def plot(summary: dict, path: Path, title: str) -> None:
+def plot(summary: dict, path: Path, metrics: dict, title: str) -> None:
     os.environ.setdefault("MPLBACKEND", "Agg")
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(10, 4), dpi=120)
-    for ax, (m, label) in zip(axes, METRICS.items()):
+    for ax, (m, label) in zip(axes, metrics.items()):
         for solver, row in summary.items():
             pts = [(t, e) for t, e in zip(row["seconds"], row[m]) if e is not None and e > 0]
             if not pts:
@@ -85,8 +82,8 @@ def plot(summary: dict, path: Path, title: str) -> None:
     plt.close(fig)
 
 
-def markdown(summary: dict) -> str:
-    names = list(METRICS)
+def markdown(summary: dict, metrics: dict) -> str:
+    names = list(metrics)
     lines = ["| solver | spacing | simulate s | " + " | ".join(names) + " |", "|---" * (3 + len(names)) + "|"]
     for solver, row in summary.items():
         for k, (h, t) in enumerate(zip(row["spacing"], row["seconds"])):
@@ -101,25 +98,24 @@ def markdown(summary: dict) -> str:
 
 
 def main() -> None:
-    global METRICS
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--study", choices=sorted(STUDIES), default="convergence")
     ap.add_argument("--study-json", type=Path, help="default: configs/studies/out/<study>/study.json")
     ap.add_argument("--run", action="store_true", help="run the study first")
     a = ap.parse_args()
     study = ROOT / "configs" / "studies" / f"{a.study}.yaml"
-    METRICS, title = STUDIES[a.study]
+    metrics, title = STUDIES[a.study]
     if a.run:
         from pipeline.study import run_study
         _, out = run_study(study)
         a.study_json = out / "study.json"
     a.study_json = a.study_json or study.parent / "out" / a.study / "study.json"
-    summary = summarise(json.loads(a.study_json.read_text())["results"])
+    summary = summarise(json.loads(a.study_json.read_text())["results"], metrics)
     (HERE / "results" / f"{a.study}.json").write_text(json.dumps(summary, indent=1) + "\n")
-    md = markdown(summary)
+    md = markdown(summary, metrics)
     (HERE / "results" / f"{a.study}.md").write_text(f"# {a.study} study (configs/studies/{a.study}.yaml)\n\n" + md)
     print(md)
-    plot(summary, HERE / "results" / "images" / f"{a.study}.png", title)
+    plot(summary, HERE / "results" / "images" / f"{a.study}.png", metrics, title)
 
 
 if __name__ == "__main__":

@@ -116,7 +116,6 @@ def test_mesh_emitter_file_is_in_the_simulate_key(tmp_path):
         keys(config)
 
 
-
 def test_a_moved_project_keeps_its_keys(tmp_path):
     """Input files are keyed by their path relative to the config (and their content), not where the project
     sits on disk: a project folder moved or cloned elsewhere keeps every key, so its cache is still used; a
@@ -130,6 +129,7 @@ def test_a_moved_project_keeps_its_keys(tmp_path):
     drop.apply_translation((0.1, 0.0, 0.15))
     drop.export(b / "drop.obj")
     assert keys(b / "tiny.yaml")["simulate"] != ka["simulate"]
+
 
 # -- code changes invalidate without a version bump ---------------------------------------------------
 STAGE_MODULE = """\
