@@ -8,7 +8,7 @@ import math
 from typing import Literal, Mapping
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from pipeline.stage import Artifact, Context, Params, Stage, StageError
 from stages.common.formats import ParticleFrame
@@ -22,11 +22,20 @@ from .kernels import (lattice_mass, poly6_coef, spiky_grad_coef, spiky_lattice_f
                       wall_gradient_tables)
 from .neighbours import CellGrid, neighbour_list, reorder
 from .walls.maps import BrickWallMaps, make_walls
+from .walls.spline import SplineWallMaps, spline_coefs, spline_lattice_mass
 from .timestep import stable_dt, step_to
 
 
 class SPHParams(Params):
     support: float = Field(2.0, ge=1.5, le=4.0, description="kernel support radius h in units of the spacing l0")
+    kernel: Literal["poly6_spiky", "spline"] = Field("poly6_spiky", description="'poly6_spiky': Poly6 density, "
+                                                     "Spiky pressure gradient (Mueller et al. 2003; the default until "
+                                                     "the spline passes every scene test, and the one gradient_correction, "
+                                                     "wall_gradient and the mirrored wall pressure need); 'spline': the "
+                                                     "cubic spline for the density and its own gradient in the pair form "
+                                                     "p_i / rho_i^2 + p_j / rho_j^2, the walls as its quadrature "
+                                                     "(walls/spline.py): the pressure force is the derivative of the "
+                                                     "compression energy, so fluid at rest settles")
     eos: Literal["linear", "tait"] = Field("linear", description="eq. 5 p = k (rho - rho0), k = c^2; or Tait, B = rho0 c^2 / 7")
     sound_speed: float | None = Field(None, gt=0, description="numerical speed of sound c, m/s; default 10 x the expected "
                                       "top speed (sqrt(2 g H) of the fluid column, or the emitters' speed)")
@@ -57,6 +66,16 @@ class SPHParams(Params):
     correction_full: float = Field(0.97, gt=0.9, le=1, description="density ratio rho/rho0 from which the "
                                    "correction applies fully (linearly less below, none at 0.9: the free surface)")
 
+    @model_validator(mode="after")
+    def _spiky_options(self):
+        if self.kernel == "spline":
+            for name in ("gradient_correction", "wall_gradient"):
+                if getattr(self, name):
+                    raise ValueError(f"{name} is fitted to the Spiky gradient: set kernel: poly6_spiky with it")
+            if self.wall_pressure == "mirrored":
+                raise ValueError("wall_pressure: mirrored is fitted to the Spiky gradient: set kernel: poly6_spiky with it")
+        return self
+
 
 # neighbour-list slots per particle to start with: 27 neighbours within h = 2 l0 on the resting
 # lattice, 44 within h + 0.2 l0 (the default skin); grown to the largest count seen when a build finds more
@@ -81,13 +100,22 @@ class SPHSolver(SolverBase):
         self.l0 = float(spacing)
         self.h = params.support * self.l0
         self.rho0 = float(rho0)
-        self.mass = lattice_mass(self.rho0, self.l0, self.h)
-        self.walls = BrickWallMaps(sdf, self.l0, self.h, self.mass, self.rho0, params.table_samples)
+        self.spline = params.kernel == "spline"
+        self._spline_arg = (1.0,) if self.spline else None  # the kernels' compile-time switch (None: Poly6/Spiky)
+        if self.spline:  # one kernel for the density and the pressure gradient, walls included
+            self.mass = spline_lattice_mass(self.rho0, self.l0, self.h)
+            self.walls = SplineWallMaps(sdf, self.l0, self.h, self.mass, self.rho0, params.table_samples)
+            self.density_coef, self.pressure_coef = spline_coefs(self.h)
+        else:
+            self.mass = lattice_mass(self.rho0, self.l0, self.h)
+            self.walls = BrickWallMaps(sdf, self.l0, self.h, self.mass, self.rho0, params.table_samples)
         self.fix_vis = self.walls.fix_vis if wall_viscosity else np.zeros_like(self.walls.fix_vis)
         self.inv_dr = self.walls.inv_dr
         if effects.adhesion_accel is not None and len(effects.adhesion_accel) != params.table_samples:
             raise ValueError("effects.adhesion_accel must be sampled like the wall tables (table_samples)")
         self.grad_norm = spiky_lattice_factor(self.rho0, self.l0, self.h, self.mass)
+        if not self.spline:
+            self.density_coef, self.pressure_coef = poly6_coef(self.h), spiky_grad_coef(self.h) / self.grad_norm
         self.fix_press = self.walls.fix_press / self.grad_norm  # the mirrored wall's table (wall_pressure)
         self.mirrored_wall = params.wall_pressure == "mirrored" or (
             params.wall_pressure == "auto" and (params.wall_gradient or params.gradient_correction))
@@ -95,7 +123,8 @@ class SPHSolver(SolverBase):
             raise ValueError("simulate.sph: moving walls need the conservative wall pressure (wall_pressure: "
                              "conservative, without gradient_correction or wall_gradient)")
         self.set_motions(bodies)
-        self.bodies = [(b, BrickWallMaps(b, self.l0, self.h, self.mass, self.rho0, params.table_samples)) for b, _ in bodies]
+        maps = SplineWallMaps if self.spline else BrickWallMaps
+        self.bodies = [(b, maps(b, self.l0, self.h, self.mass, self.rho0, params.table_samples)) for b, _ in bodies]
         self.wall_terms = make_walls(sdf, self.walls, self.bodies)
         self.wall_t = None
         if params.wall_gradient or params.gradient_correction:
@@ -166,9 +195,9 @@ class SPHSolver(SolverBase):
         # after a build (the arrays reordered) every particle samples the SDF; between builds only those
         # within h of a wall by integrate's lower bound of their distance
         # (with moving walls every particle samples them: the distance bound holds for static walls only)
-        K.density_verlet(self.x, self.nbr, self.cnt, self.cnt_in, self.h, poly6_coef(self.h), self.mass, self.rho0,
+        K.density_verlet(self.x, self.nbr, self.cnt, self.cnt_in, self.h, self.density_coef, self.mass, self.rho0,
                          self.wall_terms, self.eos, self.stiffness, self.p.clamp_pressure, self.rho, self.pr, self.d,
-                         self.nrm, self.inv_rho, built or bool(self.bodies))
+                         self.nrm, self.inv_rho, built or bool(self.bodies), self._spline_arg)
 
     def effect_args(self) -> tuple:
         """(viscosity, tension, adhesion, friction, wind, attractor) for K.forces: None when absent."""
@@ -184,10 +213,10 @@ class SPHSolver(SolverBase):
     def forces(self) -> None:
         g = self.grid
         grad_coef = spiky_grad_coef(self.h) / self.grad_norm
-        if self.normals is not None:  # Akinci normals: a pass after the density, only with tension
+        if self.normals is not None:  # Akinci normals (Spiky): a pass after the density, only with tension
             K.surface_normals(self.x, self.rho, g.starts, g.lo, 1.0 / g.cell, g.dims, self.h, grad_coef, self.mass,
                               self.normals, (self.nbr, self.cnt_in))
-        pressure = (self.pr, grad_coef, self.p.artificial_viscosity * self.c * self.h)
+        pressure = (self.pr, self.pressure_coef, self.p.artificial_viscosity * self.c * self.h)
         correction = None
         if self.lcorr is not None:
             K.gradient_correction(self.x, self.nbr, self.cnt_in, self.inv_rho, self.rho, self.rho0, self.h, grad_coef,
@@ -197,7 +226,7 @@ class SPHSolver(SolverBase):
         K.forces(self.x, self.v, self.rho, self.d, self.nrm, g.starts, g.lo, 1.0 / g.cell, g.dims, self.h, self.mass,
                  self.rho0, self.wall_terms, self.gravity, self.acc, pressure, *self.effect_args(), (self.nbr, self.cnt_in), self.inv_rho, correction,
                  self.wall_t if self.p.wall_gradient else None,
-                 (self.fix_press,) if self.mirrored_wall else None)
+                 (self.fix_press,) if self.mirrored_wall else None, self._spline_arg)
 
     def stable_dt(self, dt_max: float) -> float:
         v2, a2 = K.max_speed2_accel2(self.v, self.acc)

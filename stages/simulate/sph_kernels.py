@@ -43,6 +43,8 @@ one machine-code build per effect set on disk, so an absent effect costs nothing
     mirrored_wall (fix_press,): the former non-conservative wall pressure (mirrored particles at the
     neighbours' mean pressure along the map's Spiky channels 1-3, fix_press the flat-wall table over the
     lattice factor) instead of -(p_i / rho_i^2) grad Z.
+    spline     not None: the pressure pair term with the cubic spline's gradient (walls.spline.spline_f;
+               ``grad_coef`` its coefficient l), the gradient of the density's own kernel.
     These are pressure-term options (ignored without ``pressure``), None = off, compiled out like the effects.
 """
 from __future__ import annotations
@@ -54,6 +56,7 @@ import numba as nb
 from stages.common.sdf import sdf_sample
 
 from .kernels import FASTMATH
+from .walls.spline import spline_f, spline_w
 from .neighbours import cell_coords
 from .walls.maps import (bodies_density, bodies_nearest, bodies_push_out, bodies_viscous, brick_sample,
                          brick_sample_1234, nearest_wall_velocity, static_distance, wall_density)
@@ -102,12 +105,13 @@ def _walls_and_pressure(i, s, xi, yi, zi, h, poly6_coef, mass, rho0, walls, eos,
 
 @nb.njit(cache=True, parallel=True)
 def density_pressure(x, starts, lo, inv_cell, dims, h, poly6_coef, mass, rho0, walls, eos, stiffness, clamp, rho, p,
-                     d, nrm):
+                     d, nrm, spline=None):
     """Eq. 11: rho_i = sum_j m W(r_ij) (eq. 4, 10, self included) + Z_rho (eq. 12) from the 3D wall
     map (walls/maps.py) times the flat-wall factor at the SDF distance r_iw; eq. 5 pressure
     p = k (rho - rho0) (or Tait, B = stiffness), optionally clamped at 0. Also stores the SDF distance
     ``d`` and wall normal ``nrm`` of each particle. Grid cells of size >= h (27 cells scanned);
-    SPHSolver uses ``density_verlet`` instead."""
+    SPHSolver uses ``density_verlet`` instead. ``spline`` not None: the cubic spline instead of Poly6
+    (``poly6_coef`` is then its coefficient k, walls.spline; the walls must be its SplineWallMaps)."""
     h2 = h * h
     nx, ny, nz = dims[0], dims[1], dims[2]
     for i in nb.prange(x.shape[0]):
@@ -127,14 +131,17 @@ def density_pressure(x, starts, lo, inv_cell, dims, h, poly6_coef, mass, rho0, w
                     dz = zi - x[j, 2]
                     r2 = dx * dx + dy * dy + dz * dz
                     if r2 < h2:
-                        q = h2 - r2
-                        s += q * q * q
+                        if spline is not None:
+                            s += spline_w(math.sqrt(r2), h, 1.0)
+                        else:
+                            q = h2 - r2
+                            s += q * q * q
         _walls_and_pressure(i, s, xi, yi, zi, h, poly6_coef, mass, rho0, walls, eos, stiffness, clamp, rho, p, d, nrm)
 
 
 @nb.njit(cache=True, parallel=True)
 def density_verlet(x, nbr, cnt, cnt_in, h, poly6_coef, mass, rho0, walls, eos, stiffness, clamp, rho, p, d, nrm, inv_rho,
-                   exact=True):
+                   exact=True, spline=None):
     """``density_pressure`` (eq. 11, 12, 5) over a Verlet list, plus ``inv_rho`` = 1 / rho for ``forces``.
     nbr[i, :cnt[i]] holds every particle that was within h + skin of i when the list was built
     (neighbours.neighbour_list with that radius), so while no pair has closed in by more than the skin
@@ -143,7 +150,7 @@ def density_verlet(x, nbr, cnt, cnt_in, h, poly6_coef, mass, rho0, walls, eos, s
     count in ``cnt_in`` for ``forces``. Per particle only, so the result does not depend on the thread
     count. With a list at radius h (skin 0) in cell-scan order, bitwise ``density_pressure``.
     ``exact`` False: ``d`` holds the lower bounds ``integrate`` left, and particles further than h
-    from a wall skip the SDF sample."""
+    from a wall skip the SDF sample. ``spline`` as in ``density_pressure``."""
     h2 = h * h
     for i in nb.prange(x.shape[0]):
         xi = x[i, 0]
@@ -156,11 +163,14 @@ def density_verlet(x, nbr, cnt, cnt_in, h, poly6_coef, mass, rho0, walls, eos, s
             dx = xi - x[j, 0]
             dy = yi - x[j, 1]
             dz = zi - x[j, 2]
-            q = h2 - (dx * dx + dy * dy + dz * dz)
+            r2 = dx * dx + dy * dy + dz * dz
             # branch-free partition (selects, not jumps: about a quarter of the candidates are out)
-            inside = q > 0.0
-            q = max(q, 0.0)
-            s += q * q * q
+            inside = r2 < h2
+            if spline is not None:
+                s += spline_w(math.sqrt(r2), h, 1.0)  # zero at r >= h
+            else:
+                q = max(h2 - r2, 0.0)
+                s += q * q * q
             a = nbr[i, k]
             nbr[i, jj] = a if inside else j
             nbr[i, k] = j if inside else a
@@ -317,7 +327,7 @@ def surface_normals(x, rho, starts, lo, inv_cell, dims, h, grad_coef, mass, out,
 # does not depend on the thread count. FASTMATH keeps NaN/Inf semantics (the blow-up check needs them)
 @nb.njit(cache=True, parallel=True, fastmath=FASTMATH)
 def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, walls, gravity, acc, pressure, viscosity, tension, adhesion, friction, wind, attractor, neighbours=None, inv_rho=None,
-           correction=None, wall_gradient=None, mirrored_wall=None):
+           correction=None, wall_gradient=None, mirrored_wall=None, spline=None):
     """Acceleration of every particle: gravity plus the declared effects (module docstring). Pressure
     eq. 6, 8 (+ Monaghan av) and the wall pressure -(p_i / rho_i^2) grad Z of the wall density Z (or the
     mirrored form, ``mirrored_wall``); viscosity eq. 7, 9 and the wall term eq. 13-15; tension, adhesion,
@@ -458,7 +468,13 @@ def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, walls, 
                         # rho_j read (|vdx| - vdx = 2 max(-vdx, 0) exactly: a receding pair adds an exact
                         # +0.0 without a branch, which was mispredicted for about half the pairs)
                         den = (r2 + eps) * (inv_rhoi + inv_rhoj)
-                        f = inv_rhoj * ((pi + p[j]) * den + av * (abs(vdx) - vdx)) * (hr * hr) / (den * r)
+                        if spline is not None:
+                            # the derivative of sum m e(rho) exactly: (p_i / rho_i^2 + p_j / rho_j^2) rho_i
+                            # (times m grad_coef / rho_i below)
+                            f = ((pi * inv_rhoi * inv_rhoi + p[j] * inv_rhoj * inv_rhoj) * rhoi
+                                 + inv_rhoj * av * (abs(vdx) - vdx) / den) * spline_f(r, h, 1.0)
+                        else:
+                            f = inv_rhoj * ((pi + p[j]) * den + av * (abs(vdx) - vdx)) * (hr * hr) / (den * r)
                         if correction is not None:
                             # 0.5 (L_i + L_j) applied to the pair direction (symmetric in i, j)
                             mxx = 0.5 * (lxx + lc[j, 0])
