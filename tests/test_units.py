@@ -22,25 +22,32 @@ def scene(mpu: float) -> dict:
             "effects": {"gravity": {}, "viscosity": {"mu": 0.001}}}
 
 
-def run(tmp_path, mpu: float, solver=SPHSimulate):
+def run(tmp_path, mpu: float, solver=SPHSimulate, params=None):
     s = 1.0 / mpu
     hi = np.array([0.3, 0.2, 0.4]) * s
     (tmp_path / f"sdf{mpu}").mkdir()
     grid_from_function(box_interior_sdf([0, 0, 0], hi), [0, 0, 0], hi, L0 * s / 2).save(tmp_path / f"sdf{mpu}")
-    return run_stage(solver, tmp_path / f"out{mpu}", scene=scene(mpu), params={"threads": 1},
+    return run_stage(solver, tmp_path / f"out{mpu}", scene=scene(mpu), params={"threads": 1, **(params or {})},
                      inputs={"sdf": tmp_path / f"sdf{mpu}"})
 
 
-@pytest.mark.parametrize("solver", [SPHSimulate, DFSPHSimulate, MPSSimulate], ids=lambda s: s.name)
-def test_centimetre_scene_moves_like_the_metre_scene(tmp_path, solver):
-    metres, cm = run(tmp_path, 1.0, solver), run(tmp_path, 0.01, solver)
-    assert ParticleMeta.load(cm).spacing == ParticleMeta.load(metres).spacing * 100
-    a, b = load_particle_frame(metres, 5), load_particle_frame(cm, 5)
+@pytest.mark.parametrize("solver, params, mpu", [
+    (SPHSimulate, {}, 0.01),
+    (SPHSimulate, {"kernel": "spline"}, 0.01),
+    (SPHSimulate, {"kernel": "spline"}, 0.001),
+    (DFSPHSimulate, {}, 0.01),
+    (MPSSimulate, {}, 0.01),
+], ids=["sph-cm", "sph_spline-cm", "sph_spline-mm", "dfsph-cm", "mps-cm"])
+def test_centimetre_scene_moves_like_the_metre_scene(tmp_path, solver, params, mpu):
+    metres, other = run(tmp_path, 1.0, solver, params), run(tmp_path, mpu, solver, params)
+    k = 1.0 / mpu  # metres -> scene units
+    assert ParticleMeta.load(other).spacing == pytest.approx(ParticleMeta.load(metres).spacing * k, rel=1e-12)
+    a, b = load_particle_frame(metres, 5), load_particle_frame(other, 5)
     order_a, order_b = np.argsort(a.id), np.argsort(b.id)
     fall = np.abs(a.x[:, 2] - load_particle_frame(metres, 0).x[:, 2]).max()
     assert fall > 0.5 * L0  # the column has started to collapse: the comparison means something
-    np.testing.assert_allclose(b.x[order_b] / 100, a.x[order_a], atol=1e-3 * L0)
-    np.testing.assert_allclose(b.v[order_b] / 100, a.v[order_a], atol=1e-3)
+    np.testing.assert_allclose(b.x[order_b] / k, a.x[order_a], atol=1e-3 * L0)
+    np.testing.assert_allclose(b.v[order_b] / k, a.v[order_a], atol=1e-3)
     np.testing.assert_allclose(b.rho[order_b], a.rho[order_a], rtol=1e-4)  # kg/m^3 either way
 
 
