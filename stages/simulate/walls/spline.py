@@ -39,26 +39,23 @@ def spline_coefs(h: float) -> tuple[float, float]:
 
 @nb.njit(cache=True, inline="always")
 def spline_w(r, h, k):
-    """The cubic spline W(r) (zero for r >= h)."""
+    """The cubic spline W(r) (zero for r >= h). Both pieces are computed and one selected: no branch
+    to mispredict in the pair loops (lattice neighbours sit at q = 0.5, the pieces' seam)."""
     q = r / h
-    if q >= 1.0:
-        return 0.0
-    if q <= 0.5:
-        return k * (6.0 * q * q * (q - 1.0) + 1.0)
-    t = 1.0 - q
-    return 2.0 * k * t * t * t
+    t = max(1.0 - q, 0.0)
+    inner = 6.0 * q * q * (q - 1.0) + 1.0
+    outer = 2.0 * t * t * t
+    return k * (inner if q <= 0.5 else outer)
 
 
 @nb.njit(cache=True, inline="always")
 def spline_f(r, h, l):
-    """f(r) with -grad_i W_ij = f (x_i - x_j) (zero for r >= h; finite at r = 0)."""
+    """f(r) with -grad_i W_ij = f (x_i - x_j) (zero for r >= h; finite at r = 0); branch-free as spline_w."""
     q = r / h
-    if q >= 1.0:
-        return 0.0
-    if q <= 0.5:
-        return l * (2.0 - 3.0 * q) / (h * h)
-    t = 1.0 - q
-    return l * t * t / (r * h)
+    t = max(1.0 - q, 0.0)
+    inner = (2.0 - 3.0 * q) / (h * h)
+    outer = t * t / (max(r, 1e-300) * h)
+    return l * (inner if q <= 0.5 else outer)
 
 
 def spline_np(r, h):
