@@ -33,7 +33,7 @@ from stages.simulate.emitters import drop_inside_walls, drop_overlaps, lattice  
 G = 9.81
 RHO0 = 1000.0
 MU = 0.001  # water
-SOLVERS = ("sph", "dfsph", "mps")
+SOLVERS = ("sph", "sph_spline", "dfsph", "mps")  # sph_spline: WCSPH with kernel: spline
 
 
 @dataclass
@@ -240,8 +240,10 @@ def make_solver(name: str, s: Scene):
     g = s.gravity
     params = s.params.get(name, {})
     vref = s.v_bound
-    if name == "sph":
+    if name in ("sph", "sph_spline"):
         from stages.simulate.sph import SPHParams, SPHSolver
+        if name == "sph_spline":
+            params = {**s.params.get("sph", {}), "kernel": "spline"}
         sol = SPHSolver(s.x, s.v, ids, s.sdf, spacing=s.l0, rho0=RHO0, params=SPHParams(**params), gravity=g,
                         mu=s.mu, v_ref=vref)
     elif name == "dfsph":

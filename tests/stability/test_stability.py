@@ -27,6 +27,8 @@ def _one_thread():
 KNOWN = {
     ("rest", "sph"): "not yet below 1 cm/s at 0.3 s with water's viscosity (decaying since the wall pressure is "
                      "conservative: 0.02 m/s mean at 1.5 s; the start's slow surface modes)",
+    ("rest", "sph_spline"): "not yet below 1 cm/s at 0.3 s (0.020 m/s: the start's transient; 0.007 m/s at 1.5 s and "
+                            "0.003 at 3 s in bench_rest's tank)",
     ("rest", "dfsph"): "not at rest with water's viscosity: the floor layer's pressure and the wall term (dfsph.py)",
     ("rest", "mps"): "not yet below 1 cm/s at 0.3 s with water's viscosity (decaying: 0.021 m/s mean at 1.5 s)",
     ("dam_break", "mps"): "single spurious impact particles at 2.9 x the ballistic bound",
@@ -48,7 +50,7 @@ def _cases():
 def test_case_stays_stable(case, solver):
     r = run_case(case, solver)
     print(r.row())
-    if case == "huge_time_step" and solver == "sph":
+    if case == "huge_time_step" and solver in ("sph", "sph_spline"):
         assert r.blowup is not None and "likely cause: the time step" in r.blowup, r.blowup
         return
     if case == "huge_time_step" and r.blowup is not None:
