@@ -22,8 +22,12 @@ $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	# uv (Astral's installer, from PyPI) fetches and unpacks the wheels in parallel: the set-up took 1 min 48 s
 	# with pip and a warm pip cache, 45 s with uv and a cold one; pip does it where uv cannot be had
-	$(BIN)/pip install -q uv && $(BIN)/uv pip install -q --python $(BIN)/python -e ".[test]" \
+	# --compile-bytecode: uv leaves the wheels uncompiled, and where PYTHONDONTWRITEBYTECODE is set (many
+	# containers, this machine) Python then compiled numba, pyvista, pydantic... from source in every process: 1.3-3 s
+	# of each pipeline run's start (cProfile: builtins.compile); compileall does the project's own modules
+	$(BIN)/pip install -q uv && $(BIN)/uv pip install -q --compile-bytecode --python $(BIN)/python -e ".[test]" \
 	  || $(BIN)/pip install -q -e ".[test]"
+	$(BIN)/python -m compileall -q pipeline stages >/dev/null
 	touch $(STAMP)
 
 setup: $(STAMP)
