@@ -148,6 +148,37 @@ def test_dam_break_surge_front_and_density_error():
     assert s.solver_stats()["mean_density_iterations"] < 10
 
 
+def test_bulk_particles_skipping_the_sdf_changes_nothing(monkeypatch):
+    """DFSPH's integrate passes the density pass's wall distances, so particles far from the walls skip
+    the SDF: the run is bitwise the run that tests every particle, here a breaking dam whose fast
+    particles move farther in a step than DFSPH's sub-step limit near walls (r_rep 0.2 l0)."""
+    from stages.common.sdf import wall_move_limit
+    from stages.simulate import sph_kernels as K
+
+    a, l0, width = 0.1, 0.01, 0.04
+    lo, hi = np.array([0.0, 0.0, 0.0]), np.array([5 * a, width, 3 * a])
+    sdf = grid_from_function(box_interior_sdf(lo, hi), lo, hi, l0 / 2)
+    x = lattice([0, 0, 0], [a, width, 2 * a], l0)
+    integrate = K.integrate
+    longest = []  # the longest move of a step, in units of the sub-step limit
+
+    def run(bound: bool) -> DFSPHSolver:
+        def traced(x, v, acc, dt, walls, r_rep, max_corr, max_move, travel=None, d=None):
+            longest.append(dt * np.linalg.norm(v + dt * acc, axis=1).max() / max_move)
+            integrate(x, v, acc, dt, walls, r_rep, max_corr, max_move, travel, d if bound else None)
+
+        monkeypatch.setattr(K, "integrate", traced)
+        s = DFSPHSolver(x, np.zeros_like(x), np.arange(len(x)), sdf, spacing=l0, rho0=1000.0, params=DFSPHParams(),
+                        gravity=(0, 0, -9.81), mu=0.001)
+        s.advance_to(0.2)
+        return s
+
+    fast, slow = run(True), run(False)
+    assert wall_move_limit(DFSPHParams().r_rep) < 0.5 and max(longest) > 1.0  # some moves were sub-stepped
+    assert np.abs(fast.v).max() > 0.5 and fast.x[:, 0].max() > 0.2  # the surge ran along the floor
+    assert np.array_equal(fast.x, slow.x) and np.array_equal(fast.v, slow.v) and fast.steps == slow.steps
+
+
 L0_STAGE = 0.02
 SCENE = {
     "scene": {"name": "t", "frames": {"fps": 50, "count": 7}, "units": {"up_axis": "Z"}},

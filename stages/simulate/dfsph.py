@@ -271,9 +271,8 @@ class DFSPHSolver(SolverBase):
         self.iterations[0] += it
         self.solve_error[0] += err
         # x += dt v*, then the eq. 16 clamp along the SDF normal as a safety net (acceleration already in v);
-        # self.d, the density pass's wall distance at these positions, lets the particles that stay far
-        # from the walls skip the SDF (the demo dam break at 0.6 s: 3.4-4.4 -> 1.5-2.2 ms a step; refresh samples
-        # every d again)
+        # with self.d, the density pass's wall distances at these positions, particles far from the walls skip
+        # the SDF (3.4-4.4 -> 1.5-2.2 ms a step at 20k); the refresh below samples every d again
         K.integrate(self.x, self.v, self.zero_acc, dt, self.wall_terms,
                     self.p.r_rep * self.l0, 0.5 * self.l0, wall_move_limit(self.p.r_rep) * self.l0, None, self.d)
         self.refresh()

@@ -663,6 +663,12 @@ def push_out_of_walls(px, py, pz, vx, vy, vz, sdf, sdf_o, sdf_inv, r_rep, max_co
     return px, py, pz, vx, vy, vz
 
 
+@nb.njit(cache=True, inline="always")
+def sub_steps(step, max_move):
+    """How many sub-steps a move of length ``step`` takes: moves no longer than ``max_move`` each."""
+    return int(math.ceil(step / max_move)) if step > max_move else 1
+
+
 @nb.njit(cache=True)
 def move_near_walls(x0, y0, z0, vx, vy, vz, dt, walls, r_rep, max_corr, max_move):
     """x += dt v for a particle near a wall, in sub-steps no longer than ``max_move``, each followed by
@@ -670,10 +676,7 @@ def move_near_walls(x0, y0, z0, vx, vy, vz, dt, walls, r_rep, max_corr, max_move
     short between two push-outs (stages.common.sdf.wall_move_limit). A particle moving less than
     ``max_move`` takes the single step it always took (bitwise). Moving walls are taken at their pose at
     the end of the step. Returns the new (x, v)."""
-    n = 1
-    step = dt * math.sqrt(vx * vx + vy * vy + vz * vz)
-    if step > max_move:
-        n = int(math.ceil(step / max_move))
+    n = sub_steps(dt * math.sqrt(vx * vx + vy * vy + vz * vz), max_move)
     h = dt / n
     px = x0
     py = y0
@@ -709,9 +712,16 @@ def integrate(x, v, acc, dt, walls, r_rep, max_corr, max_move, travel=None, d=No
         step = dt * math.sqrt(vx * vx + vy * vy + vz * vz)
         if d is not None and d[i] - 2.0 * step >= r_rep:
             d[i] -= 2.0 * step
-            px = x[i, 0] + dt * vx
-            py = x[i, 1] + dt * vy
-            pz = x[i, 2] + dt * vz
+            # the sub-steps move_near_walls would take (no push-out finds anything): the same sums, bitwise
+            n = sub_steps(step, max_move)
+            h = dt / n
+            px = x[i, 0]
+            py = x[i, 1]
+            pz = x[i, 2]
+            for _ in range(n):
+                px += h * vx
+                py += h * vy
+                pz += h * vz
         else:
             if d is not None:
                 d[i] = -1.0
