@@ -225,16 +225,17 @@ def _density_rate(i, x, u, nbr, fac, count, cap, mass, psi):
 
 
 @nb.njit(cache=True, parallel=True)
-def jacobi_density(x, u, nbr, fac, count, cap, mass, psi, rho, alpha, rho0, dt, omega, kappa, kr, err):
+def jacobi_density(x, u, nbr, fac, count, cap, mass, psi, rho, alpha, rho0, dt, beta, omega, kappa, kr, err):
     """One projected, relaxed Jacobi sweep of the constant-density solve (Bender and Koschier 2017,
     Alg. 3, on the total kappa as in SPlisHSPlasH 2.x, so a warm start can be undone): predicted density
     rho*_i = rho_i + dt D rho_i / Dt at u = v + dt a(kappa); kappa_i += omega alpha_i (rho*_i - rho0) / dt^2,
     clamped at 0 (no tension: a free surface is not pulled together); kr_i = kappa_i / rho_i.
     err_i = max(rho*_i - rho0, 0), the compression. The current kappa_i is kr_i rho_i (kr holds the warm
-    start before the first sweep)."""
+    start before the first sweep). ``beta`` (<= 1) is the share of the existing error rho_i - rho0 this
+    step removes: rho*_i = rho0 + beta (rho_i - rho0) + dt D rho_i / Dt (Baumgarte: see DFSPHSolver.step)."""
     inv_dt2 = 1.0 / (dt * dt)
     for i in nb.prange(x.shape[0]):
-        e = rho[i] + dt * _density_rate(i, x, u, nbr, fac, count, cap, mass, psi) - rho0
+        e = beta * (rho[i] - rho0) + dt * _density_rate(i, x, u, nbr, fac, count, cap, mass, psi)
         err[i] = max(e, 0.0)
         k = max(kr[i] * rho[i] + omega * e * alpha[i] * inv_dt2, 0.0)
         kappa[i] = k
