@@ -456,3 +456,60 @@ def test_wall_pressure_force_is_the_derivative_of_the_wall_density():
         expected = -p[0] / rho[0] ** 2 * grad
         assert np.linalg.norm(expected) > 1.0  # a real wall force (m/s^2)
         assert np.linalg.norm(acc[0] - expected) < 1e-6 * np.linalg.norm(expected), (point, acc[0], expected)
+
+
+def _plain_push_out(p, v, sdf, r_rep, max_corr):
+    """The eq. 16 push-out along the normal alone (before walls.maps.push_move)."""
+    p, v = np.array(p, float), np.array(v, float)
+    for _ in range(3):
+        d, nx, ny, nz = K.sdf_sample(sdf.dist, *sdf.origin, 1.0 / sdf.spacing, *p)
+        if d >= r_rep * 0.999:
+            break
+        n = np.array([nx, ny, nz])
+        p += min(r_rep - d, max_corr) * n
+        vn = v @ n
+        if vn < 0:
+            v -= vn * n
+    return p, v
+
+
+def test_push_out_leaves_an_acute_v_and_keeps_right_angled_corners():
+    """A particle in the apex of a 20 degree V trough (both sides within r_rep) ends outside both sides
+    with no velocity into a side it touches, where projections along the normal alone ping-pong between
+    the sides and leave some inside one (the stability suite's wedge); in a box's edges and corners the
+    push-out is the plain projection, bitwise."""
+    l0, r_rep, max_corr = 0.02, 0.2 * 0.02, 0.5 * 0.02
+    half = math.radians(10.0)
+    n1 = np.array([math.cos(half), 0.0, math.sin(half)])
+    n2 = np.array([-math.cos(half), 0.0, math.sin(half)])
+    apex = np.array([0.15, 0.0, 0.0])
+
+    def planes(q):
+        return np.minimum((q - apex) @ n1, (q - apex) @ n2)
+
+    lo, hi = np.zeros(3), np.array([0.3, 0.1, 0.2])
+    sdf = grid_from_function(lambda q: np.minimum(box_interior_sdf(lo, hi)(q), planes(q)), lo, hi, l0 / 2)
+    args = (sdf.dist, sdf.origin, 1.0 / sdf.spacing, r_rep, max_corr)
+    rng = np.random.default_rng(3)
+    worst_plain, worst = np.inf, np.inf
+    for _ in range(200):  # points in the apex, within r_rep of both sides, moving down
+        z = rng.uniform(0.1, 1.0) * r_rep / math.sin(half)
+        x = 0.15 + rng.uniform(-0.9, 0.9) * z * math.tan(half)
+        p0 = np.array([x, 0.05, z])
+        out = K.push_out_of_walls(*p0, 0.0, 0.0, -1.0, *args)
+        worst = min(worst, float(planes(np.array(out[:3])[None])[0]))
+        worst_plain = min(worst_plain, float(planes(_plain_push_out(p0, [0, 0, -1.0], sdf, r_rep, max_corr)[0][None])[0]))
+        q, v = np.array(out[:3]), np.array(out[3:])
+        for n in (n1, n2):  # no velocity left into a side the particle touches
+            assert (q - apex) @ n > 1.001 * r_rep or v @ n > -0.02  # (the grid normal, not the exact one)
+    assert worst_plain < -0.1 * r_rep  # the plain projection leaves some inside a side
+    assert worst > 0.0, worst / r_rep
+    # a box: edges and corners (orthogonal normals) as the plain projection, bitwise
+    box = grid_from_function(box_interior_sdf(lo, hi), lo, hi, l0 / 2)
+    bargs = (box.dist, box.origin, 1.0 / box.spacing, 0.5 * l0, max_corr)
+    for _ in range(200):
+        p0 = rng.uniform(-0.3, 0.6, 3) * l0 + np.where(rng.random(3) < 0.5, lo, hi - 0.3 * l0)
+        v0 = rng.normal(size=3)
+        out = K.push_out_of_walls(*p0, *v0, *bargs)
+        p, v = _plain_push_out(p0, v0, box, 0.5 * l0, max_corr)
+        assert np.array_equal(np.array(out[:3]), p) and np.array_equal(np.array(out[3:]), v)

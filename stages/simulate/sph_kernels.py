@@ -58,7 +58,8 @@ from stages.common.sdf import sdf_sample
 from .kernels import FASTMATH
 from .walls.spline import spline_f, spline_w
 from .neighbours import cell_coords
-from .walls.maps import (bodies_density, bodies_nearest, bodies_push_out, bodies_viscous, brick_sample,
+from .walls.maps import (bodies_density, bodies_nearest, bodies_push_out, push_move, push_velocity,
+                         bodies_viscous, brick_sample,
                          brick_sample_1234, nearest_wall_velocity, static_distance, wall_density)
 from .walls.tables import table_lookup
 
@@ -646,20 +647,24 @@ def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, walls, 
 def push_out_of_walls(px, py, pz, vx, vy, vz, sdf, sdf_o, sdf_inv, r_rep, max_corr):
     """Eq. 16: a particle closer to a wall than r_rep moves out along the SDF normal (at most max_corr
     per projection) and loses its velocity into the wall; up to three projections, since in an edge or
-    corner each one finds the next closest wall. Returns the new (x, v)."""
+    corner each one finds the next closest wall (in an acute V, along the part of the normal that keeps
+    the last wall satisfied, and no velocity into either: walls.maps.push_move, push_velocity). Returns
+    the new (x, v)."""
+    mx = 0.0
+    my = 0.0
+    mz = 0.0
     for _ in range(3):
         dw, nx, ny, nz = sdf_sample(sdf, sdf_o[0], sdf_o[1], sdf_o[2], sdf_inv, px, py, pz)
         if dw >= r_rep * 0.999:
             break
-        corr = min(r_rep - dw, max_corr)
-        px += corr * nx
-        py += corr * ny
-        pz += corr * nz
-        vn = vx * nx + vy * ny + vz * nz
-        if vn < 0.0:
-            vx -= vn * nx
-            vy -= vn * ny
-            vz -= vn * nz
+        corr, ex, ey, ez = push_move(nx, ny, nz, mx, my, mz, r_rep - dw, max_corr)
+        px += corr * ex
+        py += corr * ey
+        pz += corr * ez
+        vx, vy, vz = push_velocity(vx, vy, vz, 0.0, 0.0, 0.0, nx, ny, nz, mx, my, mz)
+        mx = nx
+        my = ny
+        mz = nz
     return px, py, pz, vx, vy, vz
 
 

@@ -132,22 +132,22 @@ def thin_plate(l0=0.02):
     return _scene(x, sdf, l0, below=zp)
 
 
-def wedge(l0=0.02, angle_deg=20.0):
-    """A V trough of 20 degrees opening (apex line along y at x = 0.15, z = 0): water poured into it
-    meets a sharp concave corner; the trough's rim is a convex edge."""
+def wedge(l0=0.02, angle_deg=20.0, apex_x=0.15):
+    """A V trough of 20 degrees opening (apex line along y at x = 0.15, on an SDF node plane, z = 0):
+    water poured into it meets a sharp concave corner; the trough's rim is a convex edge."""
     lo, hi = np.zeros(3), np.array([0.3, 0.1, 0.45])
     half = math.radians(0.5 * angle_deg)
     box = box_interior_sdf(lo, hi)
     n1 = np.array([math.cos(half), 0.0, math.sin(half)])  # inward normals of the two planes
     n2 = np.array([-math.cos(half), 0.0, math.sin(half)])
-    apex = np.array([0.15, 0.0, 0.0])
+    apex = np.array([apex_x, 0.0, 0.0])
 
     def fn(p):
         q = p - apex
         return np.minimum(box(p), np.minimum(q @ n1, q @ n2))
 
     sdf = _walls(fn, lo, hi, l0)
-    x = lattice([0.09, 0.0, 0.25], [0.21, 0.1, 0.37], l0)
+    x = lattice([apex_x - 0.06, 0.0, 0.25], [apex_x + 0.06, 0.1, 0.37], l0)
     return _scene(x, sdf, l0)
 
 

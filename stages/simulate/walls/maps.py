@@ -540,27 +540,73 @@ def bodies_viscous(w, pose, fix_vis, h, x, y, z, vx, vy, vz):
     return ax, ay, az
 
 
+@nb.njit(cache=True, inline="always")
+def push_move(nx, ny, nz, mx, my, mz, need, max_corr):
+    """One eq. 16 projection's move (corr, ex, ey, ez) for a wall of normal n that is ``need`` short of
+    r_rep, m the last projection's normal (0 for the first): along n by need, or, where the wall faces
+    the last one (an acute V: normals more than 90 degrees apart), along n's part orthogonal to m by as
+    much as the distance needs, so the last wall stays satisfied: the projection onto both (a particle
+    in a 20 degree V's apex, pushed back and forth between its sides, stayed inside them). Orthogonal
+    normals (right-angled edges, corners) move along n, bitwise as before; at most max_corr."""
+    c = nx * mx + ny * my + nz * mz
+    if c < -1e-3 and c > -0.999:  # (a slot thinner than 2 r_rep, c = -1, has no room: moved along n)
+        ex = nx - c * mx
+        ey = ny - c * my
+        ez = nz - c * mz
+        gain = math.sqrt(ex * ex + ey * ey + ez * ez)  # sqrt(1 - c^2) = n . e / |e|: distance per move
+        return min(need / gain, max_corr), ex / gain, ey / gain, ez / gain
+    return min(need, max_corr), nx, ny, nz
+
+
+@nb.njit(cache=True, inline="always")
+def push_velocity(vx, vy, vz, ux, uy, uz, nx, ny, nz, mx, my, mz):
+    """The eq. 16 velocity: the part into the wall of normal n (relative to the wall's velocity u) goes;
+    where the wall faces the last one (normal m, an acute V as in ``push_move``) and the velocity still
+    runs into that one, its part into m orthogonal to n goes too, so the particle keeps no velocity into
+    the V. Orthogonal normals: bitwise the plain removal."""
+    vn = (vx - ux) * nx + (vy - uy) * ny + (vz - uz) * nz
+    if vn < 0.0:
+        vx -= vn * nx
+        vy -= vn * ny
+        vz -= vn * nz
+    c = nx * mx + ny * my + nz * mz
+    if c < -1e-3 and c > -0.999:
+        vm = (vx - ux) * mx + (vy - uy) * my + (vz - uz) * mz
+        if vm < 0.0:
+            ex = mx - c * nx
+            ey = my - c * ny
+            ez = mz - c * nz
+            s = vm / (ex * ex + ey * ey + ez * ez)  # along e = m - c n (e . n = 0, e . m = |e|^2): v . m -> 0
+            vx -= s * ex
+            vy -= s * ey
+            vz -= s * ez
+    return vx, vy, vz
+
+
 @nb.njit(cache=True)
 def bodies_push_out(w, pose, px, py, pz, vx, vy, vz, r_rep, max_corr):
-    """Eq. 16 against every moving wall: out along its normal to r_rep (at most max_corr per projection), and
-    the velocity into the wall relative to the wall's own removed (the wall pushes the fluid)."""
+    """Eq. 16 against every moving wall: out along its normal to r_rep (at most max_corr per projection,
+    ``push_move``), and the velocity into the wall relative to the wall's own removed (the wall pushes
+    the fluid)."""
     if pose is None:  # no moving walls: numba prunes the rest (not compiled)
         return px, py, pz, vx, vy, vz
     for k in range(pose.shape[0]):
+        mx = 0.0
+        my = 0.0
+        mz = 0.0
         for _ in range(3):
             dw, nx, ny, nz = body_sample(w, k, px, py, pz)
             if dw >= r_rep * 0.999:
                 break
-            corr = min(r_rep - dw, max_corr)
-            px += corr * nx
-            py += corr * ny
-            pz += corr * nz
+            corr, ex, ey, ez = push_move(nx, ny, nz, mx, my, mz, r_rep - dw, max_corr)
+            px += corr * ex
+            py += corr * ey
+            pz += corr * ez
             ux, uy, uz = body_velocity(pose[k], px, py, pz)
-            vn = (vx - ux) * nx + (vy - uy) * ny + (vz - uz) * nz
-            if vn < 0.0:
-                vx -= vn * nx
-                vy -= vn * ny
-                vz -= vn * nz
+            vx, vy, vz = push_velocity(vx, vy, vz, ux, uy, uz, nx, ny, nz, mx, my, mz)
+            mx = nx
+            my = ny
+            mz = nz
     return px, py, pz, vx, vy, vz
 
 
