@@ -232,3 +232,27 @@ def test_an_unreadable_input_file_is_one_line_exit_2_and_nothing_written(tmp_pat
     assert len(err.splitlines()) == 1 and "Traceback" not in r.output, err
     assert "cannot read input file" in err and "drop.obj" in err and "Permission denied" in err, err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["drop.obj", "tiny.yaml"]
+
+
+def test_numba_cache_folder_follows_every_stage_source(tmp_path):
+    """numba's cache checks only the defining module's source, not its callees' (an update of
+    walls/maps.py alone left sph_kernels' integrate running the old push-out): stages/__init__ puts the
+    cache in a folder named by all of the package's source, so any edit anywhere gets a fresh one."""
+    import numba
+
+    import stages
+    from stages import numba_cache_dir
+
+    root = Path(stages.__file__).resolve().parent
+    assert Path(numba.config.CACHE_DIR).name == Path(numba_cache_dir(root, "base")).name
+    tree = tmp_path / "pkg"
+    (tree / "walls").mkdir(parents=True)
+    (tree / "kernels.py").write_text("from .walls.maps import push\n")
+    (tree / "walls" / "maps.py").write_text("def push(x):\n    return x + 1\n")
+    first = numba_cache_dir(tree, "base")
+    assert numba_cache_dir(tree, "base") == first  # stable
+    (tree / "walls" / "maps.py").write_text("def push(x):\n    return x + 2\n")  # a callee's module only
+    second = numba_cache_dir(tree, "base")
+    assert second != first
+    (tree / "walls" / "maps.py").rename(tree / "walls" / "other.py")  # same bytes, another module
+    assert numba_cache_dir(tree, "base") not in (first, second)
