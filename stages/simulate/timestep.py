@@ -3,6 +3,10 @@ from __future__ import annotations
 
 import math
 
+# Defaults tuned at this spacing (m) are Froude-scaled above it (lengths x k, times x sqrt(k)), so a scene
+# 10,000 x larger runs as the same scene scaled: DFSPH's largest step, MPS's compressibility term.
+REFERENCE_SPACING = 0.02
+
 
 def stable_dt(*, l0: float, h: float, v_max: float, a_max: float, cfl: float, sound_speed: float | None,
               nu: float | None, dt_max: float) -> float:
