@@ -121,8 +121,8 @@ class DFSPHSolver(SolverBase):
         self.p = params
         self.l0 = float(spacing)
         self.h = params.support * self.l0
-        # an absolute 5 ms cap held a kilometre-wide scene to 1/100 of its Froude-scaled step, and steps that
-        # short blow up (tests/stability: test_dfsph_survives_a_step_far_below_the_stable_one, not diagnosed)
+        # an absolute 5 ms cap held a kilometre-wide scene to 1/100 of its Froude-scaled step (steps that short
+        # blew up until step() removed the density error over the natural step: test_dfsph_survives_a_step...)
         self.dt_default = DT_MAX_REF * math.sqrt(max(self.l0, REFERENCE_SPACING) / REFERENCE_SPACING)
         self.dt_max = params.dt_max or self.dt_default
         self.rho0 = float(rho0)

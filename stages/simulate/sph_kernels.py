@@ -58,9 +58,9 @@ from stages.common.sdf import sdf_sample
 from .kernels import FASTMATH
 from .walls.spline import spline_f, spline_w
 from .neighbours import cell_coords
-from .walls.maps import (bodies_density, bodies_nearest, bodies_push_out, push_move, push_velocity,
-                         bodies_viscous, brick_sample,
-                         brick_sample_1234, nearest_wall_velocity, static_distance, wall_density)
+from .walls.maps import (bodies_density, bodies_nearest, bodies_push_out, bodies_viscous, brick_sample,
+                         brick_sample_1234, nearest_wall_velocity, push_move, push_velocity, static_distance,
+                         wall_density)
 from .walls.tables import table_lookup
 
 EOS_LINEAR = 0
