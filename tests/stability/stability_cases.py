@@ -133,8 +133,8 @@ def thin_plate(l0=0.02):
 
 
 def wedge(l0=0.02, angle_deg=20.0, apex_x=0.15):
-    """A V trough of 20 degrees opening (apex line along y at x = 0.15, on an SDF node plane, z = 0):
-    water poured into it meets a sharp concave corner; the trough's rim is a convex edge."""
+    """A V trough of ``angle_deg`` opening (apex line along y at x = ``apex_x``, z = 0; the default 0.15 lies on
+    an SDF node plane): water poured into it meets a sharp concave corner; the trough's rim is a convex edge."""
     lo, hi = np.zeros(3), np.array([0.3, 0.1, 0.45])
     half = math.radians(0.5 * angle_deg)
     box = box_interior_sdf(lo, hi)
