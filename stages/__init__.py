@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import shutil
 import time
 from pathlib import Path
 
@@ -44,7 +45,6 @@ def _use_versioned_numba_cache() -> None:
         old = time.time() - KEEP_DAYS * 86400
         for entry in os.scandir(base):
             if entry.is_dir() and entry.path != path and len(entry.name) == 16 and entry.stat().st_mtime < old:
-                import shutil
                 shutil.rmtree(entry.path, ignore_errors=True)
     except OSError:
         pass

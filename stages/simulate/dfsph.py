@@ -225,14 +225,13 @@ class DFSPHSolver(SolverBase):
                  self.rho0, self.wall_terms, self.gravity, self.acc, None,
                  *self.effect_args(), neighbours=lists)
 
-    def stable_dt(self, dt_max: float) -> float:
-        return self._limits(min(dt_max, self.dt_max, self.effects.dt_limit))
-
-    def _limits(self, cap: float) -> float:
+    def natural_dt(self) -> float:
+        """The CFL, viscous and force limits at this state, uncapped (inf at rest): the step is this under
+        the caps (the frame's end, dt_max, effects)."""
         v2, a2 = K.max_speed2_accel2(self.v, self.acc)
         nu = self.mu / self.rho0 if self.mu > 0 else None
         return stable_dt(l0=self.l0, h=self.h, v_max=math.sqrt(v2), a_max=math.sqrt(a2), cfl=self.p.cfl,
-                         sound_speed=None, nu=nu, dt_max=cap)
+                         sound_speed=None, nu=nu, dt_max=math.inf)
 
     def _solve(self, dt: float, divergence: bool, beta: float = 1.0) -> tuple[int, float]:
         """Projected, relaxed Jacobi iterations of the constant-density (or divergence-free) solve from
@@ -269,14 +268,15 @@ class DFSPHSolver(SolverBase):
         if not self._fresh:
             self.refresh()
         self.non_pressure_forces()
-        dt = step_to(self.t, t_end, self.stable_dt(t_end - self.t))
+        natural = self.natural_dt()
+        dt = step_to(self.t, t_end, min(natural, t_end - self.t, self.dt_max, self.effects.dt_limit))
         if not (dt > 0.0 and math.isfinite(dt)):
             raise FloatingPointError(f"dfsph: the solver diverged at t = {self.t:.4g} s (time step {dt})")
         # the density error the step finds is removed over the scene's natural step (CFL and force limits,
         # the default cap), not within a step shortened by a frame's end or a user's dt_max: removing it
         # in dt takes a velocity of (error / rho0) l0 / dt, and a 0.05 ms step turned the start lattice's
         # 0.7 % at the walls into 9 m/s in one step (Baumgarte's stabilisation of the constraint)
-        beta = min(1.0, dt / self._limits(self.dt_default))
+        beta = min(1.0, dt / min(natural, self.dt_default))
         it, err = self._solve(dt, divergence=False, beta=beta)  # v* = v + dt (a_nonpressure + a_pressure)
         self.iterations[0] += it
         self.solve_error[0] += err

@@ -541,6 +541,15 @@ def bodies_viscous(w, pose, fix_vis, h, x, y, z, vx, vy, vz):
 
 
 @nb.njit(cache=True, inline="always")
+def facing(nx, ny, nz, mx, my, mz):
+    """n . m where the wall of normal n faces the last one pushed out (normal m): an acute V, normals more
+    than 90 degrees apart; else 0 (orthogonal or no last wall; antiparallel, a slot thinner than 2 r_rep,
+    has no room for both)."""
+    c = nx * mx + ny * my + nz * mz
+    return c if -0.999 < c < -1e-3 else 0.0
+
+
+@nb.njit(cache=True, inline="always")
 def push_move(nx, ny, nz, mx, my, mz, need, max_corr):
     """One eq. 16 projection's move (corr, ex, ey, ez) for a wall of normal n that is ``need`` short of
     r_rep, m the last projection's normal (0 for the first): along n by need, or, where the wall faces
@@ -548,8 +557,8 @@ def push_move(nx, ny, nz, mx, my, mz, need, max_corr):
     much as the distance needs, so the last wall stays satisfied: the projection onto both (a particle
     in a 20 degree V's apex, pushed back and forth between its sides, stayed inside them). Orthogonal
     normals (right-angled edges, corners) move along n, bitwise as before; at most max_corr."""
-    c = nx * mx + ny * my + nz * mz
-    if c < -1e-3 and c > -0.999:  # (a slot thinner than 2 r_rep, c = -1, has no room: moved along n)
+    c = facing(nx, ny, nz, mx, my, mz)
+    if c != 0.0:
         ex = nx - c * mx
         ey = ny - c * my
         ez = nz - c * mz
@@ -569,8 +578,8 @@ def push_velocity(vx, vy, vz, ux, uy, uz, nx, ny, nz, mx, my, mz):
         vx -= vn * nx
         vy -= vn * ny
         vz -= vn * nz
-    c = nx * mx + ny * my + nz * mz
-    if c < -1e-3 and c > -0.999:
+    c = facing(nx, ny, nz, mx, my, mz)
+    if c != 0.0:
         vm = (vx - ux) * mx + (vy - uy) * my + (vz - uz) * mz
         if vm < 0.0:
             ex = mx - c * nx
