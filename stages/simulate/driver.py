@@ -30,7 +30,7 @@ from stages.common.usd_points import write_points_layer
 
 from .emitters import drop_inside_walls, drop_overlaps, emit
 from .inflow import Inflow, Sink, from_config, in_sinks, overlapping
-from .kernels import count_blown
+from .kernels import count_blown, count_deep
 from .walls.maps import set_pose
 from .output import iter_frames, latest_checkpoint, restore_frames, save_checkpoint, write_frame
 
@@ -69,8 +69,12 @@ class Solver(Protocol):
 # blow-ups reach 50-350 x, so the limit sits between.) A step below DT_FLOOR x l0 / v_bound
 # (a particle at the bound crossing a thousandth of the spacing) means an acceleration of about a million
 # g at the default spacing: the adaptive step is collapsing towards zero and the run would never end.
+# At a frame's end no particle is deeper than INSIDE_DEPTH x l0 inside a static wall: the eq. 16 projection
+# keeps particles r_rep outside every step, so one that deep has gone through (a step far above the stable one
+# let MPS particles pass the tank's walls with no speed or step limit noticing).
 SPEED_LIMIT = 10.0
 DT_FLOOR = 1e-3
+INSIDE_DEPTH = 0.25
 
 
 class BlowUp(FloatingPointError):
@@ -112,6 +116,12 @@ class Guard:
             vmax = float(np.sqrt(np.nanmax(np.einsum("ij,ij->i", solver.v, solver.v))))
             raise BlowUp(f"speed {vmax:.3g} m/s above {SPEED_LIMIT:g} x the scene's ballistic bound "
                          f"{self.v_bound:.3g} m/s", solver.t, fast, self._cause(solver, dt))
+        sdf = getattr(solver, "sdf", None)
+        if last_of_frame and sdf is not None:
+            deep = count_deep(sdf.dist, sdf.origin, 1.0 / sdf.spacing, solver.x, INSIDE_DEPTH * self.l0)
+            if deep:
+                raise BlowUp(f"particles more than {INSIDE_DEPTH:g} spacings inside a wall or through it", solver.t,
+                             deep, self._cause(solver, dt))
 
     def _cause(self, solver: "SolverBase", dt: float) -> str:
         """The likeliest parameter to change, from the last step against the scene's scales."""

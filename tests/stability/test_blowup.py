@@ -57,3 +57,36 @@ def test_time_step_far_above_stable_exits_1_with_one_line(tmp_path):
     assert len(v) > 0 and not np.all(np.isfinite(v).all(axis=1) & (np.linalg.norm(v, axis=1) < 13.8))
     # the resume never picks the blown-up state up: a sane run of the same scene starts afresh and succeeds
     assert _run(tmp_path, "sph").exit_code == 0
+
+
+def test_particles_through_a_wall_stop_the_run():
+    """No speed or step limit notices particles carried through a wall by a step far above the stable one (MPS
+    survives such steps): at a frame's end the guard counts particles deeper than INSIDE_DEPTH spacings inside a
+    static wall (or gone through it and out of the grid) and stops the run naming the time step."""
+    import stages.simulate.driver as D
+    from stages.common.sdf import box_interior_sdf, grid_from_function
+    from stages.simulate.sph import SPHParams, SPHSolver
+
+    l0 = 0.02
+    sdf = grid_from_function(box_interior_sdf([0, 0, 0], [0.2, 0.2, 0.2]), [0, 0, 0], [0.2, 0.2, 0.2], l0 / 2)
+    for depth, caught in ((0.0, False), (0.2, False), (0.3, True)):
+        x = np.array([[0.1, 0.1, 0.1], [0.1, 0.1, -depth * l0 + 1e-9]])
+        s = SPHSolver(x, np.zeros_like(x), np.arange(2), sdf, spacing=l0, rho0=1000.0, params=SPHParams())
+        s.guard = D.Guard(v_bound=1.0, l0=l0)
+        s.x = x.copy()  # where a bad step left them (the next step's projection may not undo it)
+        try:
+            s.guard.check(s, 1e-3, last_of_frame=True)
+            got = None
+        except D.BlowUp as e:
+            got = str(e)
+        assert (got is not None) == caught, (depth, got)
+        if caught:
+            assert "inside a wall or through it" in got and "(1 particles)" in got and "likely cause" in got
+    outside = np.array([[0.1, 0.1, 0.1], [0.1, 0.1, -0.5]])  # through the floor and out of the grid
+    s.x = outside
+    try:
+        s.guard.check(s, 1e-3, last_of_frame=True)
+        raise AssertionError("a particle below the tank's grid was not caught")
+    except D.BlowUp as e:
+        assert "(1 particles)" in str(e)
+    s.guard.check(s, 1e-3, last_of_frame=False)  # the check is at frames' ends only
