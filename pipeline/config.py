@@ -272,6 +272,8 @@ def _stage_params(kind: str, raw: Any, registry: Registry, lines: _Lines) -> Sta
 def load_config(path: str | Path, registry: Registry, overrides: list[str] | tuple[str, ...] = ()) -> Config:
     path = Path(path)
     file = str(path)
+    if path.is_dir():
+        raise ConfigError(f"{file}: a folder, not a config file (give the .yaml inside it)")
     if not path.is_file():
         raise ConfigError(f"{file}: config file not found")
     try:

@@ -71,3 +71,9 @@ def test_cli_run_status_clean_smoke(toy_config, toy_plugin):
 def test_missing_config_file(tmp_path):
     result = CliRunner().invoke(main, ["run", str(tmp_path / "nope.yaml")])
     assert result.exit_code == 2 and "config file not found" in result.stderr
+
+
+def test_a_folder_given_as_the_config(tmp_path):
+    result = CliRunner().invoke(main, ["run", str(tmp_path)])
+    assert result.exit_code == 2 and "a folder, not a config file" in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1 and not any(tmp_path.iterdir())
