@@ -253,7 +253,7 @@ def _mesh_scene(verts, faces, x, l0) -> Scene:
 
 def cracked_tank(l0=0.02):
     """The dam break in a tank model that is not watertight: a triangle missing in the far wall where the
-    surge hits and one in the floor (each about 1 x 1.5 spacings, cracks a scan or a boolean leaves)."""
+    surge hits (0.6 x 1.9 spacings) and one in the floor (2.5 x 0.6): the slivers a scan or a boolean leaves."""
     size = [0.4, 0.1, 0.3]
     verts, faces = _tank_mesh(size, 8)
     centres = verts[faces].mean(axis=1)
