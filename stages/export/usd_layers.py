@@ -33,15 +33,28 @@ def affine(linear: np.ndarray, translate: Iterable[float] = (0.0, 0.0, 0.0)) -> 
     return m
 
 
+def is_identity(m: np.ndarray) -> bool:
+    """The scene is already in the layer's units and up axis (the common case): nothing to transform. A
+    60-frame surface of 145k vertices spent 1.8 s of a 3-9 s export transforming by the identity."""
+    return np.array_equal(m, np.eye(4))
+
+
 def apply(m: np.ndarray, points: np.ndarray) -> np.ndarray:
+    if is_identity(m):
+        return np.asarray(points)
     return np.asarray(points, float) @ m[:3, :3].T + m[:3, 3]
 
 
 def apply_linear(m: np.ndarray, vectors: np.ndarray) -> np.ndarray:
+    if is_identity(m):
+        return np.asarray(vectors)
     return np.asarray(vectors, float) @ m[:3, :3].T
 
 
 def apply_normals(m: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Unit normals after the placement ``m`` (the surface stages write them unit already)."""
+    if is_identity(m):
+        return np.asarray(normals)
     n = np.asarray(normals, float) @ np.linalg.inv(m[:3, :3])  # inverse transpose for normals
     return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
 
