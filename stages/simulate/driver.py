@@ -30,7 +30,7 @@ from stages.common.usd_points import write_points_layer
 
 from .emitters import drop_inside_walls, drop_overlaps, emit
 from .inflow import Inflow, Sink, from_config, in_sinks, overlapping
-from .kernels import count_blown, count_deep
+from .kernels import count_blown
 from .walls.maps import set_pose
 from .output import iter_frames, latest_checkpoint, restore_frames, save_checkpoint, write_frame
 
@@ -118,7 +118,8 @@ class Guard:
                          f"{self.v_bound:.3g} m/s", solver.t, fast, self._cause(solver, dt))
         sdf = getattr(solver, "sdf", None)
         if last_of_frame and sdf is not None:
-            deep = count_deep(sdf.dist, sdf.origin, 1.0 / sdf.spacing, solver.x, INSIDE_DEPTH * self.l0)
+            # a point outside the grid reads its border: a particle through a wall and out of the grid counts too
+            deep = int((sdf.sample(solver.x)[0] < -INSIDE_DEPTH * self.l0).sum())
             if deep:
                 raise BlowUp(f"particles more than {INSIDE_DEPTH:g} spacings inside a wall or through it", solver.t,
                              deep, self._cause(solver, dt))

@@ -8,8 +8,6 @@ import math
 
 import numba as nb
 
-from stages.common.sdf import sdf_sample
-
 
 def poly6_coef(h: float) -> float:
     """Eq. 10: W(r) = 315 / (64 pi h^9) (h^2 - r^2)^3."""
@@ -122,15 +120,3 @@ def count_blown(x, v, v_limit2):
         elif v[i, 0] * v[i, 0] + v[i, 1] * v[i, 1] + v[i, 2] * v[i, 2] > v_limit2:
             fast += 1
     return bad, fast
-
-
-@nb.njit(cache=True, parallel=True)
-def count_deep(dist, origin, inv_h, x, depth):
-    """Particles more than ``depth`` inside a wall of the distance field (a point outside the grid reads its
-    border, so a particle gone through a wall and out of the grid counts too)."""
-    deep = 0
-    for i in nb.prange(x.shape[0]):
-        d, _, _, _ = sdf_sample(dist, origin[0], origin[1], origin[2], inv_h, x[i, 0], x[i, 1], x[i, 2])
-        if d < -depth:
-            deep += 1
-    return deep
