@@ -91,7 +91,7 @@ def test_predicted_density_rate_matches_the_real_change(gradient):
         s.v[:] = sign * vel
         kappa, err = np.zeros(len(s.x)), np.zeros(len(s.x))
         D.jacobi_density(s.x, s.v, s.nbr, s.fac, s.count, s.cap, s.mass, s.psi, s.rho * 0 + 1.0, s.alpha, 1.0,
-                         1.0, 1.0, 0.5, kappa, np.zeros(len(s.x)), err)
+                         1.0, 1.0, 0.5, kappa, np.zeros(len(s.x)), np.zeros(len(s.x)), err)
         rate += sign * err
     dt = 1e-6
     moved = DFSPHSolver(s.x + dt * vel, np.zeros_like(s.x), s.id, s.sdf, spacing=L0, rho0=1000.0, params=s.p,

@@ -181,6 +181,7 @@ class DFSPHSolver(SolverBase):
         self.u = np.zeros((n, 3))  # v + dt a(kappa) during a solve
         self.kr = np.zeros(n)  # kappa / rho of the density solve (warm started by the density pass)
         self.kr_v = np.zeros(n)  # kappa_v / rho of the divergence solve
+        self.kr_next = np.zeros(n)  # a sweep's proposal for the next kr (kr_v)
         # the state's second buffers: the sort gathers into them and the two sets swap
         self._back = (np.empty_like(self.x), np.empty_like(self.v), np.empty_like(self.id), np.empty_like(self.kappa),
                       np.empty_like(self.kappa_v))
@@ -236,10 +237,14 @@ class DFSPHSolver(SolverBase):
     def _solve(self, dt: float, divergence: bool, beta: float = 1.0) -> tuple[int, float]:
         """Projected, relaxed Jacobi iterations of the constant-density (or divergence-free) solve from
         the warm start the density pass left in kr (kr_v); the density solve includes the non-pressure
-        accelerations (self.v is the velocity before them). Sets self.v = v + dt a (in place, by the
-        last pass). Returns (iterations, final average error / rho0)."""
+        accelerations (self.v is the velocity before them). Sets self.v = v + dt a (in place). Returns
+        (iterations, final average error / rho0).
+        A sweep measures the error of u = v + dt a(kr) and proposes the next kr: once the error is within
+        the tolerance, that u and its kr are the solve's answer, and the sweep's proposal is dropped (no
+        further pass over the neighbours to apply it: a sixth of a step's work at 20k)."""
         p = self.p
-        kappa, kr = (self.kappa_v, self.kr_v) if divergence else (self.kappa, self.kr)
+        kappa = self.kappa_v if divergence else self.kappa
+        kr, kr_next = (self.kr_v if divergence else self.kr), self.kr_next
         acc = self.zero_acc if divergence else self.acc  # zeros, not None: one build of predict_velocity, not two
         eta = p.max_divergence_error if divergence else p.max_density_error
         least = 1 if divergence else p.min_iterations
@@ -247,20 +252,32 @@ class DFSPHSolver(SolverBase):
         n = max(len(self.x), 1)
         it = 0
         avg = 0.0
+        converged = False
         while it < p.max_iterations:
             D.predict_velocity(self.x, self.v, acc, dt, *lists, kr, self.wall_mirror, self.u)
             if divergence:
                 D.jacobi_divergence(self.x, self.u, *lists, self.rho, self.alpha, dt, p.relaxation, self.min_rho,
-                                    kappa, kr, self.err)
+                                    kappa, kr, kr_next, self.err)
                 avg = float(self.err.sum()) * dt / n / self.rho0
             else:
                 D.jacobi_density(self.x, self.u, *lists, self.rho, self.alpha, self.rho0, dt, beta, p.relaxation, kappa,
-                                 kr, self.err)
+                                 kr, kr_next, self.err)
                 avg = float(self.err.sum()) / n / self.rho0
             it += 1
             if avg <= eta and it >= least:
+                converged = True
                 break
-        D.predict_velocity(self.x, self.v, acc, dt, *lists, kr, self.wall_mirror, self.v)
+            kr, kr_next = kr_next, kr
+        if converged:
+            np.copyto(self.v, self.u)  # u is the answer (a copy: others may hold self.v)
+            np.multiply(kr, self.rho, out=kappa)  # the kappa of that answer (the sweep wrote its proposal)
+        else:
+            D.predict_velocity(self.x, self.v, acc, dt, *lists, kr, self.wall_mirror, self.v)
+        # the buffers may have swapped: kr (kr_v) names the solve's field again for the warm start and output
+        if divergence:
+            self.kr_v, self.kr_next = kr, kr_next
+        else:
+            self.kr, self.kr_next = kr, kr_next
         return it, avg
 
     def step(self, t_end: float) -> float:

@@ -225,13 +225,14 @@ def _density_rate(i, x, u, nbr, fac, count, cap, mass, psi):
 
 
 @nb.njit(cache=True, parallel=True)
-def jacobi_density(x, u, nbr, fac, count, cap, mass, psi, rho, alpha, rho0, dt, beta, omega, kappa, kr, err):
+def jacobi_density(x, u, nbr, fac, count, cap, mass, psi, rho, alpha, rho0, dt, beta, omega, kappa, kr, kr_out, err):
     """One projected, relaxed Jacobi sweep of the constant-density solve (Bender and Koschier 2017,
     Alg. 3, on the total kappa as in SPlisHSPlasH 2.x, so a warm start can be undone): predicted density
     rho*_i = rho_i + dt D rho_i / Dt at u = v + dt a(kappa); kappa_i += omega alpha_i (rho*_i - rho0) / dt^2,
-    clamped at 0 (no tension: a free surface is not pulled together); kr_i = kappa_i / rho_i.
-    err_i = max(rho*_i - rho0, 0), the compression. The current kappa_i is kr_i rho_i (kr holds the warm
-    start before the first sweep). ``beta`` (<= 1) is the share of the existing error rho_i - rho0 this
+    clamped at 0 (no tension: a free surface is not pulled together); kr_out_i = kappa_i / rho_i (kr, the
+    field u came from, is left as it is: a solve that has converged keeps it and u). err_i = max(rho*_i -
+    rho0, 0), the compression. The current kappa_i is kr_i rho_i (kr holds the warm start before the
+    first sweep). ``beta`` (<= 1) is the share of the existing error rho_i - rho0 this
     step removes: rho*_i = rho0 + beta (rho_i - rho0) + dt D rho_i / Dt (Baumgarte: see DFSPHSolver.step)."""
     inv_dt2 = 1.0 / (dt * dt)
     for i in nb.prange(x.shape[0]):
@@ -239,15 +240,16 @@ def jacobi_density(x, u, nbr, fac, count, cap, mass, psi, rho, alpha, rho0, dt, 
         err[i] = max(e, 0.0)
         k = max(kr[i] * rho[i] + omega * e * alpha[i] * inv_dt2, 0.0)
         kappa[i] = k
-        kr[i] = k / rho[i]
+        kr_out[i] = k / rho[i]
 
 
 @nb.njit(cache=True, parallel=True)
-def jacobi_divergence(x, u, nbr, fac, count, cap, mass, psi, rho, alpha, dt, omega, min_rho, kappa, kr, err):
+def jacobi_divergence(x, u, nbr, fac, count, cap, mass, psi, rho, alpha, dt, omega, min_rho, kappa, kr, kr_out, err):
     """One projected, relaxed Jacobi sweep of the divergence-free solve (Alg. 2): D rho_i / Dt at u,
     kappa_i += omega alpha_i (D rho_i / Dt) / dt, clamped at 0 (only compressing flow is corrected).
     Particles with rho_i < min_rho (a sparse free-surface neighbourhood, SPlisHSPlasH's
-    fewer-than-20-neighbours rule) are left alone. The current kappa_i is kr_i rho_i."""
+    fewer-than-20-neighbours rule) are left alone. The current kappa_i is kr_i rho_i; the new one / rho_i
+    goes to kr_out, as in jacobi_density."""
     inv_dt = 1.0 / dt
     for i in nb.prange(x.shape[0]):
         e = 0.0
@@ -256,7 +258,7 @@ def jacobi_divergence(x, u, nbr, fac, count, cap, mass, psi, rho, alpha, dt, ome
         err[i] = max(e, 0.0)
         k = max(kr[i] * rho[i] + omega * e * alpha[i] * inv_dt, 0.0)
         kappa[i] = k
-        kr[i] = k / rho[i]
+        kr_out[i] = k / rho[i]
 
 
 @nb.njit(cache=True, parallel=True)
