@@ -241,7 +241,7 @@ class DFSPHSolver(SolverBase):
         (iterations, final average error / rho0).
         A sweep measures the error of u = v + dt a(kr) and proposes the next kr: once the error is within
         the tolerance, that u and its kr are the solve's answer, and the sweep's proposal is dropped (no
-        further pass over the neighbours to apply it: a sixth of a step's work at 20k)."""
+        further pass over the neighbours to apply it: about 5 % of a step at 20k)."""
         p = self.p
         kappa = self.kappa_v if divergence else self.kappa
         kr, kr_next = (self.kr_v if divergence else self.kr), self.kr_next
