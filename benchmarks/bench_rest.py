@@ -3,7 +3,7 @@ water's viscosity (mu = 0.001 Pa s) only; mean and 99th percentile speed at 0.5,
 WCSPH (sph), DFSPH and MPS, each from the scene's start as the pipeline makes it, and SPlisHSPlasH's
 DFSPH on the same tank (its own lattice start, volume maps, CFL steps) when pysplishsplash imports:
 
-    .venv/bin/python benchmarks/bench_rest.py [--solvers sph,dfsph,mps,splishsplash] [--until 3]
+    .venv/bin/python benchmarks/bench_rest.py [--solvers sph,dfsph,mps,splishsplash] [--until 3] [--settle 1.5]
                                               [--set sph.wall_gradient=false ...]
 
 Also the hydrostatic pressure error over the last 0.3 s (mean of 11 samples, and their range; pressure of the particles 2-8 layers deep, at least
@@ -67,10 +67,13 @@ def make(solver: str, sets: dict, hydrostatic: bool = True):
     return s
 
 
-def run_one(solver: str, until: float, sets: dict) -> dict:
+def run_one(solver: str, until: float, sets: dict, settle: float = 0.0) -> dict:
     import numba as nb
     nb.set_num_threads(min(2, nb.config.NUMBA_NUM_THREADS))
     s = make(solver, sets, hydrostatic=os.environ.get("REST_LATTICE_START") != "1")
+    if settle > 0:
+        from stages.simulate.driver import settle as settle_start
+        settle_start(s, settle)
     rows = []
     t0 = time.perf_counter()
     errors = []
@@ -88,7 +91,7 @@ def run_one(solver: str, until: float, sets: dict) -> dict:
     errors.append(hydrostatic_error(f))
     return {"solver": solver, "particles": len(f.x), "rows": rows, "hydrostatic_error": float(np.mean(errors)),
             "hydrostatic_error_range": [float(min(errors)), float(max(errors))],
-            "surface_drop_mm": 1e3 * (DEPTH - surface(f.x)), "wall_seconds": time.perf_counter() - t0, "set": sets}
+            "surface_drop_mm": 1e3 * (DEPTH - surface(f.x)), "wall_seconds": time.perf_counter() - t0, "set": sets, "settle": settle}
 
 
 def surface(x) -> float:
@@ -127,6 +130,7 @@ def main() -> None:
     ap.add_argument("--solvers", default="sph,dfsph,mps,splishsplash")
     ap.add_argument("--until", type=float, default=3.0)
     ap.add_argument("--set", action="append", default=[], help="SOLVER.PARAM=VALUE")
+    ap.add_argument("--settle", type=float, default=0.0, help="seconds of fluid.settle before t = 0 (driver.settle)")
     ap.add_argument("--one", help=argparse.SUPPRESS)
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "rest.json"))
     a = ap.parse_args()
@@ -136,14 +140,14 @@ def main() -> None:
         solver, param = k.split(".", 1)
         sets.setdefault(solver, {})[param] = json.loads(v)
     if a.one:
-        print(json.dumps(run_one(a.one, a.until, sets.get(a.one, {}))))
+        print(json.dumps(run_one(a.one, a.until, sets.get(a.one, {}), a.settle)))
         return
     results = []
     for solver in a.solvers.split(","):
         if solver == "splishsplash":
             res = {"solver": "SPlisHSPlasH DFSPH", **run_splishsplash(a.until)}
         else:
-            cmd = [sys.executable, __file__, "--one", solver, "--until", str(a.until)] + sum((["--set", s] for s in a.set), [])
+            cmd = [sys.executable, __file__, "--one", solver, "--until", str(a.until), "--settle", str(a.settle)] + sum((["--set", s] for s in a.set), [])
             r = subprocess.run(cmd, capture_output=True, text=True, env=dict(os.environ, PYTHONPATH=str(ROOT)))
             if r.returncode != 0:
                 res = {"solver": solver, "failed": (r.stderr.strip().splitlines() or ["?"])[-1]}

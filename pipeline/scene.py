@@ -277,6 +277,9 @@ class Fluid(Model):
     emitters: list[EmitterSpec] = Field(
         default_factory=list, validate_default=True,
         description="where the fluid starts: box, sphere or mesh volumes (none if an inflow fills the scene)")
+    settle: float = Field(0.0, ge=0, le=60, description="seconds the fluid settles before t = 0, its velocities "
+                          "set to zero 30 times a second (a fluid that starts at rest; 0 = off): the start lattice "
+                          "creeps into its resting packing there instead of during the shot")
 
     @field_validator("inflow")
     @classmethod
