@@ -52,11 +52,17 @@ def test_a_settled_tank_is_at_rest_by_1_5_s(tmp_path):
     assert float(frames[3].x[:, 2].min()) > 0.0
 
 
-def test_settling_a_moving_fluid_is_refused(tmp_path):
-    with pytest.raises(StageError, match=r"fluid.settle is for a fluid that starts at rest, but an emitter gives "
-                                         r"the fluid a velocity; set fluid.settle to 0"):
-        run_stage(SPHSimulate, tmp_path / "out", scene=_scene(0.5, velocity=(1.0, 0.0, 0.0)), params={},
-                  inputs={"sdf": _sdf(tmp_path)})
+@pytest.mark.parametrize("what, why", [
+    ("velocity", "an emitter gives the fluid a velocity"),
+    ("sink", "the scene has a sink"),  # it would drain the tank before the shot starts
+])
+def test_settling_a_fluid_not_at_rest_is_refused(what, why, tmp_path):
+    scene = _scene(0.5, velocity=(1.0, 0.0, 0.0) if what == "velocity" else (0.0, 0.0, 0.0))
+    if what == "sink":
+        scene["fluid"]["sinks"] = [{"box": {"min": [0.0, 0.0, 0.0], "max": [0.05, 0.05, 0.05]}}]
+    with pytest.raises(StageError, match=rf"fluid.settle is for a fluid that starts at rest, but {why}; set "
+                                         r"fluid.settle to 0"):
+        run_stage(SPHSimulate, tmp_path / "out", scene=scene, params={}, inputs={"sdf": _sdf(tmp_path)})
 
 
 def test_a_negative_settle_is_one_line_exit_2(tmp_path):

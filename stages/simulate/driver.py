@@ -478,9 +478,11 @@ def prepare(ctx: Context, inputs: Mapping[str, Artifact], who: str, moving_walls
         v_top = max([jet.top_speed() for jet in inflows], default=0.0)
         v_ref = max(v_ref, math.sqrt(v_top ** 2 + 2.0 * g * height))
     if fluid.settle > 0:
-        # settling zeroes every velocity before t = 0: it is for a fluid at rest among walls at rest
+        # settling zeroes every velocity before t = 0: it is for a fluid at rest among walls at rest (and a
+        # sink would drain it before the shot starts)
         moving = ("an emitter gives the fluid a velocity" if len(v) and np.any(v != 0.0) else
-                  "the scene has an inflow" if inflows else "the scene has moving walls" if bodies else None)
+                  "the scene has an inflow" if inflows else "the scene has a sink" if sinks else
+                  "the scene has moving walls" if bodies else None)
         if moving:
             raise StageError(f"{who}: fluid.settle is for a fluid that starts at rest, but {moving}; set "
                              "fluid.settle to 0")
