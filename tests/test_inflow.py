@@ -202,6 +202,7 @@ def test_resume_with_inflow_and_sink_is_bitwise_identical(solver, tmp_path):
     ("sinks: [{box: {min: [1, 0, 0], max: [0, 1, 1]}}]", "fluid.sinks.0.box"),
     # a nozzle on a wall the scene does not have (it has none)
     ("inflow: [{center: [0, 0, 1], direction: [0, 0, -1], radius: 0.2, speed: 1, attach: 0}]", "fluid.inflow.0.attach"),
+    ("settle: -1", "fluid.settle"),  # not an inflow field, but the same fluid-section check (tests/test_settle.py)
 ])
 def test_bad_inflow_or_sink_is_one_line_exit_2(fluid, field, tmp_path):
     cfg = tmp_path / "bad.yaml"

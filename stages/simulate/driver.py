@@ -480,9 +480,9 @@ def prepare(ctx: Context, inputs: Mapping[str, Artifact], who: str, moving_walls
     if fluid.settle > 0:
         # settling zeroes every velocity before t = 0: it is for a fluid at rest among walls at rest (and a
         # sink would drain it before the shot starts)
-        moving = ("an emitter gives the fluid a velocity" if len(v) and np.any(v != 0.0) else
-                  "the scene has an inflow" if inflows else "the scene has a sink" if sinks else
-                  "the scene has moving walls" if bodies else None)
+        moving = next((why for there, why in ((len(v) and np.any(v != 0.0), "an emitter gives the fluid a velocity"),
+                                               (inflows, "the scene has an inflow"), (sinks, "the scene has a sink"),
+                                               (bodies, "the scene has moving walls")) if there), None)
         if moving:
             raise StageError(f"{who}: fluid.settle is for a fluid that starts at rest, but {moving}; set "
                              "fluid.settle to 0")
@@ -539,6 +539,7 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
         resumed = latest_checkpoint(source, count)
     progress = ctx.progress(f"simulating ({solver_name})", count)
     solver.attach_flows(setup.inflows, setup.sinks, ctx.log)
+    solver.guard = Guard(v_bound=ballistic_speed(setup, getattr(solver, "effects", None)), l0=setup.spacing)
     if resumed is not None:
         start, state = resumed
         solver.load_state(state)
@@ -550,7 +551,6 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
         start = 0
         hydrostatic_start(solver)
         if setup.settle > 0:
-            solver.guard = Guard(v_bound=ballistic_speed(setup, getattr(solver, "effects", None)), l0=setup.spacing)
             try:
                 settle(solver, setup.settle, ctx.progress(f"settling ({solver_name})", settle_intervals(setup.settle)),
                        ctx.log)
@@ -560,7 +560,6 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
         write_frame(ctx.out_dir, 0, f0, ckpt_dir)
         _frame_stats(stats, f0, solver)
         progress.advance()
-    solver.guard = Guard(v_bound=ballistic_speed(setup, getattr(solver, "effects", None)), l0=setup.spacing)
     if start + 1 < count:
         ctx.warm_up(lambda: _warm_up(solver, fps))
     t0 = time.perf_counter()
