@@ -61,3 +61,33 @@ def test_settling_a_fluid_not_at_rest_is_refused(what, why, tmp_path):
     with pytest.raises(StageError, match=rf"fluid.settle is for a fluid that starts at rest, but {why}; set "
                                          r"fluid.settle to 0"):
         run_stage(SPHSimulate, tmp_path / "out", scene=scene, params={}, inputs={"sdf": _sdf(tmp_path)})
+
+
+@pytest.mark.parametrize("mpu, up", [(0.01, "Y")])
+def test_settling_is_the_same_in_centimetres_and_y_up(mpu, up, tmp_path):
+    """A 2 cm tank settled 0.2 s in metres / Z-up and in ``mpu`` / ``up``: the same settled start (the settled
+    particles' mean height and its spread) and the same first 0.1 s after it."""
+    def run(scale: float, axis: str, folder: Path):
+        hi = np.array([0.2, 0.1, 0.25])
+        fill = np.array([0.2, 0.1, 0.15])
+        if axis == "Y":
+            hi, fill = hi[[0, 2, 1]], fill[[0, 2, 1]]
+        sdf = folder / "sdf"
+        sdf.mkdir(parents=True)
+        grid_from_function(box_interior_sdf([0, 0, 0], hi / scale), [0, 0, 0], hi / scale, 0.01 / scale).save(sdf)
+        scene = {"scene": {"name": "rest", "frames": {"fps": 10, "count": 2},
+                           "units": {"meters_per_unit": scale, "up_axis": axis}},
+                 "fluid": {"spacing": 0.02 / scale, "settle": 0.2,
+                           "emitters": [{"box": {"min": [0, 0, 0], "max": list(fill / scale)}}]},
+                 "effects": WATER}
+        out = run_stage(SPHSimulate, folder / "out", scene=scene, params={"threads": 1}, inputs={"sdf": sdf})
+        k = 1 if axis == "Y" else 2
+        f = [load_particle_frame(out, i) for i in range(2)]
+        height = f[0].x[:, k] * scale
+        return len(f[0].x), height.mean(), height.std(), float(np.linalg.norm(f[1].v, axis=1).mean()) * scale
+
+    ref = run(1.0, "Z", tmp_path / "m")
+    other = run(mpu, up, tmp_path / "other")
+    assert ref[0] == other[0]
+    assert abs(ref[1] - other[1]) < 1e-3 * 0.02 and abs(ref[2] - other[2]) < 1e-3 * 0.02, (ref, other)
+    assert abs(ref[3] - other[3]) <= 0.02 * ref[3] + 1e-6, (ref, other)
