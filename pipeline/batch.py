@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from .cluster import Outcome
-from .errors import PipelineError
+from .errors import ConfigError, PipelineError
 
 
 def run_shot(args: dict[str, Any], executor=None, events=None) -> dict[str, Any]:
@@ -22,9 +22,29 @@ def run_shot(args: dict[str, Any], executor=None, events=None) -> dict[str, Any]
     return {"ran": ran, "cached": len(report.stages) - ran, "out": report.out, "seconds": report.seconds}
 
 
+def check_shots(configs: list[Path], overrides: tuple[str, ...] = ()) -> None:
+    """Before any shot runs: every config loads (a malformed one is exit 2 now, not after the others'
+    hours), and no two shots publish into the same folder (out/<scene.name>/ beside the config), where
+    the later would silently replace the earlier."""
+    from .config import load_config
+    from .registry import Registry
+    from .runner import default_out_dir
+
+    registry = Registry.from_entry_points()
+    seen: dict[Path, Path] = {}
+    for c in configs:
+        out = default_out_dir(load_config(c, registry, overrides)).resolve()
+        if out in seen:
+            raise ConfigError(f"{c}: would publish into {out}, as {seen[out]} does (the same scene.name in the same "
+                              "folder); give each shot its own scene.name")
+        seen[out] = Path(c)
+
+
 def run_batch(configs: list[Path], options: dict[str, Any], *, executor: str = "auto", workers: int = 1,
               scheduler: str | None = None, events: Callable[[dict], None] | None = None) -> list[Outcome]:
-    """Run every config with the same ``options`` (runner.run keywords); one Outcome per shot, in order."""
+    """Run every config with the same ``options`` (runner.run keywords); one Outcome per shot, in order.
+    Raises ConfigError before running any if ``check_shots`` finds a problem."""
+    check_shots(configs, tuple(options.get("overrides", ())))
     labels = [str(c) for c in configs]
     jobs = [{**options, "config": str(c)} for c in configs]
     if executor == "dask":

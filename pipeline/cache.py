@@ -30,7 +30,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator
 
-from .errors import StageFailed
+from .errors import ConfigError, StageFailed
 
 KEY_SCHEMA = 1
 MANIFEST = "manifest.json"
@@ -126,6 +126,8 @@ class Cache:
     def __init__(self, root: Path, lock_timeout: float | None = None) -> None:
         # absolute, so worker processes (other cwd, other host) see the same folder
         self.root = Path(os.path.abspath(root))
+        if self.root.exists() and not self.root.is_dir():
+            raise ConfigError(f"cache folder {self.root} is a file, not a folder (choose another with --cache)")
         self.lock_timeout = LOCK_TIMEOUT if lock_timeout is None else float(lock_timeout)
 
     # -- paths -----------------------------------------------------------------------------------

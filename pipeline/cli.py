@@ -113,6 +113,8 @@ def run(configs, overrides, cache_dir, frames, out_dir, only, from_, until, forc
     from .executors import make_executor
 
     _setup_logging(verbose, quiet)
+    if scheduler and executor != "dask":
+        raise PipelineError("--scheduler needs --executor dask")
     if len(configs) > 1:
         if out_dir is not None:
             raise PipelineError("--out: with several configs each shot publishes to out/<scene>/ beside its config")

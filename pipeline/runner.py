@@ -482,10 +482,14 @@ def parse_frames(text: str | None) -> tuple[int, ...] | None:
     try:
         if ":" in text:
             a, _, b = text.partition(":")
-            return tuple(range(int(a or 0), int(b)))
-        return tuple(int(t) for t in text.split(","))
+            frames = tuple(range(int(a or 0), int(b)))
+        else:
+            frames = tuple(int(t) for t in text.split(","))
     except ValueError:
         raise ConfigError(f"--frames {text}: expected START:END, N or N,M,...") from None
+    if not frames:  # 5:2 or 1:1: nothing to compute, and a movie of no frames would fail only at the end
+        raise ConfigError(f"--frames {text}: selects no frame (START:END is end exclusive: END must exceed START)")
+    return frames
 
 
 def run(config_path: str | Path, *, registry: Registry | None = None, overrides: tuple[str, ...] = (),

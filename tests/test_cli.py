@@ -77,3 +77,50 @@ def test_a_folder_given_as_the_config(tmp_path):
     result = CliRunner().invoke(main, ["run", str(tmp_path)])
     assert result.exit_code == 2 and "a folder, not a config file" in result.stderr
     assert len(result.stderr.strip().splitlines()) == 1 and not any(tmp_path.iterdir())
+
+
+def _one_line_exit_2(result):
+    assert result.exit_code == 2, result.output
+    assert len(result.stderr.strip().splitlines()) == 1 and "Traceback" not in result.output, result.stderr
+
+
+@pytest.mark.parametrize("frames", ["5:2", "1:1"])
+def test_a_frame_range_that_selects_nothing_is_refused_up_front(frames, toy_config, tmp_path):
+    """Accepted before, it simulated and then failed at the movie with "no rendered frames"."""
+    result = CliRunner().invoke(main, ["run", str(toy_config), "--frames", frames, "--cache", str(tmp_path / "c"),
+                                       "--out", str(tmp_path / "o")])
+    _one_line_exit_2(result)
+    assert "selects no frame" in result.stderr
+    assert not (tmp_path / "c").exists() and not (tmp_path / "o").exists()
+
+
+def test_a_cache_path_that_is_a_file(toy_config, tmp_path):
+    (tmp_path / "c").write_text("mine")
+    result = CliRunner().invoke(main, ["run", str(toy_config), "--cache", str(tmp_path / "c"), "--out", str(tmp_path / "o")])
+    _one_line_exit_2(result)
+    assert "is a file, not a folder" in result.stderr and (tmp_path / "c").read_text() == "mine"
+
+
+def test_a_scheduler_without_the_dask_executor_is_refused(toy_config, tmp_path):
+    """It was silently ignored: the shot ran here, not on the cluster the user named."""
+    result = CliRunner().invoke(main, ["run", str(toy_config), "--scheduler", "tcp://127.0.0.1:8786",
+                                       "--cache", str(tmp_path / "c")])
+    _one_line_exit_2(result)
+    assert "--scheduler needs --executor dask" in result.stderr and not (tmp_path / "c").exists()
+
+
+def test_a_batch_is_checked_before_any_shot_runs(toy_plugin, tmp_path):
+    """Two shots publishing into the same folder (same scene.name side by side: the second replaced the
+    first's frames), or a malformed config after a good one (which ran for its whole length first): exit 2
+    before anything runs."""
+    from conftest import TOY_CONFIG
+
+    (tmp_path / "a.yaml").write_text(TOY_CONFIG)
+    (tmp_path / "b.yaml").write_text(TOY_CONFIG.replace("count: 4", "count: 2"))  # the same scene.name: toy
+    (tmp_path / "bad.yaml").write_text(TOY_CONFIG.replace("name: toy", "name: bad").replace("  frames:", "\tframes:"))
+    for second, message in (("b.yaml", "the same scene.name"), ("bad.yaml", "bad.yaml:4: not valid YAML")):
+        result = CliRunner().invoke(main, ["run", str(tmp_path / "a.yaml"), str(tmp_path / second),
+                                           "--cache", str(tmp_path / "c")])
+        _one_line_exit_2(result)
+        assert message in result.stderr, result.stderr
+        assert not (tmp_path / "c").exists() and not (tmp_path / "out").exists()
