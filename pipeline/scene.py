@@ -391,6 +391,32 @@ class Camera(Model):
     up: Vec3 | None = Field(None, description="view up vector; default: the scene's up axis")
     view_angle: float = Field(30.0, gt=1, lt=170, description="vertical field of view, degrees (a USD camera's own wins)")
 
+    @field_validator("position", "focal_point", "up")
+    @classmethod
+    def _finite_vector(cls, v: Vec3 | None, info) -> Vec3 | None:
+        if v is not None and not all(math.isfinite(c) for c in v):
+            raise ValueError("expected finite numbers")
+        if v is not None and info.field_name == "up" and not any(v):
+            raise ValueError("expected a non-zero vector (the direction that is up in the frames)")
+        return v
+
+    @model_validator(mode="after")
+    def _a_view(self) -> "Camera":
+        """An eye on its focal point looks nowhere, and an up along the view direction leaves the roll
+        undefined: both rendered blank frames."""
+        if self.position is not None and self.focal_point is not None:
+            view = [f - p for f, p in zip(self.focal_point, self.position)]
+            if not any(view):
+                raise ValueError("position and focal_point are the same point: the camera looks nowhere")
+            if self.up is not None and _parallel(view, self.up):
+                raise ValueError("up is along the view direction (position -> focal_point): give an up across it")
+        return self
+
+
+def _parallel(a, b) -> bool:
+    cross = (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+    return math.sqrt(sum(c * c for c in cross)) <= 1e-6 * math.sqrt(sum(c * c for c in a) * sum(c * c for c in b))
+
 
 class SceneConfig(Model):
     """The scene part of a config (everything but ``stages``, ``outputs`` and ``config_version``)."""

@@ -162,6 +162,39 @@ def test_auto_camera_and_particles_are_not_blank(tmp_path, inputs):
     assert (np.abs(img.astype(int) - img[0, 0]).sum(axis=2) > 60).sum() > 200  # particles drawn
 
 
+@pytest.mark.parametrize("up_axis", ["Z", "Y"])
+def test_a_plan_view_without_an_up_gets_one_across_the_view(tmp_path, inputs, up_axis):
+    """Looking straight down the scene's up axis with no camera.up, the default up (the up axis) lies along the
+    view and VTK drew blank frames: the camera takes the horizontal axis the automatic view looks along."""
+    import imageio.v3 as iio
+
+    from pipeline.scene import Camera, Units
+    from stages.common.camera import shot_camera
+
+    eye, target = (np.array([0.0, 0.0, 3.0]), np.zeros(3)) if up_axis == "Z" else (np.array([0.0, 3.0, 0.0]), np.zeros(3))
+    walls = WallMesh.load(inputs["walls"])
+    cam = Camera(position=tuple(eye), focal_point=tuple(target))
+    _, _, up, _ = shot_camera(walls, Units(up_axis=up_axis), cam, lambda p: tmp_path / p, "render")
+    assert abs(up @ (target - eye)) < 1e-12 and np.linalg.norm(up) == 1.0
+    if up_axis == "Z":  # the picture: the tank seen from above is drawn (the ball in it)
+        out = run_stage(PyvistaRender, tmp_path / "plan", params={"resolution": [200, 120]}, inputs=inputs,
+                        frames=(0,), scene={**SCENE, "camera": {"position": eye.tolist(), "focal_point": target.tolist()}})
+        img = iio.imread(out / "frame_00000.png")[..., :3]
+        assert water_mask(img).sum() > 100 and img.std() > 10
+
+
+def test_an_eye_on_the_automatic_focal_point_is_a_one_line_error(tmp_path, inputs):
+    """camera.position alone, on the walls' centre the automatic camera looks at: the camera looks nowhere."""
+    from pipeline.scene import Camera, Units
+    from stages.common.camera import shot_camera
+
+    walls = WallMesh.load(inputs["walls"])
+    centre = 0.5 * (walls.vertices.min(axis=0) + walls.vertices.max(axis=0))
+    with pytest.raises(StageError, match="camera.position .* is the focal point") as err:
+        shot_camera(walls, Units(), Camera(position=tuple(centre)), lambda p: tmp_path / p, "render")
+    assert "\n" not in str(err.value)
+
+
 def test_missing_surface_frame_is_a_stage_error(tmp_path, inputs):
     with pytest.raises(StageError, match="frame 7"):
         run_stage(PyvistaRender, tmp_path, scene={"scene": {"name": "t", "frames": {"count": 8}}},

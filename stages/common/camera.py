@@ -77,4 +77,20 @@ def shot_camera(walls: WallMesh, units, cam, resolve: Callable[[str], Path], who
         eye = np.asarray(cam.position, float)
     if cam.up is not None:
         up = np.asarray(cam.up, float)
-    return np.asarray(eye, float), np.asarray(centre, float), np.asarray(up, float), view_angle
+    eye, centre, up = np.asarray(eye, float), np.asarray(centre, float), np.asarray(up, float)
+    view = centre - eye
+    if not np.linalg.norm(view) > 0:
+        raise StageError(f"{who}: camera.position {tuple(eye.tolist())} is the focal point: the camera looks nowhere; "
+                         "move camera.position or camera.focal_point")
+    if np.linalg.norm(np.cross(view, up)) <= 1e-6 * np.linalg.norm(view) * np.linalg.norm(up):
+        if cam.up is not None:
+            raise StageError(f"{who}: camera.up is along the view direction (camera.position -> focal point): give an "
+                             "up across it")
+        up = across(units.up_axis)  # looking straight down (or up) the up axis: the default roll is undefined
+    return eye, centre, up, view_angle
+
+
+def across(up_axis: str) -> np.ndarray:
+    """An up for a camera looking along the scene's up axis: the horizontal axis that points away from the
+    viewer in the automatic framing (+Y for Z-up, -Z for Y-up), so a plan view keeps the other views' layout."""
+    return np.array([0.0, 1.0, 0.0]) if up_axis == "Z" else np.array([0.0, 0.0, -1.0])

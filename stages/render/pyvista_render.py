@@ -20,10 +20,10 @@ import os
 import threading
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
-from typing import Literal, Mapping
+from typing import Annotated, Literal, Mapping
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from pipeline.stage import Artifact, Context, Params, Stage, StageError
 from stages.common.camera import shot_camera
@@ -48,7 +48,10 @@ def choose_offscreen_backend() -> str | None:
 
 
 class RenderParams(Params):
-    resolution: tuple[int, int] = Field((1280, 720), description="image width and height, pixels")
+    # 16-8192 a side: VTK's offscreen buffer gave black 300 x 22028 frames for [-5, 100] and a bad_alloc for
+    # [100000, 100000] (no test of the plan's memory estimate sees a frame buffer)
+    resolution: tuple[Annotated[int, Field(ge=16, le=8192)], Annotated[int, Field(ge=16, le=8192)]] = Field(
+        (1280, 720), description="image width and height, pixels (16 to 8192 each)")
     show: Literal["surface", "particles"] = Field("surface", description="the fluid as its surface or as particles")
     color_by: Literal["speed", "pressure"] = Field("speed", description="particle colour (show: particles)")
     color_range: tuple[float, float] | None = Field(
@@ -63,6 +66,12 @@ class RenderParams(Params):
                                      "between the camera and the fluid (0 hides it)")
     label: bool = Field(True, description="write the simulated time into the lower left corner")
     water_opacity: float = Field(0.85, ge=0, le=1, description="opacity of the fluid surface")
+
+    @model_validator(mode="after")
+    def _ordered_range(self) -> "RenderParams":
+        if self.color_range is not None and not self.color_range[0] < self.color_range[1]:
+            raise ValueError(f"color_range {list(self.color_range)}: the first value must be below the second")
+        return self
 
 
 def near_faces(vertices: np.ndarray, faces: np.ndarray, eye: np.ndarray, centre: np.ndarray) -> np.ndarray:
