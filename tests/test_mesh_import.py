@@ -194,7 +194,9 @@ def _write(tmp_path, name, text):
 @pytest.mark.parametrize("wall, message", [
     ({"file": "missing.obj"}, "file not found"),
     ({"file": "model.xyz"}, "unsupported mesh format"),
-    ({"file": "empty.obj"}, "empty mesh"),
+    ({"file": "empty.obj"}, "no triangles read from its 10 bytes as OBJ"),
+    ({"file": "zero.stl"}, "the file is empty"),
+    ({"file": "obj_named.stl"}, "not a valid STL file"),  # an OBJ under the wrong extension
     ({"file": "nan.obj"}, "NaN or Inf"),
     ({"file": "range.obj"}, "out of range"),
     ({"file": "range.off"}, "out of range"),
@@ -206,6 +208,8 @@ def test_bad_input_raises_stage_error_naming_the_file(tmp_path, wall, message):
     _usd_and_obj(tmp_path)
     _write(tmp_path, "model.xyz", "1 2 3\n")
     _write(tmp_path, "empty.obj", "# nothing\n")
+    _write(tmp_path, "zero.stl", "")
+    _write(tmp_path, "obj_named.stl", "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
     _write(tmp_path, "nan.obj", "v 0 0 0\nv 1 0 nan\nv 0 1 0\nf 1 2 3\n")
     _write(tmp_path, "range.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 4\n")
     _write(tmp_path, "range.off", "OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 7\n")

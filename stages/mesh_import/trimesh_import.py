@@ -110,7 +110,7 @@ class TrimeshImport(Stage):
             v, f, fluid, source, extra = self._read(ctx, w, params)
             where = source
             if len(v) == 0 or len(f) == 0:
-                raise StageError(f"{where}: empty mesh (no vertices or faces)")
+                raise StageError(f"{where}: {_why_no_faces(where)}")
             if not np.isfinite(v).all():
                 raise StageError(f"{where}: vertex coordinates contain NaN or Inf")
             if f.min() < 0 or f.max() >= len(v):
@@ -249,3 +249,20 @@ def write_walls_usd(path: Path, wm: WallMesh, meters_per_unit: float, up_axis: s
         mesh.CreateExtentAttr([Gf.Vec3f(*pts.min(axis=0).tolist()), Gf.Vec3f(*pts.max(axis=0).tolist())])
         mesh.GetPrim().SetCustomDataByKey("fluid", w["fluid"])
     stage.GetRootLayer().Save()
+
+
+def _why_no_faces(source: str) -> str:
+    """An empty file, or bytes the loader for its extension found no triangles in (an OBJ named .stl,
+    a corrupt download): say which, rather than "empty mesh" for both."""
+    path = Path(source)
+    try:
+        size = path.stat().st_size if path.is_file() else None
+    except OSError:
+        size = None
+    if size is None:
+        return "no triangles (empty mesh)"
+    if size == 0:
+        return "the file is empty"
+    ext = path.suffix.lstrip(".").upper() or "a mesh"
+    return (f"no triangles read from its {size} bytes as {ext}: not a valid {ext} file (a different format under "
+            f"this extension, or damaged?)")
