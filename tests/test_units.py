@@ -51,6 +51,42 @@ def test_centimetre_scene_moves_like_the_metre_scene(tmp_path, solver, params, m
     np.testing.assert_allclose(b.rho[order_b], a.rho[order_a], rtol=1e-4)  # kg/m^3 either way
 
 
+def test_a_box_far_from_the_origin_gets_the_same_lattice():
+    """The emitter lattice's count tolerance grows with the coordinates: a 0.2 m box 1e7 m off the origin
+    lost a row (7 columns instead of 8), as (hi - lo) there is off by about 1e-9 m."""
+    from stages.simulate.emitters import lattice
+
+    near = lattice([-0.1, 0.0, 0.0], [0.1, 0.2, 0.2], 0.025)
+    for offset in (1e3, 1e5, 1e7, -1e7):
+        far = lattice([offset - 0.1, 0.0, 0.0], [offset + 0.1, 0.2, 0.2], 0.025)
+        assert len(far) == len(near) == 512
+        np.testing.assert_allclose(far - [offset, 0, 0], near, atol=1e-8)
+
+
+@pytest.mark.parametrize("flip", [False, True])
+def test_an_open_or_inside_out_mesh_emitter_fills_to_its_rim(tmp_path, caplog, flip):
+    """Mesh emitters fill by the generalized winding number: an open box (no lid) fills up to its rim
+    (open3d's three-ray vote filled it in an irregular pattern of layers, silently), inside-out faces fill
+    the same, and an open mesh is named in a warning."""
+    import logging
+
+    import trimesh
+
+    from pipeline.scene import Fluid
+    from stages.simulate.emitters import emit
+
+    box = trimesh.creation.box(bounds=[[0, 0, 0], [0.1, 0.06, 0.08]])
+    open_box = trimesh.Trimesh(box.vertices, box.faces[box.face_normals[:, 2] < 0.5])  # the lid removed
+    if flip:
+        open_box.invert()
+    open_box.export(tmp_path / "open.obj")
+    fluid = Fluid.model_validate({"spacing": L0, "emitters": [{"mesh": "open.obj"}]})
+    with caplog.at_level(logging.WARNING):
+        x, _ = emit(fluid.emitters, L0, lambda p: tmp_path / p, meters_per_unit=1.0)
+    assert len(x) == 5 * 3 * 4  # every lattice point of the box, all four layers
+    assert "open.obj is not closed" in caplog.text
+
+
 def test_mesh_emitter_file_in_other_units_is_converted(tmp_path):
     """A mesh emitter's file in centimetres (meters_per_unit: 0.01) fills the same region of a metre
     scene as a box emitter does, like a wall file in other units."""
