@@ -30,9 +30,14 @@ particles within R of a wall) and the fluid is cut by the wall (Phi' = iso + min
 so where the fluid touches a wall the raw surface already lies on it instead of floating about half a
 kernel radius off; wall_snap then only has the contact line left to do. Moving walls (sdf_bake's
 bodies) are folded into the field at the frame's time (sdf.posed_field).
+
+A Y-up scene is extracted in the Z-up frame (``extract_in_z_up``): the grid is laid out along the axes
+from the particles' lowest corner, which a Y-up scene has at another place relative to the fluid, so the
+same scene set up Y-up was sampled at other points (2836 against 2842 vertices on a splash frame).
 """
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 from typing import Mapping
@@ -90,6 +95,32 @@ class MarchingCubesParams(Params):
                                          "surfaces (a still block loses 5 % at 0.9)")
     wall_term: bool = Field(True, description="with an SDF upstream: add the walls' density near them and cut "
                                               "the fluid at d = 0, so the surface meets the walls")
+
+
+# Y-up -> Z-up: (x, y, z) -> (x, -z, y), a swap and a sign: exact in floating point both ways
+_Y_TO_Z = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+
+
+def z_up_field(sdf: SDFGrid) -> SDFGrid:
+    """A Y-up scene's SDF seen from the Z-up frame: node (i, j, k) at (x, y, z) becomes node (i, nz-1-k, j)
+    at (x, -z, y); the same values, moved, not resampled."""
+    dist = np.ascontiguousarray(np.flip(np.transpose(sdf.dist, (0, 2, 1)), axis=1))
+    origin = np.array([sdf.origin[0], -sdf.upper[2], sdf.origin[1]])
+    return dataclasses.replace(sdf, origin=origin, dist=dist)
+
+
+def extract_in_z_up(x: np.ndarray, vol: np.ndarray, l0: float, params: MarchingCubesParams, up_axis: str,
+                    sdf: SDFGrid | None = None, timings: dict | None = None) -> SurfaceMesh:
+    """``extract`` of a scene with ``up_axis``, done in the Z-up frame and turned back: the surface of a
+    Y-up scene is then the Z-up scene's surface turned, vertex for vertex."""
+    if up_axis != "Y":
+        return extract(x, vol, l0, params, sdf=sdf, timings=timings)
+    mesh = extract(np.asarray(x, np.float64) @ _Y_TO_Z.T, vol, l0, params,
+                   sdf=None if sdf is None else z_up_field(sdf), timings=timings)
+    if len(mesh.vertices) == 0:
+        return mesh
+    back = lambda a: np.ascontiguousarray(a @ _Y_TO_Z.astype(a.dtype))  # noqa: E731 - the inverse turn, row form
+    return SurfaceMesh(back(mesh.vertices), mesh.faces, back(mesh.normals))
 
 
 def extract(x: np.ndarray, vol: np.ndarray, l0: float, params: MarchingCubesParams,
@@ -195,7 +226,7 @@ class MarchingCubes(Stage):
             folder = inputs["sdf"].frame(frame)
             sdf = posed_field(SDFGrid.load(folder), load_bodies(folder), frame / meta.fps)
         timings: dict = {}
-        mesh = extract(pf.x, vol, meta.spacing, params, sdf=sdf, timings=timings)
+        mesh = extract_in_z_up(pf.x, vol, meta.spacing, params, meta.up_axis, sdf=sdf, timings=timings)
         ctx.log.debug("frame %d: %d particles -> %d triangles (volumes %.3f s, phi %.3f s, contour %.3f s, "
                       "finish %.3f s)", frame, len(pf.x), len(mesh.faces), timings["volumes"], timings["phi"],
                       timings["contour"], timings["finish"])
