@@ -162,8 +162,8 @@ def _run_batch(configs, options, executor, workers, scheduler, quiet) -> None:
                           str(v.get("ran", "")), str(v.get("cached", "")))
         Console(width=max(100, 60 + max(len(o.label) for o in outcomes))).print(table)
     failed = [o for o in outcomes if o.error]
-    for o in failed:
-        click.echo(f"error: {o.label}: {o.error}", err=True)
+    for o in failed:  # a message that names the config already does not get it twice
+        click.echo(f"error: {o.error}" if o.error.startswith(o.label) else f"error: {o.label}: {o.error}", err=True)
     if failed:
         click.echo(f"{len(failed)} of {len(outcomes)} shots failed", err=True)
         sys.exit(1)

@@ -8,6 +8,8 @@ points, so no config value can import or run arbitrary code).
 """
 from __future__ import annotations
 
+import difflib
+
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -220,7 +222,15 @@ def apply_override(data: dict, assignment: str, lines: _Lines) -> None:
 
 # -- validation ------------------------------------------------------------------------------------
 def _first_error(err: ValidationError, prefix: tuple, lines: _Lines) -> ConfigError:
-    e = err.errors(include_url=False)[0]
+    errors = err.errors(include_url=False)
+    # a misspelt key is both an unknown key and, often, a missing field: name the key the user wrote, with
+    # the field it was probably meant to be ("fluid.spacng: unknown key (did you mean spacing?)")
+    e = next((x for x in errors if x["type"] == "extra_forbidden"), errors[0])
+    hint = ""
+    if e["type"] == "extra_forbidden" and isinstance(e["loc"][-1], str):
+        missing = [str(x["loc"][-1]) for x in errors if x["type"] == "missing" and x["loc"][:-1] == e["loc"][:-1]]
+        close = difflib.get_close_matches(e["loc"][-1], missing, n=1)
+        hint = f" (did you mean {close[0]}?)" if close else ""
     loc = prefix + tuple(e["loc"])
     # pydantic puts the union tag into loc (walls.0.builtin.size): drop tags that are not keys (only in the
     # lists of unions: a sink's 'box' is a key)
@@ -242,7 +252,7 @@ def _first_error(err: ValidationError, prefix: tuple, lines: _Lines) -> ConfigEr
     suffix = ""
     if e["type"] not in ("extra_forbidden", "missing") and not isinstance(got, (dict, list)) and got is not None:
         suffix = f" (got {got!r})"
-    return ConfigError(f"{lines.where(loc)}: {_dotted(loc) or 'top level'}: {msg}{suffix}")
+    return ConfigError(f"{lines.where(loc)}: {_dotted(loc) or 'top level'}: {msg}{suffix}{hint}")
 
 
 def _stage_params(kind: str, raw: Any, registry: Registry, lines: _Lines) -> StageChoice:

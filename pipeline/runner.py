@@ -208,10 +208,10 @@ def _fail(node: Node, key: str, config: Config, exc: BaseException, cache: Cache
         saved = write_log(cache, f"{node.kind}-{key[:12]}-frame{exc.frame}", exc.traceback)
         return StageFailed(f"{where} failed (key {key[:12]}, config {config.path.name}): {exc.cause} ({saved})",
                            user_error=False)
-    if isinstance(exc, StageError):
-        return StageFailed(f"stage {node.label}: {exc}", user_error=True)
-    if isinstance(exc, PipelineError):
-        return StageFailed(f"stage {node.label}: {exc}", user_error=exc.exit_code == 2)
+    if isinstance(exc, (StageError, PipelineError)):
+        # stages name themselves in their messages ("simulate.sph: ..."): do not say it twice
+        text = str(exc).removeprefix(f"{node.label}: ")
+        return StageFailed(f"stage {node.label}: {text}", user_error=isinstance(exc, StageError) or exc.exit_code == 2)
     if type(exc).__name__ == "BrokenProcessPool":
         exc_text = "a worker process died (killed, out of memory or a native crash; faulthandler output in the run log)"
     else:

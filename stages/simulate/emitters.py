@@ -110,9 +110,14 @@ def drop_inside_walls(x: np.ndarray, v: np.ndarray, sdf, l0: float, log: logging
         return x, v, 0
     d, _ = sdf.sample(x)
     in_grid = np.all((x >= sdf.origin) & (x <= sdf.upper), axis=1)
-    keep = (d >= (min_distance - 1e-3) * l0) & in_grid  # float32 SDF round-off
+    clear = d >= (min_distance - 1e-3) * l0  # float32 SDF round-off
+    keep = clear & in_grid
     dropped = int(len(x) - keep.sum())
-    if dropped:
-        log.warning("dropped %d of %d emitted particles inside or within %.2g l0 of a wall", dropped, len(x),
+    near_wall, outside = int((in_grid & ~clear).sum()), int((~in_grid).sum())
+    if near_wall:
+        log.warning("dropped %d of %d emitted particles inside or within %.2g l0 of a wall", near_wall, len(x),
                     min_distance)
+    if outside:
+        log.warning("dropped %d of %d emitted particles outside the simulation domain (scene.domain, or the walls' "
+                    "box)", outside, len(x))
     return np.ascontiguousarray(x[keep]), np.ascontiguousarray(v[keep]), dropped
