@@ -216,8 +216,23 @@ class SphereSpec(Model):
 
 
 class MeshEmitter(Emitter, Placement):
-    mesh: InputFile = Field(description="fill the interior of this closed mesh file (relative to the config)")
-    meters_per_unit: float | None = Field(None, gt=0, description="the file's units if not the scene's")
+    mesh: InputFile = Field(description="fill the interior of this mesh file (relative to the config): OBJ/PLY/STL/"
+                            "OFF/GLB/GLTF, or USD (.usd/.usda/.usdc/.usdz: its world transforms, metersPerUnit and upAxis "
+                            "apply)")
+    meters_per_unit: float | None = Field(None, gt=0, description="the file's units if not the scene's (not for USD, "
+                                          "which states its own)")
+    prims: list[str] = Field(default_factory=lambda: ["/**"], description="USD only: prim paths or glob patterns of "
+                             "the meshes to fill")
+
+    @model_validator(mode="after")
+    def _usd_states_its_units(self) -> "MeshEmitter":
+        if self.meters_per_unit is not None and is_usd(self.mesh):
+            raise ValueError("meters_per_unit: a USD file states its own (metersPerUnit); leave it out")
+        return self
+
+
+def is_usd(path: str) -> bool:
+    return path.lower().endswith((".usd", ".usda", ".usdc", ".usdz"))
 
 
 SphereEmitter.model_rebuild()

@@ -116,6 +116,30 @@ def test_mesh_emitter_file_is_in_the_simulate_key(tmp_path):
         keys(config)
 
 
+def test_a_usd_emitters_sublayer_is_in_the_simulate_key(tmp_path):
+    """The drop as USD whose mesh sits in a sublayer: editing the sublayer (not the file the config names)
+    is a new simulate key, for every simulate implementation."""
+    from pxr import Sdf, Usd, UsdGeom
+
+    config = tiny(tmp_path)
+    drop = trimesh.load(tmp_path / "drop.obj")
+    inner = Usd.Stage.CreateNew(str(tmp_path / "drop_mesh.usda"))
+    mesh = UsdGeom.Mesh.Define(inner, "/Drop")
+    mesh.GetPointsAttr().Set([tuple(map(float, v)) for v in drop.vertices])
+    mesh.GetFaceVertexCountsAttr().Set([3] * len(drop.faces))
+    mesh.GetFaceVertexIndicesAttr().Set([int(i) for i in drop.faces.ravel()])
+    inner.GetRootLayer().Save()
+    root = Sdf.Layer.CreateNew(str(tmp_path / "drop.usda"))
+    root.subLayerPaths.append("./drop_mesh.usda")
+    root.Save()
+    config.write_text(config.read_text().replace("- mesh: drop.obj", "- mesh: drop.usda"))
+    for k, solver in enumerate(("sph", "dfsph", "mps")):
+        before = keys(config, f"simulate.use={solver}")
+        mesh.GetPointsAttr().Set([tuple(map(float, v + 0.01 * (k + 1))) for v in drop.vertices])
+        inner.GetRootLayer().Save()
+        assert keys(config, f"simulate.use={solver}")["simulate"] != before["simulate"], solver
+
+
 def test_a_moved_project_keeps_its_keys(tmp_path):
     """Input files are keyed by their path relative to the config (and their content), not where the project
     sits on disk: a project folder moved or cloned elsewhere keeps every key, so its cache is still used; a

@@ -87,6 +87,45 @@ def test_an_open_or_inside_out_mesh_emitter_fills_to_its_rim(tmp_path, caplog, f
     assert "open.obj is not closed" in caplog.text
 
 
+@pytest.mark.parametrize("scene_up", ["Z", "Y"])
+def test_a_usd_emitter_in_centimetres_y_up_fills_the_same_block(tmp_path, scene_up):
+    """A fluid volume handed over as USD (centimetres, Y up, its mesh under a translated parent, quads) fills
+    the block a box emitter fills in a metre scene: the file's metersPerUnit, upAxis and transforms apply."""
+    from pxr import Gf, Usd, UsdGeom
+
+    from pipeline.scene import Fluid
+    from stages.simulate.emitters import emit
+
+    stage = Usd.Stage.CreateNew(str(tmp_path / "water.usda"))
+    UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.Xform.Define(stage, "/Set").AddTranslateOp().Set(Gf.Vec3d(0, 0, -6))
+    cube = UsdGeom.Mesh.Define(stage, "/Set/Water")
+    corners = [(x, y, z) for x in (0, 10) for y in (0, 8) for z in (0, 6)]  # cm, Y-up: 10 x 6 x 8 in metres Z-up
+    cube.GetPointsAttr().Set([Gf.Vec3f(*c) for c in corners])
+    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    cube.GetFaceVertexCountsAttr().Set([4] * 6)
+    cube.GetFaceVertexIndicesAttr().Set([i for q in quads for i in q])
+    stage.GetRootLayer().Save()
+    fluid = Fluid.model_validate({"spacing": L0, "emitters": [{"mesh": "water.usda", "prims": ["/Set/Water"]}]})
+    box = Fluid.model_validate({"spacing": L0, "emitters": [{"box": {"min": [0, 0, 0], "max": [0.1, 0.06, 0.08]}}]})
+    x, _ = emit(fluid.emitters, L0, lambda p: tmp_path / p, meters_per_unit=1.0, up_axis=scene_up)
+    y, _ = emit(box.emitters, L0, lambda p: tmp_path / p, meters_per_unit=1.0)
+    if scene_up == "Y":  # the metre block, turned into the Y-up scene: (x, y, z) -> (x, z, -y)
+        y = np.c_[y[:, 0], y[:, 2], -y[:, 1]]
+    assert len(x) == 5 * 3 * 4
+    np.testing.assert_allclose(np.sort(x, axis=0), np.sort(y, axis=0), atol=1e-9)
+
+
+def test_a_usd_emitter_with_meters_per_unit_is_a_config_error():
+    from pydantic import ValidationError
+
+    from pipeline.scene import Fluid
+
+    with pytest.raises(ValidationError, match="a USD file states its own"):
+        Fluid.model_validate({"spacing": L0, "emitters": [{"mesh": "water.usdc", "meters_per_unit": 0.01}]})
+
+
 def test_mesh_emitter_file_in_other_units_is_converted(tmp_path):
     """A mesh emitter's file in centimetres (meters_per_unit: 0.01) fills the same region of a metre
     scene as a box emitter does, like a wall file in other units."""

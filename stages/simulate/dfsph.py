@@ -63,6 +63,7 @@ from stages.common.sizes import simulate_estimate
 from . import dfsph_kernels as D
 from . import sph_kernels as K
 from .driver import SolverBase, drive, prepare, set_threads
+from .emitters import emitter_files
 from .effects import EffectConstants, compile_effects
 from .walls.spline import SplineWallMaps, spline_coefs, spline_lattice_mass
 from .kernels import lattice_mass, poly6_coef, spiky_grad_coef, spiky_lattice_factor
@@ -364,6 +365,9 @@ class DFSPHSimulate(Stage):
 
     def frame_count(self, ctx: Context, params: Params, inputs: Mapping[str, Artifact]) -> int | None:
         return ctx.scene["scene"].frames.count
+
+    def external_files(self, ctx: Context, params: Params) -> list:
+        return emitter_files(ctx)  # the layers a USD mesh emitter composes
 
     def estimate(self, ctx: Context, params: Params) -> dict | None:
         return simulate_estimate(ctx, params.cfl, None, params.support)

@@ -442,7 +442,7 @@ def prepare(ctx: Context, inputs: Mapping[str, Artifact], who: str, moving_walls
     if bodies and not moving_walls:
         raise StageError(f"{who}: the scene has moving walls (walls[].motion or animated USD prims); only "
                          "simulate: {use: sph} and {use: mps} move walls so far")
-    x, v = emit(fluid.emitters, l0, ctx.resolve, mpu, ctx.log)
+    x, v = emit(fluid.emitters, l0, ctx.resolve, mpu, ctx.log, scene.units.up_axis)
     x, v, _ = drop_overlaps(x, v, l0, ctx.log)
     # the moving walls where they stand at t = 0 count like the static ones
     x, v, dropped = drop_inside_walls(x, v, posed_field(sdf, bodies, 0.0), l0, ctx.log)

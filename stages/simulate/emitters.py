@@ -8,7 +8,7 @@ from typing import Callable
 
 import numpy as np
 
-from pipeline.scene import BoxEmitter, MeshEmitter, SphereEmitter
+from pipeline.scene import BoxEmitter, MeshEmitter, SphereEmitter, is_usd
 from pipeline.stage import StageError
 
 
@@ -27,18 +27,21 @@ def lattice(lo, hi, l0: float) -> np.ndarray:
     return np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1)
 
 
-def _mesh_points(em: MeshEmitter, l0: float, resolve: Callable[[str], Path], meters_per_unit: float,
-                 log: logging.Logger) -> np.ndarray:
-    """The lattice points inside the mesh by its generalized winding number (libigl, as sdf_bake's
-    ``sign: winding``): |w| > 1/2 for either orientation, so duplicated or flipped faces and small cracks
-    do not matter, and an open container (a bowl, a box without a lid) fills up to its rim, where w falls
-    to 1/2. (open3d's three-ray occupancy vote filled an open box in an irregular pattern of layers.)"""
-    import igl
+def _read_mesh(em: MeshEmitter, path: Path, meters_per_unit: float, up_axis: str) -> tuple[np.ndarray, np.ndarray, bool]:
+    """(vertices in scene units and up axis before the emitter's placement, triangles, closed?) of a mesh
+    file or of the chosen meshes of a USD file (read as mesh_import reads a USD wall: world transforms,
+    metersPerUnit, upAxis; an animated prim at its rest pose)."""
     import trimesh
 
-    from stages.common.placement import apply_placement
+    if is_usd(em.mesh):
+        from types import SimpleNamespace
 
-    path = resolve(em.mesh)
+        from stages.mesh_import.usd_import import read_usd_wall
+
+        v, f, _, _, _ = read_usd_wall(path, SimpleNamespace(prims=em.prims, include_invisible=False), meters_per_unit,
+                                      up_axis)
+        mesh = trimesh.Trimesh(v, f)  # merges the prims' shared vertices, so a closed model reads as closed
+        return np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64), bool(mesh.is_watertight)
     try:
         mesh = trimesh.load(path, force="mesh")
     except Exception as exc:  # noqa: BLE001 - any loader failure is a user-file problem
@@ -48,20 +51,34 @@ def _mesh_points(em: MeshEmitter, l0: float, resolve: Callable[[str], Path], met
     v = np.asarray(mesh.vertices, np.float64)
     if em.meters_per_unit is not None:  # the file's units -> the scene's, as for a wall file
         v = v * (em.meters_per_unit / meters_per_unit)
+    return v, np.asarray(mesh.faces, np.int64), bool(mesh.is_watertight)
+
+
+def _mesh_points(em: MeshEmitter, l0: float, resolve: Callable[[str], Path], meters_per_unit: float, up_axis: str,
+                 log: logging.Logger) -> np.ndarray:
+    """The lattice points inside the mesh by its generalized winding number (libigl, as sdf_bake's
+    ``sign: winding``): |w| > 1/2 for either orientation, so duplicated or flipped faces and small cracks
+    do not matter, and an open container (a bowl, a box without a lid) fills up to its rim, where w falls
+    to 1/2. (open3d's three-ray occupancy vote filled an open box in an irregular pattern of layers.)"""
+    import igl
+
+    from stages.common.placement import apply_placement
+
+    path = resolve(em.mesh)
+    v, faces, closed = _read_mesh(em, path, meters_per_unit, up_axis)
     v = apply_placement(v, em)
     pts = lattice(v.min(axis=0), v.max(axis=0) + l0, l0)
-    if not mesh.is_watertight:
+    if not closed:
         log.warning("fluid emitter mesh %s is not closed: filled where its winding number exceeds 1/2 (an open "
                     "container up to its rim)", path)
-    faces = np.ascontiguousarray(mesh.faces, np.int64)
-    w = igl.fast_winding_number(np.ascontiguousarray(v), faces, np.ascontiguousarray(pts))
+    w = igl.fast_winding_number(np.ascontiguousarray(v), np.ascontiguousarray(faces), np.ascontiguousarray(pts))
     return pts[np.abs(w) > 0.5]
 
 
 def emit(emitters, l0: float, resolve: Callable[[str], Path], meters_per_unit: float = 1.0,
-         log: logging.Logger | None = None) -> tuple[np.ndarray, np.ndarray]:
+         log: logging.Logger | None = None, up_axis: str = "Z") -> tuple[np.ndarray, np.ndarray]:
     """Positions (N, 3) and velocities (N, 3) of every emitter, in emitter order, in scene units
-    (``meters_per_unit``: the scene's, for mesh files in other units)."""
+    (``meters_per_unit``, ``up_axis``: the scene's, for mesh files in other units and USD files)."""
     log = log or logging.getLogger(__name__)
     xs, vs = [], []
     for em in emitters:
@@ -73,7 +90,7 @@ def emit(emitters, l0: float, resolve: Callable[[str], Path], meters_per_unit: f
             pts = lattice(c - r, c + r + l0, l0)
             pts = pts[np.linalg.norm(pts - c, axis=1) <= r]
         elif isinstance(em, MeshEmitter):
-            pts = _mesh_points(em, l0, resolve, meters_per_unit, log)
+            pts = _mesh_points(em, l0, resolve, meters_per_unit, up_axis, log)
         else:  # pragma: no cover - the scene model admits only these
             raise StageError(f"unknown emitter {type(em).__name__}")
         xs.append(pts)
@@ -121,3 +138,13 @@ def drop_inside_walls(x: np.ndarray, v: np.ndarray, sdf, l0: float, log: logging
         log.warning("dropped %d of %d emitted particles outside the simulation domain (scene.domain, or the walls' "
                     "box)", outside, len(x))
     return np.ascontiguousarray(x[keep]), np.ascontiguousarray(v[keep]), dropped
+
+
+def emitter_files(ctx) -> list[Path]:
+    """The layers and assets the USD mesh emitters compose (the files themselves the engine finds): the
+    simulate stages' ``external_files``, so an edit to a referenced layer is a new key."""
+    from stages.mesh_import.usd_import import usd_dependencies
+
+    fluid = ctx.scene["fluid"]
+    return [f for em in (fluid.emitters if fluid is not None else ()) if isinstance(em, MeshEmitter) and is_usd(em.mesh)
+            for f in usd_dependencies(ctx.resolve(em.mesh))]

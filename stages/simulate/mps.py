@@ -45,6 +45,7 @@ from stages.common.sizes import simulate_estimate
 
 from . import mps_kernels as K
 from .driver import SolverBase, drive, prepare, set_threads
+from .emitters import emitter_files
 from .kernels import lattice_mass
 from .walls.mps import MPSWallMaps, build_tables, lattice_constants, make_mps_walls
 from .neighbours import CellGrid, reorder
@@ -308,6 +309,9 @@ class MPSSimulate(Stage):
 
     def frame_count(self, ctx: Context, params: Params, inputs: Mapping[str, Artifact]) -> int | None:
         return ctx.scene["scene"].frames.count
+
+    def external_files(self, ctx: Context, params: Params) -> list:
+        return emitter_files(ctx)  # the layers a USD mesh emitter composes
 
     def estimate(self, ctx: Context, params: Params) -> dict | None:
         return simulate_estimate(ctx, params.cfl, None, 2.0)

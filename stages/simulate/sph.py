@@ -17,6 +17,7 @@ from stages.common.sizes import simulate_estimate
 
 from . import sph_kernels as K
 from .driver import SolverBase, drive, prepare, set_threads
+from .emitters import emitter_files
 from .effects import EffectConstants, compile_effects, cohesion_coef
 from .kernels import (lattice_mass, poly6_coef, spiky_grad_coef, spiky_lattice_factor, visc_lap_coef,
                       wall_gradient_tables)
@@ -298,6 +299,9 @@ class SPHSimulate(Stage):
 
     def frame_count(self, ctx: Context, params: Params, inputs: Mapping[str, Artifact]) -> int | None:
         return ctx.scene["scene"].frames.count
+
+    def external_files(self, ctx: Context, params: Params) -> list:
+        return emitter_files(ctx)  # the layers a USD mesh emitter composes
 
     def estimate(self, ctx: Context, params: Params) -> dict | None:
         return simulate_estimate(ctx, params.cfl, 10.0, params.support)
