@@ -66,10 +66,10 @@ def _write_record(out_dir: Path, published: dict[str, list[str]]) -> None:
     _atomic_write(out_dir / RECORD, json.dumps({"version": 1, "published": published}, indent=1, sort_keys=True))
 
 
-def _atomic_write(path: Path, text: str) -> None:
+def _atomic_write(path: Path, text: str | bytes) -> None:
     tmp = path.parent / f"{TMP_PREFIX}{path.name}.{owner_tag()}.{uuid.uuid4().hex[:8]}"
     try:
-        with open(tmp, "w") as fh:
+        with open(tmp, "wb" if isinstance(text, bytes) else "w") as fh:
             fh.write(text)
         os.replace(tmp, path)
     except BaseException:
@@ -84,9 +84,11 @@ def _files(path: Path) -> list[str]:
 
 
 # -- the promise -------------------------------------------------------------------------------------
-def check_out_dir(out_dir: Path, names: Iterable[str]) -> None:
+def check_out_dir(out_dir: Path, names: Iterable[str], files: Iterable[str] = ("run.json",)) -> None:
     """Raise OutputRefused (exit 2) unless every name the run will publish can be written: absent, or
-    published by the pipeline and holding only files it published."""
+    published by the pipeline and holding only files it published. ``files``: the names published as
+    plain files (the rest are folders)."""
+    files = set(files)
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise OutputRefused(f"output folder {out_dir} is a file, not a folder; choose another --out")
@@ -101,7 +103,7 @@ def check_out_dir(out_dir: Path, names: Iterable[str]) -> None:
             what = "folder" if target.is_dir() else "file"
             raise OutputRefused(f"{target}: a {what} the pipeline did not create is in the way of output {name!r}; "
                                 f"move it away or choose another --out (nothing was changed)")
-        if target.is_symlink() or (name != "run.json") != target.is_dir():
+        if target.is_symlink() or (name not in files) != target.is_dir():
             raise OutputRefused(f"{target}: not what the pipeline published here; move it away or choose another --out")
         foreign = sorted(set(_files(target)) - set(record[name]))
         if foreign:
@@ -188,10 +190,16 @@ def publish(graph: Graph, artifacts: dict[str, Artifact], out_dir: Path, frames:
 
 def write_run_json(report: Any, out_dir: Path) -> None:
     """Write the run's report as ``run.json`` (atomically) and record it as published."""
+    publish_file(out_dir, "run.json", json.dumps(asdict(report), indent=1))
+
+
+def publish_file(out_dir: Path, name: str, data: str | bytes) -> None:
+    """Write ``data`` as the file ``name`` in ``out_dir`` (atomically) and record it as published; a file
+    the pipeline did not publish in the way is refused (OutputRefused, exit 2), as for a run's outputs."""
     out_dir = Path(out_dir)
-    check_out_dir(out_dir, ["run.json"])
+    check_out_dir(out_dir, [name], files=[name])
     out_dir.mkdir(parents=True, exist_ok=True)
     record = read_record(out_dir)
-    if "run.json" not in record:
-        _write_record(out_dir, {**record, "run.json": ["run.json"]})
-    _atomic_write(out_dir / "run.json", json.dumps(asdict(report), indent=1))
+    if name not in record:
+        _write_record(out_dir, {**record, name: [name]})
+    _atomic_write(out_dir / name, data)

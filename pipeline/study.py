@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import csv
 import importlib
+import io
 import itertools
 import json
 import os
@@ -52,6 +53,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from .config import OUTPUT_NAMES
 from .errors import ConfigError, StageFailed
+from .publish import check_out_dir, publish_file
 from .stage import STAGE_KINDS
 
 
@@ -80,7 +82,8 @@ class Metric(BaseModel):
 class StudyConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
     study_version: Literal[1]
-    name: str = Field(pattern=r"^[A-Za-z0-9_.-]{1,64}$")
+    # a plain folder name, as scene.name: no '.', '..' or hidden name (the report goes to out/<name>/)
+    name: str = Field(pattern=r"^[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}$")
     base: str = Field(description="the scene config the variants start from, relative to this file")
     mode: Literal["product", "zip"] = "product"
     sweep: dict[str, list[Any]] = Field(min_length=1, description="override path -> values")
@@ -237,6 +240,8 @@ def run_study(path: str | Path, *, cache_dir: Path | None = None, out_dir: Path 
     if not base.is_file():
         raise ConfigError(f"{path}: base: config not found: {base}")
     out_root = Path(out_dir) if out_dir else path.parent / "out" / study.name
+    # the report's files replace only what an earlier study published there: checked before any variant runs
+    check_out_dir(out_root, report_files(study), files=report_files(study))
     cache = Path(cache_dir) if cache_dir else base.parent / ".pipeline"
     for m in study.metrics:
         if m.function is not None:
@@ -280,22 +285,29 @@ def _run_on_dask(study: StudyConfig, jobs: list[tuple], base: Path, cache: Path,
     return [o.value for o in outcomes]
 
 
+def report_files(study: StudyConfig) -> list[str]:
+    """The files a study publishes beside its variants/ folder."""
+    return ["study.csv", "study.json", "study.md"] + [f"{m.name}_vs_time.png" for m in study.metrics]
+
+
 def write_report(study: StudyConfig, results: list[VariantResult], out_root: Path) -> None:
-    out_root.mkdir(parents=True, exist_ok=True)
+    """The table (csv, json, md) and one plot per metric, each published as a run publishes its outputs
+    (publish.publish_file: atomically, and never over a file the pipeline did not write)."""
     keys = list(study.sweep)
     header = keys + [f"{study.time}_seconds", f"{study.time}_cpu_seconds"] + [m.name for m in study.metrics]
     rows = [[r.overrides[k] for k in keys] + [round(r.seconds, 3), round(r.cpu_seconds, 3)]
             + [r.metrics[m.name] for m in study.metrics] for r in results]
-    with open(out_root / "study.csv", "w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(header)
-        w.writerows(rows)
-    (out_root / "study.json").write_text(json.dumps(
-        {"study": study.model_dump(), "results": [r.__dict__ for r in results]}, indent=1))
+    table = io.StringIO(newline="")
+    w = csv.writer(table)
+    w.writerow(header)
+    w.writerows(rows)
+    publish_file(out_root, "study.csv", table.getvalue())
+    publish_file(out_root, "study.json", json.dumps({"study": study.model_dump(), "results": [r.__dict__ for r in results]},
+                                                    indent=1))
     md = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     md += ["| " + " | ".join("" if v is None else (f"{v:.4g}" if isinstance(v, float) else str(v)) for v in row) + " |"
            for row in rows]
-    (out_root / "study.md").write_text(f"# Study {study.name}\n\n" + "\n".join(md) + "\n")
+    publish_file(out_root, "study.md", f"# Study {study.name}\n\n" + "\n".join(md) + "\n")
     _plot(study, results, out_root)
 
 
@@ -325,5 +337,7 @@ def _plot(study: StudyConfig, results: list[VariantResult], out_root: Path) -> N
         if series_key:
             ax.legend(title=series_key.split(".")[-1])
         fig.tight_layout()
-        fig.savefig(out_root / f"{m.name}_vs_time.png")
+        png = io.BytesIO()
+        fig.savefig(png, format="png")
         plt.close(fig)
+        publish_file(out_root, f"{m.name}_vs_time.png", png.getvalue())

@@ -76,3 +76,27 @@ def test_shipped_studies_are_valid(path):
             _metric_function(m.function, path)
             ref = m.args.get("reference")
             assert ref is None or (path.parent / ref).is_file()
+
+
+def test_a_study_never_writes_over_a_users_file(toy_config):
+    """The report's files are published as a run's outputs are: a user's own study.csv in the report folder
+    stops the study before any variant runs (it was overwritten), and a name that is not a plain folder
+    name ('..' wrote the report beside the study file) is refused."""
+    from pipeline.publish import OutputRefused
+
+    path = toy_config.parent / "study.yaml"
+    path.write_text(STUDY)
+    out = toy_config.parent / "mine"
+    out.mkdir()
+    (out / "study.csv").write_text("my numbers")
+    with pytest.raises(OutputRefused, match="study.csv: a file the pipeline did not create"):
+        run_study(path, out_dir=out)
+    assert (out / "study.csv").read_text() == "my numbers" and ran(toy_config, "simulate") == 0
+    _, published = run_study(path)  # its own folder: published, then replaced on the next run
+    run_study(path)
+    assert sorted(p.name for p in published.iterdir() if p.is_file() and not p.name.startswith(".")) == [
+        "error_vs_time.png", "study.csv", "study.json", "study.md"]
+    for name in ("..", ".", ".hidden"):
+        path.write_text(STUDY.replace("name: toy_study", f"name: '{name}'"))
+        with pytest.raises(ConfigError, match="name"):
+            run_study(path)
