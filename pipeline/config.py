@@ -42,6 +42,7 @@ class Config:
     outputs: tuple[str, ...]
     raw: dict[str, Any] = field(repr=False, default_factory=dict)
     allow_large: bool = False  # run even when the plan's memory estimate exceeds the available memory
+    unloadable: dict[str, str] = field(default_factory=dict)  # kind -> why its default stage could not be loaded
 
     @property
     def name(self) -> str:
@@ -323,16 +324,17 @@ def load_config(path: str | Path, registry: Registry, overrides: list[str] | tup
         if kind not in STAGE_KINDS:
             raise ConfigError(f"{lines.where(('stages', kind))}: stages.{kind}: unknown stage kind; expected one of {', '.join(STAGE_KINDS)}")
     stages: dict[str, StageChoice] = {}
+    unloadable: dict[str, str] = {}
     for kind in STAGE_KINDS:
         if kind in stages_raw:
             stages[kind] = _stage_params(kind, stages_raw[kind], registry, lines)
         elif registry.implementations(kind):
             try:
                 stages[kind] = _stage_params(kind, {}, registry, lines)
-            except ConfigError:
-                continue  # a default that cannot load only matters if the graph needs it
+            except ConfigError as e:
+                unloadable[kind] = str(e)  # only matters if the graph needs it: then it is the error to show
     return Config(path=path.resolve(), scene=scene, stages=stages, outputs=tuple(dict.fromkeys(outputs)), raw=data,
-                  allow_large=allow_large)
+                  allow_large=allow_large, unloadable=unloadable)
 
 
 def dump_model(value: Any) -> Any:

@@ -82,6 +82,11 @@ class Graph:
         return None
 
 
+def _unloadable(config: Config) -> str:
+    """Why a default stage that would have produced it is missing: it failed to load (an import error)."""
+    return "".join(f"; the default {kind} stage failed to load: {why}" for kind, why in config.unloadable.items())
+
+
 def build_graph(config: Config) -> Graph:
     producers: dict[str, str] = {}
     for kind, choice in config.stages.items():
@@ -92,7 +97,7 @@ def build_graph(config: Config) -> Graph:
     stack: list[str] = []
     for out in config.outputs:
         if out not in producers:
-            raise ConfigError(f"{config.path}: outputs: no installed stage produces {out!r}")
+            raise ConfigError(f"{config.path}: outputs: no installed stage produces {out!r}{_unloadable(config)}")
         stack.append(producers[out])
     while stack:
         kind = stack.pop()
@@ -102,7 +107,8 @@ def build_graph(config: Config) -> Graph:
         choice = config.stages[kind]
         for name in choice.cls().input_names(choice.params):
             if name not in producers:
-                raise ConfigError(f"{config.path}: stage {kind}.{choice.cls.name} needs artifact {name!r}, which no configured stage produces")
+                raise ConfigError(f"{config.path}: stage {kind}.{choice.cls.name} needs artifact {name!r}, which no configured "
+                                  f"stage produces{_unloadable(config)}")
             stack.append(producers[name])
 
     nodes: dict[str, Node] = {}

@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
+from pipeline import ConfigError
 from pipeline.cli import main
 
 from conftest import REPO, TESTS
@@ -124,3 +125,23 @@ def test_a_batch_is_checked_before_any_shot_runs(toy_plugin, tmp_path):
         _one_line_exit_2(result)
         assert message in result.stderr, result.stderr
         assert not (tmp_path / "c").exists() and not (tmp_path / "out").exists()
+
+
+def test_a_default_stage_that_fails_to_import_is_named(toy_config):
+    """A broken install (the default simulate's module missing): the error says which stage failed to load
+    and why, not only that nothing produces the output."""
+    from importlib.metadata import EntryPoint
+
+    from pipeline.config import load_config
+    from pipeline.graph import build_graph
+    from pipeline.registry import Registry, _Entry
+
+    reg = Registry.from_entry_points()
+    for name in reg.implementations("simulate"):
+        del reg._entries[("simulate", name)]
+    ep = EntryPoint("simulate.sph", "no_such_module.sph:SPHSimulate", "fluid_pipeline.stages")
+    reg._entries[("simulate", "sph")] = _Entry("simulate", "sph", ep.value, ep)
+    toy_config.write_text(toy_config.read_text().replace("  simulate: {use: toy}\n", ""))
+    with pytest.raises(ConfigError, match=r"'particles', which no configured stage produces; the default simulate stage "
+                                          r"failed to load: .*ModuleNotFoundError: No module named 'no_such_module'"):
+        build_graph(load_config(toy_config, reg))
