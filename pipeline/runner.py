@@ -18,13 +18,13 @@ from pathlib import Path
 from typing import Any, Callable
 
 from .cache import Cache, hash_key, owner_tag
-from .config import Config, load_config
+from .config import OUTPUT_NAMES, Config, load_config
 from .errors import CacheMissError, ConfigError, FrameError, PipelineError, StageFailed
 from .estimate import check_size
 from .executors import Executor, make_executor
 from .graph import Graph, Node, build_graph
 from .keys import Plan, context, frame_key, plan, record_resume, resume_source
-from .publish import check_out_dir, publish, write_run_json
+from .publish import check_out_dir, drop_stale, publish, published_key, read_record, write_run_json
 from .registry import Registry
 from .reads import FRAMES, SceneReads
 from .stage import Artifact, Context, Progress, Stage, StageError
@@ -324,12 +324,42 @@ def _execute(p: Plan, out_dir: Path, force: frozenset[str], executor: Executor |
     try:
         # two runs publishing into one folder (the same config run twice) take turns
         with cache.lock(hash_key({"publish": str(out_dir)}), f"publish into {out_dir}"):
-            report.outputs = publish(graph, artifacts, out_dir, p.frames)
+            report.outputs = publish(graph, artifacts, out_dir, p.frames, _published_keys(p, graph, graph.outputs))
+            stale = drop_stale(out_dir, _current_keys(p, read_record(out_dir)), report.outputs)
+            if stale:
+                log.info("removed %s from %s: made with other settings than the config's now",
+                         ", ".join(f"{n}/" for n in stale), out_dir)
             report.seconds = time.perf_counter() - t_start
             write_run_json(report, out_dir)
     except OSError as exc:
         raise _outside(f"publish into {out_dir}", exc, cache) from exc
     return report
+
+
+def _published_keys(p: Plan, graph: Graph, names) -> dict[str, str]:
+    """Each output's ``published_key`` under plan ``p`` (its producer's key; per-frame: and the frames)."""
+    out = {}
+    for name in names:
+        kind = graph.producer(name)
+        if kind is not None and kind in p.keys:
+            out[name] = published_key(p.keys[kind], p.frames if graph.nodes[kind].cls.per_frame else None)
+    return out
+
+
+def _current_keys(p: Plan, recorded) -> dict[str, str | None]:
+    """The ``published_key`` the config as it is now gives each output name published here before (None
+    where it cannot be worked out: such an output is kept)."""
+    from dataclasses import replace
+
+    names = tuple(n for n in recorded if n in OUTPUT_NAMES)
+    if not names:
+        return {}
+    try:
+        config = replace(p.config, outputs=names)
+        graph = build_graph(config)
+        return {**dict.fromkeys(names), **_published_keys(plan(config, graph, p.cache, p.frames), graph, names)}
+    except PipelineError:
+        return {}
 
 
 def _run_branches(graph: Graph, order: list[str], run_node: Callable, finish: Callable) -> None:

@@ -102,6 +102,26 @@ def test_published_folders_are_replaced_others_kept_and_user_additions_protected
     assert "render 32" in (out / "frames" / "frame_00000.txt").read_text()
 
 
+def test_outputs_made_with_other_settings_are_removed_by_a_partial_run(tmp_path, toy_registry):
+    """After an edit, a run that stops early (--until simulate) or asks for fewer outputs does not leave
+    the old frames/ and usd/ beside its new results (they were made with other settings); with the config
+    unchanged they still match it and stay; a user's file inside one keeps it."""
+    cfg = write_config(tmp_path, count=3)
+    out, cache = tmp_path / "o", tmp_path / "c"
+    assert _run(cfg, "--out", out, "--cache", cache).exit_code == 0
+    assert _run(cfg, "--out", out, "--cache", cache, "--until", "simulate").exit_code == 0  # unchanged: kept
+    assert {"frames", "usd"} <= {p.name for p in out.iterdir()}
+    r = _run(cfg, "--out", out, "--cache", cache, "--until", "simulate", "--set", "simulate.steps=5")
+    assert r.exit_code == 0, r.output
+    assert not (out / "frames").exists() and not (out / "usd").exists() and (out / "run.json").is_file()
+    assert set(json.loads((out / ".pipeline-published.json").read_text())["published"]) == {"run.json"}
+    # the same with a user's file in the stale folder: the folder stays, whole
+    assert _run(cfg, "--out", out, "--cache", cache).exit_code == 0
+    (out / "usd" / "notes.txt").write_text("mine")
+    assert _run(cfg, "--out", out, "--cache", cache, "--until", "simulate", "--set", "simulate.steps=5").exit_code == 0
+    assert (out / "usd" / "notes.txt").read_text() == "mine" and not (out / "frames").exists()
+
+
 def test_staging_left_by_a_dead_run_is_swept_but_a_users_dotfile_is_not(tmp_path, toy_registry):
     cfg = write_config(tmp_path)
     out = tmp_path / "o"
