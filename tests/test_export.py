@@ -116,12 +116,15 @@ def test_round_trip_points_topology_time_and_metrics(tmp_path):
     assert len(mesh.GetPointsAttr().Get(FRAMES - 1)) == len(surf[-1].vertices)
 
 
-def write_cm_y_up_asset(path):
-    """A studio set: Y-up, centimetres, tank 200 x 100 (height) x 100 cm under a transformed parent."""
+def write_cm_y_up_asset(path, root_translate=None):
+    """A studio set: Y-up, centimetres, tank 200 x 100 (height) x 100 cm under a transformed parent (and,
+    with ``root_translate``, its default prim moved too)."""
     stage = Usd.Stage.CreateNew(str(path))
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
     UsdGeom.SetStageMetersPerUnit(stage, 0.01)
     root = UsdGeom.Xform.Define(stage, "/Set")
+    if root_translate is not None:
+        root.AddTranslateOp().Set(Gf.Vec3d(*root_translate))
     stage.SetDefaultPrim(root.GetPrim())
     props = UsdGeom.Xform.Define(stage, "/Set/Props")
     props.AddTranslateOp().Set(Gf.Vec3d(0, 50, 0))
@@ -203,17 +206,18 @@ def test_asset_in_scene_units_is_referenced_under_its_placement(studio):
     np.testing.assert_allclose(np.array(mesh.GetPointsAttr().Get(2)), surf[2].vertices, atol=1e-6)
 
 
-@pytest.mark.parametrize("placement", [
-    {"rotate": [0, 0, 90], "translate": [0.5, -0.25, 0.0], "scale": 2.0},
-    {"rotate": [0, 0, 90], "fit": {"min": [-0.3, -0.5, 0.0], "max": [0.3, 0.5, 0.4]}, "translate": [0.1, 0, 0]},
-], ids=["scale_rotate_translate", "fit"])
-def test_asset_placed_by_the_real_mesh_import_lines_up(tmp_path, placement):
+@pytest.mark.parametrize("placement, root_translate", [
+    ({"rotate": [0, 0, 90], "translate": [0.5, -0.25, 0.0], "scale": 2.0}, None),
+    ({"rotate": [0, 0, 90], "fit": {"min": [-0.3, -0.5, 0.0], "max": [0.3, 0.5, 0.4]}, "translate": [0.1, 0, 0]}, None),
+    ({"translate": [0.5, -0.25, 0.0]}, (0.0, 3.0, 0.0)),
+], ids=["scale_rotate_translate", "fit", "translated_default_prim"])
+def test_asset_placed_by_the_real_mesh_import_lines_up(tmp_path, placement, root_translate):
     """End to end with mesh_import.trimesh: a Y-up cm asset rotated and moved (or fitted) into a Z-up
     metre scene; the export's inverse placement must put the asset back exactly where mesh_import's
-    walls are."""
+    walls are, also when the asset's default prim carries a transform of its own (it was dropped: 3 cm off)."""
     from stages.mesh_import import trimesh_import
 
-    write_cm_y_up_asset(tmp_path / "set.usda")
+    write_cm_y_up_asset(tmp_path / "set.usda", root_translate)
     inputs = folders(tmp_path)
     wall = {"usd": "set.usda", "prims": ["/Set/Props/Tank"], "fluid": "inside", **placement}
     sc = scene(walls=[wall])

@@ -173,7 +173,9 @@ class UsdExport(Stage):
         for k, (rel, m) in enumerate(references):
             xf = UsdGeom.Xform.Define(root, f"/World/Asset_{k}")
             xf.AddTransformOp().Set(ul.to_gf_matrix(m))
-            xf.GetPrim().GetReferences().AddReference(rel)
+            # the reference one level down: on Asset_k itself, our xformOpOrder replaced the asset root's
+            # own (a set whose default prim is translated came in 3 cm off the simulated walls)
+            root.DefinePrim(f"/World/Asset_{k}/Asset").GetReferences().AddReference(rel)
         eye, target, up, view_angle = shot_camera(walls, scene.units, ctx.scene["camera"], ctx.resolve, "export.usd")
         ul.define_camera(root, "/World/Camera", ul.apply(to_target, eye[None])[0], ul.apply(to_target, target[None])[0],
                          ul.apply_linear(to_target, up[None])[0], view_angle, params.camera_aspect, mpu)
