@@ -184,7 +184,8 @@ def publish(graph: Graph, artifacts: dict[str, Artifact], out_dir: Path, frames:
             sources = [art.path] if art.path is not None else [art.frames[f] for f in frames if f in art.frames]
             for src_dir in sources:
                 for f in src_dir.rglob("*"):
-                    if f.is_file() and f.name != "manifest.json":
+                    # dotfiles are a stage's bookkeeping (render's skipped-frame marks), not output
+                    if f.is_file() and f.name != "manifest.json" and not f.name.startswith("."):
                         _link_or_copy(f, staging / f.relative_to(src_dir))
         new = {name: _files(staging) for name, staging in staged.items()}
         # while replacing, the record lists old and new files: a kill here leaves a folder we still own

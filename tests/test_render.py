@@ -240,12 +240,12 @@ def test_render_every_second_frame_and_the_movie_keeps_time(tmp_path, inputs):
     make_surfaces(inputs["surface"], frames=4)
     frames = run_stage(PyvistaRender, tmp_path / "f", scene=scene, inputs=inputs,
                        params={"resolution": [64, 48], "every": 2})
-    assert sorted(p.name for p in frames.iterdir()) == ["frame_00000.png", "frame_00001.skipped",
-                                                         "frame_00002.png", "frame_00003.skipped"]
+    assert sorted(p.name for p in frames.iterdir()) == [".frame_00001.skipped", ".frame_00003.skipped",
+                                                         "frame_00000.png", "frame_00002.png"]
     out = run_stage(FfmpegMovie, tmp_path / "m", scene=scene, inputs={"frames": frames})
     n, secs = imageio_ffmpeg.count_frames_and_secs(str(out / "movie.mp4"))
     assert n == 2 and secs == pytest.approx(0.4, abs=0.05)
-    (frames / "frame_00003.skipped").unlink()  # a lost frame is an error, not a skip
+    (frames / ".frame_00003.skipped").unlink()  # a lost frame is an error, not a skip
     with pytest.raises(StageError, match="frame_00003.png"):
         run_stage(FfmpegMovie, tmp_path / "m2", scene=scene, inputs={"frames": frames})
 

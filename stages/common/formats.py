@@ -168,3 +168,9 @@ class WallMesh:
         with np.load(Path(folder) / WALLS_FILE) as z:
             v, f, w = z["vertices"], z["faces"], z["wall_id"]
         return cls(v, f, w, json.loads((Path(folder) / WALLS_INFO).read_text()))
+
+
+def skipped_frame_marker(folder: Path, frame: int) -> Path:
+    """The render stage's mark of a frame it skipped (``every``), which the movie tells from a lost one. A
+    dotfile: bookkeeping of the cache entry, not published with the frames."""
+    return Path(folder) / f".frame_{frame:05d}.skipped"

@@ -9,6 +9,7 @@ import numpy as np
 from pydantic import Field
 
 from pipeline.stage import Artifact, Context, Params, Stage, StageError
+from stages.common.formats import skipped_frame_marker
 
 
 class MovieParams(Params):
@@ -55,7 +56,7 @@ class FfmpegMovie(Stage):
             folder = inputs["frames"].frame(f)
             if frame_png(folder, f).is_file():
                 frames.append(f)
-            elif not (Path(folder) / f"frame_{f:05d}.skipped").is_file():  # render's every: n
+            elif not skipped_frame_marker(folder, f).is_file():  # render's every: n
                 raise StageError(f"movie.ffmpeg: rendered frame missing: {frame_png(folder, f)}")
         if not frames:
             raise StageError("movie.ffmpeg: no rendered frames")

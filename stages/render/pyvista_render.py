@@ -28,7 +28,7 @@ from pydantic import Field, model_validator
 from pipeline.stage import Artifact, Context, Params, Stage, StageError
 from stages.common.camera import shot_camera
 from stages.common.formats import (WALLS_FILE, WALLS_INFO, ParticleMeta, SurfaceMesh, WallMesh, load_particle_frame,
-                                   load_surface, surface_file)
+                                   load_surface, skipped_frame_marker, surface_file)
 
 Vec3 = tuple[float, float, float]
 
@@ -172,7 +172,7 @@ class PyvistaRender(Stage):
     def run_frame(self, ctx: Context, inputs: Mapping[str, Artifact], params: RenderParams, frame: int) -> None:
         if frame % params.every:
             # a marker, not a missing file: the movie tells a skipped frame from a lost one
-            (Path(ctx.out_dir) / f"frame_{frame:05d}.skipped").write_text("")
+            skipped_frame_marker(ctx.out_dir, frame).write_text("")
             return
         choose_offscreen_backend()
         scene = ctx.scene["scene"]

@@ -402,3 +402,19 @@ def test_hostile_yaml_is_refused_well_under_a_second(name):
     with pytest.raises(ConfigError, match="expands to more than|nested more than 64 levels"):
         load_config(TESTS / "bad_configs" / f"{name}.yaml", registry)
     assert time.perf_counter() - t0 < 1.0
+
+
+def test_dotfiles_of_an_artifact_are_not_published(tmp_path, toy_registry):
+    """A stage's bookkeeping (render's marks of frames skipped with ``every``, as dotfiles) stays in the cache:
+    frames/ held empty frame_0000N.skipped files beside the pictures."""
+    from pipeline.stage import Artifact
+    from pipeline.publish import publish
+    from pipeline.graph import Graph
+
+    art = tmp_path / "art"
+    art.mkdir()
+    (art / "frame_00000.png").write_text("picture")
+    (art / ".frame_00001.skipped").write_text("")
+    out = tmp_path / "o"
+    publish(Graph(nodes={}, outputs=("frames",)), {"frames": Artifact(name="frames", key="k", path=art)}, out, (0, 1))
+    assert sorted(p.name for p in (out / "frames").iterdir()) == ["frame_00000.png"]
