@@ -365,3 +365,27 @@ def test_a_nozzle_on_a_moving_wall_emits_where_the_wall_carries_it(tmp_path):
             sideways = max(sideways, float(np.linalg.norm(jet.wall_velocity(jet.disc_points(tk), tk), axis=1).max()))
             checked += 1
     assert checked >= 6 and sideways > 0.3, (checked, sideways)
+
+
+def test_flows_that_cannot_do_their_job_are_warned_about(tmp_path, caplog):
+    """A jet that starts after the shot's last frame, one whose disc faces a wall a spacing away, and a sink
+    over the emitted block: each ran silently before (the block vanished in the first step)."""
+    import logging
+
+    from stages.simulate.driver import prepare
+
+    sdf = _tank(tmp_path, [0.3, 0.1, 0.3], 0.02)
+    scene = {"scene": {"name": "idle", "frames": {"fps": 10, "count": 2}, "units": {"up_axis": "Z"}},
+             "fluid": {"spacing": 0.02,
+                       "emitters": [{"box": {"min": [0.0, 0.0, 0.0], "max": [0.1, 0.1, 0.1]}}],
+                       "inflow": [{"center": [0.15, 0.05, 0.2], "direction": [0, 0, -1], "radius": 0.02, "speed": 1.0,
+                                   "start": 5.0},
+                                  {"center": [0.27, 0.05, 0.2], "direction": [1, 0, 0], "radius": 0.02, "speed": 1.0}],
+                       "sinks": [{"box": {"min": [0.0, 0.0, 0.0], "max": [0.12, 0.12, 0.04]}}]},
+             "effects": WATER}
+    ctx = stage_context(SPHSimulate, tmp_path / "o", scene=scene, log=logging.getLogger("idle"))
+    with caplog.at_level(logging.WARNING, logger="idle"):
+        prepare(ctx, {"sdf": Artifact(name="sdf", key="k", path=sdf)}, "simulate.sph")
+    assert "inflow 0 starts at 5 s, at or after the shot's last frame (0.1 s)" in caplog.text
+    assert "inflow 1 points into a wall" in caplog.text and "inflow 0 points" not in caplog.text
+    assert "50 of the 125 emitted particles start inside a sink" in caplog.text

@@ -463,6 +463,7 @@ def prepare(ctx: Context, inputs: Mapping[str, Artifact], who: str, moving_walls
     inflows, sinks = from_config(fluid, mpu, dict(zip(body_walls(inputs["sdf"].path), (m for _, m in bodies))))
     for i, jet in enumerate(inflows):
         _clear_of_walls(jet, i, sdf, bodies, domain, l0, who, ctx.log)
+    _warn_idle_flows(inflows, sinks, x, (scene.frames.count - 1) / scene.frames.fps, sdf, l0, ctx.log)
     gravity = np.zeros(3)
     v_ref = max([float(np.linalg.norm(v, axis=1).max()) if len(v) else 0.0] + [jet.top_speed() for jet in inflows])
     if effects.gravity is not None:
@@ -509,6 +510,27 @@ def _clear_of_walls(jet: Inflow, i: int, sdf: SDFGrid, bodies, domain, l0: float
         log.warning("inflow %d: %d of its %d disc particles are inside or within 0.5 l0 of a wall or outside the "
                     "domain and are not emitted (the jet emits that much less than pi r^2 v)", i,
                     int((~jet.keep).sum()), len(jet.keep))
+
+
+def _warn_idle_flows(inflows, sinks, x: np.ndarray, shot_seconds: float, sdf: SDFGrid, l0: float,
+                     log: logging.Logger) -> None:
+    """Flows set up so they cannot do their job, which ran silently: a jet that starts at or after the
+    shot's last frame, a jet facing a (static) wall within two spacings of its disc, a sink that already
+    holds emitted particles (removed in the first step)."""
+    for i, jet in enumerate(inflows):
+        if jet.start >= shot_seconds:
+            log.warning("inflow %d starts at %.4g s, at or after the shot's last frame (%.4g s): it emits nothing",
+                        i, jet.start, shot_seconds)
+        centre, direction = jet.frame_at(jet.start)
+        d, _ = sdf.sample(centre + np.outer([1.0, 2.0], direction * l0))
+        if (d < 0).any():
+            log.warning("inflow %d points into a wall: the wall is within 2 spacings in front of its disc, where "
+                        "its jet stops", i)
+    if sinks and len(x):
+        held = in_sinks(x, sinks)
+        if held.any():
+            log.warning("%d of the %d emitted particles start inside a sink (fluid.sinks) and are removed in the "
+                        "first step", int(held.sum()), len(x))
 
 
 def to_scene_units(fr: ParticleFrame, mpu: float) -> ParticleFrame:
