@@ -134,6 +134,9 @@ class Guard:
         if dt > 0.5 * advective:
             return (f"the time step ({dt:.3g} s) lets a particle at the bound cross {dt / advective:.2g} spacings: "
                     "lower the time step or the cfl")
+        effects = getattr(solver, "effects", None)
+        if effects is not None and effects.dt_limit < 10 * self.dt_floor:
+            return f"{effects.dt_limit_by} needs steps of {effects.dt_limit:.3g} s: lower it"
         mu = float(getattr(solver, "mu", 0.0) or 0.0)
         nu = mu / solver.rho0 if mu else 0.0
         if nu and 0.125 * solver.h ** 2 / nu < 10 * self.dt_floor:
@@ -562,6 +565,11 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
     progress = ctx.progress(f"simulating ({solver_name})", count)
     solver.attach_flows(setup.inflows, setup.sinks, ctx.log)
     solver.guard = Guard(v_bound=ballistic_speed(setup, getattr(solver, "effects", None)), l0=setup.spacing)
+    effects = getattr(solver, "effects", None)
+    if effects is not None and effects.dt_limit < solver.guard.dt_floor:
+        # the run would stop at its first step with "the time step fell below the floor": say which setting
+        raise StageError(f"simulate.{solver_name}: {effects.dt_limit_by} needs time steps of {effects.dt_limit:.3g} s, "
+                         f"below this scene's floor of {solver.guard.dt_floor:.3g} s (a blow-up): lower it")
     if resumed is not None:
         start, state = resumed
         solver.load_state(state)

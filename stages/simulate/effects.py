@@ -76,6 +76,11 @@ class EffectConstants:
     attractor_k: float | None = None  # m^3/s^2: a = k / r^2
     attractor_soft: float | None = None  # m
     dt_limit: float = math.inf
+    dt_limit_by: str = ""  # the effect setting that sets dt_limit, as the config names it (for errors)
+
+    def limit(self, dt: float, by: str) -> None:
+        if dt < self.dt_limit:
+            self.dt_limit, self.dt_limit_by = dt, by
 
 
 def compile_effects(effects, *, meters_per_unit: float, rho0: float, l0: float, h: float,
@@ -92,19 +97,19 @@ def compile_effects(effects, *, meters_per_unit: float, rho0: float, l0: float, 
         gamma = float(effects.surface_tension.gamma)
         out.tension_k = tension_constant(gamma, rho0, h)
         if gamma > 0:  # capillary wave limit (Brackbill et al. 1992): dt <= sqrt(rho l0^3 / (2 pi gamma))
-            out.dt_limit = min(out.dt_limit, math.sqrt(rho0 * l0 ** 3 / (2.0 * math.pi * gamma)))
+            out.limit(math.sqrt(rho0 * l0 ** 3 / (2.0 * math.pi * gamma)), f"effects.surface_tension.gamma ({gamma:g} N/m)")
     if effects.wall_adhesion is not None:
         k = tension_constant(gamma if gamma is not None else WATER_GAMMA, rho0, h)
         out.adhesion_accel = float(effects.wall_adhesion.beta) * k * rho0 * adhesion_table(h, table_samples)
     if effects.wall_friction is not None:
         out.friction_rate = float(effects.wall_friction.rate)
         if out.friction_rate > 0:  # explicit decay stays monotone for rate dt <= 1
-            out.dt_limit = min(out.dt_limit, 0.5 / out.friction_rate)
+            out.limit(0.5 / out.friction_rate, f"effects.wall_friction.rate ({out.friction_rate:g} 1/s)")
     if effects.wind is not None:
         out.wind_velocity = np.asarray(effects.wind.velocity, np.float64) * mpu
         out.wind_drag = float(effects.wind.drag)
         if out.wind_drag > 0:
-            out.dt_limit = min(out.dt_limit, 0.5 / out.wind_drag)
+            out.limit(0.5 / out.wind_drag, f"effects.wind.drag ({out.wind_drag:g} 1/s)")
     if effects.attractor is not None:
         a = effects.attractor
         out.attractor_point = np.asarray(a.point, np.float64) * mpu

@@ -6,6 +6,7 @@ import re
 from pathlib import Path
 
 import numpy as np
+import pytest
 from click.testing import CliRunner
 
 from pipeline.cli import main
@@ -57,6 +58,23 @@ def test_time_step_far_above_stable_exits_1_with_one_line(tmp_path):
     assert len(v) > 0 and not np.all(np.isfinite(v).all(axis=1) & (np.linalg.norm(v, axis=1) < 13.8))
     # the resume never picks the blown-up state up: a sane run of the same scene starts afresh and succeeds
     assert _run(tmp_path, "sph").exit_code == 0
+
+
+@pytest.mark.parametrize("solver", ["sph", "dfsph"])
+@pytest.mark.parametrize("effect, name", [("effects.wall_friction={rate: 1e9}", "effects.wall_friction.rate"),
+                                          ("effects.wind={velocity: [1, 0, 0], drag: 1e9}", "effects.wind.drag")])
+def test_an_effect_whose_rate_needs_a_step_below_the_floor_is_named_before_the_run(tmp_path, solver, effect, name):
+    """It ran into the time-step floor at the first step and blamed 'the stiffness or the spacing'."""
+    r = _run(tmp_path, solver, effect)
+    assert r.exit_code == 2, r.output
+    err = [ln for ln in r.output.splitlines() if ln.startswith("error:")]
+    assert len(err) == 1 and name in err[0] and "lower it" in err[0] and "Traceback" not in r.output
+
+
+def test_a_blow_up_driven_by_surface_tension_names_it(tmp_path):
+    r = _run(tmp_path, "sph", "effects.surface_tension={gamma: 1e6}")
+    assert r.exit_code == 1, r.output
+    assert "likely cause: effects.surface_tension.gamma (1e+06 N/m) needs steps of" in r.output
 
 
 def test_particles_through_a_wall_stop_the_run():
