@@ -226,7 +226,7 @@ def clean(config, cache_dir, stage):
 @click.argument("study", type=click.Path(path_type=Path))
 @cache_opt
 @click.option("--out", "out_dir", type=click.Path(path_type=Path), help="Report folder (default: out/<study>/ beside it).")
-@click.option("--workers", type=click.IntRange(1, 64), default=1, show_default=True,
+@click.option("--workers", type=click.IntRange(1, 256), default=1, show_default=True,
               help="Variants run in parallel processes (with --executor dask and no --scheduler: the "
                    "LocalCluster's worker processes).")
 @click.option("--executor", type=click.Choice(["auto", "inline", "dask"]), default="auto", show_default=True,

@@ -67,9 +67,12 @@ class _Lines:
         self.overrides: dict[tuple, str] = {}
 
     def where(self, path: tuple) -> str:
+        # an override of the path or of a section above it replaced the file's lines there
+        # (--set 'effects.viscosity={mu: -1}' was reported at the file's line of the old mu)
         for n in range(len(path), -1, -1):
             if path[:n] in self.overrides:
                 return f"{self.file}: {self.overrides[path[:n]]}"
+        for n in range(len(path), -1, -1):
             if path[:n] in self.lines:
                 return f"{self.file}:{self.lines[path[:n]]}"
         return self.file

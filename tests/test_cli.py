@@ -145,3 +145,13 @@ def test_a_default_stage_that_fails_to_import_is_named(toy_config):
     with pytest.raises(ConfigError, match=r"'particles', which no configured stage produces; the default simulate stage "
                                           r"failed to load: .*ModuleNotFoundError: No module named 'no_such_module'"):
         build_graph(load_config(toy_config, reg))
+
+
+def test_a_bad_value_set_over_a_section_is_blamed_on_the_set_not_the_file(toy_config, tmp_path):
+    """--set 'effects.viscosity={mu: -1}' replaces the file's effects.viscosity: the error names the --set,
+    not the file's line of the mu it replaced."""
+    toy_config.write_text(toy_config.read_text() + "effects:\n  viscosity: {mu: 0.001}\n")
+    result = CliRunner().invoke(main, ["run", str(toy_config), "--set", "effects.viscosity={mu: -1}",
+                                       "--cache", str(tmp_path / "c")])
+    _one_line_exit_2(result)
+    assert "--set effects.viscosity: effects.viscosity.mu" in result.stderr, result.stderr

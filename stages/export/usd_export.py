@@ -193,7 +193,7 @@ class UsdExport(Stage):
                                  f"itself writes; choose another name")
             target.parent.mkdir(parents=True, exist_ok=True)
             Sdf.Layer.FindOrOpen(str(out / "fluid_surface.usdc")).Export(str(target))
-            ctx.log.info("fluid layer written to %s", target)
+            ctx.log.info("fluid layer written to usd/%s", params.fluid_layer_path)  # where it is published
         if params.usdz:
             if not UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(str(out / "scene.usda")), str(out / "scene.usdz")):
                 raise StageError(f"export.usd: could not package {out / 'scene.usdz'}")

@@ -71,6 +71,8 @@ class RenderParams(Params):
     def _ordered_range(self) -> "RenderParams":
         if self.color_range is not None and not self.color_range[0] < self.color_range[1]:
             raise ValueError(f"color_range {list(self.color_range)}: the first value must be below the second")
+        if self.show == "surface" and self.color_by == "pressure":  # it was ignored without a word
+            raise ValueError("color_by: pressure colours particles; set show: particles with it")
         return self
 
 
