@@ -115,7 +115,32 @@ class Motion(Model):
         for a, b in zip(v, v[1:]):
             if not b.time > a.time:
                 raise ValueError(f"keyframe times must be strictly increasing (time {b.time} follows {a.time})")
+            # slerp goes the short way: [0, 200, 0] after [0, 0, 0] turned 160 degrees the other way, silently
+            step = max(abs(q - p) for p, q in zip(a.rotate, b.rotate))
+            turn = _turn_degrees(a.rotate, b.rotate)
+            if step >= 180.0 or turn > 179.0:
+                raise ValueError(f"keyframes at {a.time:g} s and {b.time:g} s are {max(step, turn):g} degrees apart: "
+                                 f"the rotation between keys takes the shorter way round ({turn:.0f} degrees), so keep "
+                                 "keys under a half turn apart (add one in between)")
         return v
+
+
+def _rotation(deg: Vec3) -> list[list[float]]:
+    """The rotation matrix of ``rotate`` (degrees about X, then Y, then Z): Rz Ry Rx."""
+    cx, cy, cz = (math.cos(math.radians(a)) for a in deg)
+    sx, sy, sz = (math.sin(math.radians(a)) for a in deg)
+    rx = [[1, 0, 0], [0, cx, -sx], [0, sx, cx]]
+    ry = [[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]]
+    rz = [[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]]
+    mul = lambda a, b: [[sum(a[i][k] * b[k][j] for k in range(3)) for j in range(3)] for i in range(3)]  # noqa: E731
+    return mul(rz, mul(ry, rx))
+
+
+def _turn_degrees(a: Vec3, b: Vec3) -> float:
+    """The angle of the rotation taking pose ``a`` to pose ``b`` (0-180 degrees)."""
+    ra, rb = _rotation(a), _rotation(b)
+    trace = sum(ra[k][i] * rb[k][i] for i in range(3) for k in range(3))  # trace(Ra^T Rb)
+    return math.degrees(math.acos(max(-1.0, min(1.0, 0.5 * (trace - 1.0)))))
 
 
 class WallPlacement(Placement):
