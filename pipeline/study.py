@@ -213,16 +213,30 @@ def _run_variant(args: tuple, executor=None, events=None) -> VariantResult:
     if events:
         events({"stage": "warm-up"})
     _warm_up(study, base, _sets(study, overrides), cache_dir)
-    report = runner.run(base, overrides=_sets(study, overrides), cache_dir=cache_dir, out_dir=out,
-                        executor=executor, events=events)
+    name = variant_name(overrides)
+    try:
+        report = runner.run(base, overrides=_sets(study, overrides), cache_dir=cache_dir, out_dir=out,
+                            executor=executor, events=events)
+    except StageFailed as e:  # which variant: the study runs many of one base config
+        raise StageFailed(f"variant {name}: {e}", user_error=e.exit_code == 2) from None
+    except ConfigError as e:
+        raise ConfigError(f"variant {name}: {e}") from None
     stage = next((s for s in report.stages if s.kind == study.time), None)
     metrics: dict[str, float | None] = {}
     for m in study.metrics:
         if m.function is not None:
-            value = _metric_function(m.function)(out, study_dir=Path(study_dir), **m.args)
+            try:
+                value = _metric_function(m.function)(out, study_dir=Path(study_dir), **m.args)
+            except Exception as e:  # noqa: BLE001 - a user's metric: one line naming it and the variant
+                raise StageFailed(f"metric {m.name} ({m.function}) on variant {name}: {type(e).__name__}: {e}",
+                                  user_error=False) from None
         else:
             f = out / m.file
-            value = _lookup(json.loads(f.read_text()), m.key) if f.is_file() else None
+            if not f.is_file():
+                raise ConfigError(f"metric {m.name}: variant {name} has no {m.file} (its outputs: {', '.join(study.outputs)})")
+            value = _lookup(json.loads(f.read_text()), m.key)
+            if value is None:
+                raise ConfigError(f"metric {m.name}: {m.file} of variant {name} has no key {m.key}")
         metrics[m.name] = float(value) if isinstance(value, (int, float)) else None
     return VariantResult(overrides=overrides, seconds=stage.cost_seconds if stage else 0.0, metrics=metrics,
                          out=str(out), cpu_seconds=stage.cpu_seconds if stage else 0.0)
@@ -246,6 +260,7 @@ def run_study(path: str | Path, *, cache_dir: Path | None = None, out_dir: Path 
     for m in study.metrics:
         if m.function is not None:
             _metric_function(m.function, path)  # a typo is a config error before anything runs
+    _check_variants(study, path, base)
     jobs = [(study.model_dump(), str(base), v, str(cache), str(out_root), str(path.parent)) for v in variants(study)]
     results: list[VariantResult] = []
     if executor == "dask":
@@ -265,6 +280,24 @@ def run_study(path: str | Path, *, cache_dir: Path | None = None, out_dir: Path 
                 events({"label": label, "state": "done"})
     write_report(study, results, out_root)
     return results, out_root
+
+
+def _check_variants(study: StudyConfig, path: Path, base: Path) -> None:
+    """Every variant's config loads and runs the ``time`` stage, before any runs (a bad swept value was found
+    only after the variants before it had run and been published)."""
+    from .config import load_config
+    from .graph import build_graph
+    from .registry import Registry
+
+    registry = Registry.from_entry_points()
+    for v in variants(study):
+        try:
+            graph = build_graph(load_config(base, registry, _sets(study, v)))
+        except ConfigError as e:
+            raise ConfigError(f"{path}: variant {variant_name(v)}: {e}") from None
+        if study.time not in graph.nodes:
+            raise ConfigError(f"{path}: time: {study.time} is not a stage the outputs {study.outputs} run "
+                              f"(they run {', '.join(graph.order())}): its cost would read 0 s")
 
 
 def _run_on_dask(study: StudyConfig, jobs: list[tuple], base: Path, cache: Path, scheduler: str | None,

@@ -100,3 +100,24 @@ def test_a_study_never_writes_over_a_users_file(toy_config):
         path.write_text(STUDY.replace("name: toy_study", f"name: '{name}'"))
         with pytest.raises(ConfigError, match="name"):
             run_study(path)
+
+
+def test_study_mistakes_are_found_before_or_named_after(toy_config):
+    """A swept value that no variant can take, a cost stage the outputs do not run, a metric key or file the
+    variants do not have: one line naming the study, variant or metric (a bad value was found after the
+    variants before it had run; a missing key gave an empty column; time: render with particle outputs read
+    0 s)."""
+    path = toy_config.parent / "study.yaml"
+    path.write_text(STUDY.replace("[1, 2, 4]", "[1, oops]"))
+    with pytest.raises(ConfigError, match=r"study.yaml: variant steps-oops: .*simulate.steps"):
+        run_study(path)
+    assert ran(toy_config, "simulate") == 0
+    path.write_text(STUDY.replace("time: simulate", "time: render"))
+    with pytest.raises(ConfigError, match="time: render is not a stage the outputs"):
+        run_study(path)
+    path.write_text(STUDY.replace("key: stats.error", "key: stats.eror"))
+    with pytest.raises(ConfigError, match="metric error: particles/stats.json of variant steps-1 has no key stats.eror"):
+        run_study(path)
+    path.write_text(STUDY.replace("file: particles/stats.json", "file: particles/nothere.json"))
+    with pytest.raises(ConfigError, match="metric error: variant steps-1 has no particles/nothere.json"):
+        run_study(path)
