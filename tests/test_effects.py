@@ -230,3 +230,25 @@ def test_bad_effects_name_the_field(bad, field):
     with pytest.raises(ValidationError) as e:
         Effects(**bad)
     assert field in str(e.value).replace("\n", " ")
+
+
+def test_an_attractor_far_stronger_than_the_scene_is_warned_about(tmp_path, caplog):
+    """An attractor of strength 1e9 in a 0.3 m tank allows 4.5e5 m/s: steps of 1e-7 s, a run that looked hung.
+    The log says so before the run; a gentle one says nothing."""
+    import logging
+
+    from pipeline.testing import run_stage
+    from stages.simulate.sph import SPHSimulate
+
+    sdf = tmp_path / "sdf"
+    sdf.mkdir()
+    grid_from_function(box_interior_sdf([0, 0, 0], [0.3, 0.1, 0.3]), [0, 0, 0], [0.3, 0.1, 0.3], 0.01).save(sdf)
+    base = {"scene": {"name": "pull", "frames": {"fps": 10, "count": 1}, "units": {"up_axis": "Z"}},
+            "fluid": {"spacing": 0.02, "emitters": [{"box": {"min": [0.0, 0.0, 0.0], "max": [0.1, 0.1, 0.1]}}]}}
+    for strength, warned in ((1e9, True), (1e-3, False)):
+        scene = {**base, "effects": {"gravity": {}, "attractor": {"point": [0.15, 0.05, 0.1], "strength": strength,
+                                                            "softening": 0.01}}}
+        caplog.clear()
+        with caplog.at_level(logging.WARNING):
+            run_stage(SPHSimulate, tmp_path / f"o{strength}", scene=scene, params={"threads": 1}, inputs={"sdf": sdf})
+        assert ("allow speeds up to 4.47e+05 m/s" in caplog.text) == warned, caplog.text

@@ -389,3 +389,4 @@ def test_flows_that_cannot_do_their_job_are_warned_about(tmp_path, caplog):
     assert "inflow 0 starts at 5 s, at or after the shot's last frame (0.1 s)" in caplog.text
     assert "inflow 1 points into a wall" in caplog.text and "inflow 0 points" not in caplog.text
     assert "50 of the 125 emitted particles start inside a sink" in caplog.text
+

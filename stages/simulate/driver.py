@@ -566,6 +566,13 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
     solver.attach_flows(setup.inflows, setup.sinks, ctx.log)
     solver.guard = Guard(v_bound=ballistic_speed(setup, getattr(solver, "effects", None)), l0=setup.spacing)
     effects = getattr(solver, "effects", None)
+    own = ballistic_speed(setup)
+    if solver.guard.v_bound > 10.0 * own:
+        # an attractor of strength 1e9 in a 0.4 m tank: escape speed 4.5e5 m/s, steps of 1e-7 s, a run of hours
+        # that looked hung
+        ctx.log.warning("the effects (wind, attractor) allow speeds up to %.3g m/s, %.0f x what falling and the "
+                        "emitters give (%.3g m/s): the time steps shrink as much and the run takes that much longer; "
+                        "check their strength", solver.guard.v_bound, solver.guard.v_bound / own, own)
     if effects is not None and effects.dt_limit < solver.guard.dt_floor:
         # the run would stop at its first step with "the time step fell below the floor": say which setting
         raise StageError(f"simulate.{solver_name}: {effects.dt_limit_by} needs time steps of {effects.dt_limit:.3g} s, "
