@@ -70,15 +70,37 @@ def test_hydrostatic_tank_settles_to_rho_g_h():
     assert max(abs(e) for e in errors.values()) < 0.15, errors
 
 
+def _sampled_errors(params, t0: float = 0.8, t1: float = 1.0, samples: int = 10):
+    """The last frame of a column settled to ``t0``, and each layer band's pressure error against rho g h at
+    the particles' own depths, averaged over ``samples`` instants to ``t1`` (averaging each particle's pressure
+    and comparing it at its last position mixed depths: the 9-11 band read +4.9 % on an AVX-512 machine where
+    the instants' own errors average +2.2 %, and +0.2 % over 0.8-1.4 s)."""
+    sdf = grid_from_function(box_interior_sdf([0, 0, 0], [W, W, 0.3]), [0, 0, 0], [W, W, 0.3], L0 / 2)
+    x = lattice([0, 0, 0], [W, W, H], L0)
+    s = SPHSolver(x, np.zeros_like(x), np.arange(len(x)), sdf, spacing=L0, rho0=1000.0,
+                  params=SPHParams(threads=None, **params), gravity=(0, 0, -G), mu=0.001, v_ref=float(np.sqrt(2 * G * H)))
+    hydrostatic_start(s)
+    s.advance_to(t0)
+    bands = {"9-11": (8, 11), "18-20": (17, 20), 10: (9, 10), 20: (19, 20)}
+    sums = dict.fromkeys(bands, 0.0)
+    for k in range(1, samples + 1):
+        s.advance_to(t0 + (t1 - t0) * k / samples)
+        f = s.frame()
+        for name, (lo, hi) in bands.items():
+            sums[name] += _error(f, lo, hi) / samples
+    return f, sums
+
+
 @pytest.mark.parametrize("params", [dict(gradient_correction=True, wall_gradient=True)])
 def test_hydrostatic_tank_with_gradient_correction_within_3_percent(params):
     """Symmetric kernel-gradient correction + the walls' share of the hydrostatic gradient: the pressure
-    over three layers around depth 10 and over the bottom three (18-20) within 3 % of rho g h (measured
-    +1.6 % and +1.3 %; single layers carry a ~5 % sampling error, ~36 particles with a 30-50 % spatial spread)."""
-    f = _settled_column(**params)
+    over three layers around depth 10 and over the bottom three (18-20) within 3 % of rho g h, averaged over
+    0.8-1.0 s (measured +2.2 % and -0.1 %; +0.2 % and -0.3 % over 0.8-1.4 s; single layers carry a ~5 %
+    sampling error, ~36 particles with a 30-50 % spatial spread)."""
+    f, errors = _sampled_errors(params)
     _dense(f)
-    bands = {"9-11": _error(f, 8, 11), "18-20": _error(f, 17, 20)}
-    singles = {depth: _error(f, depth - 1, depth) for depth in (10, 20)}
+    bands = {k: errors[k] for k in ("9-11", "18-20")}
+    singles = {k: errors[k] for k in (10, 20)}
     print('corrected hydrostatic error, 3-layer bands:', bands, 'single layers:', singles)
     assert max(abs(e) for e in bands.values()) < 0.03, bands
     assert max(abs(e) for e in singles.values()) < 0.08, singles
