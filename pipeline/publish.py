@@ -11,7 +11,6 @@ left by a killed run are removed when their process is provably dead (see ``cach
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import shutil
@@ -63,24 +62,17 @@ def _record_from_old_run_json(out_dir: Path) -> dict[str, list[str]]:
     return {**owned, "run.json": ["run.json"]}
 
 
-def read_record_keys(out_dir: Path) -> dict[str, str]:
-    """What each published name was made from (``published_key``); empty for a record written before
-    the keys were kept."""
+def read_record_keys(out_dir: Path) -> dict[str, dict[str, Any]]:
+    """What each published name was made from: ``{"key": its stage's cache key, "frames": the run's frame
+    selection, None for all}``; empty for a record written before these were kept."""
     try:
         keys = json.loads((out_dir / RECORD).read_text()).get("keys", {})
-        return {str(k): str(v) for k, v in keys.items()} if isinstance(keys, dict) else {}
-    except (OSError, ValueError, AttributeError):
+        return {str(n): dict(k) for n, k in keys.items() if isinstance(k, dict) and "key" in k}
+    except (OSError, ValueError, AttributeError, TypeError):
         return {}
 
 
-def published_key(stage_key: str, frames: tuple[int, ...] | None) -> str:
-    """What an output is made from: its stage's cache key, and for per-frame output the frames published."""
-    if frames is None:
-        return stage_key
-    return hashlib.sha256(json.dumps({"key": stage_key, "frames": list(frames)}).encode()).hexdigest()
-
-
-def _write_record(out_dir: Path, published: dict[str, list[str]], keys: dict[str, str] | None = None) -> None:
+def _write_record(out_dir: Path, published: dict[str, list[str]], keys: dict[str, dict] | None = None) -> None:
     keys = {n: k for n, k in {**read_record_keys(out_dir), **(keys or {})}.items() if n in published}
     _atomic_write(out_dir / RECORD, json.dumps({"version": 1, "published": published, "keys": keys}, indent=1,
                                                sort_keys=True))
@@ -164,10 +156,10 @@ def _link_or_copy(src: Path, dst: Path) -> None:
 
 
 def publish(graph: Graph, artifacts: dict[str, Artifact], out_dir: Path, frames: tuple[int, ...],
-            keys: dict[str, str] | None = None) -> dict[str, str]:
+            keys: dict[str, dict] | None = None) -> dict[str, str]:
     """Copy (hard-link) each wanted artifact into ``out_dir/<name>/``, replacing the old folder whole,
-    and only if the pipeline published it (``check_out_dir``). ``keys``: each name's ``published_key``,
-    kept in the record (``drop_stale``)."""
+    and only if the pipeline published it (``check_out_dir``). ``keys``: what each name is made from
+    (``read_record_keys``), kept in the record for ``drop_stale``."""
     out_dir = Path(out_dir)
     names = [n for n in graph.outputs if artifacts.get(n) is not None]
     check_out_dir(out_dir, names)
@@ -228,18 +220,15 @@ def publish_file(out_dir: Path, name: str, data: str | bytes) -> None:
     _atomic_write(out_dir / name, data)
 
 
-def drop_stale(out_dir: Path, current: dict[str, str | None], published_now: Iterable[str]) -> list[str]:
-    """Remove the outputs an earlier run published here that the config, as it is now, would make
-    differently (``current``: name -> its ``published_key`` now; None when unknown, then kept): a run
-    with ``--until simulate`` or fewer outputs after an edit left the old movie beside the new particles.
-    Only what the record lists and the folder holds nothing else of; returns the names removed."""
+def drop_stale(out_dir: Path, current: dict[str, str | None]) -> list[str]:
+    """Remove the outputs an earlier run published here that the config, as it is now and for the same
+    frames, would make differently (``current``: name -> its stage's key now; None when unknown, then kept):
+    a run with ``--until simulate`` or fewer outputs after an edit left the old movie beside the new
+    particles. Only what the record lists and the folder holds nothing else of; returns the names removed."""
     out_dir = Path(out_dir)
-    if not (out_dir / RECORD).exists():
-        return []
     record, was = read_record(out_dir), read_record_keys(out_dir)
-    stale = [n for n in record if n not in set(published_now) and n in was and current.get(n) is not None
-             and current[n] != was[n] and (out_dir / n).is_dir() and not (out_dir / n).is_symlink()
-             and set(_files(out_dir / n)) <= set(record[n])]
+    stale = [n for n, key in current.items() if key is not None and n in record and n in was and key != was[n]["key"]
+             and (out_dir / n).is_dir() and not (out_dir / n).is_symlink() and set(_files(out_dir / n)) <= set(record[n])]
     for name in stale:
         trash = out_dir / f"{TMP_PREFIX}old-{name}.{owner_tag()}.{uuid.uuid4().hex[:8]}"
         os.replace(out_dir / name, trash)

@@ -24,7 +24,7 @@ from .estimate import check_size
 from .executors import Executor, make_executor
 from .graph import Graph, Node, build_graph
 from .keys import Plan, context, frame_key, plan, record_resume, resume_source
-from .publish import check_out_dir, drop_stale, publish, published_key, read_record, write_run_json
+from .publish import check_out_dir, drop_stale, publish, read_record_keys, write_run_json
 from .registry import Registry
 from .reads import FRAMES, SceneReads
 from .stage import Artifact, Context, Progress, Stage, StageError
@@ -324,8 +324,9 @@ def _execute(p: Plan, out_dir: Path, force: frozenset[str], executor: Executor |
     try:
         # two runs publishing into one folder (the same config run twice) take turns
         with cache.lock(hash_key({"publish": str(out_dir)}), f"publish into {out_dir}"):
-            report.outputs = publish(graph, artifacts, out_dir, p.frames, _published_keys(p, graph, graph.outputs))
-            stale = drop_stale(out_dir, _current_keys(p, read_record(out_dir)), report.outputs)
+            report.outputs = publish(graph, artifacts, out_dir, p.frames, _made_from(p, graph, graph.outputs))
+            earlier = {n: k for n, k in read_record_keys(out_dir).items() if n not in report.outputs}
+            stale = drop_stale(out_dir, _current_keys(p, earlier)) if earlier else []
             if stale:
                 log.info("removed %s from %s: made with other settings than the config's now",
                          ", ".join(f"{n}/" for n in stale), out_dir)
@@ -336,30 +337,33 @@ def _execute(p: Plan, out_dir: Path, force: frozenset[str], executor: Executor |
     return report
 
 
-def _published_keys(p: Plan, graph: Graph, names) -> dict[str, str]:
-    """Each output's ``published_key`` under plan ``p`` (its producer's key; per-frame: and the frames)."""
-    out = {}
-    for name in names:
-        kind = graph.producer(name)
-        if kind is not None and kind in p.keys:
-            out[name] = published_key(p.keys[kind], p.frames if graph.nodes[kind].cls.per_frame else None)
-    return out
+def _made_from(p: Plan, graph: Graph, names) -> dict[str, dict]:
+    """What each output of plan ``p`` is made from, for the publish record: its producer's key and the
+    run's frame selection (None: all frames)."""
+    every = p.frames == tuple(range(p.config.scene.scene.frames.count))
+    return {n: {"key": p.keys[graph.producer(n)], "frames": None if every else list(p.frames)}
+            for n in names if graph.producer(n) in p.keys}
 
 
-def _current_keys(p: Plan, recorded) -> dict[str, str | None]:
-    """The ``published_key`` the config as it is now gives each output name published here before (None
-    where it cannot be worked out: such an output is kept)."""
+def _current_keys(p: Plan, earlier: dict[str, dict]) -> dict[str, str | None]:
+    """The key the config as it is now gives the producer of each output an earlier run published, for
+    that run's frames (a --frames run does not make a whole-shot movie stale); None where it cannot be
+    worked out (such an output is kept)."""
     from dataclasses import replace
 
-    names = tuple(n for n in recorded if n in OUTPUT_NAMES)
-    if not names:
-        return {}
-    try:
-        config = replace(p.config, outputs=names)
-        graph = build_graph(config)
-        return {**dict.fromkeys(names), **_published_keys(plan(config, graph, p.cache, p.frames), graph, names)}
-    except PipelineError:
-        return {}
+    current: dict[str, str | None] = dict.fromkeys(earlier)
+    selections = {tuple(k["frames"]) if k.get("frames") is not None else None for k in earlier.values()}
+    for frames in selections:
+        names = tuple(n for n, k in earlier.items() if n in OUTPUT_NAMES
+                      and (tuple(k["frames"]) if k.get("frames") is not None else None) == frames)
+        try:
+            config = replace(p.config, outputs=names)
+            graph = build_graph(config)
+            keys = plan(config, graph, p.cache, frames).keys
+        except PipelineError:
+            continue
+        current.update({n: keys[graph.producer(n)] for n in names if graph.producer(n) in keys})
+    return current
 
 
 def _run_branches(graph: Graph, order: list[str], run_node: Callable, finish: Callable) -> None:

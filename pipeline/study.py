@@ -255,7 +255,8 @@ def run_study(path: str | Path, *, cache_dir: Path | None = None, out_dir: Path 
         raise ConfigError(f"{path}: base: config not found: {base}")
     out_root = Path(out_dir) if out_dir else path.parent / "out" / study.name
     # the report's files replace only what an earlier study published there: checked before any variant runs
-    check_out_dir(out_root, report_files(study), files=report_files(study))
+    report = report_files(study)
+    check_out_dir(out_root, report, files=report)
     cache = Path(cache_dir) if cache_dir else base.parent / ".pipeline"
     for m in study.metrics:
         if m.function is not None:

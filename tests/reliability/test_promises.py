@@ -111,6 +111,12 @@ def test_outputs_made_with_other_settings_are_removed_by_a_partial_run(tmp_path,
     assert _run(cfg, "--out", out, "--cache", cache).exit_code == 0
     assert _run(cfg, "--out", out, "--cache", cache, "--until", "simulate").exit_code == 0  # unchanged: kept
     assert {"frames", "usd"} <= {p.name for p in out.iterdir()}
+    # a run over fewer frames does not make the whole shot's outputs stale, nor the next run its subset's
+    assert _run(cfg, "--out", out, "--cache", cache, "--until", "simulate", "--frames", "0:2").exit_code == 0
+    assert {"frames", "usd"} <= {p.name for p in out.iterdir()}
+    assert _run(cfg, "--out", out, "--cache", cache, "--frames", "0:2").exit_code == 0
+    assert _run(cfg, "--out", out, "--cache", cache, "--until", "simulate").exit_code == 0
+    assert len(list((out / "frames").iterdir())) == 2 and (out / "usd").is_dir()
     r = _run(cfg, "--out", out, "--cache", cache, "--until", "simulate", "--set", "simulate.steps=5")
     assert r.exit_code == 0, r.output
     assert not (out / "frames").exists() and not (out / "usd").exists() and (out / "run.json").is_file()
