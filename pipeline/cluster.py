@@ -153,7 +153,8 @@ def _on_worker(fn: Callable[..., Any], args: Any, label: str, topic: str | None)
         out = Outcome(label, value=value)
     out.seconds = time.perf_counter() - t0
     if emit is not None:
-        emit({"state": "failed" if out.error else "done"})
+        # a study variant's failure comes back as its result (a row of the report), not as an exception
+        emit({"state": "failed" if out.error or getattr(out.value, "error", None) else "done"})
     return out
 
 

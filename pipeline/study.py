@@ -109,10 +109,12 @@ class StudyConfig(BaseModel):
 @dataclass
 class VariantResult:
     overrides: dict[str, Any]
-    seconds: float  # the time stage's cost: wall seconds without warm-up (see above)
+    seconds: float | None  # the time stage's cost: wall seconds without warm-up (see above); None: it failed
     metrics: dict[str, float | None]
     out: str
-    cpu_seconds: float = 0.0
+    cpu_seconds: float | None = 0.0
+    error: str | None = None  # one line: the variant failed (a blow-up, a bad value); no cost or metrics
+    user_error: bool = False
 
 
 def load_study(path: Path) -> StudyConfig:
@@ -217,19 +219,22 @@ def _run_variant(args: tuple, executor=None, events=None) -> VariantResult:
     try:
         report = runner.run(base, overrides=_sets(study, overrides), cache_dir=cache_dir, out_dir=out,
                             executor=executor, events=events)
-    except StageFailed as e:  # which variant: the study runs many of one base config
-        raise StageFailed(f"variant {name}: {e}", user_error=e.exit_code == 2) from None
+    except StageFailed as e:
+        # one variant's failure is a result of the study (a time step past the stable one blows up): the
+        # others still run, the row says why, and the study exits non-zero at the end
+        return failed_variant(study, overrides, str(out), " ".join(str(e).split()), e.exit_code == 2)
     except ConfigError as e:
         raise ConfigError(f"variant {name}: {e}") from None
     stage = next((s for s in report.stages if s.kind == study.time), None)
-    metrics: dict[str, float | None] = {}
+    metrics: dict[str, float | None] = {m.name: None for m in study.metrics}
+    error = None
     for m in study.metrics:
         if m.function is not None:
             try:
                 value = _metric_function(m.function)(out, study_dir=Path(study_dir), **m.args)
-            except Exception as e:  # noqa: BLE001 - a user's metric: one line naming it and the variant
-                raise StageFailed(f"metric {m.name} ({m.function}) on variant {name}: {type(e).__name__}: {e}",
-                                  user_error=False) from None
+            except Exception as e:  # noqa: BLE001 - a user's metric: one line naming it, in the variant's row
+                error = f"metric {m.name} ({m.function}): {type(e).__name__}: {' '.join(str(e).split())}"
+                break
         else:
             f = out / m.file
             if not f.is_file():
@@ -239,7 +244,13 @@ def _run_variant(args: tuple, executor=None, events=None) -> VariantResult:
                 raise ConfigError(f"metric {m.name}: {m.file} of variant {name} has no key {m.key}")
         metrics[m.name] = float(value) if isinstance(value, (int, float)) else None
     return VariantResult(overrides=overrides, seconds=stage.cost_seconds if stage else 0.0, metrics=metrics,
-                         out=str(out), cpu_seconds=stage.cpu_seconds if stage else 0.0)
+                         out=str(out), cpu_seconds=stage.cpu_seconds if stage else 0.0, error=error)
+
+
+def failed_variant(study: StudyConfig, overrides: dict[str, Any], out: str, error: str,
+                   user_error: bool) -> VariantResult:
+    return VariantResult(overrides=overrides, seconds=None, metrics={m.name: None for m in study.metrics}, out=out,
+                         cpu_seconds=None, error=error, user_error=user_error)
 
 
 def run_study(path: str | Path, *, cache_dir: Path | None = None, out_dir: Path | None = None,
@@ -278,8 +289,15 @@ def run_study(path: str | Path, *, cache_dir: Path | None = None, out_dir: Path 
             results.append(_run_variant(j, events=(lambda e, label=label: events({"label": label, **e}))
                                         if events else None))
             if events:
-                events({"label": label, "state": "done"})
+                events({"label": label, "state": "failed" if results[-1].error else "done"})
     write_report(study, results, out_root)
+    failed = [r for r in results if r.error]
+    if failed:
+        more = f" (and {len(failed) - 1} more; every row in {out_root / 'study.md'})" if len(failed) > 1 else \
+            f" (the other variants are in {out_root / 'study.md'})"
+        raise StageFailed(f"study {study.name}: {len(failed)} of {len(results)} variant(s) failed: variant "
+                          f"{variant_name(failed[0].overrides)}: {failed[0].error}{more}",
+                          user_error=all(r.user_error for r in failed))
     return results, out_root
 
 
@@ -312,11 +330,9 @@ def _run_on_dask(study: StudyConfig, jobs: list[tuple], base: Path, cache: Path,
         outcomes = cluster.run_tasks(client, tasks, events)
     finally:
         cluster.close(client)
-    failed = [o for o in outcomes if o.error]
-    if failed:
-        more = f" (and {len(failed) - 1} more variant(s) failed)" if len(failed) > 1 else ""
-        raise StageFailed(f"variant {failed[0].label}: {failed[0].error}{more}", user_error=failed[0].exit_code == 2)
-    return [o.value for o in outcomes]
+    # a task that failed outside the variant's own run (a worker lost): its row, like a failed run's
+    return [failed_variant(study, j[2], str(Path(j[4]) / "variants" / o.label), o.error, o.exit_code == 2)
+            if o.error else o.value for j, o in zip(jobs, outcomes)]
 
 
 def report_files(study: StudyConfig) -> list[str]:
@@ -328,9 +344,10 @@ def write_report(study: StudyConfig, results: list[VariantResult], out_root: Pat
     """The table (csv, json, md) and one plot per metric, each published as a run publishes its outputs
     (publish.publish_file: atomically, and never over a file the pipeline did not write)."""
     keys = list(study.sweep)
-    header = keys + [f"{study.time}_seconds", f"{study.time}_cpu_seconds"] + [m.name for m in study.metrics]
-    rows = [[r.overrides[k] for k in keys] + [round(r.seconds, 3), round(r.cpu_seconds, 3)]
-            + [r.metrics[m.name] for m in study.metrics] for r in results]
+    header = keys + [f"{study.time}_seconds", f"{study.time}_cpu_seconds"] + [m.name for m in study.metrics] \
+        + ["variant-error"]  # a name no metric can take (metric names have no '-')
+    rows = [[r.overrides[k] for k in keys] + [_rounded(r.seconds), _rounded(r.cpu_seconds)]
+            + [r.metrics[m.name] for m in study.metrics] + [r.error or ""] for r in results]
     table = io.StringIO(newline="")
     w = csv.writer(table)
     w.writerow(header)
@@ -343,6 +360,10 @@ def write_report(study: StudyConfig, results: list[VariantResult], out_root: Pat
            for row in rows]
     publish_file(out_root, "study.md", f"# Study {study.name}\n\n" + "\n".join(md) + "\n")
     _plot(study, results, out_root)
+
+
+def _rounded(seconds: float | None) -> float | None:
+    return None if seconds is None else round(seconds, 3)
 
 
 def _plot(study: StudyConfig, results: list[VariantResult], out_root: Path) -> None:

@@ -66,9 +66,10 @@ def _study(folder: Path, name: str = "s", steps=(1, 2, 4), sets=(), outputs=("pa
 
 
 def _table(out: Path) -> list[list[str]]:
-    """study.csv without its timing columns."""
+    """study.csv without its timing columns and its (empty) variant-error column."""
     rows = list(csv.reader(open(out / "study.csv")))
-    keep = [i for i, h in enumerate(rows[0]) if not h.endswith("seconds")]
+    assert all(r[-1] == "" for r in rows[1:]), rows
+    keep = [i for i, h in enumerate(rows[0]) if not h.endswith("seconds") and h != "variant-error"]
     return [[r[i] for i in keep] for r in rows]
 
 
@@ -162,6 +163,18 @@ def test_two_clients_with_overlapping_studies_compute_shared_keys_once(tmp_path,
     assert _table(folder / "out" / "a")[1:] == [["1", "1.0"], ["2", "0.5"]]
     assert _table(folder / "out" / "b")[1:] == [["2", "0.5"], ["4", "0.25"]]
     assert_consistent(folder / "cache")
+
+
+def test_a_failing_variant_on_dask_keeps_the_others(tmp_path, plugin, scheduler):
+    """On Dask as inline: the failed variant is a row of the report with its reason, the others are reported, exit 1."""
+    path = _study(tmp_path / "f", "f", steps=(1, 2))
+    path.write_text(path.read_text().replace("sweep:\n", "mode: zip\nsweep:\n  simulate.fail: [bug, null]\n"))
+    r = subprocess.run([sys.executable, "-m", "pipeline.cli", "study", str(path), "--executor", "dask", "--scheduler",
+                        scheduler, "--cache", str(tmp_path / "f" / "cache"), "-q"], env=_env(plugin),
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 1 and "1 of 2 variant(s) failed: variant fail-bug_steps-1" in r.stderr, r.stderr
+    rows = list(csv.reader(open(tmp_path / "f" / "out" / "f" / "study.csv")))
+    assert "RuntimeError: boom (traceback in" in rows[1][-1] and rows[2][-2:] == ["0.5", ""], rows
 
 
 def test_batch_of_shots_with_a_broken_one(tmp_path, plugin, scheduler):

@@ -32,7 +32,8 @@ def test_study_runs_variants_and_reports(toy_config):
     assert [r.overrides["simulate.steps"] for r in results] == [1, 2, 4]
     assert [r.metrics["error"] for r in results] == [1.0, 0.5, 0.25]
     rows = list(csv.reader(open(out / "study.csv")))
-    assert rows[0] == ["simulate.steps", "simulate_seconds", "simulate_cpu_seconds", "error"] and len(rows) == 4
+    assert rows[0] == ["simulate.steps", "simulate_seconds", "simulate_cpu_seconds", "error", "variant-error"] and len(rows) == 4
+    assert all(row[-1] == "" for row in rows[1:])  # no variant failed
     assert (out / "error_vs_time.png").stat().st_size > 1000
     assert ran(toy_config, "simulate") == 3
     run_study(path)  # cached: nothing recomputed
@@ -121,3 +122,36 @@ def test_study_mistakes_are_found_before_or_named_after(toy_config):
     path.write_text(STUDY.replace("file: particles/stats.json", "file: particles/nothere.json"))
     with pytest.raises(ConfigError, match="metric error: variant steps-1 has no particles/nothere.json"):
         run_study(path)
+
+
+def test_a_failing_variant_does_not_stop_the_others(toy_config):
+    """A variant that fails (a blow-up is a result a sweep of time steps expects) gets its row with the one-line
+    reason, the other variants run and are reported, and the study exits 1 naming it (it used to stop at the
+    first failure with no report). A metric that raises on one variant is that variant's error the same way."""
+    from pipeline import StageFailed
+
+    path = toy_config.parent / "study.yaml"
+    path.write_text(STUDY.replace("sweep:\n  simulate.steps: [1, 2, 4]",
+                                  "mode: zip\nsweep:\n  simulate.steps: [1, 2, 4]\n  simulate.fail: [null, bug, null]"))
+    with pytest.raises(StageFailed, match=r"study toy_study: 1 of 3 variant\(s\) failed: variant steps-2_fail-bug: "
+                                          r".*RuntimeError: boom") as exc:
+        run_study(path)
+    assert exc.value.exit_code == 1
+    out = toy_config.parent / "out" / "toy_study"
+    rows = list(csv.reader(open(out / "study.csv")))
+    assert [r[0] for r in rows[1:]] == ["1", "2", "4"]
+    assert [r[4] for r in rows[1:]] == ["1.0", "", "0.25"] and rows[2][2] == "" and "RuntimeError: boom" in rows[2][-1]
+    assert rows[1][-1] == rows[3][-1] == "" and (out / "error_vs_time.png").is_file()
+    assert ran(toy_config, "simulate") == 3  # the failed one ran too, and committed nothing
+    r = CliRunner().invoke(main, ["study", str(path), "-q"])
+    assert r.exit_code == 1 and r.stderr.count("error:") == 1 and "steps-2_fail-bug" in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr
+    assert ran(toy_config, "simulate") == 4  # the two good variants cached; the failed one tried again
+
+    path.write_text(STUDY.replace("file: particles/stats.json, key: stats.error",
+                                  "function: 'toy_stages:error_above', args: {limit: 0.3}"))
+    with pytest.raises(StageFailed, match=r"1 of 3 variant\(s\) failed: variant steps-4: metric error "
+                                          r"\(toy_stages:error_above\): ValueError: no front") as exc:
+        run_study(path)
+    rows = list(csv.reader(open(out / "study.csv")))
+    assert [r[3] for r in rows[1:]] == ["1.0", "0.5", ""] and rows[3][1] != ""  # its run did cost time

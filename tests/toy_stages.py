@@ -150,6 +150,15 @@ class ToyExport(Stage):
 TOY_STAGES = (ToyImport, ToyBake, ToySimulate, ToySurface, ToyRender, ToyExport)
 
 
+def error_above(out_dir, *, study_dir, limit):
+    """A study metric that fails on some variants, as a surge front that is not there."""
+    import json
+    error = json.loads((out_dir / "particles" / "stats.json").read_text())["stats"]["error"]
+    if error < limit:
+        raise ValueError("no front")
+    return error
+
+
 def scaled_error(out_dir, *, study_dir, factor):
     """A study metric computed by a function (pipeline.study Metric.function)."""
     import json
