@@ -23,17 +23,21 @@ def run_shot(args: dict[str, Any], executor=None, events=None) -> dict[str, Any]
 
 
 def check_shots(configs: list[Path], overrides: tuple[str, ...] = ()) -> None:
-    """Before any shot runs: every config loads (a malformed one is exit 2 now, not after the others'
-    hours), and no two shots publish into the same folder (out/<scene.name>/ beside the config), where
+    """Before any shot runs: every config loads and its stages take its scene (a malformed one is exit 2 now,
+    not after the others' hours), and no two shots publish into the same folder (out/<scene.name>/ beside the config), where
     the later would silently replace the earlier."""
     from .config import load_config
+    from .estimate import check_stages
+    from .graph import build_graph
     from .registry import Registry
     from .runner import default_out_dir
 
     registry = Registry.from_entry_points()
     seen: dict[Path, Path] = {}
     for c in configs:
-        out = default_out_dir(load_config(c, registry, overrides)).resolve()
+        config = load_config(c, registry, overrides)
+        check_stages(config, build_graph(config))
+        out = default_out_dir(config).resolve()
         if out in seen:
             raise ConfigError(f"{c}: would publish into {out}, as {seen[out]} does (the same scene.name in the same "
                               "folder); give each shot its own scene.name")

@@ -43,6 +43,7 @@ class Config:
     raw: dict[str, Any] = field(repr=False, default_factory=dict)
     allow_large: bool = False  # run even when the plan's memory estimate exceeds the available memory
     unloadable: dict[str, str] = field(default_factory=dict)  # kind -> why its default stage could not be loaded
+    lines: Any = field(default=None, repr=False)  # _Lines: where each key is in the file (or which --set)
 
     @property
     def name(self) -> str:
@@ -51,6 +52,10 @@ class Config:
     @property
     def dir(self) -> Path:
         return self.path.parent
+
+    def where(self, *path: str | int) -> str:
+        """'file:line' of the YAML node at ``path`` (or of the closest one above it, or the --set that made it)."""
+        return self.lines.where(tuple(path)) if self.lines is not None else str(self.path)
 
     def sections(self) -> dict[str, Any]:
         return {"scene": self.scene.scene, "walls": self.scene.walls, "fluid": self.scene.fluid,
@@ -337,7 +342,7 @@ def load_config(path: str | Path, registry: Registry, overrides: list[str] | tup
             except ConfigError as e:
                 unloadable[kind] = str(e)  # only matters if the graph needs it: then it is the error to show
     return Config(path=path.resolve(), scene=scene, stages=stages, outputs=tuple(dict.fromkeys(outputs)), raw=data,
-                  allow_large=allow_large, unloadable=unloadable)
+                  allow_large=allow_large, unloadable=unloadable, lines=lines)
 
 
 def dump_model(value: Any) -> Any:

@@ -1,4 +1,5 @@
-"""The plan's size before anything runs: each stage's ``estimate`` hook (particles, SDF nodes, steps,
+"""Before anything runs: each stage's ``check`` hook (a scene its implementation cannot run is refused in
+one line, exit 2), and the plan's size: each stage's ``estimate`` hook (particles, SDF nodes, steps,
 memory), printed, and checked against the machine's available memory.
 
 A run whose estimated peak memory (the largest single stage: stages run one after another, per-frame
@@ -12,9 +13,23 @@ from typing import Any
 
 from .errors import ConfigError
 from .keys import context
+from .stage import StageError
 from .memory import human, refusal
 
 log = logging.getLogger("pipeline")
+
+
+def check_stages(config: Any, graph: Any) -> None:
+    """ConfigError naming the config file and the stage's ``use`` line when a stage's ``check`` refuses the
+    scene (DFSPH and walls[].motion were refused only once the import and the bake had run)."""
+    frames = tuple(range(config.scene.scene.frames.count))
+    for kind in graph.order():
+        node = graph.nodes[kind]
+        ctx = context(config, node, config.dir, frames, extra_reads=node.cls.estimate_reads)
+        try:
+            node.cls().check(ctx, node.params)
+        except StageError as e:
+            raise ConfigError(f"{config.where('stages', kind, 'use')}: {e}") from None
 
 
 def plan_size(p: Any) -> dict[str, dict[str, float]]:

@@ -20,7 +20,7 @@ from typing import Any, Callable
 from .cache import Cache, hash_key, owner_tag
 from .config import OUTPUT_NAMES, Config, load_config
 from .errors import CacheMissError, ConfigError, FrameError, PipelineError, StageFailed
-from .estimate import check_size
+from .estimate import check_size, check_stages
 from .executors import Executor, make_executor
 from .graph import Graph, Node, build_graph
 from .keys import Plan, context, frame_key, plan, record_resume, resume_source
@@ -540,6 +540,7 @@ def run(config_path: str | Path, *, registry: Registry | None = None, overrides:
     registry = registry or Registry.from_entry_points()
     config = load_config(config_path, registry, overrides)
     graph = select(build_graph(config), only, from_, until)
+    check_stages(config, graph)
     for f in force:
         if f != "all" and f not in graph.nodes:
             raise ConfigError(f"--force {f}: not a stage this run includes ({', '.join(graph.order())})")

@@ -477,3 +477,22 @@ class SceneConfig(Model):
                                              {"attach": jet.attach, "n": len(self.walls)}),
                     loc=("fluid", "inflow", i, "attach"), input=jet.attach)])
         return self
+
+    @model_validator(mode="after")
+    def _settles_at_rest(self) -> "SceneConfig":
+        """Settling zeroes every velocity before t = 0: it is for a fluid at rest among walls at rest (a sink
+        would drain it before the shot starts). Checked here, not when the simulation starts: the mistake
+        then costs no import and bake first. (Walls animated in a USD file are refused by the solver.)"""
+        fluid = self.fluid
+        if fluid is None or fluid.settle <= 0:
+            return self
+        moving = next((i for i, w in enumerate(self.walls) if w.motion is not None), None)
+        why = next((why for there, why in (
+            (any(any(c != 0 for c in e.velocity) for e in fluid.emitters), "an emitter gives the fluid a velocity"),
+            (fluid.inflow, "the scene has an inflow"), (fluid.sinks, "the scene has a sink"),
+            (moving is not None, f"walls.{moving} moves")) if there), None)
+        if why:
+            raise ValidationError.from_exception_data("SceneConfig", [InitErrorDetails(
+                type=PydanticCustomError("settle_not_at_rest", "for a fluid that starts at rest, but {why}; set it "
+                                         "to 0", {"why": why}), loc=("fluid", "settle"), input=fluid.settle)])
+        return self

@@ -157,8 +157,9 @@ class Stage:
     # config fields the stage reads, as dotted paths ("scene.units", "fluid.spacing", "walls"), and
     # "frames" if it uses the run's frame selection; the key holds exactly these, ctx exposes only these
     reads: ClassVar[tuple[str, ...]] = ()
-    # config fields the ``estimate`` hook reads beyond ``reads``, to size work made from its inputs (the SDF's
-    # grid from the walls' bounds); not keyed: the result depends on them through the inputs' keys
+    # config fields the plan-time hooks (``estimate``, ``check``) read beyond ``reads``: to size work made from
+    # its inputs (the SDF's grid from the walls' bounds), to refuse walls that move; not keyed: the result
+    # depends on them through the inputs' keys
     estimate_reads: ClassVar[tuple[str, ...]] = ()
     # a read whose growth the stage can continue from a cached shorter run ("scene.frames.count")
     extends: ClassVar[str | None] = None
@@ -178,6 +179,10 @@ class Stage:
         """Files outside the cache that this stage reads beyond the config's ``InputFile`` fields (which the
         engine finds itself), e.g. the layers a USD file composes; their content goes into the key."""
         return []
+
+    def check(self, ctx: Context, params: Params) -> None:
+        """Raise StageError (one line) for a scene this implementation cannot run, from the config alone before
+        anything runs (``reads`` and ``estimate_reads``); what only its inputs show is refused when it runs."""
 
     def estimate(self, ctx: Context, params: Params) -> dict[str, float] | None:
         """The size of this stage's work from the config alone, before anything runs (no inputs yet):

@@ -305,13 +305,16 @@ def _check_variants(study: StudyConfig, path: Path, base: Path) -> None:
     """Every variant's config loads and runs the ``time`` stage, before any runs (a bad swept value was found
     only after the variants before it had run and been published)."""
     from .config import load_config
+    from .estimate import check_stages
     from .graph import build_graph
     from .registry import Registry
 
     registry = Registry.from_entry_points()
     for v in variants(study):
         try:
-            graph = build_graph(load_config(base, registry, _sets(study, v)))
+            config = load_config(base, registry, _sets(study, v))
+            graph = build_graph(config)
+            check_stages(config, graph)
         except ConfigError as e:
             raise ConfigError(f"{path}: variant {variant_name(v)}: {e}") from None
         if study.time not in graph.nodes:

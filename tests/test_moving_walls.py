@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from stages.common.sdf import SDFGrid, box_interior_sdf, grid_from_function
 from stages.simulate.driver import hydrostatic_start
@@ -198,7 +199,7 @@ def test_a_paddle_pushes_water_without_entering_it_and_within_its_work():
     assert front.sum() > 20 and abs(s.v[front, 0].mean() / U - 1.0) < 0.15
 
 
-def _simulate(tmp_path, walls, tag, count=10):
+def _simulate(tmp_path, walls, tag, count=10, settle=0.0):
     """mesh_import -> sdf_bake -> simulate.sph of a tank 0.52 m deep with ``walls`` added (Z up, metres,
     25 fps): the particle frames (x by particle id) and the bodies."""
     from pipeline.testing import run_stage
@@ -210,7 +211,8 @@ def _simulate(tmp_path, walls, tag, count=10):
 
     tank = {"builtin": "box_tank", "size": [0.8, 1.2, 0.9], "center": [1.0, 0.5, 0.0]}
     scene = {"scene": {"name": "t", "frames": {"fps": 25, "count": count}}, "walls": [tank, *walls],
-             "fluid": {"spacing": 0.05, "emitters": [{"box": {"min": [0.6, -0.1, 0.0], "max": [1.4, 1.1, 0.52]}}]},
+             "fluid": {"spacing": 0.05, "emitters": [{"box": {"min": [0.6, -0.1, 0.0], "max": [1.4, 1.1, 0.52]}}],
+                       "settle": settle},
              "effects": {"gravity": {}, "viscosity": {"mu": MU}}}
     w = run_stage(TrimeshImport, tmp_path / f"walls_{tag}", scene=scene, config_dir=tmp_path)
     s = run_stage(Open3dBake, tmp_path / f"sdf_{tag}", scene=scene, inputs={"walls": w})
@@ -222,6 +224,17 @@ def _simulate(tmp_path, walls, tag, count=10):
         x[fr.id] = fr.x
         frames.append(x)
     return frames, load_bodies(s)
+
+
+def test_settling_among_walls_animated_in_usd_is_refused(tmp_path):
+    """The config refuses fluid.settle with walls[].motion; walls animated in their USD file are known only once
+    imported: the solver refuses them in one line (settling zeroes velocities the moving wall gives)."""
+    from pipeline.stage import StageError
+    from test_motion import _animated_usd
+
+    with pytest.raises(StageError, match="fluid.settle is for a fluid among walls at rest, but the scene has walls "
+                                         "animated in their USD file"):
+        _simulate(tmp_path, [{"usd": _animated_usd(tmp_path), "fluid": "outside"}], "usd", count=2, settle=0.5)
 
 
 def test_an_animated_usd_prop_moves_the_fluid_as_its_keyframes_do(tmp_path):

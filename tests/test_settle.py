@@ -10,7 +10,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.stage import StageError
 from pipeline.testing import run_stage
 from stages.common.formats import load_particle_frame
 from stages.common.sdf import box_interior_sdf, grid_from_function
@@ -53,14 +52,31 @@ def test_a_settled_tank_is_at_rest_by_1_5_s(tmp_path):
 @pytest.mark.parametrize("what, why", [
     ("velocity", "an emitter gives the fluid a velocity"),
     ("sink", "the scene has a sink"),  # it would drain the tank before the shot starts
+    ("inflow", "the scene has an inflow"),
+    ("motion", "walls.0 moves"),
 ])
-def test_settling_a_fluid_not_at_rest_is_refused(what, why, tmp_path):
+def test_settling_a_fluid_not_at_rest_is_refused_by_the_config(what, why, tmp_path):
+    """In one line naming the file's line of fluid.settle, before anything runs (it was found only when the
+    simulation started, after the import and the bake)."""
+    import yaml
+    from pipeline import ConfigError
+    from pipeline.config import load_config
+    from pipeline.registry import Registry
+
     scene = _scene(0.5, velocity=(1.0, 0.0, 0.0) if what == "velocity" else (0.0, 0.0, 0.0))
     if what == "sink":
         scene["fluid"]["sinks"] = [{"box": {"min": [0.0, 0.0, 0.0], "max": [0.05, 0.05, 0.05]}}]
-    with pytest.raises(StageError, match=rf"fluid.settle is for a fluid that starts at rest, but {why}; set "
-                                         r"fluid.settle to 0"):
-        run_stage(SPHSimulate, tmp_path / "out", scene=scene, params={}, inputs={"sdf": _sdf(tmp_path)})
+    if what == "inflow":
+        scene["fluid"]["inflow"] = [{"center": [0.1, 0.1, 0.3], "direction": [0, 0, -1], "radius": 0.03,
+                                     "speed": 1.0}]
+    scene["walls"] = [{"builtin": "box_tank", "size": list(TANK), "center": [0.15, 0.1, 0.175]}]
+    if what == "motion":
+        scene["walls"][0]["motion"] = {"keyframes": [{"time": 0}, {"time": 1, "translate": [0.01, 0, 0]}]}
+    path = tmp_path / "settle.yaml"
+    path.write_text(yaml.safe_dump({"config_version": 1, **scene}, sort_keys=False))
+    line = next(i for i, text in enumerate(path.read_text().splitlines(), 1) if "settle:" in text)
+    with pytest.raises(ConfigError, match=rf"settle.yaml:{line}: fluid.settle: for a fluid .*{why}; set it to 0"):
+        load_config(path, Registry.from_entry_points())
 
 
 @pytest.mark.parametrize("mpu, up", [(0.01, "Y")])

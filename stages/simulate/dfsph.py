@@ -55,14 +55,14 @@ from typing import Literal, Mapping
 import numpy as np
 from pydantic import Field
 
-from pipeline.stage import Artifact, Context, Params, Stage
+from pipeline.stage import Artifact, Context, Params, Stage, StageError
 from stages.common.formats import ParticleFrame
 from stages.common.sdf import SDFGrid, wall_move_limit
 from stages.common.sizes import simulate_estimate
 
 from . import dfsph_kernels as D
 from . import sph_kernels as K
-from .driver import SolverBase, drive, prepare, set_threads
+from .driver import SolverBase, drive, moving_wall, prepare, set_threads
 from .emitters import emitter_files
 from .effects import EffectConstants, compile_effects
 from .walls.spline import SplineWallMaps, spline_coefs, spline_lattice_mass
@@ -358,6 +358,7 @@ class DFSPHSimulate(Stage):
     Params = DFSPHParams
     inputs = ("sdf",)
     reads = ("scene.units", "scene.domain", "scene.frames.count", "scene.frames.fps", "fluid", "effects")
+    estimate_reads = ("walls",)  # check: walls[].motion
     extends = "scene.frames.count"  # a longer shot continues from the cached shorter run's last frame
     warm_up_run = True  # numba: a study compiles the kernels on a short run first (pipeline.study)
     outputs = ("particles",)
@@ -368,6 +369,12 @@ class DFSPHSimulate(Stage):
 
     def external_files(self, ctx: Context, params: Params) -> list:
         return emitter_files(ctx)  # the layers a USD mesh emitter composes
+
+    def check(self, ctx: Context, params: Params) -> None:
+        moving = moving_wall(ctx)
+        if moving is not None:
+            raise StageError(f"simulate.dfsph: walls.{moving} moves (motion); only simulate: {{use: sph}} and "
+                             "{use: mps} move walls so far")
 
     def estimate(self, ctx: Context, params: Params) -> dict | None:
         return simulate_estimate(ctx, params.cfl, None, params.support)

@@ -428,6 +428,12 @@ def set_threads(threads: int | None) -> None:
         nb.set_num_threads(min(int(threads), nb.config.NUMBA_NUM_THREADS))
 
 
+def moving_wall(ctx: Context) -> int | None:
+    """The first of the config's walls with a ``motion`` (plan time: the stage's ``estimate_reads`` hold
+    "walls"); walls animated in a USD file show only once imported (``prepare``)."""
+    return next((i for i, w in enumerate(ctx.scene["walls"] or ()) if w.motion is not None), None)
+
+
 def prepare(ctx: Context, inputs: Mapping[str, Artifact], who: str, moving_walls: bool = False) -> Setup:
     """Emit the fluid, drop the particles inside walls and resolve gravity; ``who`` names the stage
     in errors. ``moving_walls``: whether the solver takes moving walls (a scene with them is refused
@@ -481,15 +487,11 @@ def prepare(ctx: Context, inputs: Mapping[str, Artifact], who: str, moving_walls
         # the fastest a particle gets falling from the top: a jet's speed adds (energy) to the free fall
         v_top = max([jet.top_speed() for jet in inflows], default=0.0)
         v_ref = max(v_ref, math.sqrt(v_top ** 2 + 2.0 * g * height))
-    if fluid.settle > 0:
-        # settling zeroes every velocity before t = 0: it is for a fluid at rest among walls at rest (and a
-        # sink would drain it before the shot starts)
-        moving = next((why for there, why in ((len(v) and np.any(v != 0.0), "an emitter gives the fluid a velocity"),
-                                               (inflows, "the scene has an inflow"), (sinks, "the scene has a sink"),
-                                               (bodies, "the scene has moving walls")) if there), None)
-        if moving:
-            raise StageError(f"{who}: fluid.settle is for a fluid that starts at rest, but {moving}; set "
-                             "fluid.settle to 0")
+    if fluid.settle > 0 and bodies:
+        # the config refuses settling with emitter velocities, jets, sinks and walls[].motion (scene.py); walls
+        # animated in a USD file are known only here
+        raise StageError(f"{who}: fluid.settle is for a fluid among walls at rest, but the scene has walls animated "
+                         "in their USD file; set fluid.settle to 0")
     return Setup(x=x, v=v, sdf=sdf, spacing=l0, density=fluid.density, gravity=gravity, up=up, v_ref=v_ref,
                  domain=domain, effects=effects, meters_per_unit=mpu, dropped=dropped, inflows=inflows, sinks=sinks,
                  bodies=bodies, settle=fluid.settle)

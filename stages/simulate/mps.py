@@ -313,6 +313,9 @@ class MPSSimulate(Stage):
     def external_files(self, ctx: Context, params: Params) -> list:
         return emitter_files(ctx)  # the layers a USD mesh emitter composes
 
+    def check(self, ctx: Context, params: Params) -> None:
+        check_effects(ctx.scene["effects"])
+
     def estimate(self, ctx: Context, params: Params) -> dict | None:
         return simulate_estimate(ctx, params.cfl, None, 2.0)
 

@@ -16,7 +16,7 @@ from stages.common.sdf import SDFGrid, wall_move_limit
 from stages.common.sizes import simulate_estimate
 
 from . import sph_kernels as K
-from .driver import SolverBase, drive, prepare, set_threads
+from .driver import SolverBase, drive, moving_wall, prepare, set_threads
 from .emitters import emitter_files
 from .effects import EffectConstants, compile_effects, cohesion_coef
 from .kernels import (lattice_mass, poly6_coef, spiky_grad_coef, spiky_lattice_factor, visc_lap_coef,
@@ -284,6 +284,12 @@ class SPHSolver(SolverBase):
         self._alloc()
 
 
+def conservative_walls(params: SPHParams) -> None:
+    if params.wall_gradient or params.gradient_correction or params.wall_pressure == "mirrored":
+        raise StageError("simulate.sph: moving walls need the conservative wall pressure: leave wall_pressure, "
+                         "gradient_correction and wall_gradient at their defaults")
+
+
 class SPHSimulate(Stage):
     kind = "simulate"
     name = "sph"
@@ -291,6 +297,7 @@ class SPHSimulate(Stage):
     Params = SPHParams
     inputs = ("sdf",)
     reads = ("scene.units", "scene.domain", "scene.frames.count", "scene.frames.fps", "fluid", "effects")
+    estimate_reads = ("walls",)  # check: walls[].motion
     extends = "scene.frames.count"  # a longer shot continues from the cached shorter run's last frame
     warm_up_run = True  # numba: a study compiles the kernels on a short run first (pipeline.study)
     outputs = ("particles",)
@@ -306,12 +313,15 @@ class SPHSimulate(Stage):
     def estimate(self, ctx: Context, params: Params) -> dict | None:
         return simulate_estimate(ctx, params.cfl, 10.0, params.support)
 
+    def check(self, ctx: Context, params: SPHParams) -> None:
+        if moving_wall(ctx) is not None:
+            conservative_walls(params)
+
     def run(self, ctx: Context, inputs: Mapping[str, Artifact], params: SPHParams) -> None:
         set_threads(params.threads or getattr(ctx, "threads", None))
         setup = prepare(ctx, inputs, "simulate.sph", moving_walls=True)
-        if setup.bodies and (params.wall_gradient or params.gradient_correction or params.wall_pressure == "mirrored"):
-            raise StageError("simulate.sph: moving walls need the conservative wall pressure: leave wall_pressure, "
-                             "gradient_correction and wall_gradient at their defaults")
+        if setup.bodies:  # animated in a USD file (walls[].motion was refused before anything ran)
+            conservative_walls(params)
         h = params.support * setup.spacing
         effects = compile_effects(setup.effects, meters_per_unit=setup.meters_per_unit, rho0=setup.density,
                                   l0=setup.spacing, h=h, table_samples=params.table_samples)
