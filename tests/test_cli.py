@@ -155,3 +155,15 @@ def test_a_bad_value_set_over_a_section_is_blamed_on_the_set_not_the_file(toy_co
                                        "--cache", str(tmp_path / "c")])
     _one_line_exit_2(result)
     assert "--set effects.viscosity: effects.viscosity.mu" in result.stderr, result.stderr
+
+
+def test_python_dash_m_pipeline_is_the_command(tmp_path):
+    """`python -m pipeline` (a habit when the console script is not on PATH) is the same command line; it was
+    'No module named pipeline.__main__'."""
+    cli = [sys.executable, "-m", "pipeline"]
+    r = subprocess.run(cli + ["--help"], capture_output=True, text=True, timeout=120, cwd=tmp_path,
+                       env=dict(os.environ, PYTHONPATH=str(REPO)))
+    assert r.returncode == 0 and "Usage: pipeline" in r.stdout and "study" in r.stdout, r.stderr
+    r = subprocess.run(cli + ["run", str(tmp_path / "none.yaml")], capture_output=True, text=True, timeout=120,
+                       cwd=tmp_path, env=dict(os.environ, PYTHONPATH=str(REPO)))
+    assert r.returncode == 2 and r.stderr.strip() == f"error: {tmp_path / 'none.yaml'}: config file not found"
