@@ -6,6 +6,7 @@ import math
 import numpy as np
 import pytest
 import trimesh
+from PIL import Image
 
 from pipeline.stage import StageError
 from pipeline.testing import run_stage
@@ -245,6 +246,21 @@ def test_render_every_second_frame_and_the_movie_keeps_time(tmp_path, inputs):
     out = run_stage(FfmpegMovie, tmp_path / "m", scene=scene, inputs={"frames": frames})
     n, secs = imageio_ffmpeg.count_frames_and_secs(str(out / "movie.mp4"))
     assert n == 2 and secs == pytest.approx(0.4, abs=0.05)
+    # 7 frames rendered every 3rd: frames 0, 3, 6 each stay 3 frames on screen, so frame 6 (t = 0.6 s) shows at
+    # 0.6 s (the rate was fps x 3 / 7: 1.29 x fast); from frame 1 (--frames 1:7) the same spacing
+    for selection in (range(7), range(1, 7)):
+        sevens = tmp_path / f"seven_{selection[0]}"
+        sevens.mkdir()
+        for f in selection:
+            if f % 3:
+                (sevens / f".frame_{f:05d}.skipped").write_text("")
+            else:
+                Image.fromarray(np.full((48, 64, 3), 30 * f, np.uint8)).save(sevens / f"frame_{f:05d}.png")
+        out = run_stage(FfmpegMovie, tmp_path / f"m7_{selection[0]}", scene={"scene": {"name": "t", "frames": {
+            "fps": 10, "count": 7}}}, inputs={"frames": sevens}, frames=tuple(selection))
+        n, secs = imageio_ffmpeg.count_frames_and_secs(str(out / "movie.mp4"))
+        shown = [0, 3, 6] if selection[0] == 0 else [3, 6]
+        assert n == len(shown) and secs == pytest.approx(len(shown) * 0.3, abs=0.02), (n, secs)
     (frames / ".frame_00003.skipped").unlink()  # a lost frame is an error, not a skip
     with pytest.raises(StageError, match="frame_00003.png"):
         run_stage(FfmpegMovie, tmp_path / "m2", scene=scene, inputs={"frames": frames})

@@ -38,7 +38,7 @@ def evenly_spaced(items: list[int], count: int) -> list[int]:
 class FfmpegMovie(Stage):
     kind = "movie"
     name = "ffmpeg"
-    version = "2"
+    version = "3"
     Params = MovieParams
     inputs = ("frames",)
     outputs = ("movie",)
@@ -61,8 +61,10 @@ class FfmpegMovie(Stage):
         if not frames:
             raise StageError("movie.ffmpeg: no rendered frames")
         paths = [frame_png(inputs["frames"].frame(f), f) for f in frames]
-        # frames skipped by the render stage slow the movie down so it keeps the simulated time
-        fps = float(ctx.scene["scene"].frames.fps) * len(frames) / len(every)
+        # frames the render stage skipped (render.every: n) keep the simulated time: each rendered frame stays on
+        # screen until the next one, n frames later (fps * rendered / selected ran 1.29 x fast for 7 frames, n = 3)
+        step = min(np.diff(frames)) if len(frames) > 1 else len(every)
+        fps = float(ctx.scene["scene"].frames.fps) / float(step)
         first = iio.imread(paths[0])[..., :3]
         h, w = first.shape[:2]
         # yuv420p needs even sizes: pad by one pixel rather than rescale
