@@ -140,6 +140,28 @@ def test_a_usd_emitters_sublayer_is_in_the_simulate_key(tmp_path):
         assert keys(config, f"simulate.use={solver}")["simulate"] != before["simulate"], solver
 
 
+def test_a_camera_usds_sublayer_is_in_the_render_and_export_keys(tmp_path):
+    """camera.usd naming a file that only sublayers the layer holding the camera: an edit of that layer (same size,
+    the camera moved) is a new render and export key (both stayed cached and showed the old camera)."""
+    from pxr import Gf, Sdf, Usd, UsdGeom
+
+    config = tiny(tmp_path)
+    inner = Usd.Stage.CreateNew(str(tmp_path / "cam_sub.usda"))
+    op = UsdGeom.Camera.Define(inner, "/Cam").AddTranslateOp()
+    op.Set(Gf.Vec3d(0.0, -0.9, 0.15))
+    inner.GetRootLayer().Save()
+    root = Sdf.Layer.CreateNew(str(tmp_path / "shot.usda"))
+    root.subLayerPaths.append("./cam_sub.usda")
+    root.Save()
+    config.write_text(config.read_text() + "camera: {usd: shot.usda}\n")
+    before = keys(config)
+    op.Set(Gf.Vec3d(0.2, -0.9, 0.15))
+    inner.GetRootLayer().Save()
+    after = keys(config)
+    assert after["render"] != before["render"] and after["export"] != before["export"]
+    assert after["simulate"] == before["simulate"]
+
+
 def test_a_moved_project_keeps_its_keys(tmp_path):
     """Input files are keyed by their path relative to the config (and their content), not where the project
     sits on disk: a project folder moved or cloned elsewhere keeps every key, so its cache is still used; a

@@ -130,6 +130,43 @@ def test_camera_from_a_y_up_centimetre_usd_file(tmp_path, inputs):
                   inputs=inputs, frames=(0,), config_dir=tmp_path, params={"resolution": [64, 48]})
 
 
+def test_an_animated_usd_camera_is_read_at_each_frames_time(tmp_path, inputs):
+    """A studio camera animated by time samples only (no default value; startTimeCode 10 at 24 codes a second):
+    each frame is drawn from the pose at its own time, as the shot's time maps to the file's codes (the camera
+    was read at the default time: the origin, inside the water, with no word)."""
+    import imageio.v3 as iio
+    from pxr import Gf, Usd, UsdGeom
+
+    from stages.common.camera import usd_camera, usd_camera_moves
+
+    stage = Usd.Stage.CreateNew(str(tmp_path / "anim_cam.usda"))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+    stage.SetTimeCodesPerSecond(24)
+    stage.SetStartTimeCode(10)
+    cam = UsdGeom.Camera.Define(stage, "/Shot/Cam")
+    op = cam.AddTransformOp()
+    good = Gf.Matrix4d().SetLookAt(Gf.Vec3d(0, 50, 500), Gf.Vec3d(0, 50, 0), Gf.Vec3d(0, 1, 0)).GetInverse()
+    away = Gf.Matrix4d().SetLookAt(Gf.Vec3d(0, 50, 700), Gf.Vec3d(0, 50, 1200), Gf.Vec3d(0, 1, 0)).GetInverse()
+    op.Set(good, Usd.TimeCode(10))  # t = 0: the view of the test above
+    op.Set(away, Usd.TimeCode(34))  # t = 1 s: looking away from the tank
+    cam.CreateVerticalApertureAttr(20.25)
+    cam.CreateHorizontalApertureAttr(36.0)
+    cam.CreateFocalLengthAttr(20.25 / (2 * math.tan(math.radians(15))))
+    stage.GetRootLayer().Save()
+    path = tmp_path / "anim_cam.usda"
+    assert usd_camera_moves(path, "/Shot/Cam")
+    eye0 = usd_camera(path, "/Shot/Cam", "Z", 1.0)[0]
+    eye_half = usd_camera(path, "/Shot/Cam", "Z", 1.0, seconds=0.5)[0]
+    np.testing.assert_allclose(eye0, [0.0, -5.0, 0.5], atol=1e-9)  # (x, y, z) cm Y-up -> (x, -z, y) m Z-up
+    np.testing.assert_allclose(eye_half, [0.0, -6.0, 0.5], atol=1e-9)  # halfway between the two samples
+    scene = {"scene": {"name": "t", "frames": {"fps": 1, "count": 2}}, "camera": {"usd": "anim_cam.usda"}}
+    out = run_stage(PyvistaRender, tmp_path / "out", scene=scene, params={"resolution": [320, 240]}, inputs=inputs,
+                    frames=(0, 1), config_dir=tmp_path)
+    assert_sphere_seen_from_eye(iio.imread(out / "frame_00000.png")[..., :3])
+    assert water_mask(iio.imread(out / "frame_00001.png")[..., :3]).sum() == 0  # at t = 1 s it looks away
+
+
 def test_exported_usd_camera_shows_what_the_frames_show(tmp_path, inputs):
     """Render and export share the scene's camera: rendering through the exported /World/Camera gives
     the frame the automatic camera gave."""

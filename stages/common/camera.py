@@ -27,8 +27,7 @@ def auto_camera(lo: np.ndarray, hi: np.ndarray, up_axis: str, view_angle: float)
     return centre + distance * direction, centre, up
 
 
-def usd_camera(path: Path, prim: str | None, up_axis: str, meters_per_unit: float, who: str = "camera"):
-    """(eye, focal point, up, vertical view angle) of a UsdGeom.Camera, in the scene's units and up axis."""
+def _camera_prim(path: Path, prim: str | None, who: str):
     from pxr import Usd, UsdGeom
 
     if not path.is_file():
@@ -42,7 +41,40 @@ def usd_camera(path: Path, prim: str | None, up_axis: str, meters_per_unit: floa
         cam_prim = next((p for p in stage.Traverse() if p.IsA(UsdGeom.Camera)), None)
         if cam_prim is None:
             raise StageError(f"{who}: camera.usd: {path} has no UsdGeom.Camera prim")
-    cam = UsdGeom.Camera(cam_prim).GetCamera(Usd.TimeCode.Default())
+    return stage, cam_prim
+
+
+def _time_code(stage, seconds: float):
+    """The file's time code at ``seconds`` into the shot: the shot starts at the file's startTimeCode (0 when it
+    has none) and runs at its timeCodesPerSecond."""
+    from pxr import Usd
+
+    start = stage.GetStartTimeCode() if stage.HasAuthoredMetadata("startTimeCode") else 0.0
+    return Usd.TimeCode(start + seconds * stage.GetTimeCodesPerSecond())
+
+
+def usd_camera_moves(path: Path, prim: str | None, who: str = "camera") -> bool:
+    """Whether the camera's transform or lens is animated (time samples on it or on an ancestor's xform)."""
+    from pxr import UsdGeom
+
+    _, cam_prim = _camera_prim(path, prim, who)
+    p = cam_prim
+    while p and not p.IsPseudoRoot():
+        if p.IsA(UsdGeom.Xformable) and UsdGeom.Xformable(p).TransformMightBeTimeVarying():
+            return True
+        p = p.GetParent()
+    return any(a.ValueMightBeTimeVarying() for a in cam_prim.GetAttributes())
+
+
+def usd_camera(path: Path, prim: str | None, up_axis: str, meters_per_unit: float, who: str = "camera",
+               seconds: float = 0.0):
+    """(eye, focal point, up, vertical view angle) of a UsdGeom.Camera at ``seconds`` into the shot, in the
+    scene's units and up axis. An animated camera is read at that time (read at the default time, a camera
+    with only time samples sat at the origin)."""
+    from pxr import UsdGeom
+
+    stage, cam_prim = _camera_prim(path, prim, who)
+    cam = UsdGeom.Camera(cam_prim).GetCamera(_time_code(stage, seconds))
     frustum = cam.frustum
     eye = np.array(frustum.GetPosition())
     look = np.array(frustum.ComputeViewDirection())
@@ -59,12 +91,23 @@ def usd_camera(path: Path, prim: str | None, up_axis: str, meters_per_unit: floa
     return eye, eye + rot @ look, rot @ up, view_angle
 
 
-def shot_camera(walls: WallMesh, units, cam, resolve: Callable[[str], Path], who: str):
+def camera_files(ctx) -> list[Path]:
+    """The layers a ``camera.usd`` composes (the file itself the engine finds): render's and export's
+    ``external_files``, so an edit to a sublayer that moves the camera is a new key."""
+    from stages.mesh_import.usd_import import usd_dependencies
+
+    cam = ctx.scene["camera"]
+    return usd_dependencies(ctx.resolve(cam.usd)) if cam.usd is not None else []
+
+
+def shot_camera(walls: WallMesh, units, cam, resolve: Callable[[str], Path], who: str, seconds: float = 0.0):
     """(eye, focal point, up, vertical view angle) in scene units for the scene's ``cam``
-    (pipeline.scene.Camera); ``who`` names the stage in errors."""
+    (pipeline.scene.Camera) at ``seconds`` into the shot (a USD camera may be animated); ``who`` names the
+    stage in errors."""
     view_angle = cam.view_angle
     if cam.usd is not None:
-        eye, centre, up, view_angle = usd_camera(resolve(cam.usd), cam.prim, units.up_axis, units.meters_per_unit, who)
+        eye, centre, up, view_angle = usd_camera(resolve(cam.usd), cam.prim, units.up_axis, units.meters_per_unit, who,
+                                                 seconds)
     else:
         if len(walls.vertices):
             lo, hi = walls.vertices.min(axis=0), walls.vertices.max(axis=0)

@@ -25,7 +25,7 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from pipeline.stage import Artifact, Context, Params, Stage, StageError
-from stages.common.camera import shot_camera
+from stages.common.camera import camera_files, shot_camera
 from stages.common.formats import ParticleMeta, WallMesh, load_particle_frame, load_surface
 
 from . import usd_layers as ul
@@ -99,6 +99,9 @@ class UsdExport(Stage):
 
     def input_names(self, params: UsdParams) -> tuple[str, ...]:
         return ("walls", "particles", "surface") if params.surface else ("walls", "particles")
+
+    def external_files(self, ctx: Context, params: UsdParams) -> list[Path]:
+        return camera_files(ctx)  # the layers a camera.usd composes: the exported camera is read from them
 
     # -- the studio asset's frame -------------------------------------------------------------------
     def _asset_path(self, ctx: Context, info: dict) -> Path:

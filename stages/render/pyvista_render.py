@@ -26,7 +26,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from pipeline.stage import Artifact, Context, Params, Stage, StageError
-from stages.common.camera import shot_camera
+from stages.common.camera import camera_files, shot_camera
 from stages.common.formats import (WALLS_FILE, WALLS_INFO, ParticleMeta, SurfaceMesh, WallMesh, load_particle_frame,
                                    load_surface, skipped_frame_marker, surface_file)
 
@@ -156,7 +156,7 @@ def load_walls(folder: Path) -> WallMesh:
 class PyvistaRender(Stage):
     kind = "render"
     name = "pyvista"
-    version = "5"
+    version = "6"
     Params = RenderParams
     inputs = ("walls",)
     optional_inputs = ("surface", "particles")
@@ -171,6 +171,9 @@ class PyvistaRender(Stage):
             return ("walls", "surface", "particles")
         return ("walls", "particles")
 
+    def external_files(self, ctx: Context, params: RenderParams) -> list[Path]:
+        return camera_files(ctx)  # the layers a camera.usd composes
+
     def run_frame(self, ctx: Context, inputs: Mapping[str, Artifact], params: RenderParams, frame: int) -> None:
         if frame % params.every:
             # a marker, not a missing file: the movie tells a skipped frame from a lost one
@@ -180,7 +183,7 @@ class PyvistaRender(Stage):
         scene = ctx.scene["scene"]
         walls = load_walls(Path(inputs["walls"].path))
         eye, centre, up, view_angle = shot_camera(walls, scene.units, ctx.scene["camera"], ctx.resolve,
-                                                  "render.pyvista")
+                                                  "render.pyvista", frame / scene.frames.fps)
         # everything the plotter and its static walls depend on
         key = (tuple(params.resolution), params.background, params.wall_opacity, params.near_wall_opacity,
                walls_identity(Path(inputs["walls"].path)), tuple(eye), tuple(centre), tuple(up), view_angle)
