@@ -186,6 +186,44 @@ def test_external_files_list_usd_sublayers(tmp_path):
     assert files == {"root.usda", "asset.usda", "asset.obj"}
 
 
+def test_a_gltf_walls_external_buffer_is_in_the_key(tmp_path):
+    """A .gltf keeps its vertices in a separate .bin: an edit of the .bin (same size, the wall moved 2 cm) is a
+    new mesh_import key, and so is the same edit for a .gltf fluid emitter's simulate key (both stayed cached
+    with the old geometry)."""
+    import trimesh
+
+    from pipeline import Registry
+    from pipeline.cache import Cache
+    from pipeline.config import load_config
+    from pipeline.graph import build_graph
+    from pipeline.keys import plan
+
+    box = trimesh.creation.box(extents=(0.05, 0.05, 0.05))
+    box.apply_translation((0.075, 0.0, 0.0))
+    files = box.export(file_type="gltf")  # {"model.gltf": json, "gltf_buffer_k.bin": bytes}
+    for name, data in files.items():
+        (tmp_path / name).write_bytes(data)
+    gltf = next(n for n in files if n.endswith(".gltf"))
+    buffer = "gltf_buffer_1.bin"  # the positions (buffer 0 holds the indices)
+    (tmp_path / "c.yaml").write_text(f"config_version: 1\nscene: {{name: t}}\nwalls: [{{builtin: box_tank, size: [1, 1, 1]}},"
+                                     f" {{file: {gltf}}}]\nfluid: {{spacing: 0.01, emitters: [{{mesh: {gltf}}}]}}\n"
+                                     "outputs: [particles]\n")
+
+    def keys():
+        cfg = load_config(tmp_path / "c.yaml", Registry.from_entry_points())
+        return plan(cfg, build_graph(cfg), Cache(tmp_path / "cache")).keys
+
+    before = keys()
+    moved = box.copy()
+    moved.apply_translation((0.02, 0.0, 0.0))
+    again = moved.export(file_type="gltf")
+    assert len(again[buffer]) == len(files[buffer])
+    (tmp_path / buffer).write_bytes(again[buffer])
+    assert (tmp_path / gltf).read_bytes() != again[gltf]  # (the .gltf's min/max would change: keep the old one)
+    after = keys()
+    assert after["mesh_import"] != before["mesh_import"] and after["simulate"] != before["simulate"]
+
+
 def _write(tmp_path, name, text):
     (tmp_path / name).write_text(text)
     return name

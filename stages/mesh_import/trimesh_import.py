@@ -16,7 +16,7 @@ from typing import Any, Mapping
 import numpy as np
 from pydantic import Field
 
-from pipeline.scene import BuiltinWall, UsdWall
+from pipeline.scene import BuiltinWall, FileWall, UsdWall
 from pipeline.stage import Artifact, Context, Params, Stage, StageError
 from stages.common.formats import WallMesh
 from stages.common.motion import RigidMotion, config_motion
@@ -35,6 +35,22 @@ class ImportParams(Params):
                                   description="vertices closer than this fraction of the wall's bounding-box diagonal are welded")
     open_box_thickness: float = Field(0.05, gt=0, lt=0.5,
                                       description="wall thickness of the builtin open_box, fraction of its smallest horizontal size")
+
+
+def mesh_file_dependencies(path: Path) -> list[Path]:
+    """The files a mesh file reads its geometry from besides itself: a .gltf's external buffers (its images
+    do not shape the walls). Keyed as the stage's ``external_files``: an edit of the .bin is a new key."""
+    if path.suffix.lower() != ".gltf" or not path.is_file():
+        return []
+    import json
+    from urllib.parse import unquote
+
+    try:
+        buffers = json.loads(path.read_text(encoding="utf-8")).get("buffers", [])
+    except (OSError, ValueError, AttributeError):
+        return []  # the import says what is wrong with the file
+    uris = [b.get("uri") for b in buffers if isinstance(b, dict)]
+    return [path.parent / unquote(u) for u in uris if isinstance(u, str) and not u.startswith("data:")]
 
 
 def _read_mesh_file(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -94,10 +110,12 @@ class TrimeshImport(Stage):
     description = "walls from builtin shapes, OBJ/PLY/STL/OFF/GLB/GLTF (trimesh) and USD, cleaned, in world space"
 
     def external_files(self, ctx: Context, params: Params) -> list[Path]:
-        """The layers and assets each USD wall composes (the wall files themselves the engine finds)."""
+        """The layers and assets each USD wall composes, a .gltf wall's buffers (the wall files themselves the
+        engine finds)."""
         from .usd_import import usd_dependencies
 
-        return [f for w in ctx.scene["walls"] if isinstance(w, UsdWall) for f in usd_dependencies(ctx.resolve(w.usd))]
+        return [f for w in ctx.scene["walls"] if isinstance(w, UsdWall) for f in usd_dependencies(ctx.resolve(w.usd))] \
+            + [f for w in ctx.scene["walls"] if isinstance(w, FileWall) for f in mesh_file_dependencies(ctx.resolve(w.file))]
 
     def run(self, ctx: Context, inputs: Mapping[str, Artifact], params: Params) -> None:
         import trimesh

@@ -141,10 +141,11 @@ def drop_inside_walls(x: np.ndarray, v: np.ndarray, sdf, l0: float, log: logging
 
 
 def emitter_files(ctx) -> list[Path]:
-    """The layers and assets the USD mesh emitters compose (the files themselves the engine finds): the
-    simulate stages' ``external_files``, so an edit to a referenced layer is a new key."""
+    """The layers and assets the USD mesh emitters compose, a .gltf emitter's buffers (the files themselves the
+    engine finds): the simulate stages' ``external_files``, so an edit to a referenced layer is a new key."""
+    from stages.mesh_import.trimesh_import import mesh_file_dependencies
     from stages.mesh_import.usd_import import usd_dependencies
 
     fluid = ctx.scene["fluid"]
-    return [f for em in (fluid.emitters if fluid is not None else ()) if isinstance(em, MeshEmitter) and is_usd(em.mesh)
-            for f in usd_dependencies(ctx.resolve(em.mesh))]
+    return [f for em in (fluid.emitters if fluid is not None else ()) if isinstance(em, MeshEmitter)
+            for f in (usd_dependencies if is_usd(em.mesh) else mesh_file_dependencies)(ctx.resolve(em.mesh))]
