@@ -44,6 +44,7 @@ class Config:
     allow_large: bool = False  # run even when the plan's memory estimate exceeds the available memory
     unloadable: dict[str, str] = field(default_factory=dict)  # kind -> why its default stage could not be loaded
     lines: Any = field(default=None, repr=False)  # _Lines: where each key is in the file (or which --set)
+    overrides: tuple[str, ...] = ()  # the --set assignments applied over the file, in order
 
     @property
     def name(self) -> str:
@@ -342,7 +343,7 @@ def load_config(path: str | Path, registry: Registry, overrides: list[str] | tup
             except ConfigError as e:
                 unloadable[kind] = str(e)  # only matters if the graph needs it: then it is the error to show
     return Config(path=path.resolve(), scene=scene, stages=stages, outputs=tuple(dict.fromkeys(outputs)), raw=data,
-                  allow_large=allow_large, unloadable=unloadable, lines=lines)
+                  allow_large=allow_large, unloadable=unloadable, lines=lines, overrides=tuple(overrides))
 
 
 def dump_model(value: Any) -> Any:

@@ -58,6 +58,11 @@ class RunReport:
     seconds: float = 0.0
     stages: list[StageReport] = field(default_factory=list)
     outputs: dict[str, str] = field(default_factory=dict)
+    # what the outputs were made with beyond the config file (the stages are the run's selection): the --set
+    # overrides, the frame selection (None: every frame), and when it finished (UTC)
+    overrides: list[str] = field(default_factory=list)
+    frames: list[int] | None = None
+    finished: str = ""
 
     def stage(self, kind: str) -> StageReport:
         return next(s for s in self.stages if s.kind == kind)
@@ -267,7 +272,9 @@ def _execute(p: Plan, out_dir: Path, force: frozenset[str], executor: Executor |
              fault_log: str, events: Events | None = None, allow_large: bool = False) -> RunReport:
     config, graph, cache = p.config, p.graph, p.cache
     t_start = time.perf_counter()
-    report = RunReport(config=str(config.path), scene=config.name, cache=str(cache.root), out=str(out_dir))
+    count = config.scene.scene.frames.count
+    report = RunReport(config=str(config.path), scene=config.name, cache=str(cache.root), out=str(out_dir),
+                       overrides=list(config.overrides), frames=None if p.frames == tuple(range(count)) else list(p.frames))
     artifacts: dict[str, Artifact] = {}
     reports: dict[str, StageReport] = {}
     state = cache.read_state(config.path)
@@ -331,6 +338,7 @@ def _execute(p: Plan, out_dir: Path, force: frozenset[str], executor: Executor |
                 log.info("removed %s from %s: made with other settings than the config's now",
                          ", ".join(f"{n}/" for n in stale), out_dir)
             report.seconds = time.perf_counter() - t_start
+            report.finished = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
             write_run_json(report, out_dir)
     except OSError as exc:
         raise _outside(f"publish into {out_dir}", exc, cache) from exc

@@ -46,6 +46,11 @@ def test_first_run_runs_everything_second_run_nothing(toy_config):
     assert ran(toy_config, "simulate") == 1 and ran(toy_config, "render") == 4  # nothing ran again
     manifest = json.loads((out / "run.json").read_text())
     assert [s["status"] for s in manifest["stages"]] == ["cached"] * 5
+    assert manifest["overrides"] == [] and manifest["frames"] is None and manifest["finished"].endswith("Z")
+    # run.json says what the outputs were made with beyond the file: the --set values and the frame selection
+    run(toy_config, overrides=("surface_extract.iso=0.7",), frames=(1, 2))
+    manifest = json.loads((out / "run.json").read_text())
+    assert manifest["overrides"] == ["surface_extract.iso=0.7"] and manifest["frames"] == [1, 2]
 
 
 def test_only_the_stages_the_outputs_need_run(toy_config):
