@@ -7,10 +7,11 @@ holds only the scene description that several stages share.
 from __future__ import annotations
 
 import math
+import posixpath
 import re
 from typing import Annotated, Literal, Union
 
-from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, field_validator, model_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Discriminator, Field, Tag, field_validator, model_validator
 from pydantic_core import InitErrorDetails, PydanticCustomError, ValidationError
 
 Vec3 = tuple[float, float, float]
@@ -25,9 +26,15 @@ class InputFileMarker:
         return "InputFile"
 
 
+def _normal_path(path: str | None) -> str | None:
+    """One spelling per file ('./a//b.obj' is 'a/b.obj'): the path is part of the key, and another spelling of
+    the same file re-ran everything from the stage that reads it."""
+    return posixpath.normpath(path) if path else path
+
+
 INPUT_FILE = InputFileMarker()
-InputFile = Annotated[str, INPUT_FILE]
-OptionalInputFile = Annotated[Union[str, None], INPUT_FILE]
+InputFile = Annotated[str, AfterValidator(_normal_path), INPUT_FILE]
+OptionalInputFile = Annotated[Union[str, None], AfterValidator(_normal_path), INPUT_FILE]
 
 
 class Model(BaseModel):

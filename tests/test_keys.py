@@ -162,6 +162,18 @@ def test_a_camera_usds_sublayer_is_in_the_render_and_export_keys(tmp_path):
     assert after["simulate"] == before["simulate"]
 
 
+def test_another_spelling_of_the_same_input_path_keeps_the_keys(tmp_path):
+    """'./drop.obj', 'sub/../drop.obj' and 'drop.obj' name one file: the same keys (each spelling re-ran every
+    stage from the one that reads the file)."""
+    config = tiny(tmp_path)
+    (tmp_path / "sub").mkdir()
+    base = keys(config)
+    for spelling in ("./drop.obj", "sub/../drop.obj", ".//drop.obj"):
+        other = tmp_path / "other.yaml"
+        other.write_text(config.read_text().replace("mesh: drop.obj", f"mesh: {spelling}"))
+        assert keys(other) == base, spelling
+
+
 def test_a_moved_project_keeps_its_keys(tmp_path):
     """Input files are keyed by their path relative to the config (and their content), not where the project
     sits on disk: a project folder moved or cloned elsewhere keeps every key, so its cache is still used; a
