@@ -102,6 +102,24 @@ def test_published_folders_are_replaced_others_kept_and_user_additions_protected
     assert "render 32" in (out / "frames" / "frame_00000.txt").read_text()
 
 
+def test_a_published_file_edited_in_place_changes_nothing_else(tmp_path, toy_registry):
+    """Two output folders published from one cache entry, then a frame overwritten in place in one of them
+    (as an editor saving over it does): the cache entry and the other folder keep the run's frame (published as
+    hard links, all three changed, and the other folder kept the edit)."""
+    cfg = write_config(tmp_path, count=3)
+    a, b, cache = tmp_path / "a", tmp_path / "b", tmp_path / "c"
+    for out in (a, b):
+        assert _run(cfg, "--out", out, "--cache", cache).exit_code == 0
+    made = (a / "frames" / "frame_00001.txt").read_text()
+    with open(a / "frames" / "frame_00001.txt", "w") as fh:  # in place: the same inode
+        fh.write("retouched")
+    assert (b / "frames" / "frame_00001.txt").read_text() == made
+    (entry,) = [p for p in cache.rglob("frame_00001.txt") if "render" in p.parts]
+    assert entry.read_text() == made
+    assert _run(cfg, "--out", b, "--cache", cache).exit_code == 0 and \
+        (b / "frames" / "frame_00001.txt").read_text() == made
+
+
 def test_outputs_made_with_other_settings_are_removed_by_a_partial_run(tmp_path, toy_registry):
     """After an edit, a run that stops early (--until simulate) or asks for fewer outputs does not leave
     the old frames/ and usd/ beside its new results (they were made with other settings); with the config
