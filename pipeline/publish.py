@@ -168,14 +168,16 @@ def _clone_or_copy(src: Path, dst: Path) -> None:
 def publish(graph: Graph, artifacts: dict[str, Artifact], out_dir: Path, frames: tuple[int, ...],
             keys: dict[str, dict] | None = None) -> dict[str, str]:
     """Copy (``_clone_or_copy``) each wanted artifact into ``out_dir/<name>/``, replacing the old folder whole,
-    and only if the pipeline published it (``check_out_dir``). ``keys``: what each name is made from
-    (``read_record_keys``), kept in the record for ``drop_stale``."""
+    and only if the pipeline published it (``check_out_dir``); a per-frame output of a ``--frames`` run keeps
+    the other frames published from the same stage key. ``keys``: what each name is made from (``_made_from``:
+    its stage's key, the run's frames), kept in the record for ``drop_stale``."""
     out_dir = Path(out_dir)
     names = [n for n in graph.outputs if artifacts.get(n) is not None]
     check_out_dir(out_dir, names)
     out_dir.mkdir(parents=True, exist_ok=True)
     sweep_out_dir(out_dir)
-    record = read_record(out_dir)
+    record, earlier = read_record(out_dir), read_record_keys(out_dir)
+    keys = {n: dict(k) for n, k in (keys or {}).items()}
     staged: dict[str, Path] = {}
     try:
         for name in names:
@@ -183,6 +185,14 @@ def publish(graph: Graph, artifacts: dict[str, Artifact], out_dir: Path, frames:
             staging = out_dir / f"{TMP_PREFIX}{name}.{owner_tag()}.{uuid.uuid4().hex[:8]}"
             staging.mkdir()
             staged[name] = staging
+            made, was = keys.get(name, {}), earlier.get(name, {})
+            if art.path is None and made.get("frames") is not None and made.get("key") == was.get("key") \
+                    and (out_dir / name).is_dir():
+                # a --frames run adds its frames to those published from the same settings (as a farm renders a
+                # range into a shot's folder); it replaced the whole shot's frames/ with its few
+                for f in _files(out_dir / name):
+                    _clone_or_copy(out_dir / name / f, staging / f)
+                made["frames"] = None if was.get("frames") is None else sorted(set(was["frames"]) | set(made["frames"]))
             sources = [art.path] if art.path is not None else [art.frames[f] for f in frames if f in art.frames]
             for src_dir in sources:
                 for f in src_dir.rglob("*"):
@@ -205,7 +215,7 @@ def publish(graph: Graph, artifacts: dict[str, Artifact], out_dir: Path, frames:
                 shutil.rmtree(trash, ignore_errors=True)
             else:
                 os.replace(staging, target)
-        _write_record(out_dir, {**record, **new}, {n: k for n, k in (keys or {}).items() if n in new})
+        _write_record(out_dir, {**record, **new}, {n: k for n, k in keys.items() if n in new})
     finally:
         for staging in staged.values():
             if staging.exists():

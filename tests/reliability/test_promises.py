@@ -133,8 +133,17 @@ def test_outputs_made_with_other_settings_are_removed_by_a_partial_run(tmp_path,
     assert _run(cfg, "--out", out, "--cache", cache, "--until", "simulate", "--frames", "0:2").exit_code == 0
     assert {"frames", "usd"} <= {p.name for p in out.iterdir()}
     assert _run(cfg, "--out", out, "--cache", cache, "--frames", "0:2").exit_code == 0
+    # its frames join the shot's frame 2, published from the same settings (the subset replaced the whole frames/)
+    assert sorted(f.name for f in (out / "frames").iterdir()) == [f"frame_{i:05d}.txt" for i in range(3)]
     assert _run(cfg, "--out", out, "--cache", cache, "--until", "simulate").exit_code == 0
-    assert len(list((out / "frames").iterdir())) == 2 and (out / "usd").is_dir()
+    assert len(list((out / "frames").iterdir())) == 3 and (out / "usd").is_dir()
+    # other settings over a subset: the other frames were made differently, so frames/ is the subset alone
+    assert _run(cfg, "--out", out, "--cache", cache, "--frames", "1:2", "--set", "render.width=24").exit_code == 0
+    assert [f.name for f in (out / "frames").iterdir()] == ["frame_00001.txt"]
+    assert "render 24" in (out / "frames" / "frame_00001.txt").read_text()
+    assert _run(cfg, "--out", out, "--cache", cache, "--frames", "0:2").exit_code == 0
+    assert _run(cfg, "--out", out, "--cache", cache, "--frames", "2:3").exit_code == 0
+    assert len(list((out / "frames").iterdir())) == 3  # 0:2 and 2:3 together
     r = _run(cfg, "--out", out, "--cache", cache, "--until", "simulate", "--set", "simulate.steps=5")
     assert r.exit_code == 0, r.output
     assert not (out / "frames").exists() and not (out / "usd").exists() and (out / "run.json").is_file()
