@@ -43,8 +43,9 @@ class StageReport:
     seconds: float = 0.0
     frames_total: int = 0
     frames_ran: int = 0
-    # whole-run stages: the stage's own wall and process CPU seconds without its warm-up (Context.warm_up:
-    # one-off JIT compilation) and without waiting for locks; what a study charges a variant
+    # the stage's own wall and process CPU seconds without its warm-up (Context.warm_up: one-off JIT
+    # compilation) and without waiting for locks (per-frame stages: the sum over their frames); what a study
+    # charges a variant
     cost_seconds: float = 0.0
     cpu_seconds: float = 0.0
 
@@ -110,8 +111,9 @@ def _enable_faulthandler(path: str | None) -> None:
     _worker_fault_log = (path, fh)
 
 
-def run_frame_job(job: FrameJob) -> tuple[int, str, float, bool]:
-    """Compute one frame's entry unless it is cached; returns (frame, entry path, seconds, ran).
+def run_frame_job(job: FrameJob) -> tuple[int, str, float, float, bool]:
+    """Compute one frame's entry unless it is cached; returns (frame, entry path, seconds, CPU seconds, ran):
+    the frame's own work (the run that made a cached frame), without waiting for its lock.
     Any failure comes back as FrameError naming the frame (with the worker's traceback)."""
     try:
         return _frame_job(job)
@@ -123,28 +125,30 @@ def run_frame_job(job: FrameJob) -> tuple[int, str, float, bool]:
                          "".join(traceback.format_exception(exc)), user) from None
 
 
-def _frame_job(job: FrameJob) -> tuple[int, str, float, bool]:
+def _frame_job(job: FrameJob) -> tuple[int, str, float, float, bool]:
     _enable_faulthandler(job.fault_log)
     cache = Cache(Path(job.cache_root), lock_timeout=job.lock_timeout)
     key = frame_key(job.stage_key, job.frame)
     with cache.lock(key, f"stage {job.stage_cls.qualname()} frame {job.frame}"):
         hit = None if job.force else cache.lookup(job.kind, key)
         if hit is not None:
-            return job.frame, str(hit.path), float(hit.manifest.get("seconds", 0.0)), False
+            return (job.frame, str(hit.path), float(hit.manifest.get("seconds", 0.0)),
+                    float(hit.manifest.get("cpu_seconds", 0.0)), False)
         tmp = cache.new_tmp(key)
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         try:
             ctx = Context(out_dir=tmp, scene=job.scene, config_dir=Path(job.config_dir),
                           frames=job.frames if FRAMES in job.stage_cls.reads else None,
                           log=logging.getLogger(f"stage.{job.stage_cls.qualname()}"))
             job.stage_cls().run_frame(ctx, job.inputs, job.params, job.frame)
-            seconds = time.perf_counter() - t0
+            seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
             entry = cache.commit(job.kind, key, tmp, {"stage_key": job.stage_key, "frame": job.frame,
-                                                      "stage": job.stage_cls.qualname(), "seconds": seconds})
+                                                      "stage": job.stage_cls.qualname(), "seconds": seconds,
+                                                      "cpu_seconds": cpu})
         except BaseException:
             cache.discard(tmp)
             raise
-    return job.frame, str(entry.path), seconds, True
+    return job.frame, str(entry.path), seconds, cpu, True
 
 
 # -- running ---------------------------------------------------------------------------------------
@@ -472,6 +476,8 @@ def _run_per_frame(p: Plan, node: Node, key: str, inputs: dict[str, Artifact], r
         else:
             frames[f] = hit.path
             sr.seconds += float(hit.manifest.get("seconds", 0.0))
+            sr.cpu_seconds += float(hit.manifest.get("cpu_seconds", 0.0))
+    sr.cost_seconds = sr.seconds  # the cached frames' own seconds, as a cached whole-run stage reports its run's
     if not todo:
         return sr, frames
     if not runnable:
@@ -484,9 +490,11 @@ def _run_per_frame(p: Plan, node: Node, key: str, inputs: dict[str, Artifact], r
                      fault_log=fault_log) for f in todo]
     bar = bars.make(f"{node.kind} frames", len(jobs))
     try:
-        for frame, path, _seconds, ran in executor.map_unordered(run_frame_job, jobs):
+        for frame, path, seconds, cpu, ran in executor.map_unordered(run_frame_job, jobs):
             frames[frame] = Path(path)
             sr.frames_ran += int(ran)
+            sr.cost_seconds += seconds
+            sr.cpu_seconds += cpu
             bar.advance()
     except BaseException as exc:
         if isinstance(exc, (KeyboardInterrupt, SystemExit)):

@@ -47,6 +47,12 @@ def test_first_run_runs_everything_second_run_nothing(toy_config):
     manifest = json.loads((out / "run.json").read_text())
     assert [s["status"] for s in manifest["stages"]] == ["cached"] * 5
     assert manifest["overrides"] == [] and manifest["frames"] is None and manifest["finished"].endswith("Z")
+    # a per-frame stage's cost is its frames' own seconds (it read 0: a study timing render charged nothing)
+    render = next(s for s in manifest["stages"] if s["kind"] == "render")
+    made = [json.loads(m.read_text()) for m in Path(r1.cache).rglob("manifest.json") if '"render' in m.read_text()]
+    assert len(made) == 4 and render["cost_seconds"] > 0
+    assert render["cost_seconds"] == pytest.approx(sum(m["seconds"] for m in made))
+    assert render["cpu_seconds"] == pytest.approx(sum(m["cpu_seconds"] for m in made))
     # run.json says what the outputs were made with beyond the file: the --set values and the frame selection
     run(toy_config, overrides=("surface_extract.iso=0.7",), frames=(1, 2))
     manifest = json.loads((out / "run.json").read_text())
