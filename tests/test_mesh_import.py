@@ -280,3 +280,57 @@ def test_builtin_corners_bound_the_imported_builtin_walls(tmp_path, up, placemen
         v = wm.vertices[np.unique(wm.faces[wm.wall_id == i])]
         assert np.allclose(got.min(axis=0), v.min(axis=0)) and np.allclose(got.max(axis=0), v.max(axis=0)), w.builtin
     assert builtin_corners(parsed, up) is None  # a file's bounds need the file
+
+
+def _cube_mesh(stage, path, centre, size=0.1, purpose=None, sampled_only=False):
+    import trimesh
+    from pxr import Usd, UsdGeom
+
+    box = trimesh.creation.box(extents=(size, size, size))
+    box.apply_translation(centre)
+    mesh = UsdGeom.Mesh.Define(stage, path)
+    points = [tuple(map(float, v)) for v in box.vertices]
+    if sampled_only:  # a cached/deforming mesh: points at time codes only, no default
+        mesh.GetPointsAttr().Set(points, Usd.TimeCode(1))
+        mesh.GetPointsAttr().Set([(x, y, z + 0.5) for x, y, z in points], Usd.TimeCode(2))
+    else:
+        mesh.GetPointsAttr().Set(points)
+    mesh.GetFaceVertexCountsAttr().Set([3] * len(box.faces))
+    mesh.GetFaceVertexIndicesAttr().Set([int(i) for i in box.faces.ravel()])
+    if purpose:
+        mesh.CreatePurposeAttr(purpose)
+    return mesh
+
+
+def test_usd_walls_take_sampled_points_and_leave_out_guides_and_doubled_proxies(tmp_path, caplog):
+    """A studio set: a static rock, a rock whose points exist only as time samples (a cache: read at its first
+    sample; it was dropped without a word), a guide plate (a rig helper: renderers never draw it; it became a
+    wall that held the fluid up), and one object as render and proxy meshes (the proxy left out, not the same
+    object twice). What is left out is said, and a selection of nothing but a guide names why."""
+    import logging
+
+    from types import SimpleNamespace
+
+    from pxr import Usd, UsdGeom
+
+    from stages.mesh_import.usd_import import read_usd_wall
+
+    stage = Usd.Stage.CreateNew(str(tmp_path / "set.usda"))
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    _cube_mesh(stage, "/World/RockStatic", (0.0, 0.0, 0.05))
+    _cube_mesh(stage, "/World/RockCached", (0.3, 0.0, 0.05), sampled_only=True)
+    _cube_mesh(stage, "/World/Helpers/GuidePlate", (0.0, 0.3, 0.1), size=0.2, purpose="guide")
+    _cube_mesh(stage, "/World/Statue/Render", (0.6, 0.0, 0.05), purpose="render")
+    _cube_mesh(stage, "/World/Statue/Proxy", (0.6, 0.0, 0.05), size=0.12, purpose="proxy")
+    stage.GetRootLayer().Save()
+    wall = SimpleNamespace(prims=["/**"], include_invisible=False)
+    with caplog.at_level(logging.INFO):
+        v, f, used, _, _ = read_usd_wall(tmp_path / "set.usda", wall, 1.0, "Z", logging.getLogger("t"))
+    assert used == ["/World/RockStatic", "/World/RockCached", "/World/Statue/Render"]
+    cached = v[f[12:24].ravel()]  # the second cube's triangles: at its first sample, not 0.5 higher
+    np.testing.assert_allclose(cached.min(axis=0), [0.25, -0.05, 0.0], atol=1e-7)
+    assert "GuidePlate (purpose guide)" in caplog.text and "Proxy (purpose proxy beside render meshes)" in caplog.text
+    assert "points are animated" in caplog.text
+    with pytest.raises(StageError, match=r"left out: /World/Helpers/GuidePlate \(purpose guide\)"):
+        read_usd_wall(tmp_path / "set.usda", SimpleNamespace(prims=["/World/Helpers"], include_invisible=False), 1.0, "Z")

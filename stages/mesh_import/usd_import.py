@@ -93,13 +93,17 @@ def _animation(stage, prim, codes: list[float]) -> tuple[np.ndarray, np.ndarray]
     return np.asarray(every) / float(stage.GetTimeCodesPerSecond()), np.array([m @ rest_inv for m in mats])
 
 
-def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str) -> tuple[np.ndarray, np.ndarray, list[str], np.ndarray, tuple | None]:
+def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str,
+                  log=None) -> tuple[np.ndarray, np.ndarray, list[str], np.ndarray, tuple | None]:
     """World-space vertices (scene units, scene up axis), triangles, the prim paths used, the 4x4
     matrix (column vectors) from the stage's world frame to the scene's units and up axis, and the
     wall's animation: None when static, else (times s, (K, 4, 4) matrices taking the rest pose to the
     pose at each time, in the stage's world frame). An animated wall's vertices are in its rest pose:
     the world transform at its earliest time sample. Every prim of one wall must move alike (one rigid
-    body)."""
+    body). Points authored only as time samples (a cached or deforming mesh) are read at their earliest sample
+    (read at the default time, such a prim was left out without a word); guide meshes (purpose guide: rigs,
+    helpers a renderer never draws) are left out, and so are proxies where render meshes are chosen too (the
+    same object twice). ``log`` hears what was left out and why."""
     from pxr import Usd, UsdGeom
 
     if not path.is_file():
@@ -129,20 +133,31 @@ def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str) ->
 
     verts, faces, used, offset = [], [], [], 0
     animation: tuple | None = None
-    for prim in chosen:
-        if not prim.IsA(UsdGeom.Mesh):
-            continue
+    meshes = [p for p in chosen if p.IsA(UsdGeom.Mesh)]
+    purposes = {p: UsdGeom.Imageable(p).ComputePurpose() for p in meshes}
+    left_out = {p: "purpose guide" for p in meshes if purposes[p] == UsdGeom.Tokens.guide}
+    if any(purposes[p] == UsdGeom.Tokens.render for p in meshes):
+        left_out.update({p: "purpose proxy beside render meshes" for p in meshes if purposes[p] == UsdGeom.Tokens.proxy})
+    first = Usd.TimeCode.EarliestTime()  # the default value, or the earliest sample of a prim with samples only
+    for prim in meshes:
         img = UsdGeom.Imageable(prim)
+        if prim in left_out:
+            continue
         if not wall.include_invisible and img.ComputeVisibility(Usd.TimeCode.Default()) == UsdGeom.Tokens.invisible:
+            left_out[prim] = "invisible"
             continue
         mesh = UsdGeom.Mesh(prim)
         where = f"{path}:{prim.GetPath()}"
-        pts = np.asarray(mesh.GetPointsAttr().Get() or [], np.float64).reshape(-1, 3)
-        counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get() or [], np.int64)
-        idx = np.asarray(mesh.GetFaceVertexIndicesAttr().Get() or [], np.int64)
-        holes = np.asarray(mesh.GetHoleIndicesAttr().Get() or [], np.int64)
+        pts = np.asarray(mesh.GetPointsAttr().Get(first) or [], np.float64).reshape(-1, 3)
+        counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get(first) or [], np.int64)
+        idx = np.asarray(mesh.GetFaceVertexIndicesAttr().Get(first) or [], np.int64)
+        holes = np.asarray(mesh.GetHoleIndicesAttr().Get(first) or [], np.int64)
         if len(pts) == 0 or len(counts) == 0:
+            left_out[prim] = "no points or faces"
             continue
+        if mesh.GetPointsAttr().GetNumTimeSamples() > 1 and log is not None:
+            log.warning("%s: its points are animated (a deforming mesh); the wall is its shape at the first sample "
+                        "(walls move rigidly only)", where)
         if not np.isfinite(pts).all():
             raise StageError(f"{where}: points contain NaN or Inf")
         if len(idx) and (idx.min() < 0 or idx.max() >= len(pts)):
@@ -169,8 +184,11 @@ def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str) ->
         faces.append(tris + offset)
         offset += len(p)
         used.append(str(prim.GetPath()))
+    if left_out and log is not None and used:
+        log.info("%s: left out %s", path, ", ".join(f"{p.GetPath()} ({why})" for p, why in left_out.items()))
     if not used:
-        raise StageError(f"{path}: no visible UsdGeom.Mesh prim with faces matches {wall.prims}")
+        why = f" (left out: {', '.join(f'{p.GetPath()} ({w})' for p, w in left_out.items())})" if left_out else ""
+        raise StageError(f"{path}: no visible UsdGeom.Mesh prim with faces matches {wall.prims}{why}")
     units = np.eye(4)
     units[:3, :3] = to_scene
     return np.concatenate(verts), np.concatenate(faces), used, units, animation
