@@ -197,7 +197,10 @@ class MeshWall(WallPlacement):
 
 class FileWall(MeshWall):
     file: InputFile = Field(description="OBJ/PLY/STL/OFF/GLB/GLTF path, relative to the config file")
-    meters_per_unit: float | None = Field(None, gt=0, description="the file's units if not the scene's")
+    meters_per_unit: float | None = Field(None, gt=0, description="the file's units if not the scene's (GLB/GLTF: "
+                                          "metres, as the format specifies)")
+    up_axis: Literal["Y", "Z"] | None = Field(None, description="the file's up axis if not the scene's (GLB/GLTF: Y, "
+                                              "as the format specifies; an OBJ from a Y-up package: Y)")
 
 
 class UsdWall(MeshWall):
@@ -251,8 +254,10 @@ class MeshEmitter(Emitter, Placement):
     mesh: InputFile = Field(description="fill the interior of this mesh file (relative to the config): OBJ/PLY/STL/"
                             "OFF/GLB/GLTF, or USD (.usd/.usda/.usdc/.usdz: its world transforms, metersPerUnit and upAxis "
                             "apply)")
-    meters_per_unit: float | None = Field(None, gt=0, description="the file's units if not the scene's (not for USD, "
-                                          "which states its own)")
+    meters_per_unit: float | None = Field(None, gt=0, description="the file's units if not the scene's (GLB/GLTF: "
+                                          "metres, as the format specifies; not for USD, which states its own)")
+    up_axis: Literal["Y", "Z"] | None = Field(None, description="the file's up axis if not the scene's (GLB/GLTF: Y; "
+                                              "not for USD, which states its own)")
     prims: list[str] = Field(default_factory=lambda: ["/**"], description="USD only: prim paths or glob patterns of "
                              "the meshes to fill")
 
@@ -260,6 +265,8 @@ class MeshEmitter(Emitter, Placement):
     def _usd_states_its_units(self) -> "MeshEmitter":
         if self.meters_per_unit is not None and is_usd(self.mesh):
             raise ValueError("meters_per_unit: a USD file states its own (metersPerUnit); leave it out")
+        if self.up_axis is not None and is_usd(self.mesh):
+            raise ValueError("up_axis: a USD file states its own (upAxis); leave it out")
         return self
 
 

@@ -57,6 +57,37 @@ def test_file_units_are_converted(tmp_path):
     assert np.allclose(wm.vertices.max(axis=0), [1, 1, 1])
 
 
+def test_gltf_is_metres_and_y_up_and_other_files_may_say_their_up_axis(tmp_path):
+    """glTF is specified in metres with +Y up: a GLB tank (0.3 x 0.2 x 0.4 m, 0.4 m along its +Y) comes into a
+    Z-up centimetre scene standing, 40 cm tall (it lay on its side, in the scene's units); an OBJ exported Y-up
+    says so with up_axis: Y and comes in the same; in a Y-up scene neither turns."""
+    box = trimesh.creation.box(bounds=[[0, 0, -0.2], [0.3, 0.4, 0.0]])  # Y-up: the tank's height along +Y
+    box.export(tmp_path / "tank.glb")
+    box.export(tmp_path / "tank_yup.obj")
+    up_z = {"name": "t", "units": {"meters_per_unit": 0.01, "up_axis": "Z"}}
+    for wall in ({"file": "tank.glb"}, {"file": "tank_yup.obj", "up_axis": "Y", "meters_per_unit": 1.0}):
+        wm = _import(tmp_path, [wall], scene=up_z)
+        np.testing.assert_allclose(wm.vertices.min(axis=0), [0, 0, 0], atol=1e-5)
+        np.testing.assert_allclose(wm.vertices.max(axis=0), [30, 20, 40], atol=1e-5)
+    up_y = {"name": "t", "units": {"meters_per_unit": 1.0, "up_axis": "Y"}}
+    wm = _import(tmp_path, [{"file": "tank.glb"}], scene=up_y)
+    np.testing.assert_allclose(wm.vertices.max(axis=0), [0.3, 0.4, 0.0], atol=1e-6)
+    np.testing.assert_allclose(wm.vertices.min(axis=0), [0.0, 0.0, -0.2], atol=1e-6)
+
+
+def test_a_gltf_emitter_is_metres_and_y_up_as_a_gltf_wall(tmp_path):
+    """The same conversion for a fluid emitter: a GLB block 0.1 x 0.1 x 0.2 m tall along its +Y fills a Z-up
+    centimetre scene 20 cm high, as the box emitter of those bounds does."""
+    from pipeline.scene import BoxEmitter, MeshEmitter
+    from stages.simulate.emitters import emit
+
+    trimesh.creation.box(bounds=[[0, 0, -0.1], [0.1, 0.2, 0.0]]).export(tmp_path / "block.glb")
+    x, _ = emit([MeshEmitter(mesh="block.glb")], 1.0, lambda p: tmp_path / p, 0.01, None, "Z")
+    box, _ = emit([BoxEmitter(box={"min": [0, 0, 0], "max": [10, 10, 20]})], 1.0, lambda p: tmp_path / p, 0.01,
+                  None, "Z")
+    assert len(x) == len(box) and x[:, 2].max() == pytest.approx(box[:, 2].max(), abs=1e-6)
+
+
 def test_cleanup_welds_and_drops_degenerate_and_duplicate_faces(tmp_path):
     (tmp_path / "bad.obj").write_text(
         "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nv 1 0 0\n"

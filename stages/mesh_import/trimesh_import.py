@@ -24,7 +24,7 @@ from stages.common.sdf import DEFAULT_SHELL_THICKNESS
 
 from .builtin import builtin_mesh
 from .cleanup import clean_mesh
-from stages.common.placement import apply_placement, placement_matrix
+from stages.common.placement import apply_placement, placement_matrix, up_axis_matrix
 
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
 USD_FILE = "walls.usdc"
@@ -51,6 +51,19 @@ def mesh_file_dependencies(path: Path) -> list[Path]:
         return []  # the import says what is wrong with the file
     uris = [b.get("uri") for b in buffers if isinstance(b, dict)]
     return [path.parent / unquote(u) for u in uris if isinstance(u, str) and not u.startswith("data:")]
+
+
+def to_scene_frame(v: np.ndarray, path: Path, meters_per_unit: float | None, up_axis: str | None, units) -> np.ndarray:
+    """A mesh file's vertices in the scene's units and up axis: the file's as the config states them, else
+    glTF's own (metres, +Y up: the format's specification; a GLB tank in a Z-up scene lay on its side), else
+    the scene's (OBJ, STL, PLY and OFF carry neither)."""
+    gltf = path.suffix.lower() in (".glb", ".gltf")
+    mpu = meters_per_unit if meters_per_unit is not None else (1.0 if gltf else units.meters_per_unit)
+    up = up_axis or ("Y" if gltf else units.up_axis)
+    v = v * (mpu / units.meters_per_unit) if mpu != units.meters_per_unit else v
+    if up != units.up_axis and len(v):
+        v = v @ up_axis_matrix(up, units.up_axis)[:3, :3].T
+    return v
 
 
 def _read_mesh_file(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -239,9 +252,7 @@ class TrimeshImport(Stage):
             return v, f, w.fluid, str(path), extra
         path = ctx.resolve(w.file)
         v, f = _read_mesh_file(path)
-        if len(v) and w.meters_per_unit is not None:
-            v = v * (w.meters_per_unit / units.meters_per_unit)
-        return v, f, w.fluid, str(path), {}
+        return to_scene_frame(v, path, w.meters_per_unit, w.up_axis, units), f, w.fluid, str(path), {}
 
 
 def write_walls_usd(path: Path, wm: WallMesh, meters_per_unit: float, up_axis: str) -> None:

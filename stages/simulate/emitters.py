@@ -31,11 +31,13 @@ def _read_mesh(em: MeshEmitter, path: Path, meters_per_unit: float, up_axis: str
     """(vertices in scene units and up axis before the emitter's placement, triangles, closed?) of a mesh
     file or of the chosen meshes of a USD file (read as mesh_import reads a USD wall: world transforms,
     metersPerUnit, upAxis; an animated prim at its rest pose)."""
+    from types import SimpleNamespace
+
     import trimesh
 
-    if is_usd(em.mesh):
-        from types import SimpleNamespace
+    from stages.mesh_import.trimesh_import import to_scene_frame
 
+    if is_usd(em.mesh):
         from stages.mesh_import.usd_import import read_usd_wall
 
         v, f, _, _, _ = read_usd_wall(path, SimpleNamespace(prims=em.prims, include_invisible=False), meters_per_unit,
@@ -48,9 +50,9 @@ def _read_mesh(em: MeshEmitter, path: Path, meters_per_unit: float, up_axis: str
         raise StageError(f"fluid emitter mesh {path}: cannot read it ({exc})") from None
     if len(mesh.faces) == 0:
         raise StageError(f"fluid emitter mesh {path}: has no triangles")
-    v = np.asarray(mesh.vertices, np.float64)
-    if em.meters_per_unit is not None:  # the file's units -> the scene's, as for a wall file
-        v = v * (em.meters_per_unit / meters_per_unit)
+    # the file's units and up axis -> the scene's, as for a wall file
+    v = to_scene_frame(np.asarray(mesh.vertices, np.float64), path, em.meters_per_unit, em.up_axis,
+                       SimpleNamespace(meters_per_unit=meters_per_unit, up_axis=up_axis))
     return v, np.asarray(mesh.faces, np.int64), bool(mesh.is_watertight)
 
 
