@@ -7,7 +7,9 @@
     usd/walls.usdc            wall meshes that did not come from a USD asset (a moving wall: its rest
                               mesh under an xformOp:transform time-sampled at every exported frame)
     usd/assets/...            copies of studio USD assets the walls came from (with their local
-                              dependencies): sublayered so their prim paths stay as they are
+                              dependencies): sublayered so their prim paths stay as they are, unless
+                              they need a transform or have prims under /World (then referenced as
+                              /World/Asset_k/Asset, so they cannot move or restyle our prims)
     usd/scene.usdz            optional package of all of the above
 
 Every path inside is relative, so the folder works wherever the engine publishes it. With a studio
@@ -72,6 +74,19 @@ def _usd_source(info: dict) -> str | None:
     return source if source.lower().endswith(USD_SUFFIXES) else None
 
 
+ROOT = "/World"  # every prim the export authors is under it (fluid, particles, walls, camera, Asset_k)
+
+
+def _has_own_prims(asset: Path) -> bool:
+    """Whether the asset has opinions at or under ROOT. Sublayered, they would compose over ours: a set
+    whose /World is translated 1 cm moved the fluid, the walls and the camera with it (and its kind,
+    visibility or a /World/Fluid of its own would land on ours too), so such an asset is referenced."""
+    from pxr import Usd
+
+    stage = Usd.Stage.Open(str(asset), Usd.Stage.LoadNone)  # held: a prim of a dropped stage is invalid
+    return stage.GetPrimAtPath(ROOT).IsValid()
+
+
 def _safe_name(name: str, used: set[str]) -> str:
     from pxr import Tf
 
@@ -87,7 +102,7 @@ def _safe_name(name: str, used: set[str]) -> str:
 class UsdExport(Stage):
     kind = "export"
     name = "usd"
-    version = "4"
+    version = "5"
     Params = UsdParams
     inputs = ("walls", "particles")
     optional_inputs = ("surface",)
@@ -161,7 +176,7 @@ class UsdExport(Stage):
         for asset, asset_to_scene in assets.items():
             rel = self._copy_asset(asset, out / "assets")
             asset_to_target = to_target @ asset_to_scene
-            if np.allclose(asset_to_target, np.eye(4), atol=1e-9):
+            if np.allclose(asset_to_target, np.eye(4), atol=1e-9) and not _has_own_prims(asset):
                 sublayers.append(f"./{rel}")  # prim paths kept exactly
             else:
                 references.append((f"./{rel}", asset_to_target))
@@ -172,7 +187,8 @@ class UsdExport(Stage):
         root.GetRootLayer().subLayerPaths = sublayers
         for k, (rel, m) in enumerate(references):
             xf = UsdGeom.Xform.Define(root, f"/World/Asset_{k}")
-            xf.AddTransformOp().Set(ul.to_gf_matrix(m))
+            if not np.allclose(m, np.eye(4), atol=1e-9):  # an asset referenced only for its /World prims
+                xf.AddTransformOp().Set(ul.to_gf_matrix(m))
             # the reference one level down: on Asset_k itself, our xformOpOrder replaced the asset root's
             # own (a set whose default prim is translated came in 3 cm off the simulated walls)
             root.DefinePrim(f"/World/Asset_{k}/Asset").GetReferences().AddReference(rel)
