@@ -333,3 +333,41 @@ def test_asset_rooted_at_world_moves_none_of_our_prims(tmp_path, fluid_units):
     assert len(found) == 1
     got = world_points_in_scene_metres(stage, found[0].GetPath(), UsdGeom.Mesh(found[0]).GetPointsAttr().Get())
     np.testing.assert_allclose([got.min(0), got.max(0)], [pillar.min(0), pillar.max(0)], atol=1e-6)
+
+
+def animated(stage):
+    """{(prim, attribute): time samples} of every time-sampled attribute on the composed stage."""
+    return {(str(p.GetPath()), a.GetName()): a.GetTimeSamples()
+            for p in stage.Traverse() for a in p.GetAttributes() if a.GetNumTimeSamples()}
+
+
+def test_frames_run_exports_only_the_selected_frames(tmp_path):
+    """A --frames run: every layer holds the selected frames and nothing else, and the stage plays
+    first..last selected. The simulation's own particles.usdc (every frame) was copied as it was, so the
+    particles moved over 0..3 beside a surface held still outside 1..2, on a stage that said 0..3."""
+    from stages.common.usd_points import write_points_layer
+
+    inputs = folders(tmp_path)
+    tank_walls(inputs["walls"])
+    surfaces(inputs["surface"], (-0.5, 0.0, 0.4))
+    parts = particles(inputs["particles"], (-0.5, 0.0, 0.4))
+    sim_layer = write_points_layer(inputs["particles"] / "particles.usdc", enumerate(parts), spacing=0.05,
+                                   up_axis="Z", meters_per_unit=1.0, fps=FPS, count=FRAMES)
+
+    selected = [1, 2]
+    out = run_stage(UsdExport, tmp_path / "part", scene=scene(), inputs=inputs, frames=tuple(selected))
+    stage = Usd.Stage.Open(str(out / "scene.usda"))
+    samples = animated(stage)
+    assert ("/World/Particles", "points") in samples and ("/World/Fluid/Surface", "points") in samples
+    assert {k: v for k, v in samples.items() if v != selected} == {}
+    assert (stage.GetStartTimeCode(), stage.GetEndTimeCode()) == (1, 2)
+    points = UsdGeom.Points(stage.GetPrimAtPath("/World/Particles"))
+    for f in selected:
+        np.testing.assert_allclose(np.array(points.GetPointsAttr().Get(f)), parts[f].x, atol=1e-6)
+
+    # a whole run is as before: every frame, and the simulation's layer itself
+    out = run_stage(UsdExport, tmp_path / "whole", scene=scene(), inputs=inputs)
+    stage = Usd.Stage.Open(str(out / "scene.usda"))
+    assert animated(stage) == {k: list(range(FRAMES)) for k in samples}
+    assert (stage.GetStartTimeCode(), stage.GetEndTimeCode()) == (0, FRAMES - 1)
+    assert (out / "particles.usdc").read_bytes() == sim_layer.read_bytes()

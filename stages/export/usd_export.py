@@ -160,7 +160,7 @@ class UsdExport(Stage):
             to_target = np.linalg.inv(assets[asset])
         else:
             up, mpu, to_target = scene.units.up_axis, scene.units.meters_per_unit, np.eye(4)
-        metrics = dict(up_axis=up, meters_per_unit=mpu, fps=fps, count=count)
+        metrics = dict(up_axis=up, meters_per_unit=mpu, fps=fps, frames=frames)
 
         sublayers: list[str] = []
         progress = ctx.progress("writing USD layers", len(frames) * (params.surface + params.particles) + 2)
@@ -169,7 +169,9 @@ class UsdExport(Stage):
             self._write_surface(out / "fluid_surface.usdc", inputs["surface"], frames, to_target, metrics, progress)
             sublayers.append("./fluid_surface.usdc")
         if params.particles:
-            sublayers.append(self._write_particles(out, inputs["particles"], frames, to_target, metrics, progress))
+            whole = frames == list(range(count))
+            sublayers.append(self._write_particles(out, inputs["particles"], frames, whole, to_target, metrics,
+                                                   progress))
         if self._write_walls(out / "walls.usdc", walls, set(usd_walls), to_target, metrics, frames):
             sublayers.append("./walls.usdc")
         references: list[tuple[str, np.ndarray]] = []
@@ -238,14 +240,16 @@ class UsdExport(Stage):
         stage.GetRootLayer().Save()
 
     @staticmethod
-    def _write_particles(out: Path, particles: Artifact, frames: list[int], m: np.ndarray, metrics: dict,
-                         progress) -> str:
+    def _write_particles(out: Path, particles: Artifact, frames: list[int], whole: bool, m: np.ndarray,
+                         metrics: dict, progress) -> str:
         folder = particles.path
         if folder is None:
             raise StageError("export.usd: the 'particles' artifact must be a whole-run folder")
         ready = Path(folder) / "particles.usdc"
-        if ready.is_file() and ul.is_identity(m):
-            shutil.copyfile(ready, out / "particles.usdc")  # simulate's own layer, already in this frame
+        if ready.is_file() and ul.is_identity(m) and whole:
+            # simulate's own layer, already in this frame; it holds every frame, so not for a --frames run
+            # (its particles moved through the whole shot beside a surface held outside the selection)
+            shutil.copyfile(ready, out / "particles.usdc")
             progress.advance(len(frames))
             return "./particles.usdc"
         try:
