@@ -261,15 +261,16 @@ def test_empty_frames_export_and_read_back_empty(tmp_path):
     assert len(UsdGeom.Points(stage.GetPrimAtPath("/World/Particles")).GetPointsAttr().Get(1)) == 0
 
 
-def write_world_rooted_asset(path):
+def write_world_rooted_asset(path, default_prim=True):
     """A set rooted at /World like ours, its root moved: Y-up, centimetres, /World translated 1 cm along
-    x, a pillar 3 x 20 x 3 cm under /World/Props."""
+    x, a pillar 3 x 20 x 3 cm under /World/Props; its default prim /World, or none."""
     stage = Usd.Stage.CreateNew(str(path))
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
     UsdGeom.SetStageMetersPerUnit(stage, 0.01)
     root = UsdGeom.Xform.Define(stage, "/World")
     root.AddTranslateOp().Set(Gf.Vec3d(1, 0, 0))
-    stage.SetDefaultPrim(root.GetPrim())
+    if default_prim:
+        stage.SetDefaultPrim(root.GetPrim())
     box = trimesh.creation.box(extents=(3.0, 20.0, 3.0))
     box.apply_translation((11.5, 10.0, -5.5))  # Y-up cm: x 10..13, height 0..20, z -7..-4
     pillar = UsdGeom.Mesh.Define(stage, "/World/Props/Pillar")
@@ -286,15 +287,16 @@ def world_points_in_scene_metres(stage, path, points, time=Usd.TimeCode.Default(
     return np.stack([p[:, 0], -p[:, 2], p[:, 1]], axis=1) if UsdGeom.GetStageUpAxis(stage) == "Y" else p
 
 
-@pytest.mark.parametrize("fluid_units", ["auto", "scene"])
-def test_asset_rooted_at_world_moves_none_of_our_prims(tmp_path, fluid_units):
+@pytest.mark.parametrize("fluid_units, default_prim", [("auto", True), ("auto", False), ("scene", True)],
+                         ids=["asset_units", "asset_units_no_default_prim", "scene_units"])
+def test_asset_rooted_at_world_moves_none_of_our_prims(tmp_path, fluid_units, default_prim):
     """An asset whose root prim is /World, with a transform, must not compose over the export's own /World:
     sublayered (its frame is the written one under fluid_units: asset), its translate moved the fluid,
     particles, walls and camera 1 cm with it. Everything must stay where it was simulated, in metres, and
-    the asset's pillar where mesh_import put the pillar wall."""
+    the asset's pillar where mesh_import put the pillar wall (also with no default prim to reference)."""
     from stages.mesh_import import trimesh_import
 
-    write_world_rooted_asset(tmp_path / "pillar_cm.usda")
+    write_world_rooted_asset(tmp_path / "pillar_cm.usda", default_prim)
     inputs = folders(tmp_path)
     eye, look = [0.5, -0.6, 0.4], [0.0, 0.0, 0.1]
     sc = scene(walls=[{"builtin": "box_tank", "size": [0.3, 0.2, 0.3]},

@@ -87,6 +87,22 @@ def _has_own_prims(asset: Path) -> bool:
     return stage.GetPrimAtPath(ROOT).IsValid()
 
 
+def _reference_roots(asset: Path, infos: list[dict]) -> list[str | None]:
+    """The asset's root prims to reference: its default prim (None) and any other root holding a wall's
+    prim; without a default prim, the roots holding the walls (a reference to the missing default prim
+    brought nothing: the walls vanished from the scene)."""
+    from pxr import Usd
+
+    stage = Usd.Stage.Open(str(asset), Usd.Stage.LoadNone)
+    paths = [p for info in infos for p in (info.get("report", {}).get("prims") or info.get("prims") or [])]
+    roots = {"/" + p.strip("/").split("/")[0] for p in paths if p.strip("/")}
+    roots = sorted(r for r in roots if stage.GetPrimAtPath(r).IsValid())
+    default = stage.GetDefaultPrim()
+    if default:
+        return [None] + [r for r in roots if r != str(default.GetPath())]
+    return roots or [str(p.GetPath()) for p in stage.GetPseudoRoot().GetChildren()][:1]
+
+
 def _safe_name(name: str, used: set[str]) -> str:
     from pxr import Tf
 
@@ -144,9 +160,11 @@ class UsdExport(Stage):
         # studio assets the walls came from, and the frame every layer is written in
         usd_walls = {i: info for i, info in enumerate(walls.walls) if _usd_source(info)}
         assets: dict[Path, np.ndarray] = {}
+        asset_walls: dict[Path, list[dict]] = {}
         for info in usd_walls.values():
             path = self._asset_path(ctx, info)
             assets.setdefault(path, self._asset_to_scene(info))
+            asset_walls.setdefault(path, []).append(info)
         mode = params.fluid_units if params.fluid_units != "auto" else ("asset" if assets else "scene")
         if mode == "asset" and not assets:
             raise StageError("export.usd: fluid_units: asset needs a wall from a USD asset (walls: - usd: ...)")
@@ -174,26 +192,33 @@ class UsdExport(Stage):
                                                    progress))
         if self._write_walls(out / "walls.usdc", walls, set(usd_walls), to_target, metrics, frames):
             sublayers.append("./walls.usdc")
-        references: list[tuple[str, np.ndarray]] = []
+        references: list[tuple[str, np.ndarray, list[str | None]]] = []
         for asset, asset_to_scene in assets.items():
             rel = self._copy_asset(asset, out / "assets")
             asset_to_target = to_target @ asset_to_scene
             if np.allclose(asset_to_target, np.eye(4), atol=1e-9) and not _has_own_prims(asset):
                 sublayers.append(f"./{rel}")  # prim paths kept exactly
             else:
-                references.append((f"./{rel}", asset_to_target))
+                references.append((f"./{rel}", asset_to_target, _reference_roots(asset, asset_walls[asset])))
         progress.advance()
 
         # the root: metrics, camera, sublayers (strongest first), assets that need a transform
         root = ul.new_stage(out / "scene.usda", **metrics)
         root.GetRootLayer().subLayerPaths = sublayers
-        for k, (rel, m) in enumerate(references):
+        for k, (rel, m, prims) in enumerate(references):
             xf = UsdGeom.Xform.Define(root, f"/World/Asset_{k}")
             if not np.allclose(m, np.eye(4), atol=1e-9):  # an asset referenced only for its /World prims
                 xf.AddTransformOp().Set(ul.to_gf_matrix(m))
             # the reference one level down: on Asset_k itself, our xformOpOrder replaced the asset root's
             # own (a set whose default prim is translated came in 3 cm off the simulated walls)
-            root.DefinePrim(f"/World/Asset_{k}/Asset").GetReferences().AddReference(rel)
+            used = {"Asset"}
+            for j, prim in enumerate(prims):
+                name = "Asset" if j == 0 else _safe_name(prim.lstrip("/"), used)
+                refs = root.DefinePrim(f"/World/Asset_{k}/{name}").GetReferences()
+                if prim is None:
+                    refs.AddReference(rel)
+                else:
+                    refs.AddReference(rel, prim)
         eye, target, up, view_angle = shot_camera(walls, scene.units, ctx.scene["camera"], ctx.resolve, "export.usd")
         ul.define_camera(root, "/World/Camera", ul.apply(to_target, eye[None])[0], ul.apply(to_target, target[None])[0],
                          ul.apply_linear(to_target, up[None])[0], view_angle, params.camera_aspect, mpu)
