@@ -259,3 +259,117 @@ def test_empty_frames_export_and_read_back_empty(tmp_path):
     stage = Usd.Stage.Open(str(out / "scene.usda"))
     assert len(UsdGeom.Mesh(stage.GetPrimAtPath("/World/Fluid/Surface")).GetPointsAttr().Get(1)) == 0
     assert len(UsdGeom.Points(stage.GetPrimAtPath("/World/Particles")).GetPointsAttr().Get(1)) == 0
+
+
+def write_world_rooted_asset(path, default_prim=True):
+    """A set rooted at /World like ours, its root moved: Y-up, centimetres, /World translated 1 cm along
+    x, a pillar 3 x 20 x 3 cm under /World/Props; its default prim /World, or none."""
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+    root = UsdGeom.Xform.Define(stage, "/World")
+    root.AddTranslateOp().Set(Gf.Vec3d(1, 0, 0))
+    if default_prim:
+        stage.SetDefaultPrim(root.GetPrim())
+    box = trimesh.creation.box(extents=(3.0, 20.0, 3.0))
+    box.apply_translation((11.5, 10.0, -5.5))  # Y-up cm: x 10..13, height 0..20, z -7..-4
+    pillar = UsdGeom.Mesh.Define(stage, "/World/Props/Pillar")
+    pillar.GetPointsAttr().Set([Gf.Vec3f(*map(float, v)) for v in box.vertices])
+    pillar.GetFaceVertexCountsAttr().Set([3] * len(box.faces))
+    pillar.GetFaceVertexIndicesAttr().Set([int(i) for i in box.faces.ravel()])
+    stage.GetRootLayer().Save()
+
+
+def world_points_in_scene_metres(stage, path, points, time=Usd.TimeCode.Default()):
+    """``points`` of the prim at ``path`` in the stage's world, in metres, Z-up (the scene's frame)."""
+    m = np.array(UsdGeom.XformCache(time).GetLocalToWorldTransform(stage.GetPrimAtPath(path)))  # row vectors
+    p = (np.c_[np.asarray(points, float), np.ones(len(points))] @ m)[:, :3] * UsdGeom.GetStageMetersPerUnit(stage)
+    return np.stack([p[:, 0], -p[:, 2], p[:, 1]], axis=1) if UsdGeom.GetStageUpAxis(stage) == "Y" else p
+
+
+@pytest.mark.parametrize("fluid_units, default_prim", [("auto", True), ("auto", False), ("scene", True)],
+                         ids=["asset_units", "asset_units_no_default_prim", "scene_units"])
+def test_asset_rooted_at_world_moves_none_of_our_prims(tmp_path, fluid_units, default_prim):
+    """An asset whose root prim is /World, with a transform, must not compose over the export's own /World:
+    sublayered (its frame is the written one under fluid_units: asset), its translate moved the fluid,
+    particles, walls and camera 1 cm with it. Everything must stay where it was simulated, in metres, and
+    the asset's pillar where mesh_import put the pillar wall (also with no default prim to reference)."""
+    from stages.mesh_import import trimesh_import
+
+    write_world_rooted_asset(tmp_path / "pillar_cm.usda", default_prim)
+    inputs = folders(tmp_path)
+    eye, look = [0.5, -0.6, 0.4], [0.0, 0.0, 0.1]
+    sc = scene(walls=[{"builtin": "box_tank", "size": [0.3, 0.2, 0.3]},
+                      {"usd": "pillar_cm.usda", "fluid": "outside"}])
+    sc["camera"] = {"position": eye, "focal_point": look}
+    run_stage(trimesh_import.TrimeshImport, inputs["walls"], scene=sc, config_dir=tmp_path)
+    walls = WallMesh.load(inputs["walls"])
+    tank, pillar = (walls.vertices[np.unique(walls.faces[walls.wall_id == i])] for i in (0, 1))
+    # the pillar where the asset has it: x 11..14 cm (1 cm of root translate), y 4..7 cm, z 0..20 cm
+    np.testing.assert_allclose([pillar.min(0), pillar.max(0)], [[0.11, 0.04, 0.0], [0.14, 0.07, 0.2]], atol=1e-9)
+    surf = surfaces(inputs["surface"], (-0.07, 0.0, 0.08))
+    parts = particles(inputs["particles"], (-0.07, 0.0, 0.08))
+
+    out = run_stage(UsdExport, tmp_path / "usd", scene=sc, inputs=inputs, config_dir=tmp_path,
+                    params={"fluid_units": fluid_units})
+    stage = Usd.Stage.Open(str(out / "scene.usda"))
+    assert compliance_problems(out / "scene.usda")[0] == []
+    assert UsdGeom.GetStageMetersPerUnit(stage) == (0.01 if fluid_units == "auto" else 1.0)
+    for f in (0, FRAMES - 1):
+        mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/World/Fluid/Surface"))
+        got = world_points_in_scene_metres(stage, mesh.GetPath(), mesh.GetPointsAttr().Get(f), f)
+        np.testing.assert_allclose(got, surf[f].vertices, atol=1e-6)
+        points = UsdGeom.Points(stage.GetPrimAtPath("/World/Particles"))
+        got = world_points_in_scene_metres(stage, points.GetPath(), points.GetPointsAttr().Get(f), f)
+        np.testing.assert_allclose(got, parts[f].x, atol=1e-6)
+    # the simulated tank is x -15..15 cm (it came out -14..16)
+    wall = UsdGeom.Mesh(stage.GetPrimAtPath("/World/Walls/wall0_box_tank"))
+    got = world_points_in_scene_metres(stage, wall.GetPath(), wall.GetPointsAttr().Get())
+    np.testing.assert_allclose([got.min(0), got.max(0)], [tank.min(0), tank.max(0)], atol=1e-6)
+    np.testing.assert_allclose([got.min(0)[0], got.max(0)[0]], [-0.15, 0.15], atol=1e-6)
+    camera = world_points_in_scene_metres(stage, "/World/Camera", [[0.0, 0.0, 0.0]])[0]
+    np.testing.assert_allclose(camera, eye, atol=1e-6)
+
+    # the asset is there once, with its own root transform, on the simulated pillar wall
+    found = [p for p in stage.Traverse() if p.GetName() == "Pillar" and p.IsA(UsdGeom.Mesh)]
+    assert len(found) == 1
+    got = world_points_in_scene_metres(stage, found[0].GetPath(), UsdGeom.Mesh(found[0]).GetPointsAttr().Get())
+    np.testing.assert_allclose([got.min(0), got.max(0)], [pillar.min(0), pillar.max(0)], atol=1e-6)
+
+
+def animated(stage):
+    """{(prim, attribute): time samples} of every time-sampled attribute on the composed stage."""
+    return {(str(p.GetPath()), a.GetName()): a.GetTimeSamples()
+            for p in stage.Traverse() for a in p.GetAttributes() if a.GetNumTimeSamples()}
+
+
+def test_frames_run_exports_only_the_selected_frames(tmp_path):
+    """A --frames run: every layer holds the selected frames and nothing else, and the stage plays
+    first..last selected. The simulation's own particles.usdc (every frame) was copied as it was, so the
+    particles moved over 0..3 beside a surface held still outside 1..2, on a stage that said 0..3."""
+    from stages.common.usd_points import write_points_layer
+
+    inputs = folders(tmp_path)
+    tank_walls(inputs["walls"])
+    surfaces(inputs["surface"], (-0.5, 0.0, 0.4))
+    parts = particles(inputs["particles"], (-0.5, 0.0, 0.4))
+    sim_layer = write_points_layer(inputs["particles"] / "particles.usdc", enumerate(parts), spacing=0.05,
+                                   up_axis="Z", meters_per_unit=1.0, fps=FPS, count=FRAMES)
+
+    selected = [1, 2]
+    out = run_stage(UsdExport, tmp_path / "part", scene=scene(), inputs=inputs, frames=tuple(selected))
+    stage = Usd.Stage.Open(str(out / "scene.usda"))
+    samples = animated(stage)
+    assert ("/World/Particles", "points") in samples and ("/World/Fluid/Surface", "points") in samples
+    assert {k: v for k, v in samples.items() if v != selected} == {}
+    assert (stage.GetStartTimeCode(), stage.GetEndTimeCode()) == (1, 2)
+    points = UsdGeom.Points(stage.GetPrimAtPath("/World/Particles"))
+    for f in selected:
+        np.testing.assert_allclose(np.array(points.GetPointsAttr().Get(f)), parts[f].x, atol=1e-6)
+
+    # a whole run is as before: every frame, and the simulation's layer itself
+    out = run_stage(UsdExport, tmp_path / "whole", scene=scene(), inputs=inputs)
+    stage = Usd.Stage.Open(str(out / "scene.usda"))
+    assert animated(stage) == {k: list(range(FRAMES)) for k in samples}
+    assert (stage.GetStartTimeCode(), stage.GetEndTimeCode()) == (0, FRAMES - 1)
+    assert (out / "particles.usdc").read_bytes() == sim_layer.read_bytes()

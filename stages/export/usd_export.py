@@ -7,7 +7,9 @@
     usd/walls.usdc            wall meshes that did not come from a USD asset (a moving wall: its rest
                               mesh under an xformOp:transform time-sampled at every exported frame)
     usd/assets/...            copies of studio USD assets the walls came from (with their local
-                              dependencies): sublayered so their prim paths stay as they are
+                              dependencies): sublayered so their prim paths stay as they are, unless
+                              they need a transform or have prims under /World (then referenced as
+                              /World/Asset_k/Asset, so they cannot move or restyle our prims)
     usd/scene.usdz            optional package of all of the above
 
 Every path inside is relative, so the folder works wherever the engine publishes it. With a studio
@@ -72,6 +74,35 @@ def _usd_source(info: dict) -> str | None:
     return source if source.lower().endswith(USD_SUFFIXES) else None
 
 
+ROOT = "/World"  # every prim the export authors is under it (fluid, particles, walls, camera, Asset_k)
+
+
+def _has_own_prims(asset: Path) -> bool:
+    """Whether the asset has opinions at or under ROOT. Sublayered, they would compose over ours: a set
+    whose /World is translated 1 cm moved the fluid, the walls and the camera with it (and its kind,
+    visibility or a /World/Fluid of its own would land on ours too), so such an asset is referenced."""
+    from pxr import Usd
+
+    stage = Usd.Stage.Open(str(asset), Usd.Stage.LoadNone)  # held: a prim of a dropped stage is invalid
+    return stage.GetPrimAtPath(ROOT).IsValid()
+
+
+def _reference_roots(asset: Path, infos: list[dict]) -> list[str | None]:
+    """The asset's root prims to reference: its default prim (None) and any other root holding a wall's
+    prim; without a default prim, the roots holding the walls (a reference to the missing default prim
+    brought nothing: the walls vanished from the scene)."""
+    from pxr import Usd
+
+    stage = Usd.Stage.Open(str(asset), Usd.Stage.LoadNone)
+    paths = [p for info in infos for p in (info.get("report", {}).get("prims") or info.get("prims") or [])]
+    roots = {"/" + p.strip("/").split("/")[0] for p in paths if p.strip("/")}
+    roots = sorted(r for r in roots if stage.GetPrimAtPath(r).IsValid())
+    default = stage.GetDefaultPrim()
+    if default:
+        return [None] + [r for r in roots if r != str(default.GetPath())]
+    return roots or [str(p.GetPath()) for p in stage.GetPseudoRoot().GetChildren()][:1]
+
+
 def _safe_name(name: str, used: set[str]) -> str:
     from pxr import Tf
 
@@ -87,7 +118,7 @@ def _safe_name(name: str, used: set[str]) -> str:
 class UsdExport(Stage):
     kind = "export"
     name = "usd"
-    version = "4"
+    version = "5"
     Params = UsdParams
     inputs = ("walls", "particles")
     optional_inputs = ("surface",)
@@ -132,9 +163,11 @@ class UsdExport(Stage):
         # studio assets the walls came from, and the frame every layer is written in
         usd_walls = {i: info for i, info in enumerate(walls.walls) if _usd_source(info)}
         assets: dict[Path, np.ndarray] = {}
+        asset_walls: dict[Path, list[dict]] = {}
         for info in usd_walls.values():
             path = self._asset_path(ctx, info)
             assets.setdefault(path, self._asset_to_scene(info))
+            asset_walls.setdefault(path, []).append(info)
         mode = params.fluid_units if params.fluid_units != "auto" else ("asset" if assets else "scene")
         if mode == "asset" and not assets:
             raise StageError("export.usd: fluid_units: asset needs a wall from a USD asset (walls: - usd: ...)")
@@ -148,7 +181,7 @@ class UsdExport(Stage):
             to_target = np.linalg.inv(assets[asset])
         else:
             up, mpu, to_target = scene.units.up_axis, scene.units.meters_per_unit, np.eye(4)
-        metrics = dict(up_axis=up, meters_per_unit=mpu, fps=fps, count=count)
+        metrics = dict(up_axis=up, meters_per_unit=mpu, fps=fps, frames=frames)
 
         sublayers: list[str] = []
         progress = ctx.progress("writing USD layers", len(frames) * (params.surface + params.particles) + 2)
@@ -157,28 +190,38 @@ class UsdExport(Stage):
             self._write_surface(out / "fluid_surface.usdc", inputs["surface"], frames, to_target, metrics, progress)
             sublayers.append("./fluid_surface.usdc")
         if params.particles:
-            sublayers.append(self._write_particles(out, inputs["particles"], frames, to_target, metrics, progress))
+            whole = frames == list(range(count))
+            sublayers.append(self._write_particles(out, inputs["particles"], frames, whole, to_target, metrics,
+                                                   progress))
         if self._write_walls(out / "walls.usdc", walls, set(usd_walls), to_target, metrics, frames):
             sublayers.append("./walls.usdc")
-        references: list[tuple[str, np.ndarray]] = []
+        references: list[tuple[str, np.ndarray, list[str | None]]] = []
         for asset, asset_to_scene in assets.items():
             rel = self._copy_asset(asset, out / "assets")
             asset_to_target = to_target @ asset_to_scene
-            if np.allclose(asset_to_target, np.eye(4), atol=1e-9):
+            if np.allclose(asset_to_target, np.eye(4), atol=1e-9) and not _has_own_prims(asset):
                 sublayers.append(f"./{rel}")  # prim paths kept exactly
             else:
-                references.append((f"./{rel}", asset_to_target))
+                references.append((f"./{rel}", asset_to_target, _reference_roots(asset, asset_walls[asset])))
         progress.advance()
 
         # the root: metrics, camera, sublayers (strongest first), assets that need a transform
         root = ul.new_stage(out / "scene.usda", **metrics)
         root.GetRootLayer().subLayerPaths = sublayers
-        for k, (rel, m) in enumerate(references):
+        for k, (rel, m, prims) in enumerate(references):
             xf = UsdGeom.Xform.Define(root, f"/World/Asset_{k}")
-            xf.AddTransformOp().Set(ul.to_gf_matrix(m))
+            if not np.allclose(m, np.eye(4), atol=1e-9):  # an asset referenced only for its /World prims
+                xf.AddTransformOp().Set(ul.to_gf_matrix(m))
             # the reference one level down: on Asset_k itself, our xformOpOrder replaced the asset root's
             # own (a set whose default prim is translated came in 3 cm off the simulated walls)
-            root.DefinePrim(f"/World/Asset_{k}/Asset").GetReferences().AddReference(rel)
+            used = {"Asset"}
+            for j, prim in enumerate(prims):
+                name = "Asset" if j == 0 else _safe_name(prim.lstrip("/"), used)
+                refs = root.DefinePrim(f"/World/Asset_{k}/{name}").GetReferences()
+                if prim is None:
+                    refs.AddReference(rel)
+                else:
+                    refs.AddReference(rel, prim)
         eye, target, up, view_angle = shot_camera(walls, scene.units, ctx.scene["camera"], ctx.resolve, "export.usd")
         ul.define_camera(root, "/World/Camera", ul.apply(to_target, eye[None])[0], ul.apply(to_target, target[None])[0],
                          ul.apply_linear(to_target, up[None])[0], view_angle, params.camera_aspect, mpu)
@@ -225,14 +268,16 @@ class UsdExport(Stage):
         stage.GetRootLayer().Save()
 
     @staticmethod
-    def _write_particles(out: Path, particles: Artifact, frames: list[int], m: np.ndarray, metrics: dict,
-                         progress) -> str:
+    def _write_particles(out: Path, particles: Artifact, frames: list[int], whole: bool, m: np.ndarray,
+                         metrics: dict, progress) -> str:
         folder = particles.path
         if folder is None:
             raise StageError("export.usd: the 'particles' artifact must be a whole-run folder")
         ready = Path(folder) / "particles.usdc"
-        if ready.is_file() and ul.is_identity(m):
-            shutil.copyfile(ready, out / "particles.usdc")  # simulate's own layer, already in this frame
+        if ready.is_file() and ul.is_identity(m) and whole:
+            # simulate's own layer, already in this frame; it holds every frame, so not for a --frames run
+            # (its particles moved through the whole shot beside a surface held outside the selection)
+            shutil.copyfile(ready, out / "particles.usdc")
             progress.advance(len(frames))
             return "./particles.usdc"
         try:

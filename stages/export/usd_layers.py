@@ -13,7 +13,7 @@ from typing import Iterable
 import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade, Vt
 
-from stages.common.usd_stage import new_stage  # noqa: F401  (re-exported for the export stage)
+from stages.common import usd_stage
 
 # Y-up -> Z-up is +90 degrees about X: (x, y, z) -> (x, -z, y); its inverse takes Z-up to Y-up
 _Y_TO_Z = np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0]], float)
@@ -68,6 +68,16 @@ def to_gf_matrix(m: np.ndarray) -> Gf.Matrix4d:
 
 
 # -- layers ------------------------------------------------------------------------------------
+
+
+def new_stage(path: Path, *, up_axis: str, meters_per_unit: float, fps: float, frames: list[int]) -> Usd.Stage:
+    """A layer with our stage metrics whose time range is the exported frames, first..last selected
+    (a --frames 1:4 run said 0..5, so a viewer played frames no layer had)."""
+    stage = usd_stage.new_stage(path, up_axis=up_axis, meters_per_unit=meters_per_unit, fps=fps, count=1)
+    if frames:
+        stage.SetStartTimeCode(min(frames))
+        stage.SetEndTimeCode(max(frames))
+    return stage
 
 
 def extent_of(points: np.ndarray) -> Vt.Vec3fArray:
