@@ -1,4 +1,4 @@
-"""Triangulation of the polygons of a mesh file (n-gons of USD faceVertexCounts).
+"""Triangulation of the polygons of a mesh file (n-gons of USD faceVertexCounts, OBJ and PLY faces).
 
 A polygon keeps its fan from the first vertex when every fan triangle has a positive area in the
 polygon's plane: for a simple polygon that is exactly when the fan is a correct triangulation (the fan
@@ -8,6 +8,8 @@ gave, bit for bit. Every other polygon (a reflex vertex, collinear or repeated v
 first one) is ear-clipped in its best-fit plane (Newell normal). Triangles keep the polygon's winding.
 """
 from __future__ import annotations
+
+import re
 
 import numpy as np
 
@@ -173,3 +175,59 @@ def _ear_clip(xy, starts, counts):
         row += 1
     return out
 
+
+# -- polygons of mesh files that trimesh fans on loading ---------------------------------------------
+_OBJ_NGON = re.compile(rb"^[ \t]*f[ \t]+\S+[ \t]+\S+[ \t]+\S+[ \t]+\S", re.M)  # a face of 4 or more vertices
+
+
+def obj_polygons(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """(vertices, counts, indices) of the faces of an OBJ file's bytes, every object and group alike; None
+    when every face is a triangle. Only ``v`` and ``f`` lines count; a face vertex ``a``, ``a/t``,
+    ``a//n`` or ``a/t/n`` is vertex ``a``, counted from 1, or from the last vertex so far when negative.
+    Raises ValueError on an index out of range."""
+    if _OBJ_NGON.search(data) is None:
+        return None
+    verts: list[list[bytes]] = []
+    counts: list[int] = []
+    indices: list[int] = []
+    for line in data.splitlines():
+        tok = line.split()
+        if not tok:
+            continue
+        if tok[0] == b"v":
+            verts.append(tok[1:4])
+        elif tok[0] == b"f" and len(tok) > 3:
+            n_v = len(verts)
+            face = [int(t.split(b"/", 1)[0]) for t in tok[1:]]
+            face = [i - 1 if i > 0 else n_v + i for i in face]
+            if min(face) < 0 or max(face) >= n_v:
+                raise ValueError(f"face index out of range in {line.decode('utf-8', 'replace')[:80]!r} "
+                                 f"(only {n_v} vertices defined before it)")
+            counts.append(len(face))
+            indices += face
+    return np.array(verts, np.float64).reshape(-1, 3), np.array(counts, np.int64), np.array(indices, np.int64)
+
+
+def ply_polygons(raw: dict) -> tuple[np.ndarray, np.ndarray] | None:
+    """(counts, indices) of the faces of a PLY file as trimesh read it (``metadata["_ply_raw"]``); None
+    when they are all triangles or the face list is not found."""
+    face = raw.get("face") or {}
+    data = face.get("data")
+    if data is None or not face.get("length"):
+        return None
+    if isinstance(data, dict):
+        data = next((data[k] for k in ("vertex_indices", "vertex_index") if k in data), None)
+    elif isinstance(data, np.ndarray) and data.dtype.names:  # binary: a record per face, (count, list)
+        names = [k for k in ("vertex_indices", "vertex_index") if k in data.dtype.names] or list(data.dtype.names[:1])
+        data = data[names[0]]["f1"]
+    if data is None:
+        return None
+    if isinstance(data, np.ndarray) and data.dtype != object:
+        if data.ndim != 2 or data.shape[1] == 3:
+            return None
+        return np.full(len(data), data.shape[1], np.int64), data.reshape(-1).astype(np.int64)
+    faces = [np.asarray(f, np.int64).reshape(-1) for f in data]
+    counts = np.array([len(f) for f in faces], np.int64)
+    if (counts == 3).all():
+        return None
+    return counts, np.concatenate(faces)
