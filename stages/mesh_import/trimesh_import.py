@@ -83,6 +83,28 @@ def _read_mesh_file(path: Path) -> tuple[np.ndarray, np.ndarray]:
     f = np.asarray(getattr(loaded, "faces", np.zeros((0, 3))), np.int64).reshape(-1, 3)
     if suffix == ".obj":
         _check_obj_indices(path, len(v), len(f))
+    if suffix in (".obj", ".ply"):
+        # trimesh fans every polygon from its first vertex: across the notch of a concave one (a phantom
+        # wall). Re-triangulate from the file's polygons when some fan is wrong; else keep trimesh's
+        # triangles as they were (same geometry and face order for existing scenes).
+        from .polygons import fan, obj_polygons, ply_polygons, triangulate
+
+        polygons = None
+        if suffix == ".obj":
+            try:
+                polygons = obj_polygons(path.read_bytes())
+            except ValueError as e:
+                raise StageError(f"{path}: cannot read as OBJ ({str(e)[:160]})") from None
+        else:
+            raw = (getattr(loaded, "metadata", None) or {}).get("_ply_raw")
+            faces = ply_polygons(raw) if isinstance(raw, dict) else None
+            if faces is not None and len(faces[1]) and 0 <= faces[1].min() and faces[1].max() < len(v):
+                polygons = (v, *faces)
+        if polygons is not None:
+            pv, counts, idx = polygons
+            tris, _ = triangulate(pv, counts, idx)
+            if not np.array_equal(tris, idx[fan(counts)[0]]):
+                v, f = pv, tris
     return v, f
 
 

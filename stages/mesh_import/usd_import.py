@@ -43,21 +43,20 @@ def usd_dependencies(path: Path) -> list[Path]:
     return sorted(f for f in files if f.is_file())
 
 
-def _triangulate(counts: np.ndarray, indices: np.ndarray, holes: np.ndarray, where: str) -> np.ndarray:
-    """Fan-triangulate polygons; faces in ``holes`` are skipped. Returns (F, 3) int64."""
+def _triangulate(counts: np.ndarray, indices: np.ndarray, holes: np.ndarray, where: str,
+                 points: np.ndarray) -> np.ndarray:
+    """Triangulate polygons (a fan where it is right, else ear clipping: see polygons.py); faces in
+    ``holes`` are skipped. Returns (F, 3) int64."""
+    from .polygons import triangulate  # imported where used: it loads numba
+
     if (counts < 3).any():
         raise StageError(f"{where}: faceVertexCounts has a face with fewer than 3 vertices")
     if counts.sum() != len(indices):
         raise StageError(f"{where}: faceVertexCounts sums to {counts.sum()} but there are {len(indices)} faceVertexIndices")
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
     keep = np.ones(len(counts), bool)
     if len(holes):
         keep[holes[(holes >= 0) & (holes < len(counts))]] = False
-    n_tri = counts - 2
-    face_of_tri = np.repeat(np.arange(len(counts)), n_tri)
-    k = np.arange(len(face_of_tri)) - np.repeat(np.cumsum(n_tri) - n_tri, n_tri)  # fan index within a face
-    s = starts[face_of_tri]
-    tris = np.stack([indices[s], indices[s + k + 1], indices[s + k + 2]], axis=1)
+    tris, face_of_tri = triangulate(points, counts, indices)
     return tris[keep[face_of_tri]]
 
 
@@ -162,7 +161,7 @@ def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str,
             raise StageError(f"{where}: points contain NaN or Inf")
         if len(idx) and (idx.min() < 0 or idx.max() >= len(pts)):
             raise StageError(f"{where}: face vertex index {int(idx.max())} out of range (mesh has {len(pts)} points)")
-        tris = _triangulate(counts, idx, holes, where)
+        tris = _triangulate(counts, idx, holes, where, pts)
         if mesh.GetOrientationAttr().Get() == UsdGeom.Tokens.leftHanded:
             tris = tris[:, ::-1]
         codes = _sample_codes(prim)

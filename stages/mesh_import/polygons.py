@@ -1,0 +1,233 @@
+"""Triangulation of the polygons of a mesh file (n-gons of USD faceVertexCounts, OBJ and PLY faces).
+
+A polygon keeps its fan from the first vertex when every fan triangle has a positive area in the
+polygon's plane: for a simple polygon that is exactly when the fan is a correct triangulation (the fan
+triangles' signed areas add up to the winding number, 0 or 1, so none overlap and none is missing).
+Convex polygons, and concave ones whose first vertex sees all others, keep the triangles a plain fan
+gave, bit for bit. Every other polygon (a reflex vertex, collinear or repeated vertices next to the
+first one) is ear-clipped in its best-fit plane (Newell normal). Triangles keep the polygon's winding.
+"""
+from __future__ import annotations
+
+import re
+
+import numpy as np
+
+# A fan triangle this small against its polygon (area ratio) counts as degenerate: left in, it is
+# dropped by the clean-up and leaves a crack (a T-junction) where the polygon had a straight vertex.
+FAN_TOLERANCE = 1e-12
+# Ear clipping in plain Python up to this sum of squared polygon sizes (about 10 ms), numba beyond
+PYTHON_WORK = 4096
+
+
+def fan(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(T, 3) positions into the face-vertex list of the fan triangles of every face, and (T,) the
+    face of each triangle."""
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+    n_tri = counts - 2
+    face_of_tri = np.repeat(np.arange(len(counts)), n_tri)
+    k = np.arange(len(face_of_tri)) - np.repeat(np.cumsum(n_tri) - n_tri, n_tri)  # fan index within a face
+    s = starts[face_of_tri]
+    return np.stack([s, s + k + 1, s + k + 2], axis=1), face_of_tri
+
+
+def triangulate(points: np.ndarray, counts: np.ndarray, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Triangles ((T, 3) int64 indices into ``points``) of the polygons given as counts (each >= 3) and
+    concatenated vertex indices, and (T,) the polygon of each triangle. Every polygon gives counts - 2
+    triangles in polygon order, so each triangle's position is that of the plain fan."""
+    counts = np.asarray(counts, np.int64)
+    indices = np.asarray(indices, np.int64)
+    corner, face_of_tri = fan(counts)
+    tris = indices[corner]
+    big = counts > 3
+    if not big.any():  # a triangle mesh: nothing to decide
+        return tris, face_of_tri
+    points = np.asarray(points, np.float64)
+    normal = newell_normals(points, counts, indices)
+    # fan triangles of the n-gons: positive area in the polygon's plane?
+    sel = big[face_of_tri]
+    t = tris[sel]
+    f = face_of_tri[sel]
+    a = points[t[:, 0]]
+    d = np.einsum("ij,ij->i", np.cross(points[t[:, 1]] - a, points[t[:, 2]] - a), normal[f])
+    n2 = np.einsum("ij,ij->i", normal, normal)
+    bad_fan = np.zeros(len(counts), bool)
+    bad_fan[f[d <= FAN_TOLERANCE * n2[f]]] = True
+    redo = np.nonzero(bad_fan & (n2 > 0))[0]  # no plane at all (every vertex on a line): the fan is as good as any
+    if len(redo) == 0:
+        return tris, face_of_tri
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    rc = counts[redo]
+    rs = np.concatenate([[0], np.cumsum(rc)[:-1]])
+    pos = np.repeat(starts[redo] - rs, rc) + np.arange(rc.sum())  # face-vertex positions of the redone polygons
+    xy = _to_plane(points[indices[pos]], normal[redo], rc)
+    # (sum(rc - 2), 3) vertex numbers within each polygon; a few small polygons are quicker in plain
+    # Python than loading numba and its cached kernel (about 1 s)
+    clip = _ear_clip if int((rc * rc).sum()) <= PYTHON_WORK else _ear_clip_compiled()
+    local = clip(xy, rs, rc)
+    out_rows = np.repeat(np.cumsum(counts - 2)[redo] - (rc - 2), rc - 2) + \
+        np.arange((rc - 2).sum()) - np.repeat(np.cumsum(rc - 2) - (rc - 2), rc - 2)
+    tris[out_rows] = indices[np.repeat(starts[redo], rc - 2)[:, None] + local]
+    return tris, face_of_tri
+
+
+def newell_normals(points: np.ndarray, counts: np.ndarray, indices: np.ndarray) -> np.ndarray:
+    """(F, 3) Newell normal of each polygon: twice its vector area, along the normal of the plane that
+    fits it best, pointing as its winding does (right hand)."""
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    p = points[indices]
+    nxt = np.arange(len(indices)) + 1
+    last = starts + counts - 1
+    nxt[last] = starts  # each polygon closes on its first vertex
+    # about the first vertex of the polygon: no loss of digits far from the origin
+    p = p - np.repeat(p[starts], counts, axis=0)
+    return np.add.reduceat(np.cross(p, p[nxt]), starts, axis=0)
+
+
+def _to_plane(p: np.ndarray, normal: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """2-D coordinates of each polygon's vertices in its plane, axes (u, v) with u x v along the
+    normal: the polygon's winding is counter-clockwise there."""
+    n = normal / np.linalg.norm(normal, axis=1)[:, None]
+    axis = np.eye(3)[np.argmin(np.abs(n), axis=1)]
+    u = np.cross(n, axis)
+    u /= np.linalg.norm(u, axis=1)[:, None]
+    v = np.cross(n, u)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    q = p - np.repeat(p[starts], counts, axis=0)
+    return np.stack([np.einsum("ij,ij->i", q, np.repeat(u, counts, axis=0)),
+                     np.einsum("ij,ij->i", q, np.repeat(v, counts, axis=0))], axis=1)
+
+
+_EAR_CLIP = None
+
+
+def _ear_clip_compiled():
+    """_ear_clip compiled by numba, on first use: a mesh whose polygons all fan does not load numba
+    (0.6 s)."""
+    global _EAR_CLIP
+    if _EAR_CLIP is None:
+        import numba as nb
+
+        _EAR_CLIP = nb.njit(cache=True)(_ear_clip)
+    return _EAR_CLIP
+
+
+def _ear_clip(xy, starts, counts):
+    """Ear clipping of counter-clockwise 2-D polygons; (sum(counts - 2), 3) vertex numbers within each
+    polygon, each triangle counter-clockwise. A polygon with no ear left (self-intersecting, or folded
+    by the projection) gets its most convex corner clipped instead, so it still yields counts - 2
+    triangles (possibly degenerate ones, which the clean-up drops)."""
+    out = np.empty((int((counts - 2).sum()), 3), np.int64)
+    row = 0
+    for f in range(len(counts)):
+        n = counts[f]
+        m = xy[starts[f]:starts[f] + n]
+        area2 = 0.0
+        for i in range(n):
+            j = (i + 1) % n
+            area2 += m[i, 0] * m[j, 1] - m[j, 0] * m[i, 1]
+        eps = FAN_TOLERANCE * abs(area2)
+        prv = np.empty(n, np.int64)
+        nxt = np.empty(n, np.int64)
+        for i in range(n):
+            prv[i] = (i - 1) % n
+            nxt[i] = (i + 1) % n
+        left = n
+        v = 0
+        while left > 3:
+            found = False
+            best, best_cross = v, -np.inf
+            w = v
+            for _ in range(left):
+                p, q = prv[w], nxt[w]
+                c = (m[w, 0] - m[p, 0]) * (m[q, 1] - m[p, 1]) - (m[w, 1] - m[p, 1]) * (m[q, 0] - m[p, 0])
+                if c > best_cross:
+                    best, best_cross = w, c
+                if c > eps:
+                    # an ear: no other remaining vertex inside or on the triangle (p, w, q); one at a
+                    # corner of it (a polygon touching itself) does not count
+                    found = True
+                    r = nxt[q]
+                    while r != p:
+                        x, y = m[r, 0], m[r, 1]
+                        corner = ((x == m[p, 0] and y == m[p, 1]) or (x == m[w, 0] and y == m[w, 1])
+                                  or (x == m[q, 0] and y == m[q, 1]))
+                        if (not corner
+                                and (m[w, 0] - m[p, 0]) * (y - m[p, 1]) - (m[w, 1] - m[p, 1]) * (x - m[p, 0]) >= -eps
+                                and (m[q, 0] - m[w, 0]) * (y - m[w, 1]) - (m[q, 1] - m[w, 1]) * (x - m[w, 0]) >= -eps
+                                and (m[p, 0] - m[q, 0]) * (y - m[q, 1]) - (m[p, 1] - m[q, 1]) * (x - m[q, 0]) >= -eps):
+                            found = False
+                            break
+                        r = nxt[r]
+                    if found:
+                        break
+                w = nxt[w]
+            if not found:
+                w = best
+            p, q = prv[w], nxt[w]
+            out[row, 0], out[row, 1], out[row, 2] = p, w, q
+            row += 1
+            nxt[p] = q
+            prv[q] = p
+            left -= 1
+            v = q
+        out[row, 0], out[row, 1], out[row, 2] = prv[v], v, nxt[v]
+        row += 1
+    return out
+
+
+# -- polygons of mesh files that trimesh fans on loading ---------------------------------------------
+_OBJ_NGON = re.compile(rb"^[ \t]*f[ \t]+\S+[ \t]+\S+[ \t]+\S+[ \t]+\S", re.M)  # a face of 4 or more vertices
+
+
+def obj_polygons(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """(vertices, counts, indices) of the faces of an OBJ file's bytes, every object and group alike; None
+    when every face is a triangle. Only ``v`` and ``f`` lines count; a face vertex ``a``, ``a/t``,
+    ``a//n`` or ``a/t/n`` is vertex ``a``, counted from 1, or from the last vertex so far when negative.
+    Raises ValueError on an index out of range."""
+    if _OBJ_NGON.search(data) is None:
+        return None
+    verts: list[list[bytes]] = []
+    counts: list[int] = []
+    indices: list[int] = []
+    for line in data.splitlines():
+        tok = line.split()
+        if not tok:
+            continue
+        if tok[0] == b"v":
+            verts.append(tok[1:4])
+        elif tok[0] == b"f" and len(tok) > 3:
+            n_v = len(verts)
+            face = [int(t.split(b"/", 1)[0]) for t in tok[1:]]
+            face = [i - 1 if i > 0 else n_v + i for i in face]
+            if min(face) < 0 or max(face) >= n_v:
+                raise ValueError(f"face index out of range in {line.decode('utf-8', 'replace')[:80]!r} "
+                                 f"(only {n_v} vertices defined before it)")
+            counts.append(len(face))
+            indices += face
+    return np.array(verts, np.float64).reshape(-1, 3), np.array(counts, np.int64), np.array(indices, np.int64)
+
+
+def ply_polygons(raw: dict) -> tuple[np.ndarray, np.ndarray] | None:
+    """(counts, indices) of the faces of a PLY file as trimesh read it (``metadata["_ply_raw"]``); None
+    when they are all triangles or the face list is not found."""
+    face = raw.get("face") or {}
+    data = face.get("data")
+    if data is None or not face.get("length"):
+        return None
+    if isinstance(data, dict):
+        data = next((data[k] for k in ("vertex_indices", "vertex_index") if k in data), None)
+    elif isinstance(data, np.ndarray) and data.dtype.names:  # binary: a record per face, (count, list)
+        names = [k for k in ("vertex_indices", "vertex_index") if k in data.dtype.names] or list(data.dtype.names[:1])
+        data = data[names[0]]["f1"]
+    if data is None:
+        return None
+    if isinstance(data, np.ndarray) and data.dtype != object:
+        if data.ndim != 2 or data.shape[1] == 3:
+            return None
+        return np.full(len(data), data.shape[1], np.int64), data.reshape(-1).astype(np.int64)
+    faces = [np.asarray(f, np.int64).reshape(-1) for f in data]
+    counts = np.array([len(f) for f in faces], np.int64)
+    if (counts == 3).all():
+        return None
+    return counts, np.concatenate(faces)
