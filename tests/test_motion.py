@@ -448,7 +448,9 @@ def test_export_of_an_animated_usd_asset_keeps_its_animation_in_step(tmp_path):
     out = _export(tmp_path, walls_dir, scene, frames)
     stage = Usd.Stage.Open(str(out / "scene.usda"))
     for f in frames:
-        pts, _ = _world_points(stage, "/World/Prop/Cube", f)
+        # the asset is rooted at a transformed /World: referenced under /World/Asset_0 so its transform does not
+        # move the export's own prims (under the old sublayering, /World/Particles was scaled 2 x with it)
+        pts, _ = _world_points(stage, "/World/Asset_0/Asset/Prop/Cube", f)
         want = motion.to_world(wm.vertices, f / 48) @ to_asset[:3, :3].T + to_asset[:3, 3]
         assert np.allclose(np.sort(pts, axis=0), np.sort(want, axis=0), atol=1e-6), f
 

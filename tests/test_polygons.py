@@ -11,7 +11,7 @@ from pipeline.testing import run_stage
 from stages.common.formats import WallMesh
 from stages.mesh_import import polygons
 from stages.mesh_import.polygons import newell_normals, triangulate
-from stages.mesh_import.trimesh_import import TrimeshImport, _read_mesh_file
+from stages.mesh_import.trimesh_import import TrimeshImport, read_mesh_file
 from stages.mesh_import.usd_import import _triangulate, read_usd_wall
 
 # L-shaped block, metres: 20 x 16 cm minus a 10 x 8 cm notch at x > 0, y > 0, 5 cm tall
@@ -100,7 +100,7 @@ def test_l_prism_has_no_wall_across_its_notch_whatever_vertex_its_caps_start_at(
     assert not ((c[:, 0] > 1e-9) & (c[:, 1] > 1e-9)).any()  # nothing in the notch x > 0, y > 0
     # as read, before the clean-up fixes any winding: the authored (outward) winding is kept
     path = tmp_path / f"l.{fmt}"
-    v, f = read_usd_wall(path, UsdWall(usd=str(path)), 1.0, "Z")[:2] if fmt == "usda" else _read_mesh_file(path)
+    v, f = read_usd_wall(path, UsdWall(usd=str(path)), 1.0, "Z")[:2] if fmt == "usda" else read_mesh_file(path)
     raw = trimesh.Trimesh(v, f, process=False)
     assert raw.is_winding_consistent and raw.volume == pytest.approx(L_VOLUME, rel=1e-6)
 
@@ -132,7 +132,7 @@ def test_left_handed_usd_l_prism_is_closed_and_correct(tmp_path):
 def test_obj_groups_negative_indices_and_texture_slashes(tmp_path, negative, extras):
     pts, faces = _l_prism(1)
     (tmp_path / "l.obj").write_text(_obj(pts, faces, negative=negative, extras=extras))
-    v, f = _read_mesh_file(tmp_path / "l.obj")
+    v, f = read_mesh_file(tmp_path / "l.obj")
     m = trimesh.Trimesh(v, f, process=False)
     assert len(f) == 20 and m.area == pytest.approx(L_AREA) and m.is_watertight and m.is_winding_consistent
     assert m.volume == pytest.approx(L_VOLUME)
@@ -231,7 +231,7 @@ def test_obj_and_ply_of_convex_polygons_read_as_trimesh_reads_them(tmp_path):
     for name, body in (("b.obj", text), ("b.ply", _ply(pts, quads))):
         (tmp_path / name).write_text(body)
         loaded = trimesh.load(str(tmp_path / name), force="mesh", process=False, maintain_order=True)
-        v, f = _read_mesh_file(tmp_path / name)
+        v, f = read_mesh_file(tmp_path / name)
         assert np.array_equal(v, loaded.vertices) and np.array_equal(f, loaded.faces)
 
 

@@ -66,7 +66,7 @@ def to_scene_frame(v: np.ndarray, path: Path, meters_per_unit: float | None, up_
     return v
 
 
-def _read_mesh_file(path: Path) -> tuple[np.ndarray, np.ndarray]:
+def read_mesh_file(path: Path) -> tuple[np.ndarray, np.ndarray]:
     import trimesh  # imported where used: a cached run or `pipeline status` need not load it (~1 s)
     if not path.is_file():
         raise StageError(f"{path}: file not found")
@@ -273,7 +273,7 @@ class TrimeshImport(Stage):
                 extra["animation"] = (times, to_scene @ mats @ np.linalg.inv(to_scene))
             return v, f, w.fluid, str(path), extra
         path = ctx.resolve(w.file)
-        v, f = _read_mesh_file(path)
+        v, f = read_mesh_file(path)
         return to_scene_frame(v, path, w.meters_per_unit, w.up_axis, units), f, w.fluid, str(path), {}
 
 

@@ -4,7 +4,7 @@ Selects ``UsdGeom.Mesh`` prims by path or glob pattern (``fnmatch``: ``*`` also 
 ``/World/*`` is every descendant of /World), skips prims whose computed visibility is invisible unless
 the wall sets ``include_invisible``, and never uses non-mesh prims (Xform, Scope, gprims such as
 Cube: tessellate them in the DCC). Each mesh goes to world space through ``UsdGeom.XformCache``
-(nested xformOps, resetXformStack), n-gons are fan-triangulated from faceVertexCounts, faces listed in
+(nested xformOps, resetXformStack), n-gons are triangulated from faceVertexCounts (ear clipping where a fan would cross a concave face), faces listed in
 ``holeIndices`` are dropped, left-handed meshes are re-wound, and the points are converted to the
 scene's units and up axis from the stage's metersPerUnit (USD's fallback: centimetres) and upAxis.
 

@@ -35,7 +35,7 @@ def _read_mesh(em: MeshEmitter, path: Path, meters_per_unit: float, up_axis: str
 
     import trimesh
 
-    from stages.mesh_import.trimesh_import import to_scene_frame
+    from stages.mesh_import.trimesh_import import read_mesh_file, to_scene_frame
 
     if is_usd(em.mesh):
         from stages.mesh_import.usd_import import read_usd_wall
@@ -44,12 +44,13 @@ def _read_mesh(em: MeshEmitter, path: Path, meters_per_unit: float, up_axis: str
                                       up_axis)
         mesh = trimesh.Trimesh(v, f)  # merges the prims' shared vertices, so a closed model reads as closed
         return np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64), bool(mesh.is_watertight)
-    try:
-        mesh = trimesh.load(path, force="mesh")
-    except Exception as exc:  # noqa: BLE001 - any loader failure is a user-file problem
-        raise StageError(f"fluid emitter mesh {path}: cannot read it ({exc})") from None
-    if len(mesh.faces) == 0:
+    try:  # read as a wall file is: concave n-gons triangulated right (a fan across a notch filled it)
+        v, f = read_mesh_file(path)
+    except StageError as exc:
+        raise StageError(f"fluid emitter mesh {exc}") from None
+    if len(f) == 0:
         raise StageError(f"fluid emitter mesh {path}: has no triangles")
+    mesh = trimesh.Trimesh(v, f)  # merged vertices: a closed model reads as closed
     # the file's units and up axis -> the scene's, as for a wall file
     v = to_scene_frame(np.asarray(mesh.vertices, np.float64), path, em.meters_per_unit, em.up_axis,
                        SimpleNamespace(meters_per_unit=meters_per_unit, up_axis=up_axis))
