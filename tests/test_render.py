@@ -165,6 +165,16 @@ def test_an_animated_usd_camera_is_read_at_each_frames_time(tmp_path, inputs):
                     frames=(0, 1), config_dir=tmp_path)
     assert_sphere_seen_from_eye(iio.imread(out / "frame_00000.png")[..., :3])
     assert water_mask(iio.imread(out / "frame_00001.png")[..., :3]).sum() == 0  # at t = 1 s it looks away
+    # the export carries the motion: /World/Camera at each frame's code is the pose render drew
+    from stages.export.usd_export import UsdExport
+
+    usd = run_stage(UsdExport, tmp_path / "usd", scene=scene, inputs=inputs, config_dir=tmp_path,
+                    params={"particles": False})
+    composed = Usd.Stage.Open(str(usd / "scene.usda"))
+    exported = UsdGeom.Camera(composed.GetPrimAtPath("/World/Camera"))
+    for f, seconds in ((0, 0.0), (1, 1.0)):
+        eye = np.array(exported.GetCamera(Usd.TimeCode(f)).frustum.GetPosition())
+        np.testing.assert_allclose(eye, usd_camera(path, "/Shot/Cam", "Z", 1.0, seconds=seconds)[0], atol=1e-6)
 
 
 def test_exported_usd_camera_shows_what_the_frames_show(tmp_path, inputs):

@@ -27,7 +27,7 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from pipeline.stage import Artifact, Context, Params, Stage, StageError
-from stages.common.camera import camera_files, shot_camera
+from stages.common.camera import camera_files, shot_camera, usd_camera_moves
 from stages.common.formats import ParticleMeta, WallMesh, load_particle_frame, load_surface
 
 from . import usd_layers as ul
@@ -222,9 +222,17 @@ class UsdExport(Stage):
                     refs.AddReference(rel)
                 else:
                     refs.AddReference(rel, prim)
-        eye, target, up, view_angle = shot_camera(walls, scene.units, ctx.scene["camera"], ctx.resolve, "export.usd")
-        ul.define_camera(root, "/World/Camera", ul.apply(to_target, eye[None])[0], ul.apply(to_target, target[None])[0],
-                         ul.apply_linear(to_target, up[None])[0], view_angle, params.camera_aspect, mpu)
+        cam = ctx.scene["camera"]
+
+        def pose(seconds: float):  # the shot's camera at a time, in the layer's frame
+            eye, target, up, view_angle = shot_camera(walls, scene.units, cam, ctx.resolve, "export.usd", seconds)
+            return (ul.apply(to_target, eye[None])[0], ul.apply(to_target, target[None])[0],
+                    ul.apply_linear(to_target, up[None])[0], view_angle)
+
+        camera = ul.define_camera(root, "/World/Camera", *pose(frames[0] / scene.frames.fps), params.camera_aspect, mpu)
+        if cam.usd is not None and usd_camera_moves(ctx.resolve(cam.usd), cam.prim, "export.usd"):
+            # an animated shot camera is exported with its motion, sampled at the frames (as render draws them)
+            ul.animate_camera(camera, [(f, *pose(f / scene.frames.fps)) for f in frames])
         root.GetRootLayer().Save()
         progress.advance()
 

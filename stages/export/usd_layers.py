@@ -153,6 +153,18 @@ def define_camera(stage: Usd.Stage, path: str, eye: np.ndarray, target: np.ndarr
     return camera
 
 
+def animate_camera(camera: UsdGeom.Camera, poses: Iterable[tuple[float, np.ndarray, np.ndarray, np.ndarray, float]]) -> None:
+    """Time samples of a camera ``define_camera`` made: (time code, eye, target, up, vertical view angle) each; the
+    film back stays, the focal length follows the view angle."""
+    op = camera.GetOrderedXformOps()[0]
+    vertical = camera.GetVerticalApertureAttr().Get()
+    for code, eye, target, up, view_angle in poses:
+        view = Gf.Matrix4d().SetLookAt(Gf.Vec3d(*map(float, eye)), Gf.Vec3d(*map(float, target)),
+                                       Gf.Vec3d(*map(float, up)))
+        op.Set(view.GetInverse(), Usd.TimeCode(code))
+        camera.GetFocalLengthAttr().Set(vertical / (2 * math.tan(math.radians(view_angle) / 2)), Usd.TimeCode(code))
+
+
 def write_points(stage: Usd.Stage, path: str, frames: Iterable[tuple[int, dict]]) -> UsdGeom.Points:
     """Time-sampled points: positions, velocities (units/s), widths (diameters), ids, density and
     pressure primvars, extent per sample. ``frames`` yields (time code, {x, v, width, id, rho, p})."""
