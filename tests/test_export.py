@@ -373,3 +373,28 @@ def test_frames_run_exports_only_the_selected_frames(tmp_path):
     assert animated(stage) == {k: list(range(FRAMES)) for k in samples}
     assert (stage.GetStartTimeCode(), stage.GetEndTimeCode()) == (0, FRAMES - 1)
     assert (out / "particles.usdc").read_bytes() == sim_layer.read_bytes()
+
+
+def test_a_drained_frame_has_usds_empty_extent(tmp_path):
+    """A frame with no particles (a sink drained the tank) gets USD's empty extent, which bounding boxes skip;
+    a zero box at the origin pulled the shot's bounds there."""
+    from pxr import Usd, UsdGeom
+
+    from stages.common.formats import ParticleFrame
+    from stages.common.usd_points import write_points_layer
+
+    full = ParticleFrame(np.array([[2.0, 3.0, 4.0], [2.5, 3.5, 4.5]]), np.zeros((2, 3)), np.full(2, 1000.0),
+                         np.zeros(2), np.arange(2))
+    empty = ParticleFrame(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0), np.zeros(0, np.int64))
+    path = write_points_layer(tmp_path / "p.usdc", [(0, full), (1, empty)], spacing=0.1, up_axis="Z",
+                              meters_per_unit=1.0, fps=10, count=2)
+    stage = Usd.Stage.Open(str(path))
+    prim = stage.GetPrimAtPath("/World/Particles")
+    lo, hi = (np.array(c) for c in UsdGeom.Points(prim).GetExtentAttr().Get(Usd.TimeCode(1)))
+    assert (lo > hi).all()  # empty
+    boxes = [UsdGeom.BBoxCache(Usd.TimeCode(t), ["default"]).ComputeWorldBound(prim).ComputeAlignedRange()
+             for t in (0, 1)]
+    assert boxes[1].IsEmpty() and np.allclose(boxes[0].GetMin(), [1.95, 2.95, 3.95], atol=1e-6)
+    from stages.export.usd_layers import extent_of
+    lo, hi = (np.array(c) for c in extent_of(np.zeros((0, 3), np.float32)))
+    assert (lo > hi).all()

@@ -33,8 +33,16 @@ def write_points_layer(path: Path, frames: Iterable[tuple[int, object]], *, spac
         if len(x):
             lo = x.min(axis=0) - 0.5 * spacing
             hi = x.max(axis=0) + 0.5 * spacing
+            pts.GetExtentAttr().Set(Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]), tc)
         else:
-            lo = hi = np.zeros(3, np.float32)
-        pts.GetExtentAttr().Set(Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]), tc)
+            pts.GetExtentAttr().Set(empty_extent(), tc)
     stage.GetRootLayer().Save()
     return path
+
+
+def empty_extent():
+    """USD's extent of no points: the empty range (+max, -max), which bounding-box caches skip; a zero box at the
+    origin (as written before) pulled a drained frame's bounds to the origin."""
+    from pxr import UsdGeom, Vt
+
+    return UsdGeom.PointBased.ComputeExtent(Vt.Vec3fArray())
