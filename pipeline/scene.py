@@ -195,6 +195,24 @@ class MeshWall(WallPlacement):
         return self
 
 
+MESH_SUFFIXES = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
+USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
+
+
+def _format_check(suffixes: tuple[str, ...], what: str):
+    """A validator of a model file's extension: one line naming the formats read, and for the DCC formats
+    studios also use (FBX, Alembic, Blender, Maya) the way in (the file was found unreadable only when the
+    import ran, with a USD library error for an .abc)."""
+    def check(path: str) -> str:
+        suffix = posixpath.splitext(path)[1].lower()
+        if suffix not in suffixes:
+            other = (f"; {suffix} is read by neither: export it from the DCC as USD, OBJ or glTF"
+                     if suffix in (".fbx", ".abc", ".blend", ".ma", ".mb", ".max", ".c4d", ".3ds", ".dae") else "")
+            raise ValueError(f"expected {what} ({', '.join(suffixes)}){other}")
+        return path
+    return check
+
+
 class FileWall(MeshWall):
     file: InputFile = Field(description="OBJ/PLY/STL/OFF/GLB/GLTF path, relative to the config file")
     meters_per_unit: float | None = Field(None, gt=0, description="the file's units if not the scene's (GLB/GLTF: "
@@ -202,11 +220,15 @@ class FileWall(MeshWall):
     up_axis: Literal["Y", "Z"] | None = Field(None, description="the file's up axis if not the scene's (GLB/GLTF: Y, "
                                               "as the format specifies; an OBJ from a Y-up package: Y)")
 
+    _mesh = field_validator("file")(_format_check(MESH_SUFFIXES, "a mesh file"))
+
 
 class UsdWall(MeshWall):
     usd: InputFile = Field(description=".usda/.usdc/.usdz path, relative to the config file")
     prims: list[str] = Field(default_factory=lambda: ["/**"], description="prim paths or glob patterns to use as walls")
     include_invisible: bool = Field(False, description="also use prims whose visibility is 'invisible'")
+
+    _usd = field_validator("usd")(_format_check(USD_SUFFIXES, "a USD file"))
 
 
 def _kind_by_key(*keys: str):
@@ -261,6 +283,8 @@ class MeshEmitter(Emitter, Placement):
     prims: list[str] = Field(default_factory=lambda: ["/**"], description="USD only: prim paths or glob patterns of "
                              "the meshes to fill")
 
+    _mesh = field_validator("mesh")(_format_check(MESH_SUFFIXES + USD_SUFFIXES, "a mesh or USD file"))
+
     @model_validator(mode="after")
     def _usd_states_its_units(self) -> "MeshEmitter":
         if self.meters_per_unit is not None and is_usd(self.mesh):
@@ -271,7 +295,7 @@ class MeshEmitter(Emitter, Placement):
 
 
 def is_usd(path: str) -> bool:
-    return path.lower().endswith((".usd", ".usda", ".usdc", ".usdz"))
+    return path.lower().endswith(USD_SUFFIXES)
 
 
 SphereEmitter.model_rebuild()
