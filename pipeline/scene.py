@@ -464,6 +464,11 @@ class Camera(Model):
 
     usd: OptionalInputFile = Field(None, description="take the camera from this USD file (relative to the config file)")
     prim: str | None = Field(None, description="the UsdGeom.Camera prim in `usd`; default: the first camera found")
+
+    @field_validator("usd")
+    @classmethod
+    def _usd_file(cls, v: str | None) -> str | None:
+        return v if v is None else _format_check(USD_SUFFIXES, "a USD file")(v)
     position: Vec3 | None = Field(None, description="eye position, scene units; default: framed on the walls")
     focal_point: Vec3 | None = Field(None, description="point looked at, scene units; default: the walls' centre")
     up: Vec3 | None = Field(None, description="view up vector; default: the scene's up axis")
