@@ -224,12 +224,12 @@ def test_inflow_inside_a_wall_is_a_stage_error(tmp_path):
 
 
 # -- the emission itself ----------------------------------------------------------------------------------
-def _solver_with_block(tmp_path, block_hi):
+def _solver_with_block(tmp_path, block_hi, block_lo=(0, 0, 0)):
     from stages.simulate.emitters import lattice
     from stages.simulate.sph import SPHParams, SPHSolver
     from stages.common.sdf import SDFGrid
     sdf = SDFGrid.load(_tank(tmp_path, [0.2, 0.1, 0.3], TANK_L0))
-    x = lattice([0, 0, 0], block_hi, TANK_L0)
+    x = lattice(block_lo, block_hi, TANK_L0)
     return SPHSolver(x, np.zeros_like(x), np.arange(len(x), dtype=np.int32), sdf, spacing=TANK_L0, rho0=1000.0,
                      params=SPHParams(threads=1), gravity=(0, 0, -G))
 
@@ -237,10 +237,12 @@ def _solver_with_block(tmp_path, block_hi):
 def test_layers_are_placed_where_they_would_be_and_a_blocked_jet_is_skipped(tmp_path, caplog):
     """Five layers due at once are each where the jet has carried them since their own emission time
     (x = c + v (t - t_k) n + g (t - t_k)^2 / 2), with fresh ids after the largest; a nozzle inside the fluid
-    emits nothing, counts the skipped layers and warns once."""
+    emits nothing, counts the skipped layers and warns once. (The free jet falls beside the block: over it,
+    its second layer would land inside the block, 0.52 l0 from the nearest particle, which the former rule
+    emitted.)"""
     import logging
-    s = _solver_with_block(tmp_path, [0.2, 0.1, 0.06])
-    free = Inflow(center=[0.1, 0.05, 0.25], direction=[0, 0, -1], radius=0.03, speed=0.5, start=0.0, end=1.0, l0=TANK_L0)
+    s = _solver_with_block(tmp_path, [0.2, 0.1, 0.06], [0.06, 0, 0])
+    free = Inflow(center=[0.025, 0.05, 0.25], direction=[0, 0, -1], radius=0.03, speed=0.5, start=0.0, end=1.0, l0=TANK_L0)
     T = free.period
     free.end = free.layer_time(4) + 0.1 * T  # five layers in all
     t_first = free.layer_time(4) + 0.25 * T
@@ -260,10 +262,44 @@ def test_layers_are_placed_where_they_would_be_and_a_blocked_jet_is_skipped(tmp_
     for k in range(5):
         tau = t_first - free.layer_time(k)
         layer = slice(n0 + k * len(free.disc), n0 + (k + 1) * len(free.disc))
-        assert np.allclose(s.x[layer].mean(axis=0), [0.1, 0.05, 0.25 - 0.5 * tau - 0.5 * G * tau ** 2], atol=1e-12)
+        assert np.allclose(s.x[layer].mean(axis=0), [0.025, 0.05, 0.25 - 0.5 * tau - 0.5 * G * tau ** 2], atol=1e-12)
         assert np.allclose(s.v[layer], [0, 0, -0.5 - G * tau], atol=1e-12)
     # the layers are v T apart along the jet: N_disc l0^3 / (pi r^2) (1.27 l0 for this 9-particle disc)
     assert T * free.speed == pytest.approx(9 * TANK_L0 ** 3 / (math.pi * 0.03 ** 2))
+
+
+@pytest.mark.parametrize("height", [0.55, 0.65, 1.0])
+def test_a_nozzle_just_above_resting_water_does_not_throw_it(height):
+    """A jet (0.5 m/s, down) whose disc sits ``height`` l0 above resting water, offset half a spacing so its
+    layers land in the water's hollows. A layer was emitted wherever its nearest particle was over l0 / 2
+    away (0.9 l0 here) and the first steps' pressure threw it and the water out at 3 x the jet's speed: the
+    largest specific energy 0.5 v^2 + g z was 3.7 x (0.55 l0) and 2.2 x (0.65 l0) the jet's own (a nozzle
+    riding a turning paddle above its puddle threw particles at 2 m/s). A layer that would land denser than
+    the rest spacing is now skipped; every particle stays within 10 % of the jet's specific energy, and a
+    nozzle a spacing up still runs."""
+    import logging
+    from stages.simulate.driver import hydrostatic_start
+    from stages.simulate.emitters import lattice
+    from stages.simulate.sph import SPHParams, SPHSolver
+    l0 = 0.01
+    sdf = grid_from_function(box_interior_sdf([0, 0, 0], [0.1, 0.1, 0.2]), [0, 0, 0], [0.1, 0.1, 0.2], l0 / 2)
+    x = lattice([0, 0, 0], [0.1, 0.1, 0.03], l0)  # three layers, the top one at z = 0.025
+    top = float(x[:, 2].max())
+    jet = Inflow(center=[0.05, 0.05, top + height * l0], direction=[0, 0, -1], radius=0.02, speed=0.5, start=0.0,
+                 end=0.1, l0=l0)
+    s = SPHSolver(x, np.zeros_like(x), np.arange(len(x), dtype=np.int32), sdf, spacing=l0, rho0=1000.0,
+                  params=SPHParams(threads=1), gravity=(0, 0, -G), mu=0.001, v_ref=1.0)
+    hydrostatic_start(s)
+    s.attach_flows([jet], [], logging.getLogger("t"))
+    jet_energy = 0.5 * jet.speed ** 2 + G * jet.center[2]
+    for t in (0.02, 0.05, 0.1):
+        s.advance_to(t)
+        worst = float((0.5 * (s.v ** 2).sum(axis=1) + G * s.x[:, 2]).max())
+        assert worst < 1.1 * jet_energy, (t, worst / jet_energy)
+    if height >= 1.0:
+        assert s.inflow_particles >= 2 * len(jet.disc)
+    else:
+        assert s.inflow_skipped[0] == s.inflow_layers[0] > 0
 
 
 def test_inflow_and_sink_in_centimetres_y_up_move_as_in_metres_z_up(tmp_path):

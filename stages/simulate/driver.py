@@ -29,7 +29,7 @@ from stages.common.sdf import SDFGrid, body_walls, load_bodies, posed_field
 from stages.common.usd_points import write_points_layer
 
 from .emitters import drop_inside_walls, drop_overlaps, emit
-from .inflow import Inflow, Sink, from_config, in_sinks, overlapping
+from .inflow import Inflow, Sink, from_config, in_sinks, inflow_blocked
 from .kernels import count_blown
 from .walls.maps import set_pose
 from .output import iter_frames, latest_checkpoint, restore_frames, save_checkpoint, write_frame
@@ -241,16 +241,16 @@ class SolverBase:
         return min(times, default=math.inf)
 
     def emit_inflow(self) -> int:
-        """Emit every layer due by self.t (inflow.py); a layer that would land within l0 / 2 of a particle
-        (the jet is blocked: the last layer still at the nozzle) is skipped and counted. Returns the
-        particles added."""
+        """Emit every layer due by self.t (inflow.py); a layer that would land on the fluid (the jet is
+        blocked: the last layer still at the nozzle, a puddle under it; ``inflow_blocked``) is skipped and
+        counted. Returns the particles added."""
         xs, vs = [], []
         for i, jet in enumerate(self.inflows):
             while jet.due(int(self.inflow_layers[i]), self.t):
                 k = int(self.inflow_layers[i])
                 self.inflow_layers[i] += 1
                 x, v = jet.layer(k, self.t, self.gravity)
-                if overlapping(x, self.x, 0.5 * self.l0) or (xs and overlapping(x, np.concatenate(xs), 0.5 * self.l0)):
+                if inflow_blocked(x, np.concatenate([self.x, *xs]) if xs else self.x, jet):
                     if self.inflow_skipped[i] == 0 and self.log is not None:
                         self.log.warning("inflow %d blocked at t = %.4g s: a layer would land on the fluid and is "
                                          "skipped (counted in the statistics as inflow_skipped_layers)", i, self.t)
