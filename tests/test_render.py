@@ -210,6 +210,52 @@ def test_auto_camera_and_particles_are_not_blank(tmp_path, inputs):
     assert (np.abs(img.astype(int) - img[0, 0]).sum(axis=2) > 60).sum() > 200  # particles drawn
 
 
+@pytest.mark.parametrize("resolution", [(240, 320), (320, 180)])
+def test_a_portrait_or_small_frame_keeps_the_tank_and_the_colour_bar_inside(tmp_path, inputs, resolution):
+    """The automatic camera fitted the walls in the vertical view angle only, so a portrait frame cut the
+    tank's sides off; the colour bar's labels were sized to the bar and cut at the frame's right edge below
+    1280 px (9.06e+03 drawn as 9.06e+). Both edges of the frame are now background, top to bottom."""
+    import imageio.v3 as iio
+
+    out = run_stage(PyvistaRender, tmp_path / "p", scene=SCENE, inputs=inputs, frames=(2,),
+                    params={"resolution": list(resolution), "show": "particles", "color_by": "pressure",
+                            "label": False})
+    img = iio.imread(out / "frame_00002.png")[..., :3].astype(int)
+    background = np.array([0x20, 0x24, 0x2C])
+    for edge in (img[:, :2], img[:, -2:]):
+        assert np.abs(edge - background).sum(axis=2).max() < 30
+    assert (np.abs(img - background).sum(axis=2) > 60).sum() > 0.1 * img.shape[0] * img.shape[1]  # drawn
+
+
+def test_the_colour_bar_names_its_unit():
+    """Speeds are in scene units per second: the bar says which; pressure is in pascals."""
+    from stages.render.pyvista_render import color_bar
+
+    params = PyvistaRender.Params(show="particles")
+    assert [color_bar(params, mpu, 1.0)["title"] for mpu in (1.0, 0.01, 0.001, 0.3048)] == [
+        "speed (m/s)", "speed (cm/s)", "speed (mm/s)", "speed (0.3048 m/s)"]
+    assert color_bar(PyvistaRender.Params(show="particles", color_by="pressure"), 0.01, 9056.0)["title"] == "pressure (Pa)"
+
+
+def test_the_automatic_camera_fits_the_walls_in_a_portrait_frame():
+    """Every corner of the walls' box projects inside the frame for 16:9, square and 3:4 images."""
+    from stages.common.camera import auto_camera
+
+    lo, hi = np.array([-1.0, -0.5, 0.0]), np.array([1.0, 0.5, 1.0])
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    for aspect in (16 / 9, 1.0, 0.75, 0.5):
+        eye, centre, up = auto_camera(lo, hi, "Z", 30.0, aspect)
+        forward = (centre - eye) / np.linalg.norm(centre - eye)
+        right = np.cross(forward, up)
+        right /= np.linalg.norm(right)
+        true_up = np.cross(right, forward)
+        rel = corners - eye
+        depth = rel @ forward
+        tan_v = math.tan(math.radians(15.0))
+        assert np.all(np.abs(rel @ true_up) / depth < tan_v)
+        assert np.all(np.abs(rel @ right) / depth < aspect * tan_v), aspect
+
+
 @pytest.mark.parametrize("up_axis", ["Z", "Y"])
 def test_a_plan_view_without_an_up_gets_one_across_the_view(tmp_path, inputs, up_axis):
     """Looking straight down the scene's up axis with no camera.up, the default up (the up axis) lies along the

@@ -14,8 +14,12 @@ from pipeline.stage import StageError
 from .formats import WallMesh
 
 
-def auto_camera(lo: np.ndarray, hi: np.ndarray, up_axis: str, view_angle: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A 3/4 view from the front-right and somewhat above that fits the box [lo, hi] in the frame."""
+def auto_camera(lo: np.ndarray, hi: np.ndarray, up_axis: str, view_angle: float,
+                aspect: float = 16 / 9) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A 3/4 view from the front-right and somewhat above that fits the box [lo, hi] in a frame ``aspect``
+    wide per unit of height: ``view_angle`` is the vertical angle, so a portrait frame (aspect below 1)
+    fits the box in its narrower horizontal angle (fitted vertically, a 480 x 640 frame cut the tank's
+    sides off)."""
     centre = 0.5 * (lo + hi)
     radius = 0.5 * float(np.linalg.norm(hi - lo)) or 1.0
     if up_axis == "Z":
@@ -23,7 +27,10 @@ def auto_camera(lo: np.ndarray, hi: np.ndarray, up_axis: str, view_angle: float)
     else:  # Y-up: the same view with (x, y, z)_Z-up -> (x, z, -y)
         direction, up = np.array([0.55, 0.6, 1.0]), np.array([0.0, 1.0, 0.0])
     direction /= np.linalg.norm(direction)
-    distance = 1.05 * radius / math.sin(math.radians(view_angle) / 2)
+    half = math.radians(view_angle) / 2
+    if aspect < 1.0:
+        half = math.atan(aspect * math.tan(half))  # the horizontal half-angle
+    distance = 1.05 * radius / math.sin(half)
     return centre + distance * direction, centre, up
 
 
@@ -100,10 +107,11 @@ def camera_files(ctx) -> list[Path]:
     return usd_dependencies(ctx.resolve(cam.usd)) if cam.usd is not None else []
 
 
-def shot_camera(walls: WallMesh, units, cam, resolve: Callable[[str], Path], who: str, seconds: float = 0.0):
+def shot_camera(walls: WallMesh, units, cam, resolve: Callable[[str], Path], who: str, seconds: float = 0.0,
+                aspect: float = 16 / 9):
     """(eye, focal point, up, vertical view angle) in scene units for the scene's ``cam``
-    (pipeline.scene.Camera) at ``seconds`` into the shot (a USD camera may be animated); ``who`` names the
-    stage in errors."""
+    (pipeline.scene.Camera) at ``seconds`` into the shot (a USD camera may be animated), for an image
+    ``aspect`` wide per unit of height; ``who`` names the stage in errors."""
     view_angle = cam.view_angle
     if cam.usd is not None:
         eye, centre, up, view_angle = usd_camera(resolve(cam.usd), cam.prim, units.up_axis, units.meters_per_unit, who,
@@ -113,7 +121,7 @@ def shot_camera(walls: WallMesh, units, cam, resolve: Callable[[str], Path], who
             lo, hi = walls.vertices.min(axis=0), walls.vertices.max(axis=0)
         else:
             lo, hi = np.full(3, -1.0 / units.meters_per_unit), np.full(3, 1.0 / units.meters_per_unit)  # +-1 m
-        eye, centre, up = auto_camera(lo, hi, units.up_axis, view_angle)
+        eye, centre, up = auto_camera(lo, hi, units.up_axis, view_angle, aspect)
     if cam.focal_point is not None:
         centre = np.asarray(cam.focal_point, float)
     if cam.position is not None:

@@ -118,7 +118,7 @@ def _safe_name(name: str, used: set[str]) -> str:
 class UsdExport(Stage):
     kind = "export"
     name = "usd"
-    version = "5"
+    version = "6"
     Params = UsdParams
     inputs = ("walls", "particles")
     optional_inputs = ("surface",)
@@ -225,7 +225,8 @@ class UsdExport(Stage):
         cam = ctx.scene["camera"]
 
         def pose(seconds: float):  # the shot's camera at a time, in the layer's frame
-            eye, target, up, view_angle = shot_camera(walls, scene.units, cam, ctx.resolve, "export.usd", seconds)
+            eye, target, up, view_angle = shot_camera(walls, scene.units, cam, ctx.resolve, "export.usd", seconds,
+                                                      params.camera_aspect)
             return (ul.apply(to_target, eye[None])[0], ul.apply(to_target, target[None])[0],
                     ul.apply_linear(to_target, up[None])[0], view_angle)
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 import atexit
 import ctypes.util
 import functools
+import math
 import os
 import threading
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -83,6 +84,31 @@ def near_faces(vertices: np.ndarray, faces: np.ndarray, eye: np.ndarray, centre:
     a, b, c = (vertices[faces[:, k]] for k in range(3))
     n = np.cross(b - a, c - a)
     return np.einsum("ij,ij->i", n, eye - a) * np.einsum("ij,ij->i", n, centre - a) < 0
+
+
+def length_unit(meters_per_unit: float) -> str:
+    """The scene's length unit as a label says it: m, cm, mm, km, else the metres it holds."""
+    names = {1.0: "m", 0.01: "cm", 0.001: "mm", 1000.0: "km"}
+    return next((n for v, n in names.items() if math.isclose(meters_per_unit, v, rel_tol=1e-9)),
+                f"{meters_per_unit:g} m")
+
+
+def color_bar(params: RenderParams, meters_per_unit: float, top: float) -> dict:
+    """The particle colour bar (pyvista scalar_bar_args): titled with its unit (speeds are in scene units per
+    second), 3 significant digits, fonts sized from the image's smaller side, and placed so its labels stay
+    inside the frame (VTK sized them to the bar and cut 9.06e+03 to 9.06e+ below 1280 px); ``top`` is the
+    colour range's upper end: up to a million the labels are whole numbers (9060, not 9.06e+03)."""
+    fmt = "%.0f" if 100 <= top < 1e6 else "%.3g"
+    w, h = params.resolution
+    font = max(9, round(min(w, h) / 24))
+    title = f"speed ({length_unit(meters_per_unit)}/s)" if params.color_by == "speed" else "pressure (Pa)"
+    bar_px = max(8, round(0.03 * min(w, h)))
+    labels_px = 7 * 0.6 * font  # 3 significant digits ('0.757', '9060', '1.2e+06') are at most 7 characters
+    right = max(bar_px + labels_px, 0.5 * (bar_px + 0.6 * font * len(title))) + 0.02 * w  # the title is centred
+    return {"title": title, "color": "white", "vertical": True, "fmt": fmt, "n_labels": 5,
+            "title_font_size": font, "label_font_size": font, "unconstrained_font_size": True,
+            "position_x": max(0.0, 1.0 - right / w), "width": bar_px / w, "position_y": 0.08, "height": 0.66,
+            "render": False}
 
 
 def particle_values(p, color_by: str) -> np.ndarray:
@@ -156,7 +182,7 @@ def load_walls(folder: Path) -> WallMesh:
 class PyvistaRender(Stage):
     kind = "render"
     name = "pyvista"
-    version = "6"
+    version = "7"
     Params = RenderParams
     inputs = ("walls",)
     optional_inputs = ("surface", "particles")
@@ -183,7 +209,8 @@ class PyvistaRender(Stage):
         scene = ctx.scene["scene"]
         walls = load_walls(Path(inputs["walls"].path))
         eye, centre, up, view_angle = shot_camera(walls, scene.units, ctx.scene["camera"], ctx.resolve,
-                                                  "render.pyvista", frame / scene.frames.fps)
+                                                  "render.pyvista", frame / scene.frames.fps,
+                                                  params.resolution[0] / params.resolution[1])
         # everything the plotter and its static walls depend on
         key = (tuple(params.resolution), params.background, params.wall_opacity, params.near_wall_opacity,
                walls_identity(Path(inputs["walls"].path)), tuple(eye), tuple(centre), tuple(up), view_angle)
@@ -232,7 +259,8 @@ class PyvistaRender(Stage):
                          specular=0.7, specular_power=60.0, render=False)
 
     @staticmethod
-    def _add_particles(plotter, inputs: Mapping[str, Artifact], frame: int, params: RenderParams) -> None:
+    def _add_particles(plotter, inputs: Mapping[str, Artifact], frame: int, params: RenderParams,
+                       meters_per_unit: float) -> None:
         import pyvista as pv
 
         folder = inputs["particles"].path
@@ -244,9 +272,11 @@ class PyvistaRender(Stage):
         cloud = pv.PolyData(np.asarray(p.x, np.float64))
         cloud[params.color_by] = particle_values(p, params.color_by)
         clim = params.color_range or (0.0, max(run_max(folder, params.color_by), 1e-9))
-        bar = {"color": "white", "vertical": True, "position_x": 0.86, "width": 0.06, "render": False}
+        bar = color_bar(params, meters_per_unit, clim[1])
         plotter.add_mesh(cloud, render_points_as_spheres=True, point_size=params.point_size, cmap="viridis", clim=clim,
                          render=False, scalar_bar_args=bar)
+        # the title clear of the top label (VTK sets it right on the bar's end)
+        plotter.scalar_bars[bar["title"]].SetVerticalTitleSeparation(round(0.6 * bar["title_font_size"]))
 
 
 # -- one plotter kept across the frames of a process ------------------------------------------------
@@ -293,7 +323,8 @@ class View:
                 PyvistaRender._add_surface(plotter, self.surface(surface_folder(inputs, frame), frame), params)
                 self.read_ahead(inputs, frame + params.every)
             else:
-                PyvistaRender._add_particles(plotter, inputs, frame, params)
+                PyvistaRender._add_particles(plotter, inputs, frame, params,
+                                             ctx.scene["scene"].units.meters_per_unit)
             if params.label:
                 plotter.add_text(f"t = {frame / fps:.2f} s", position="lower_left",
                                  font_size=max(9, round(params.resolution[1] / 40)), color="white", render=False)
