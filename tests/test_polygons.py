@@ -1,4 +1,4 @@
-"""Polygon triangulation of mesh import: concave n-gons (USD, OBJ, PLY) are not fanned across their notch;
+"""Polygon triangulation of mesh import: concave n-gons (USD, OBJ, PLY, OFF) are not fanned across their notch;
 polygons whose fan is right keep it exactly."""
 from __future__ import annotations
 
@@ -7,6 +7,7 @@ import pytest
 import trimesh
 
 from pipeline.scene import UsdWall
+from pipeline.stage import StageError
 from pipeline.testing import run_stage
 from stages.common.formats import WallMesh
 from stages.mesh_import import polygons
@@ -60,6 +61,11 @@ def _ply(pts, faces):
         "".join(f"{len(f)} " + " ".join(map(str, f)) + "\n" for f in faces)
 
 
+def _off(pts, faces):
+    return (f"OFF\n# an L prism\n{len(pts)} {len(faces)} 0\n" + "".join(f"{x:.17g} {y:.17g} {z:.17g}\n" for x, y, z in pts)
+            + "".join(f"{len(f)} " + " ".join(map(str, f)) + " 200 200 200\n" for f in faces))
+
+
 def _import(tmp_path, wall):
     out = run_stage(TrimeshImport, tmp_path / "out", scene={"scene": {"name": "t", "units": {"up_axis": "Z"}},
                                                               "walls": [wall]}, params={}, config_dir=tmp_path)
@@ -84,11 +90,11 @@ def _flat(faces):
     return np.array([len(f) for f in faces]), np.array([i for f in faces for i in f])
 
 
-@pytest.mark.parametrize("fmt", ["usda", "obj", "ply"])
+@pytest.mark.parametrize("fmt", ["usda", "obj", "ply", "off"])
 @pytest.mark.parametrize("start", range(6))
 def test_l_prism_has_no_wall_across_its_notch_whatever_vertex_its_caps_start_at(tmp_path, fmt, start):
     pts, faces = _l_prism(start)
-    text = {"usda": _usda, "obj": _obj, "ply": _ply}[fmt](pts, faces)
+    text = {"usda": _usda, "obj": _obj, "ply": _ply, "off": _off}[fmt](pts, faces)
     (tmp_path / f"l.{fmt}").write_text(text)
     wm = _import(tmp_path, {"usd": "l.usda"} if fmt == "usda" else {"file": f"l.{fmt}"})
     m = trimesh.Trimesh(wm.vertices, wm.faces, process=False)
@@ -228,11 +234,20 @@ def test_obj_and_ply_of_convex_polygons_read_as_trimesh_reads_them(tmp_path):
     # quads, then an object of triangles (the top), then quads again
     text = _obj(pts, [quads[0]]) + "o second\nf 5 6 7\nf 5 7 8\no third\n" + "".join(
         "f " + " ".join(str(i + 1) for i in q) + "\n" for q in quads[2:])
-    for name, body in (("b.obj", text), ("b.ply", _ply(pts, quads))):
+    for name, body in (("b.obj", text), ("b.ply", _ply(pts, quads)), ("b.off", _off(pts, quads))):
         (tmp_path / name).write_text(body)
         loaded = trimesh.load(str(tmp_path / name), force="mesh", process=False, maintain_order=True)
         v, f = read_mesh_file(tmp_path / name)
-        assert np.array_equal(v, loaded.vertices) and np.array_equal(f, loaded.faces)
+        assert np.array_equal(v, loaded.vertices)
+        if name == "b.off":  # read by polygons.off_polygons: the same triangles, in polygon order
+            assert _canonical(f) == _canonical(loaded.faces)
+        else:
+            assert np.array_equal(f, loaded.faces)
+
+
+def _canonical(faces):
+    """The triangles as a set, each rotated to start at its smallest index (the winding kept)."""
+    return {tuple(np.roll(t, -int(np.argmin(t)))) for t in np.asarray(faces).tolist()}
 
 
 def test_big_concave_polygon_compiled_and_python_ear_clipping_agree():
@@ -251,3 +266,9 @@ def test_big_concave_polygon_compiled_and_python_ear_clipping_agree():
     xy = pts[idx, :2].copy()
     args = (xy, np.array([0]), counts)
     assert np.array_equal(polygons._ear_clip(*args), polygons._ear_clip_compiled()(*args))
+
+
+def test_off_face_index_out_of_range_is_one_line(tmp_path):
+    (tmp_path / "bad.off").write_text("OFF\n4 1 0\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n4 0 1 2 9\n")
+    with pytest.raises(StageError, match=r"bad\.off: cannot read as OFF \(face index 9 out of range \(only 4 vertices\)\)"):
+        read_mesh_file(tmp_path / "bad.off")

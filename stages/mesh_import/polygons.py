@@ -1,4 +1,4 @@
-"""Triangulation of the polygons of a mesh file (n-gons of USD faceVertexCounts, OBJ and PLY faces).
+"""Triangulation of the polygons of a mesh file (n-gons of USD faceVertexCounts, OBJ, PLY and OFF faces).
 
 A polygon keeps its fan from the first vertex when every fan triangle has a positive area in the
 polygon's plane: for a simple polygon that is exactly when the fan is a correct triangulation (the fan
@@ -206,6 +206,33 @@ def obj_polygons(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray] | Non
             counts.append(len(face))
             indices += face
     return np.array(verts, np.float64).reshape(-1, 3), np.array(counts, np.int64), np.array(indices, np.int64)
+
+
+def off_polygons(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """(vertices, counts, indices) of an OFF file's bytes (OFF, COFF, NOFF...: the first three numbers of a
+    vertex line are its position, a face line is its count and indices, colours after them ignored; ``#``
+    comments); None when the file is not laid out as expected (trimesh's reading stands). Read here, not
+    by trimesh, whose loader fails on a file mixing polygon sizes (quads and an L-shaped hexagon). Raises
+    ValueError on an index out of range."""
+    rows = [r.split() for r in (line.split(b"#", 1)[0] for line in data.splitlines()) if r.strip()]
+    if not rows or not rows[0][0].endswith(b"OFF"):
+        return None
+    head = rows[0][1:] or (rows[1] if len(rows) > 1 else [])
+    body = rows[1:] if rows[0][1:] else rows[2:]
+    try:
+        n_v, n_f = int(head[0]), int(head[1])
+        verts = np.array([r[:3] for r in body[:n_v]], np.float64).reshape(-1, 3)
+        faces = [[int(t) for t in r[1:1 + int(r[0])]] for r in body[n_v:n_v + n_f]]
+    except (ValueError, IndexError):
+        return None
+    if len(verts) != n_v or len(faces) != n_f or any(len(f) < 3 for f in faces):
+        return None
+    counts = np.array([len(f) for f in faces], np.int64)
+    indices = np.array([i for f in faces for i in f], np.int64)
+    if len(indices) and (indices.min() < 0 or indices.max() >= n_v):
+        bad = int(indices[(indices < 0) | (indices >= n_v)][0])
+        raise ValueError(f"face index {bad} out of range (only {n_v} vertices)")
+    return verts, counts, indices
 
 
 def ply_polygons(raw: dict) -> tuple[np.ndarray, np.ndarray] | None:

@@ -73,6 +73,14 @@ def read_mesh_file(path: Path) -> tuple[np.ndarray, np.ndarray]:
     suffix = path.suffix.lower()
     if suffix not in MESH_SUFFIXES:
         raise StageError(f"{path}: unsupported mesh format {suffix or '(none)'!r}; expected one of {', '.join(MESH_SUFFIXES)} or .usd*")
+    if suffix == ".off":
+        from .polygons import off_polygons, triangulate
+        try:
+            polygons = off_polygons(path.read_bytes())
+        except ValueError as e:
+            raise StageError(f"{path}: cannot read as OFF ({str(e)[:160]})") from None
+        if polygons is not None:
+            return polygons[0], triangulate(*polygons)[0]
     try:
         loaded = trimesh.load(str(path), force="mesh", process=False, maintain_order=True)
     except Exception as e:
@@ -137,7 +145,7 @@ class TrimeshImport(Stage):
 
     kind = "mesh_import"
     name = "trimesh"
-    version = "3"
+    version = "4"
     Params = ImportParams
     outputs = ("walls",)
     reads = ("scene.units", "walls", "fluid.spacing")  # fluid.spacing: a shell's default thickness
