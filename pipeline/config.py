@@ -78,10 +78,14 @@ class _Lines:
         for n in range(len(path), -1, -1):
             if path[:n] in self.overrides:
                 return f"{self.file}: {self.overrides[path[:n]]}"
+        # an error of a whole section (a check across its fields) that an override changed is named with it:
+        # --set render.color_range=[2,1] was blamed on the file's 'render:' line alone
+        below = [v for k, v in self.overrides.items() if len(k) > len(path) and k[:len(path)] == path]
+        with_set = f" (with {', '.join(below)})" if below else ""
         for n in range(len(path), -1, -1):
             if path[:n] in self.lines:
-                return f"{self.file}:{self.lines[path[:n]]}"
-        return self.file
+                return f"{self.file}:{self.lines[path[:n]]}{with_set}"
+        return f"{self.file}: {', '.join(below)}" if below else self.file
 
 
 # Limits that keep a hostile file cheap: YAML aliases can make a 1 KB file expand to billions of
@@ -218,6 +222,7 @@ def apply_override(data: dict, assignment: str, lines: _Lines) -> None:
             if not part.isdigit() or int(part) >= len(node):
                 raise ConfigError(f"--set {key}: {_dotted(path)} is a list of {len(node)}; {part!r} is not an index in it")
             part = int(part)
+            parts[i] = part  # the override's path as the validation reports it (walls.0, not walls.'0')
         elif not isinstance(node, dict):
             raise ConfigError(f"--set {key}: {_dotted(path)} is not a mapping")
         path = path + (part,)
@@ -231,15 +236,49 @@ def apply_override(data: dict, assignment: str, lines: _Lines) -> None:
 
 
 # -- validation ------------------------------------------------------------------------------------
-def _first_error(err: ValidationError, prefix: tuple, lines: _Lines) -> ConfigError:
+def _model_fields(model: Any, loc: tuple) -> set[str]:
+    """The keys a model accepts at ``loc`` (its fields' names, every member's in a union, through lists
+    and dicts and pydantic's union tags), for the "did you mean" of an unknown key; empty when unknown."""
+    import typing
+
+    def members(t: Any) -> list:
+        origin = typing.get_origin(t)
+        if origin is typing.Annotated:
+            return members(typing.get_args(t)[0])
+        if origin in (typing.Union, getattr(__import__("types"), "UnionType", None)):
+            return [m for a in typing.get_args(t) for m in members(a)]
+        return [t]
+
+    level = members(model)
+    for part in loc:
+        nxt: list = []
+        for t in level:
+            origin = typing.get_origin(t)
+            if isinstance(part, int) and origin in (list, tuple):
+                nxt += [m for a in typing.get_args(t)[:1] for m in members(a)]
+            elif isinstance(part, str) and origin is dict:
+                nxt += members(typing.get_args(t)[1])
+            elif isinstance(part, str) and isinstance(t, type) and issubclass(t, BaseModel):
+                inner = members(t.model_fields[part].annotation) if part in t.model_fields else []
+                nxt += inner
+                if not any(isinstance(m, type) and issubclass(m, BaseModel) for m in inner):
+                    nxt.append(t)  # maybe a union's tag, not a key (walls.0.builtin.size): stay on the member
+        level = nxt
+    return {name for t in level if isinstance(t, type) and issubclass(t, BaseModel)
+            for name, f in t.model_fields.items() for name in (name, f.alias) if name}
+
+
+def _first_error(err: ValidationError, prefix: tuple, lines: _Lines, model: Any = None) -> ConfigError:
     errors = err.errors(include_url=False)
     # a misspelt key is both an unknown key and, often, a missing field: name the key the user wrote, with
-    # the field it was probably meant to be ("fluid.spacng: unknown key (did you mean spacing?)")
+    # the field it was probably meant to be ("fluid.spacng: unknown key (did you mean spacing?)"), from the
+    # model's own fields (a --set typo or an optional field misspelt leaves nothing missing)
     e = next((x for x in errors if x["type"] == "extra_forbidden"), errors[0])
     hint = ""
     if e["type"] == "extra_forbidden" and isinstance(e["loc"][-1], str):
         missing = [str(x["loc"][-1]) for x in errors if x["type"] == "missing" and x["loc"][:-1] == e["loc"][:-1]]
-        close = difflib.get_close_matches(e["loc"][-1], missing, n=1)
+        known = sorted(_model_fields(model, tuple(e["loc"][:-1]))) if model is not None else []
+        close = difflib.get_close_matches(e["loc"][-1], missing, n=1) or difflib.get_close_matches(e["loc"][-1], known, n=1)
         hint = f" (did you mean {close[0]}?)" if close else ""
     loc = prefix + tuple(e["loc"])
     # pydantic puts the union tag into loc (walls.0.builtin.size): drop tags that are not keys (only in the
@@ -285,7 +324,7 @@ def _stage_params(kind: str, raw: Any, registry: Registry, lines: _Lines) -> Sta
     try:
         params = cls.Params.model_validate(raw)
     except ValidationError as e:
-        raise _first_error(e, path, lines) from None
+        raise _first_error(e, path, lines, cls.Params) from None
     return StageChoice(kind=kind, cls=cls, params=params)
 
 
@@ -304,6 +343,8 @@ def load_config(path: str | Path, registry: Registry, overrides: list[str] | tup
     for assignment in overrides:
         apply_override(data, assignment, lines)
 
+    if "study_version" in data and "config_version" not in data:
+        raise ConfigError(f"{file}: a study (study_version), not a scene config: run it with `pipeline study {file}`")
     unknown = [k for k in data if k not in TOP_LEVEL]
     if unknown:
         k = unknown[0]
@@ -314,7 +355,7 @@ def load_config(path: str | Path, registry: Registry, overrides: list[str] | tup
     try:
         scene = SceneConfig.model_validate({k: data[k] for k in ("scene", "walls", "fluid", "effects", "camera") if k in data})
     except ValidationError as e:
-        raise _first_error(e, (), lines) from None
+        raise _first_error(e, (), lines, SceneConfig) from None
 
     outputs = data.get("outputs", ["usd", "frames", "movie"])
     if not isinstance(outputs, list) or not outputs or not all(isinstance(o, str) for o in outputs):

@@ -48,7 +48,6 @@ from multiprocessing import get_context
 from pathlib import Path
 from typing import Any, Callable, Literal
 
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from .config import OUTPUT_NAMES
@@ -118,19 +117,21 @@ class VariantResult:
 
 
 def load_study(path: Path) -> StudyConfig:
+    from .config import _first_error, _parse_yaml
+
     if not path.is_file():
         raise ConfigError(f"{path}: study file not found")
     try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as e:
-        raise ConfigError(f"{path}: not valid YAML: {str(e).splitlines()[0]}") from None
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as e:
+        raise ConfigError(f"{path}: cannot read the study: {e}") from None
+    data, lines = _parse_yaml(text, str(path))  # the same safe YAML as configs, with each key's line
+    if "config_version" in data and "study_version" not in data:
+        raise ConfigError(f"{path}: a scene config (config_version), not a study: run it with `pipeline run {path}`")
     try:
         return StudyConfig.model_validate(data)
     except ValidationError as e:
-        err = e.errors(include_url=False)[0]
-        loc = ".".join(str(p) for p in err["loc"]) or "top level"
-        msg = {"extra_forbidden": "unknown key", "missing": "required field is missing"}.get(err["type"], err["msg"])
-        raise ConfigError(f"{path}: {loc}: {msg}") from None
+        raise _first_error(e, (), lines, StudyConfig) from None
 
 
 def variants(study: StudyConfig) -> list[dict[str, Any]]:

@@ -42,6 +42,7 @@ def test_malformed_config_exit_2_one_line(path, toy_plugin, tmp_path):
     ("nosuch.x=1", "--set nosuch.x: unknown section"),
     ("fluid.emitters.5.velocity=[1,0,0]", "is a list of 1"),
     ("novalue", "expected path.to.field=value"),
+    ("fluid.spacng=0.1", "--set fluid.spacng: fluid.spacng: unknown key (did you mean spacing?)"),
 ])
 def test_bad_set_override(assignment, message, toy_config):
     result = CliRunner().invoke(main, ["run", str(toy_config), "--set", assignment])
@@ -155,6 +156,21 @@ def test_a_bad_value_set_over_a_section_is_blamed_on_the_set_not_the_file(toy_co
                                        "--cache", str(tmp_path / "c")])
     _one_line_exit_2(result)
     assert "--set effects.viscosity: effects.viscosity.mu" in result.stderr, result.stderr
+
+
+def test_a_section_check_a_set_breaks_names_the_set(tmp_path):
+    """A check across a stage's fields that a --set broke was blamed on the file's 'render:' line alone."""
+    cfg = REPO / "configs" / "dam_break.yaml"
+    result = CliRunner().invoke(main, ["run", str(cfg), "--set", "render.color_range=[2,1]", "--cache", str(tmp_path / "c")])
+    _one_line_exit_2(result)
+    assert "(with --set render.color_range): stages.render: Value error, color_range [2.0, 1.0]" in result.stderr
+
+
+def test_a_scene_config_given_to_study_says_so(tmp_path):
+    cfg = REPO / "configs" / "dam_break.yaml"
+    result = CliRunner().invoke(main, ["study", str(cfg)])
+    _one_line_exit_2(result)
+    assert "a scene config (config_version), not a study: run it with `pipeline run" in result.stderr
 
 
 def test_python_dash_m_pipeline_is_the_command(tmp_path):

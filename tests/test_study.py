@@ -43,7 +43,9 @@ def test_study_runs_variants_and_reports(toy_config):
 def test_study_errors(toy_config):
     path = toy_config.parent / "study.yaml"
     path.write_text(STUDY.replace("mode", "x").replace("sweep:", "sweeps:"))
-    with pytest.raises(ConfigError, match="sweep: required field is missing"):
+    # the key the user wrote, its line and the field it was meant to be (it said only "sweep: required field
+    # is missing", with no line)
+    with pytest.raises(ConfigError, match=r"study\.yaml:\d+: sweeps: unknown key \(did you mean sweep\?\)"):
         run_study(path)
     path.write_text(STUDY.replace("file: particles/stats.json, key: stats.error", "function: toy_stages:nothing"))
     with pytest.raises(ConfigError, match="function 'toy_stages:nothing' not found"):
