@@ -128,6 +128,12 @@ class Cache:
         self.root = Path(os.path.abspath(root))
         if self.root.exists() and not self.root.is_dir():
             raise ConfigError(f"cache folder {self.root} is a file, not a folder (choose another with --cache)")
+        for parent in self.root.parents:
+            if parent.is_dir():
+                break
+            if parent.exists() or parent.is_symlink():
+                raise ConfigError(f"cache folder {self.root} cannot be made: {parent} is a file, not a folder "
+                                  f"(choose another with --cache)")
         self.lock_timeout = LOCK_TIMEOUT if lock_timeout is None else float(lock_timeout)
 
     # -- paths -----------------------------------------------------------------------------------

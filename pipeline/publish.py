@@ -96,6 +96,17 @@ def _files(path: Path) -> list[str]:
 
 
 # -- the promise -------------------------------------------------------------------------------------
+def file_in_the_way(path: Path) -> Path | None:
+    """The closest existing ancestor of ``path`` when it is not a folder (a file, or a link to none), else
+    None: ``path`` could not be created below it (a user's file named ``out`` beside the config)."""
+    for parent in Path(path).parents:
+        if parent.is_dir():
+            return None
+        if parent.exists() or parent.is_symlink():
+            return parent
+    return None
+
+
 def check_out_dir(out_dir: Path, names: Iterable[str], files: Iterable[str] = ("run.json",)) -> None:
     """Raise OutputRefused (exit 2) unless every name the run will publish can be written: absent, or
     published by the pipeline and holding only files it published. ``files``: the names published as
@@ -104,6 +115,10 @@ def check_out_dir(out_dir: Path, names: Iterable[str], files: Iterable[str] = ("
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise OutputRefused(f"output folder {out_dir} is a file, not a folder; choose another --out")
+    blocker = file_in_the_way(out_dir)
+    if blocker is not None:
+        raise OutputRefused(f"output folder {out_dir} cannot be made: {blocker} is a file, not a folder; move it away "
+                            f"or choose another --out (nothing was changed)")
     if not out_dir.is_dir():
         return
     record = read_record(out_dir)

@@ -183,3 +183,27 @@ def test_python_dash_m_pipeline_is_the_command(tmp_path):
     r = subprocess.run(cli + ["run", str(tmp_path / "none.yaml")], capture_output=True, text=True, timeout=120,
                        cwd=tmp_path, env=dict(os.environ, PYTHONPATH=str(REPO)))
     assert r.returncode == 2 and r.stderr.strip() == f"error: {tmp_path / 'none.yaml'}: config file not found"
+
+
+@pytest.mark.parametrize("where", ["default", "--out"])
+def test_a_file_above_the_output_folder_is_refused_before_any_stage(where, toy_config, tmp_path):
+    """A user's file named ``out`` beside the config: the stages ran, then publishing failed (exit 1)."""
+    blocker = tmp_path / "out"
+    blocker.write_text("mine")
+    args = ["run", str(toy_config), "--cache", str(tmp_path / "c")]
+    if where == "--out":
+        args += ["--out", str(blocker / "shots" / "toy")]
+    result = CliRunner().invoke(main, args)
+    _one_line_exit_2(result)
+    assert f"{blocker} is a file, not a folder" in result.stderr, result.stderr
+    assert blocker.read_text() == "mine" and not (tmp_path / "c").exists()
+    assert not (tmp_path / "ran_mesh_import.log").exists()
+
+
+def test_a_file_above_the_cache_folder_is_refused(toy_config, tmp_path):
+    (tmp_path / "f").write_text("mine")
+    result = CliRunner().invoke(main, ["run", str(toy_config), "--cache", str(tmp_path / "f" / "c"),
+                                       "--out", str(tmp_path / "o")])
+    _one_line_exit_2(result)
+    assert f"{tmp_path / 'f'} is a file, not a folder" in result.stderr and (tmp_path / "f").read_text() == "mine"
+    assert not (tmp_path / "o").exists()
