@@ -35,11 +35,42 @@ from .errors import ConfigError, StageFailed
 KEY_SCHEMA = 1
 MANIFEST = "manifest.json"
 # a temporary folder or file whose writer runs on another host is swept only after this age (seconds;
-# env PIPELINE_TMP_MAX_AGE): no simulation step or frame job runs that long without finishing
-TMP_MAX_AGE = float(os.environ.get("PIPELINE_TMP_MAX_AGE", 7 * 24 * 3600))
+# env PIPELINE_TMP_MAX_AGE, read by tmp_max_age()): no simulation step or frame job runs that long without
+# finishing
+TMP_MAX_AGE = 7 * 24 * 3600.0
 # how long a run waits for another run's lock on a key before giving up (seconds; --lock-timeout,
-# env PIPELINE_LOCK_TIMEOUT)
-LOCK_TIMEOUT = float(os.environ.get("PIPELINE_LOCK_TIMEOUT", 3600))
+# env PIPELINE_LOCK_TIMEOUT, read by default_lock_timeout())
+LOCK_TIMEOUT = 3600.0
+
+
+def env_seconds(name: str, default: float) -> float:
+    """A number of seconds >= 0 from the environment variable ``name`` (unset or empty: ``default``);
+    ConfigError (exit 2, one line naming the variable and its value) otherwise, as ``--lock-timeout -5``
+    is refused. Read when used, not at import: a bad value is a user's mistake, not a traceback."""
+    text = os.environ.get(name, "")
+    if not text.strip():
+        return default
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not value >= 0:  # negative or NaN
+        raise ConfigError(f"environment variable {name}={text!r}: expected a number of seconds >= 0")
+    return value
+
+
+def tmp_max_age() -> float:
+    return env_seconds("PIPELINE_TMP_MAX_AGE", TMP_MAX_AGE)
+
+
+def default_lock_timeout() -> float:
+    return env_seconds("PIPELINE_LOCK_TIMEOUT", LOCK_TIMEOUT)
+
+
+def check_env() -> None:
+    """ConfigError for a bad value of an environment variable the pipeline reads (the CLI calls it first)."""
+    tmp_max_age()
+    default_lock_timeout()
 
 log = logging.getLogger("pipeline")
 
@@ -82,8 +113,8 @@ def parse_owner_tag(name: str) -> tuple[str, int, int] | None:
 def owner_is_dead(host: str, pid: int, started: int, *, mtime: float | None = None,
                   max_age: float | None = None) -> bool:
     """True only when the writer certainly no longer runs: on this host and its pid is gone (or reused
-    by a later process), or the file is older than ``max_age`` (default TMP_MAX_AGE) wherever it ran."""
-    max_age = TMP_MAX_AGE if max_age is None else max_age
+    by a later process), or the file is older than ``max_age`` (default TMP_MAX_AGE, env PIPELINE_TMP_MAX_AGE) wherever it ran."""
+    max_age = tmp_max_age() if max_age is None else max_age
     newest = max(started, mtime or 0.0)
     if time.time() - newest > max_age:
         return True
@@ -134,7 +165,8 @@ class Cache:
             if parent.exists() or parent.is_symlink():
                 raise ConfigError(f"cache folder {self.root} cannot be made: {parent} is a file, not a folder "
                                   f"(choose another with --cache)")
-        self.lock_timeout = LOCK_TIMEOUT if lock_timeout is None else float(lock_timeout)
+        check_env()  # before anything is swept or waited for
+        self.lock_timeout = default_lock_timeout() if lock_timeout is None else float(lock_timeout)
 
     # -- paths -----------------------------------------------------------------------------------
     def entry_dir(self, kind: str, key: str) -> Path:
@@ -248,7 +280,7 @@ class Cache:
             except OSError:
                 continue
             owner = parse_owner_tag(d.name)
-            dead = owner_is_dead(*owner, mtime=mtime) if owner else time.time() - mtime > TMP_MAX_AGE
+            dead = owner_is_dead(*owner, mtime=mtime) if owner else time.time() - mtime > tmp_max_age()
             if not dead:
                 continue
             if d.is_dir() and not d.is_symlink():

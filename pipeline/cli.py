@@ -9,6 +9,7 @@ from pathlib import Path
 import click
 
 from . import runner
+from .cache import check_env
 from .status import clean as clean_config, status as config_status
 from .errors import PipelineError
 from .registry import Registry
@@ -34,6 +35,7 @@ def _guard(fn):
 
     def wrapper(*args, **kwargs):
         try:
+            check_env()  # PIPELINE_LOCK_TIMEOUT=abc: one line naming it, not a traceback
             return fn(*args, **kwargs)
         except PipelineError as e:
             click.echo(f"error: {_one_line(e)}", err=True)

@@ -207,3 +207,25 @@ def test_a_file_above_the_cache_folder_is_refused(toy_config, tmp_path):
     _one_line_exit_2(result)
     assert f"{tmp_path / 'f'} is a file, not a folder" in result.stderr and (tmp_path / "f").read_text() == "mine"
     assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("name", ["PIPELINE_LOCK_TIMEOUT", "PIPELINE_TMP_MAX_AGE"])
+@pytest.mark.parametrize("value", ["abc", "-5", "nan"])
+def test_a_bad_environment_variable_is_one_line_exit_2(name, value, toy_config, tmp_path):
+    """PIPELINE_LOCK_TIMEOUT=abc was a traceback at import (exit 1); -5 was accepted though --lock-timeout -5
+    is refused. A real subprocess: the values were read when pipeline.cache was imported."""
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(TESTS), str(REPO)]), **{name: value})
+    r = subprocess.run([sys.executable, "-m", "pipeline", "run", str(toy_config), "--cache", str(tmp_path / "c"),
+                        "--out", str(tmp_path / "o")], env=env, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.strip() == f"error: environment variable {name}={value!r}: expected a number of seconds >= 0"
+    assert not (tmp_path / "c").exists() and not (tmp_path / "o").exists()
+
+
+def test_a_good_environment_variable_is_used(monkeypatch, tmp_path):
+    from pipeline.cache import Cache
+
+    monkeypatch.setenv("PIPELINE_LOCK_TIMEOUT", "12.5")
+    assert Cache(tmp_path / "c").lock_timeout == 12.5
+    monkeypatch.setenv("PIPELINE_LOCK_TIMEOUT", "")
+    assert Cache(tmp_path / "c").lock_timeout == 3600
