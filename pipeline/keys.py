@@ -99,23 +99,31 @@ def plan(config: Config, graph: Graph, cache: Cache, frames: tuple[int, ...] | N
 
 def _files(config: Config, node: Node, values: dict[str, Any], frames: tuple[int, ...]) -> dict[str, str]:
     """``{path: sha256}`` of every file the stage reads."""
-    found: list[tuple[str, Path]] = []
+    # (dotted field, its path in the config for Config.where, file)
+    found: list[tuple[str, tuple, Path]] = []
     for read, value in values.items():
-        found += [(where, resolve(config.dir, p)) for where, p in input_files(value, read)]
-    found += [(f"params.{where}", resolve(config.dir, p)) for where, p in input_files(node.params, "")]
+        found += [(where, _field_path(where), resolve(config.dir, p)) for where, p in input_files(value, read)]
+    found += [(f"stages.{node.kind}.{where}", ("stages", node.kind) + _field_path(where), resolve(config.dir, p))
+              for where, p in input_files(node.params, "")]
     try:
         extra = node.cls().external_files(context(config, node, config.dir, frames), node.params)
     except StageError as e:
         raise StageFailed(f"stage {node.label}: {e}", user_error=True) from None
-    found += [("external file", Path(f)) for f in extra]
+    found += [("external file", ("stages", node.kind), Path(f)) for f in extra]
     files: dict[str, str] = {}
-    for where, path in found:
+    for where, field, path in found:
         name = _file_name(path, config.dir)
         if name not in files:
             if not path.is_file():
-                raise StageFailed(f"stage {node.label}: {where}: input file not found: {path}", user_error=True)
+                raise StageFailed(f"{config.where(*field)}: stage {node.label}: {where}: input file not found: {path}",
+                                  user_error=True)
             files[name] = _file_hash(path)
     return files
+
+
+def _field_path(dotted: str) -> tuple:
+    """``"walls.1.file"`` -> ``("walls", 1, "file")``, the path Config.where takes."""
+    return tuple(int(p) if p.isdigit() else p for p in dotted.split(".") if p)
 
 
 def _file_name(path: Path, config_dir: Path) -> str:

@@ -314,3 +314,23 @@ def test_numba_cache_folder_follows_every_stage_source(tmp_path):
     assert second != first
     (tree / "walls" / "maps.py").rename(tree / "walls" / "other.py")  # same bytes, another module
     assert numba_cache_dir(tree, "base") not in (first, second)
+
+
+def test_a_missing_input_file_names_the_config_line(toy_config):
+    """It named the stage and the field but not the config's file and line, as every other config error does."""
+    from pipeline import StageFailed
+
+    text = toy_config.read_text().replace("mesh_import: {use: toy}", "mesh_import: {use: toy, source: gone.txt}")
+    toy_config.write_text(text.replace("fluid:\n", "walls:\n  - builtin: box_tank\n  - file: assets/dragon.obj\nfluid:\n"))
+    lines = toy_config.read_text().splitlines()
+    wall_line = lines.index("  - file: assets/dragon.obj") + 1
+    with pytest.raises(StageFailed) as e:
+        pipeline.run(toy_config, registry=Registry.from_entry_points())
+    assert str(e.value).startswith(f"{toy_config}:{wall_line}: stage mesh_import.toy: walls.1.file: input file not found"), e.value
+    assert e.value.exit_code == 2
+    toy_config.write_text(text)  # the stage's own external file: the stage's line
+    stage_line = next(i for i, line in enumerate(text.splitlines(), 1) if "source: gone.txt" in line)
+    with pytest.raises(StageFailed, match=rf"^{toy_config}:{stage_line}: stage mesh_import.toy: external file: input "
+                                          rf"file not found: .*gone.txt$"):
+        pipeline.run(toy_config, registry=Registry.from_entry_points())
+    assert not (toy_config.parent / ".pipeline").exists()
