@@ -90,7 +90,8 @@ frames_opt = click.option("--frames", help="Frames for per-frame stages: START:E
 @frames_opt
 @click.option("--out", "out_dir", type=click.Path(path_type=Path), help="Output folder (default: out/<scene>/ beside the config).")
 @click.option("--only", type=KINDS, help="Run only this stage; its inputs must be cached.")
-@click.option("--from", "from_", type=KINDS, help="Run this stage and what follows; upstream from cache.")
+@click.option("--from", "from_", type=KINDS, help="Run this stage and the stages downstream of it; upstream from cache. Outputs not made from "
+                   "it (export for --from render) are not made, and need not be cached.")
 @click.option("--until", type=KINDS, help="Run up to and including this stage.")
 @click.option("--force", multiple=True, type=click.Choice(STAGE_KINDS + ("all",)), help="Recompute this stage even if cached.")
 @click.option("--workers", type=click.IntRange(1, 256), default=1, show_default=True,

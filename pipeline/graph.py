@@ -65,8 +65,16 @@ class Graph:
                        runnable=frozenset({kind}))
 
     def from_(self, kind: str) -> "Graph":
+        """``kind`` and what follows it: the outputs made by ``kind`` or its descendants, with their upstream
+        read from the cache. An output not downstream of ``kind`` (the USD export for ``--from render``) is
+        not made and its stage is not needed in the cache (it was required: a run stopped before export
+        could not go on with ``--from render``); what an earlier run published of it stays (publish.drop_stale)."""
         self._require(kind, "--from")
-        return replace(self, runnable=frozenset(self.runnable & (self.downstream(kind) | {kind})))
+        tail = self.downstream(kind) | {kind}
+        keep = tail.union(*(self.upstream(k) for k in tail))
+        return replace(self, nodes={k: v for k, v in self.nodes.items() if k in keep},
+                       outputs=tuple(o for o in self.outputs if self.producer(o) in tail),
+                       runnable=frozenset(self.runnable & tail))
 
     def until(self, kind: str) -> "Graph":
         self._require(kind, "--until")

@@ -127,6 +127,27 @@ def test_until_stops_and_from_reads_upstream_from_cache(toy_config):
         run(toy_config, from_="render", overrides=("simulate.steps=5",))
 
 
+def test_from_runs_the_stage_and_its_descendants_only(toy_config):
+    """--from render after a run stopped before export: export is not downstream of render, so it is neither
+    run nor required in the cache (it was: CacheMissError 'stage export.toy is not cached')."""
+    toy_config.write_text(toy_config.read_text().replace("outputs: [frames]", "outputs: [frames, usd]"))
+    run(toy_config, until="surface_extract")
+    r = run(toy_config, from_="render")
+    assert statuses(r) == {"mesh_import": "cached", "sdf_bake": "cached", "simulate": "cached",
+                           "surface_extract": "cached", "render": "ran"}
+    assert set(r.outputs) == {"frames"} and ran(toy_config, "export") == 0
+    # a full run then makes the export; --from render again leaves its published usd/ alone
+    r = run(toy_config)
+    assert statuses(r)["export"] == "ran" and statuses(r)["render"] == "cached"
+    r = run(toy_config, from_="render", force=("render",))
+    assert "export" not in statuses(r) and (Path(r.out) / "usd").is_dir() and ran(toy_config, "export") == 1
+    with pytest.raises(ConfigError, match="--force export: not a stage this run includes"):
+        run(toy_config, from_="render", force=("export",))
+    # --from simulate still makes both branches
+    r = run(toy_config, from_="simulate", force=("simulate",))
+    assert set(r.outputs) == {"frames", "usd"}
+
+
 def test_force_recomputes_one_stage(toy_config):
     run(toy_config)
     r = run(toy_config, force=("sdf_bake",))
