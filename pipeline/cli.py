@@ -216,12 +216,17 @@ def stages():
 
 @main.command()
 @config_arg
+@set_opt
 @cache_opt
 @click.option("--stage", type=KINDS, help="Only this stage's entries.")
 @_guard
-def clean(config, cache_dir, stage):
-    """Remove the config's cache entries (or one stage's)."""
-    n = clean_config(config, stage=stage, cache_dir=cache_dir)
+def clean(config, overrides, cache_dir, stage):
+    """Remove the config's cache entries (or one stage's): those of the config as it is now and of its
+    last run; with --set (parsed as run's), those of the config with these overrides. Entries made under
+    other --set overrides or earlier versions of the config stay (the cache does not record which config
+    made an entry: entries are shared by every config that gives a stage the same inputs); give the same
+    --set to drop a variant's, or remove the cache folder to drop everything."""
+    n = clean_config(config, stage=stage, cache_dir=cache_dir, overrides=tuple(overrides))
     click.echo(f"removed {n} cache entr{'y' if n == 1 else 'ies'}")
 
 

@@ -108,16 +108,22 @@ def status(config_path: str | Path, *, registry: Registry | None = None, overrid
 
 
 def clean(config_path: str | Path, *, registry: Registry | None = None, stage: str | None = None,
-          cache_dir: str | Path | None = None) -> int:
-    """Remove this config's cache entries (all frames), or only one stage's; returns how many."""
+          cache_dir: str | Path | None = None, overrides: tuple[str, ...] = ()) -> int:
+    """Remove the cache entries (all frames) of this config, and those of its last run (whatever it was run
+    with), or only one stage's; returns how many. With ``overrides`` (parsed as run's --set), only the
+    entries of the config with them applied. Entries made under other overrides stay: entries are
+    content-addressed (shared by every config that gives a stage the same inputs) and do not record which
+    config or overrides made them."""
     registry = registry or Registry.from_entry_points()
-    config = load_config(config_path, registry)
+    config = load_config(config_path, registry, overrides)
     graph = build_graph(config)
     if stage is not None and stage not in graph.nodes:
         raise ConfigError(f"--stage {stage}: not a stage of this config ({', '.join(graph.order())})")
     cache = Cache(Path(cache_dir) if cache_dir else default_cache_dir(config))
     p = plan(config, graph, cache, tuple(range(config.scene.scene.frames.count)))
-    last = cache.read_state(config.path)
+    # the last run's keys (the state is per config file, whatever overrides that run had): not with overrides,
+    # which name one variant
+    last = cache.read_state(config.path) if not overrides else {}
     removed = 0
     for kind in graph.order():
         if stage is not None and kind != stage:

@@ -229,3 +229,22 @@ def test_a_good_environment_variable_is_used(monkeypatch, tmp_path):
     assert Cache(tmp_path / "c").lock_timeout == 12.5
     monkeypatch.setenv("PIPELINE_LOCK_TIMEOUT", "")
     assert Cache(tmp_path / "c").lock_timeout == 3600
+
+
+def test_clean_with_set_drops_that_variants_entries(toy_config, tmp_path):
+    """clean dropped only the entries of the config without overrides: a --set variant's stayed."""
+    from conftest import ran
+
+    cache = ["--cache", str(tmp_path / "c")]
+    r = CliRunner().invoke(main, ["run", str(toy_config), "-q", *cache, "--set", "simulate.steps=5"])
+    assert r.exit_code == 0, r.output
+    r = CliRunner().invoke(main, ["run", str(toy_config), "-q", *cache])
+    assert r.exit_code == 0, r.output
+    r = CliRunner().invoke(main, ["clean", str(toy_config), *cache, "--set", "simulate.steps=5", "--stage", "render"])
+    assert r.exit_code == 0 and "removed 4 cache entries" in r.output, r.output
+    r = CliRunner().invoke(main, ["run", str(toy_config), "-q", *cache, "--set", "simulate.steps=5"])
+    assert r.exit_code == 0 and ran(toy_config, "render") == 12 and ran(toy_config, "simulate") == 2, r.output
+    r = CliRunner().invoke(main, ["clean", str(toy_config), *cache, "--set", "simulate.steps=abc"])
+    assert r.exit_code == 2 and "--set simulate.steps" in r.stderr, r.output
+    assert "Entries made under other --set overrides or earlier versions of the config stay" in " ".join(
+        CliRunner().invoke(main, ["clean", "--help"]).output.split())
