@@ -220,7 +220,10 @@ def _fail(node: Node, key: str, config: Config, exc: BaseException, cache: Cache
     if isinstance(exc, (StageError, PipelineError)):
         # stages name themselves in their messages ("simulate.sph: ..."): do not say it twice
         text = str(exc).removeprefix(f"{node.label}: ")
-        return StageFailed(f"stage {node.label}: {text}", user_error=isinstance(exc, StageError) or exc.exit_code == 2)
+        user = isinstance(exc, StageError) or exc.exit_code == 2
+        if not user:  # a failed run (a simulation's blow-up, exit 1): its traceback is saved as for any failure
+            text += f" ({write_log(cache, f'{node.kind}-{key[:12]}', ''.join(traceback.format_exception(exc)))})"
+        return StageFailed(f"stage {node.label}: {text}", user_error=user)
     if type(exc).__name__ == "BrokenProcessPool":
         exc_text = "a worker process died (killed, out of memory or a native crash; faulthandler output in the run log)"
     else:

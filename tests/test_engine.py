@@ -197,6 +197,22 @@ def test_stage_errors_name_the_stage(toy_config):
     assert not list((cache.root / "tmp").iterdir())
 
 
+def test_a_failed_run_that_exits_1_saves_its_traceback(toy_config):
+    """A simulation's blow-up (an exit-1 PipelineError from the stage) left logs/ empty, though an exit 1
+    promises a traceback there; a user's mistake (exit 2) saves none."""
+    logs = toy_config.parent / ".pipeline" / "logs"
+    with pytest.raises(StageFailed, match=r"^stage simulate.toy: the toy run blew up during frame 1 "
+                                          r"\(traceback in .*/logs/simulate-\w{12}\.log\)$") as e:
+        run(toy_config, overrides=("simulate.fail=diverged",))
+    assert e.value.exit_code == 1
+    saved = list(logs.glob("simulate-*.log"))
+    assert len(saved) == 1 and "Diverged: the toy run blew up" in saved[0].read_text()
+    saved[0].unlink()
+    with pytest.raises(StageFailed) as e:
+        run(toy_config, overrides=("simulate.fail=user",))
+    assert e.value.exit_code == 2 and not list(logs.glob("simulate-*.log"))
+
+
 def test_clean_removes_entries(toy_config):
     run(toy_config)
     n = pipeline.clean(toy_config, registry=Registry.from_entry_points(), stage="render")

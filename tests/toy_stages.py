@@ -6,6 +6,7 @@ import time
 
 from pydantic import Field
 
+from pipeline.errors import PipelineError
 from pipeline.stage import Params, Stage, StageError
 
 
@@ -49,6 +50,12 @@ class ToyBake(Stage):
         (ctx.out_dir / "sdf.txt").write_text(f"{walls} | sdf {params.cell}")
 
 
+class Diverged(PipelineError):
+    """As stages.simulate.driver.SimulationDiverged: a failed run, one line, exit 1."""
+
+    exit_code = 1
+
+
 class ToySimulate(Stage):
     kind, name, version = "simulate", "toy", os.environ.get("TOY_SIM_VERSION", "1")
     inputs = ("sdf",)
@@ -58,7 +65,8 @@ class ToySimulate(Stage):
     class Params(Params):
         steps: int = Field(3, ge=1)
         sleep: float = Field(0.0, ge=0, description="seconds to sleep mid-write (kill tests)")
-        fail: str | None = Field(None, description="'user' raises StageError, 'bug' raises RuntimeError")
+        fail: str | None = Field(None, description="'user' raises StageError, 'bug' raises RuntimeError, "
+                                                   "'diverged' an exit-1 PipelineError (as a blow-up)")
         warm_up: float = Field(0.0, ge=0, description="seconds of one-off warm-up (Context.warm_up), as a JIT compile")
 
     def run(self, ctx, inputs, params):
@@ -69,6 +77,8 @@ class ToySimulate(Stage):
             raise StageError("the emitter box is empty")
         if params.fail == "bug":
             raise RuntimeError("boom")
+        if params.fail == "diverged":
+            raise Diverged("the toy run blew up during frame 1")
         sdf = (inputs["sdf"].path / "sdf.txt").read_text()
         part = ctx.out_dir / "particles.txt"
         with open(part, "w") as fh:
