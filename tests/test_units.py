@@ -12,6 +12,8 @@ from stages.simulate.dfsph import DFSPHSimulate
 from stages.simulate.mps import MPSSimulate
 from stages.simulate.sph import SPHSimulate
 
+from test_units_pipeline import y_to_z, z_to_y
+
 L0 = 0.02  # metres
 
 
@@ -171,17 +173,6 @@ def test_mesh_emitter_file_in_other_units_is_converted(tmp_path):
     np.testing.assert_allclose(np.sort(x, axis=0), np.sort(y, axis=0), atol=1e-9)
 
 
-def _z_to_y(p) -> np.ndarray:
-    """Z-up coordinates to the Y-up frame ((x, y, z) -> (x, z, -y), right-handed)."""
-    p = np.asarray(p, np.float64)
-    return np.stack([p[..., 0], p[..., 2], -p[..., 1]], axis=-1)
-
-
-def _y_to_z(p) -> np.ndarray:
-    p = np.asarray(p, np.float64)
-    return np.stack([p[..., 0], -p[..., 2], p[..., 1]], axis=-1)
-
-
 @pytest.mark.parametrize("solver", ["mps", "dfsph"])
 def test_a_y_up_dam_break_steps_like_the_z_up_one_to_rounding(solver):
     """The solvers take the scene's axes as they are (gravity along its up axis), so a Y-up scene is the Z-up
@@ -205,7 +196,7 @@ def test_a_y_up_dam_break_steps_like_the_z_up_one_to_rounding(solver):
     nb.set_num_threads(1)
     try:
         for up in ("Z", "Y"):
-            turn = _z_to_y if up == "Y" else np.asarray
+            turn = z_to_y if up == "Y" else np.asarray
             a, b = turn(lo), turn(hi)
             a, b = np.minimum(a, b), np.maximum(a, b)
             # padded like a baked SDF: the wall maps' staggered lattice ends dq / 2 past the grid on the high side
@@ -216,7 +207,7 @@ def test_a_y_up_dam_break_steps_like_the_z_up_one_to_rounding(solver):
                     gravity=gravity, mu=1e-3, wall_viscosity=True)
             for _ in range(6):
                 s.step(1.0)
-            back = _y_to_z if up == "Y" else np.asarray
+            back = y_to_z if up == "Y" else np.asarray
             order = np.argsort(s.id)
             out[up] = (back(s.x[order]), back(s.v[order]), s.t)
     finally:
