@@ -473,6 +473,10 @@ class Camera(Model):
     focal_point: Vec3 | None = Field(None, description="point looked at, scene units; default: the walls' centre")
     up: Vec3 | None = Field(None, description="view up vector; default: the scene's up axis")
     view_angle: float = Field(30.0, gt=1, lt=170, description="vertical field of view, degrees (a USD camera's own wins)")
+    # the shot's image size: render's frames and the exported USD camera's film back (so a portrait shot's
+    # USD camera is not 16:9); a stage's own setting (render.resolution, export.camera_aspect) wins for it
+    resolution: tuple[Annotated[int, Field(ge=16, le=8192)], Annotated[int, Field(ge=16, le=8192)]] | None = Field(
+        None, description="image width and height, pixels, for render and the USD camera; default 1280 x 720")
 
     @field_validator("position", "focal_point", "up")
     @classmethod

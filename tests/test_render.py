@@ -196,6 +196,33 @@ def test_exported_usd_camera_shows_what_the_frames_show(tmp_path, inputs):
     assert (water_a ^ water_b).sum() < 0.02 * water_a.sum()
 
 
+def test_a_portrait_shot_set_on_the_camera_renders_and_exports_alike(tmp_path, inputs):
+    """camera.resolution is the shot's size: render draws its frames at it and the exported USD camera takes
+    its aspect (the USD camera was 16:9 whatever the frames were, and framed for 16:9: rendering through it
+    gave another picture than the portrait frames)."""
+    import imageio.v3 as iio
+    from pxr import Usd, UsdGeom
+
+    from stages.export.usd_export import UsdExport
+
+    scene = {**SCENE, "camera": {"resolution": [180, 320]}}
+    auto = run_stage(PyvistaRender, tmp_path / "auto", scene=scene, inputs=inputs, frames=(1,))
+    usd = run_stage(UsdExport, tmp_path / "usd", scene=scene, inputs=inputs, config_dir=tmp_path,
+                    params={"particles": False})
+    stage = Usd.Stage.Open(str(usd / "scene.usda"))  # held: a prim of a dropped stage is invalid
+    cam = UsdGeom.Camera(stage.GetPrimAtPath("/World/Camera"))
+    aperture = cam.GetHorizontalApertureAttr().Get() / cam.GetVerticalApertureAttr().Get()
+    assert aperture == pytest.approx(180 / 320)
+    again = run_stage(PyvistaRender, tmp_path / "again", inputs=inputs, frames=(1,), config_dir=tmp_path,
+                      scene={**SCENE, "camera": {"usd": str(usd / "scene.usda"), "prim": "/World/Camera",
+                                                 "resolution": [180, 320]}})
+    img_a = iio.imread(auto / "frame_00001.png")[..., :3]
+    assert img_a.shape == (320, 180, 3)
+    water_a, water_b = water_mask(img_a), water_mask(iio.imread(again / "frame_00001.png")[..., :3])
+    assert water_a.sum() > 100
+    assert (water_a ^ water_b).sum() < 0.02 * water_a.sum()
+
+
 def test_auto_camera_and_particles_are_not_blank(tmp_path, inputs):
     import imageio.v3 as iio
 
@@ -231,10 +258,11 @@ def test_the_colour_bar_names_its_unit():
     """Speeds are in scene units per second: the bar says which; pressure is in pascals."""
     from stages.render.pyvista_render import color_bar
 
-    params = PyvistaRender.Params(show="particles")
+    params = PyvistaRender.Params(show="particles", resolution=(1280, 720))
     assert [color_bar(params, mpu, 1.0)["title"] for mpu in (1.0, 0.01, 0.001, 0.3048)] == [
         "speed (m/s)", "speed (cm/s)", "speed (mm/s)", "speed (0.3048 m/s)"]
-    assert color_bar(PyvistaRender.Params(show="particles", color_by="pressure"), 0.01, 9056.0)["title"] == "pressure (Pa)"
+    assert color_bar(PyvistaRender.Params(show="particles", color_by="pressure", resolution=(640, 360)), 0.01,
+                     9056.0)["title"] == "pressure (Pa)"
 
 
 def test_the_automatic_camera_fits_the_walls_in_a_portrait_frame():

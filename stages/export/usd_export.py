@@ -56,8 +56,9 @@ class UsdParams(Params):
         None, description="also write the fluid layer alone to this path inside the published usd folder "
         "(relative, e.g. layers/fluid.usdc; the pipeline writes only inside its cache and output folder)")
     usdz: bool = Field(False, description="also package everything as scene.usdz")
-    camera_aspect: float = Field(16 / 9, gt=0, description="the USD camera's image width / height "
-                                 "(the view itself is the scene's camera section)")
+    camera_aspect: float | None = Field(None, gt=0, description="the USD camera's image width / height; default: "
+                                        "camera.resolution's (the shot's, which render draws), else 16 / 9 (the view "
+                                        "itself is the scene's camera section)")
 
     _fluid_layer_inside = field_validator("fluid_layer_path")(_inside_path)
 
@@ -223,14 +224,15 @@ class UsdExport(Stage):
                 else:
                     refs.AddReference(rel, prim)
         cam = ctx.scene["camera"]
+        aspect = params.camera_aspect or (cam.resolution[0] / cam.resolution[1] if cam.resolution else 16 / 9)
 
         def pose(seconds: float):  # the shot's camera at a time, in the layer's frame
             eye, target, up, view_angle = shot_camera(walls, scene.units, cam, ctx.resolve, "export.usd", seconds,
-                                                      params.camera_aspect)
+                                                      aspect)
             return (ul.apply(to_target, eye[None])[0], ul.apply(to_target, target[None])[0],
                     ul.apply_linear(to_target, up[None])[0], view_angle)
 
-        camera = ul.define_camera(root, "/World/Camera", *pose(frames[0] / scene.frames.fps), params.camera_aspect, mpu)
+        camera = ul.define_camera(root, "/World/Camera", *pose(frames[0] / scene.frames.fps), aspect, mpu)
         if cam.usd is not None and usd_camera_moves(ctx.resolve(cam.usd), cam.prim, "export.usd"):
             # an animated shot camera is exported with its motion, sampled at the frames (as render draws them)
             ul.animate_camera(camera, [(f, *pose(f / scene.frames.fps)) for f in frames])

@@ -48,11 +48,15 @@ def choose_offscreen_backend() -> str | None:
     return backend
 
 
+DEFAULT_RESOLUTION = (1280, 720)
+
+
 class RenderParams(Params):
     # 16-8192 a side: VTK's offscreen buffer gave black 300 x 22028 frames for [-5, 100] and a bad_alloc for
     # [100000, 100000] (no test of the plan's memory estimate sees a frame buffer)
-    resolution: tuple[Annotated[int, Field(ge=16, le=8192)], Annotated[int, Field(ge=16, le=8192)]] = Field(
-        (1280, 720), description="image width and height, pixels (16 to 8192 each)")
+    resolution: tuple[Annotated[int, Field(ge=16, le=8192)], Annotated[int, Field(ge=16, le=8192)]] | None = Field(
+        None, description="image width and height, pixels (16 to 8192 each); default: camera.resolution, the "
+        "shot's (which the USD camera follows too), else 1280 x 720")
     show: Literal["surface", "particles"] = Field("surface", description="the fluid as its surface or as particles")
     color_by: Literal["speed", "pressure"] = Field("speed", description="particle colour (show: particles)")
     color_range: tuple[float, float] | None = Field(
@@ -206,6 +210,9 @@ class PyvistaRender(Stage):
             skipped_frame_marker(ctx.out_dir, frame).write_text("")
             return
         choose_offscreen_backend()
+        # the frame size: the stage's own, else the shot camera's (export's USD camera follows that one)
+        size = params.resolution or ctx.scene["camera"].resolution or DEFAULT_RESOLUTION
+        params = params.model_copy(update={"resolution": tuple(size)})
         scene = ctx.scene["scene"]
         walls = load_walls(Path(inputs["walls"].path))
         eye, centre, up, view_angle = shot_camera(walls, scene.units, ctx.scene["camera"], ctx.resolve,
