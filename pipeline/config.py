@@ -238,7 +238,7 @@ def apply_override(data: dict, assignment: str, lines: _Lines) -> None:
 # -- validation ------------------------------------------------------------------------------------
 def _model_fields(model: Any, loc: tuple) -> set[str]:
     """The keys a model accepts at ``loc`` (its fields' names, every member's in a union, through lists
-    and dicts and pydantic's union tags), for the "did you mean" of an unknown key; empty when unknown."""
+    and dicts), for the "did you mean" of an unknown key; empty when unknown."""
     import typing
 
     def members(t: Any) -> list:
@@ -258,11 +258,8 @@ def _model_fields(model: Any, loc: tuple) -> set[str]:
                 nxt += [m for a in typing.get_args(t)[:1] for m in members(a)]
             elif isinstance(part, str) and origin is dict:
                 nxt += members(typing.get_args(t)[1])
-            elif isinstance(part, str) and isinstance(t, type) and issubclass(t, BaseModel):
-                inner = members(t.model_fields[part].annotation) if part in t.model_fields else []
-                nxt += inner
-                if not any(isinstance(m, type) and issubclass(m, BaseModel) for m in inner):
-                    nxt.append(t)  # maybe a union's tag, not a key (walls.0.builtin.size): stay on the member
+            elif isinstance(part, str) and isinstance(t, type) and issubclass(t, BaseModel) and part in t.model_fields:
+                nxt += members(t.model_fields[part].annotation)
         level = nxt
     return {name for t in level if isinstance(t, type) and issubclass(t, BaseModel)
             for name, f in t.model_fields.items() for name in (name, f.alias) if name}
@@ -274,12 +271,6 @@ def _first_error(err: ValidationError, prefix: tuple, lines: _Lines, model: Any 
     # the field it was probably meant to be ("fluid.spacng: unknown key (did you mean spacing?)"), from the
     # model's own fields (a --set typo or an optional field misspelt leaves nothing missing)
     e = next((x for x in errors if x["type"] == "extra_forbidden"), errors[0])
-    hint = ""
-    if e["type"] == "extra_forbidden" and isinstance(e["loc"][-1], str):
-        missing = [str(x["loc"][-1]) for x in errors if x["type"] == "missing" and x["loc"][:-1] == e["loc"][:-1]]
-        known = sorted(_model_fields(model, tuple(e["loc"][:-1]))) if model is not None else []
-        close = difflib.get_close_matches(e["loc"][-1], missing, n=1) or difflib.get_close_matches(e["loc"][-1], known, n=1)
-        hint = f" (did you mean {close[0]}?)" if close else ""
     loc = prefix + tuple(e["loc"])
     # pydantic puts the union tag into loc (walls.0.builtin.size): drop tags that are not keys (only in the
     # lists of unions: a sink's 'box' is a key)
@@ -292,6 +283,13 @@ def _first_error(err: ValidationError, prefix: tuple, lines: _Lines, model: Any 
             continue  # pydantic's union member tags (scale: float | Vec3)
         clean.append(p)
     loc = tuple(clean)
+    hint = ""
+    if e["type"] == "extra_forbidden" and isinstance(loc[-1], str):
+        missing = [str(x["loc"][-1]) for x in errors if x["type"] == "missing" and x["loc"][:-1] == e["loc"][:-1]]
+        # the model's keys where the unknown one is (the union tags dropped: every member's keys)
+        known = sorted(_model_fields(model, loc[len(prefix):-1])) if model is not None else []
+        close = difflib.get_close_matches(loc[-1], missing, n=1) or difflib.get_close_matches(loc[-1], known, n=1)
+        hint = f" (did you mean {close[0]}?)" if close else ""
     msg = e["msg"]
     if e["type"] == "extra_forbidden":
         msg = "unknown key"
