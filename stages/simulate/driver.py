@@ -250,7 +250,7 @@ class SolverBase:
                 k = int(self.inflow_layers[i])
                 self.inflow_layers[i] += 1
                 x, v = jet.layer(k, self.t, self.gravity)
-                if inflow_blocked(x, np.concatenate([self.x, *xs]) if xs else self.x, jet):
+                if inflow_blocked(x, [self.x, *xs], jet):
                     if self.inflow_skipped[i] == 0 and self.log is not None:
                         self.log.warning("inflow %d blocked at t = %.4g s: a layer would land on the fluid and is "
                                          "skipped (counted in the statistics as inflow_skipped_layers)", i, self.t)

@@ -73,8 +73,8 @@ class Inflow:
         # a layer is blocked where landing it packs it denser than the free jet packs its own layers (one
         # period behind the last: layers N_disc l0^3 / (pi r^2) apart), or than the fluid at rest spacing
         # (inflow_blocked)
-        self.max_crowding = max(1.0, crowding(self.rest_disc, self.rest_disc + self.speed * self.period
-                                              * self.direction, self.l0)) + 0.02
+        self.max_crowding = max(1.0, crowding(self.rest_disc, [self.rest_disc + self.speed * self.period
+                                                               * self.direction], self.l0)) + 0.02
 
     def frame_at(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """The emitter's centre and direction at time t (carried by the wall it is attached to)."""
@@ -143,12 +143,13 @@ class Inflow:
         return math.pi * self.radius ** 2 * self.speed
 
 
-def inflow_blocked(layer: np.ndarray, x: np.ndarray, jet: Inflow) -> bool:
-    """Would ``layer`` land on the fluid ``x``? Where it lands denser than the jet's ``max_crowding`` (a
+def inflow_blocked(layer: np.ndarray, fluid: list[np.ndarray], jet: Inflow) -> bool:
+    """Would ``layer`` land on the ``fluid`` (the particles, and the layers emitted before it in this
+    step)? Where it lands denser than the jet's ``max_crowding`` (a
     nozzle half a spacing above a puddle, its layer in the puddle's hollows 0.9 l0 from the nearest
     particle): the first step's pressure would throw it and the puddle out at several times the jet's
     speed (3 x the jet's 0.5 m/s, 3.7 x its specific energy, under a nozzle 0.55 l0 above resting water)."""
-    return crowding(layer, x, jet.l0) > jet.max_crowding
+    return crowding(layer, fluid, jet.l0) > jet.max_crowding
 
 
 @dataclass
@@ -190,17 +191,17 @@ def _lattice_sum() -> float:
 LATTICE_SUM = _lattice_sum()  # the number density of the l0 lattice, support 2 l0
 
 
-def crowding(new: np.ndarray, x: np.ndarray, l0: float) -> float:
+def crowding(new: np.ndarray, others: list[np.ndarray], l0: float) -> float:
     """The largest number density among the points of ``new`` (a cubic spline of support 2 l0 over the
-    points of ``new`` and ``x``), relative to the l0 lattice's: 1 is fluid at rest spacing, a free layer
-    about 0.7. Only the points of x in the bounding box of ``new`` (grown by 2 l0) are summed: O(N) once,
-    then a small k-d tree."""
+    points of ``new`` and of each array in ``others``), relative to the l0 lattice's: 1 is fluid at rest
+    spacing, a free layer about 0.7. Only the points in the bounding box of ``new`` (grown by 2 l0) are
+    summed: O(N) once, no copy of the fluid, then a small k-d tree."""
     if len(new) == 0:
         return 0.0
     from scipy.spatial import cKDTree
     reach = 2.0 * l0
     lo, hi = new.min(axis=0) - reach, new.max(axis=0) + reach
-    pts = np.concatenate([new, x[np.all((x >= lo) & (x <= hi), axis=1)]])
+    pts = np.concatenate([new] + [x[np.all((x >= lo) & (x <= hi), axis=1)] for x in others])
     tree = cKDTree(pts)
     dist = tree.sparse_distance_matrix(cKDTree(new), reach, output_type="coo_matrix")
     sums = np.zeros(len(new))  # (each point's own zero distance is among the pairs)
