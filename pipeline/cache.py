@@ -72,6 +72,17 @@ def check_env() -> None:
     tmp_max_age()
     default_lock_timeout()
 
+def file_in_the_way(path: Path) -> Path | None:
+    """The closest existing ancestor of ``path`` when it is not a folder (a file, or a link to none), else
+    None: ``path`` could not be created below it (a user's file named ``out`` beside the config)."""
+    for parent in Path(path).parents:
+        if parent.is_dir():
+            return None
+        if parent.exists() or parent.is_symlink():
+            return parent
+    return None
+
+
 log = logging.getLogger("pipeline")
 
 
@@ -159,12 +170,10 @@ class Cache:
         self.root = Path(os.path.abspath(root))
         if self.root.exists() and not self.root.is_dir():
             raise ConfigError(f"cache folder {self.root} is a file, not a folder (choose another with --cache)")
-        for parent in self.root.parents:
-            if parent.is_dir():
-                break
-            if parent.exists() or parent.is_symlink():
-                raise ConfigError(f"cache folder {self.root} cannot be made: {parent} is a file, not a folder "
-                                  f"(choose another with --cache)")
+        blocker = file_in_the_way(self.root)
+        if blocker is not None:
+            raise ConfigError(f"cache folder {self.root} cannot be made: {blocker} is a file, not a folder "
+                              f"(choose another with --cache)")
         check_env()  # before anything is swept or waited for
         self.lock_timeout = default_lock_timeout() if lock_timeout is None else float(lock_timeout)
 

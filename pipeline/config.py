@@ -18,6 +18,7 @@ import yaml
 from pydantic import BaseModel, ValidationError
 
 from .errors import ConfigError, RegistryError
+from .reads import annotation_members, is_model
 from .registry import Registry
 from .scene import SceneConfig
 from .stage import STAGE_KINDS, Params, Stage
@@ -241,28 +242,19 @@ def _model_fields(model: Any, loc: tuple) -> set[str]:
     and dicts), for the "did you mean" of an unknown key; empty when unknown."""
     import typing
 
-    def members(t: Any) -> list:
-        origin = typing.get_origin(t)
-        if origin is typing.Annotated:
-            return members(typing.get_args(t)[0])
-        if origin in (typing.Union, getattr(__import__("types"), "UnionType", None)):
-            return [m for a in typing.get_args(t) for m in members(a)]
-        return [t]
-
-    level = members(model)
+    level = annotation_members(model)
     for part in loc:
         nxt: list = []
         for t in level:
             origin = typing.get_origin(t)
             if isinstance(part, int) and origin in (list, tuple):
-                nxt += [m for a in typing.get_args(t)[:1] for m in members(a)]
+                nxt += [m for a in typing.get_args(t)[:1] for m in annotation_members(a)]
             elif isinstance(part, str) and origin is dict:
-                nxt += members(typing.get_args(t)[1])
-            elif isinstance(part, str) and isinstance(t, type) and issubclass(t, BaseModel) and part in t.model_fields:
-                nxt += members(t.model_fields[part].annotation)
+                nxt += annotation_members(typing.get_args(t)[1])
+            elif isinstance(part, str) and is_model(t) and part in t.model_fields:
+                nxt += annotation_members(t.model_fields[part].annotation)
         level = nxt
-    return {name for t in level if isinstance(t, type) and issubclass(t, BaseModel)
-            for name, f in t.model_fields.items() for name in (name, f.alias) if name}
+    return {name for t in level if is_model(t) for name, f in t.model_fields.items() for name in (name, f.alias) if name}
 
 
 def _first_error(err: ValidationError, prefix: tuple, lines: _Lines, model: Any = None) -> ConfigError:

@@ -19,7 +19,7 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any, Iterable
 
-from .cache import owner_is_dead, owner_tag, parse_owner_tag
+from .cache import file_in_the_way, owner_is_dead, owner_tag, parse_owner_tag
 from .errors import PipelineError
 from .graph import Graph
 from .stage import Artifact
@@ -96,17 +96,6 @@ def _files(path: Path) -> list[str]:
 
 
 # -- the promise -------------------------------------------------------------------------------------
-def file_in_the_way(path: Path) -> Path | None:
-    """The closest existing ancestor of ``path`` when it is not a folder (a file, or a link to none), else
-    None: ``path`` could not be created below it (a user's file named ``out`` beside the config)."""
-    for parent in Path(path).parents:
-        if parent.is_dir():
-            return None
-        if parent.exists() or parent.is_symlink():
-            return parent
-    return None
-
-
 def check_out_dir(out_dir: Path, names: Iterable[str], files: Iterable[str] = ("run.json",)) -> None:
     """Raise OutputRefused (exit 2) unless every name the run will publish can be written: absent, or
     published by the pipeline and holding only files it published. ``files``: the names published as

@@ -28,17 +28,24 @@ class UndeclaredRead(LookupError):
 
 
 # -- declarations ----------------------------------------------------------------------------------
-def _model_of(annotation: Any) -> type[BaseModel] | None:
-    """The pydantic model behind an annotation (Optional and Annotated unwrapped), else None."""
+def annotation_members(annotation: Any) -> list:
+    """The types an annotation stands for: Annotated unwrapped, a union's members each."""
     origin = typing.get_origin(annotation)
     if origin is typing.Annotated:
-        return _model_of(typing.get_args(annotation)[0])
+        return annotation_members(typing.get_args(annotation)[0])
     if origin in (typing.Union, types.UnionType):
-        models = [m for a in typing.get_args(annotation) if (m := _model_of(a)) is not None]
-        return models[0] if len(models) == 1 else None
-    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
-        return annotation
-    return None
+        return [m for a in typing.get_args(annotation) for m in annotation_members(a)]
+    return [annotation]
+
+
+def is_model(t: Any) -> bool:
+    return isinstance(t, type) and issubclass(t, BaseModel)
+
+
+def _model_of(annotation: Any) -> type[BaseModel] | None:
+    """The pydantic model behind an annotation (Optional and Annotated unwrapped), else None."""
+    models = [m for m in annotation_members(annotation) if is_model(m)]
+    return models[0] if len(models) == 1 else None
 
 
 def check_read(path: str) -> None:
