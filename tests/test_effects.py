@@ -120,6 +120,40 @@ def test_surface_tension_rounds_a_cube_in_zero_gravity():
     assert out["tension"][1] < r0 - 0.5 * l0, (r0, out)  # the corners round off
 
 
+def test_a_droplet_in_millimetres_runs_with_its_own_sound_speed(tmp_path):
+    """A droplet scene as a user writes it (no gravity, no sound_speed): the sound speed and the blow-up
+    bound used to come from gravity and the emitters only (0.01 m/s and sqrt(g l0) = 0.07 m/s at 0.5 mm), so
+    the shipped configs/droplet.yaml stopped at frame 1 as a 'blow-up' when its corners rounded off at 0.7 m/s.
+    The capillary speed counts now; the cube must become the ball of its volume (rms radius R sqrt(3/5))."""
+    import json
+
+    import yaml
+
+    import pipeline
+    from pipeline import Registry
+
+    config = tmp_path / "drop.yaml"
+    config.write_text(yaml.safe_dump({
+        "config_version": 1,
+        "scene": {"name": "drop", "units": {"meters_per_unit": 0.001, "up_axis": "Z"}, "frames": {"fps": 500, "count": 21}},
+        "walls": [{"builtin": "box_tank", "size": [16, 16, 16], "center": [0, 0, 0]}],
+        "fluid": {"spacing": 0.5, "emitters": [{"box": {"min": [-3, -3, -3], "max": [3, 3, 3]}}]},
+        "effects": {"surface_tension": {"gamma": 0.0728}},
+        "stages": {"simulate": {"use": "sph"}}, "outputs": ["particles"]}))
+    report = pipeline.run(config, registry=Registry.from_entry_points(), cache_dir=tmp_path / "cache",
+                          out_dir=tmp_path / "out")
+    sim = next(s for s in report.stages if s.kind == "simulate")
+    folder = Path(report.cache) / "simulate" / sim.key[:2] / sim.key
+    from stages.common.formats import load_particle_frame
+
+    p = load_particle_frame(folder, 20)  # 0.04 s: 1.5 capillary times sqrt(rho R^3 / gamma)
+    r = np.linalg.norm(p.x - p.x.mean(axis=0), axis=1)
+    ball = (3 * len(p.x) * 0.5 ** 3 / (4 * math.pi)) ** (1 / 3)  # mm
+    assert abs(np.sqrt((r ** 2).mean()) / (ball * math.sqrt(0.6)) - 1) < 0.03, (np.sqrt((r ** 2).mean()), ball)
+    assert r.max() < ball + 0.5, (r.max(), ball)  # the corners pulled in: the cube's reach 3 sqrt(3) = 5.2 mm
+    assert json.loads((folder / "meta.json").read_text())["stats"]["left_domain"] == 0
+
+
 # -- walls -------------------------------------------------------------------------------------------
 def test_adhesion_holds_a_film_under_a_ceiling():
     """One layer of water under the box's ceiling, gravity down: with adhesion (240 m/s^2 at contact for

@@ -69,7 +69,7 @@ class _SetupView:
     def __getattr__(self, name):
         s = self.scene
         return {"v": s.v, "x": s.x, "gravity": s.gravity, "domain": None, "sdf": s.sdf, "spacing": s.l0, "inflows": [],
-                "bodies": []}[name]
+                "bodies": [], "effects": None, "density": 1000.0}[name]
 
 
 class _Quiet:
