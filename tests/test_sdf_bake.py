@@ -251,3 +251,35 @@ def test_winding_sign_keeps_interpenetrating_parts_inside_where_parity_does_not(
         wrong[sign] = (int(np.sum(np.sign(d[off]) != -np.sign(depth[off]))), int(np.sum(d[overlap] > 0)))
     assert wrong["winding"] == (0, 0), wrong
     assert wrong["parity"][1] > 0.5 * overlap.sum(), wrong  # the case the option exists for
+
+
+@pytest.mark.parametrize("inner", ["outward", "inward", "two overlapping"])
+def test_winding_sign_makes_a_nested_closed_obstacle_solid_in_a_container(tmp_path, inner):
+    """A tank (fluid inside) holding a cube that stands on its floor, one file, the tank wound outward
+    and the cube either way: wound outward as it would be exported alone, w = 2 in the cube, which
+    |w| > 1/2 called fluid; the cube is a cavity of the container, as parity has it. Two overlapping
+    outward cubes in the tank are one solid obstacle, overlap included (parity: fluid there, three
+    crossings), as the interpenetrating parts of the test above are a union."""
+    tank = trimesh.creation.box(extents=[0.6, 0.6, 0.5]).apply_translation([0, 0, 0.25])
+    cubes = [trimesh.creation.box(extents=[0.2, 0.2, 0.2]).apply_translation([0, 0, 0.1])]
+    if inner == "inward":
+        cubes[0].invert()
+    if inner == "two overlapping":
+        cubes.append(trimesh.creation.box(extents=[0.2, 0.2, 0.2]).apply_translation([0.1, 0, 0.1]))
+    trimesh.util.concatenate([tank, *cubes]).export(tmp_path / "nested.obj")
+    probes = np.array([[0, 0, 0.1], [0.05, -0.05, 0.15],  # in the cube (the second: in both): solid
+                       [0, 0, 0.35], [0.2, 0.2, 0.1], [-0.2, 0.0, 0.02]])  # tank interior: fluid
+    got = {}
+    for sign in ("parity", "winding"):
+        g, wm = _bake(tmp_path / sign, [{"file": str(tmp_path / "nested.obj"), "fluid": "inside"}], sign=sign)
+        assert wm.walls[0]["fluid"] == "inside"
+        got[sign], _ = g.sample(probes)
+    if inner == "two overlapping":  # (0, 0, 0.1) is on the second cube's face
+        assert got["parity"][1] > 0, got  # why the winding number is offered
+        d = got["winding"]
+        assert d[1] < 0 and np.all(d[2:] > 0), d
+        return
+    for sign, d in got.items():
+        assert d[0] == pytest.approx(-min(0.1, g.band), abs=2e-3), (sign, d)  # 0.1 from the cube's faces
+        assert np.all(d[:2] < 0) and np.all(d[2:] > 0), (sign, d)
+    np.testing.assert_allclose(got["winding"], got["parity"], atol=1e-4)

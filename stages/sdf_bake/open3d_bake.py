@@ -157,13 +157,80 @@ def exact_signed_distance(fields: list[WallField], pts: np.ndarray) -> np.ndarra
     return d
 
 
+def shell_depths(tri: np.ndarray) -> np.ndarray | None:
+    """Nesting depth of each triangle of ``tri`` (T, 3, 3): how many closed shells hold its part
+    (vertices welded where equal; a part is a connected set of triangles; a closed shell is a part
+    whose every edge is met once each way). Part c lies in closed shell d when every one of c's
+    triangle centroids, moved a hair into c, has |w_d| > 1/2 (so an obstacle standing on a tank's floor
+    counts, two interpenetrating parts do not); parts that hold each other (duplicates) do not count.
+    None when nothing is nested (the common case)."""
+    import igl
+    from scipy import sparse
+    from scipy.sparse.csgraph import connected_components
+
+    if len(tri) < 8:
+        return None
+    verts, inv = np.unique(tri.reshape(-1, 3), axis=0, return_inverse=True)
+    faces = inv.reshape(-1, 3).astype(np.int64)
+    nv = len(verts)
+    e = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+    graph = sparse.coo_matrix((np.ones(len(e), np.int8), (e[:, 0], e[:, 1])), shape=(nv, nv))
+    n_parts, vlabel = connected_components(graph, directed=False)
+    part = vlabel[faces[:, 0]]
+    if n_parts < 2:
+        return None
+    key = e[:, 0] * nv + e[:, 1]
+    uniq, counts = np.unique(key, return_counts=True)
+    rev = e[:, 1] * nv + e[:, 0]
+    at = np.minimum(np.searchsorted(uniq, rev), len(uniq) - 1)
+    good = (counts[np.searchsorted(uniq, key)] == 1) & (uniq[at] == rev) & (counts[at] == 1)
+    closed = np.ones(n_parts, np.bool_)
+    closed[part[~good.reshape(-1, 3).all(axis=1)]] = False
+    shells = np.flatnonzero(closed)
+    if len(shells) == 0:
+        return None
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    vol = np.bincount(part, np.einsum("ij,ij->i", tri[:, 0], cross), minlength=n_parts)  # 6 x signed volume
+    lo = np.full((n_parts, 3), np.inf)
+    hi = np.full((n_parts, 3), -np.inf)
+    np.minimum.at(lo, part, tri.min(axis=1))
+    np.maximum.at(hi, part, tri.max(axis=1))
+    eps = 1e-3 * np.linalg.norm(hi - lo, axis=1)
+    unit = cross / np.maximum(np.linalg.norm(cross, axis=1, keepdims=True), 1e-300)
+    probe = tri.mean(axis=1) - (np.sign(vol) * eps)[part][:, None] * unit  # a hair into the part
+    holds = {}  # (d, c): closed shell d holds part c
+    for d in shells:
+        cand = np.flatnonzero(np.all(lo >= lo[d] - eps[d], axis=1) & np.all(hi <= hi[d] + eps[d], axis=1))
+        cand = cand[cand != d]
+        if len(cand) == 0:
+            continue
+        sel = np.flatnonzero(np.isin(part, cand))
+        own = tri[part == d].reshape(-1, 3)
+        w = np.abs(igl.fast_winding_number(own.astype(np.float64), np.arange(len(own), dtype=np.int64).reshape(-1, 3),
+                                           np.ascontiguousarray(probe[sel], np.float64)))
+        outside = np.zeros(n_parts, np.bool_)
+        outside[part[sel][w <= 0.5]] = True
+        for c in cand[~outside[cand]]:
+            holds[(int(d), int(c))] = True
+    depth = np.zeros(n_parts, np.int64)
+    for d, c in holds:
+        if (c, d) not in holds:
+            depth[c] += 1
+    return depth[part] if depth.any() else None
+
+
 def winding_inside(tri: np.ndarray, origin: np.ndarray, h: float, shape: tuple[int, int, int],
                    near: np.ndarray) -> np.ndarray:
     """Inside/outside of the triangles ``tri`` (T, 3, 3) at every node by the generalized winding number
     (Jacobson et al. 2013; Barill et al. 2018's fast approximation, libigl): |w| > 1/2 is inside, for
-    either orientation; holes, flipped or duplicated faces and self-intersections move w only near
-    them. Evaluated at the ``near`` (band) nodes and at one node of each connected region of the
-    others: such a region does not touch the wall, so w is the same all over it."""
+    either orientation, so interpenetrating parts make a union. A closed shell nested in another
+    (an obstacle in a tank, each wound as it would be exported alone: w = 2 in it) is a cavity: the
+    triangles are split by nesting depth (``shell_depths``) and the levels' insides alternate (XOR),
+    as parity does, whichever way the inner shell is wound. Holes, flipped or duplicated faces move w
+    by the solid angle they subtend: small defects matter only near them, but a large share of
+    flipped faces (half of a sphere's) takes w towards 0 everywhere. Evaluated at the ``near`` (band)
+    nodes and at one node of each connected region of the others: such a region does not touch the
+    wall, so w is the same all over it."""
     import igl
     from scipy import ndimage
 
@@ -173,8 +240,12 @@ def winding_inside(tri: np.ndarray, origin: np.ndarray, h: float, shape: tuple[i
     reps = first[flat[first] > 0]  # one node per far region (label 0: the band)
     idx = np.concatenate([np.flatnonzero(near.reshape(-1)), reps])
     pts = origin + h * np.stack(np.unravel_index(idx, shape), axis=1).astype(np.float64)
-    faces = np.arange(3 * len(tri), dtype=np.int64).reshape(-1, 3)
-    w = np.abs(igl.fast_winding_number(np.ascontiguousarray(tri.reshape(-1, 3), np.float64), faces, pts)) > 0.5
+    depth = shell_depths(tri)
+    levels = [tri] if depth is None else [tri[depth == k] for k in np.unique(depth)]
+    w = np.zeros(len(idx), np.bool_)
+    for part in levels:
+        faces = np.arange(3 * len(part), dtype=np.int64).reshape(-1, 3)
+        w ^= np.abs(igl.fast_winding_number(np.ascontiguousarray(part.reshape(-1, 3), np.float64), faces, pts)) > 0.5
     region = np.zeros(n + 1, np.bool_)
     region[flat[reps]] = w[len(idx) - len(reps):]
     inside = region[flat]
