@@ -396,7 +396,8 @@ class SurfaceTension(Model):
     symmetric correction K_ij = 2 rho0 / (rho_i + rho_j). ``gamma`` is converted to the model's
     constant with the Kirkwood-Buff integral of the cohesion pair force over a uniform fluid."""
 
-    gamma: float = Field(0.0728, ge=0, description="surface tension coefficient, N/m (water 0.0728)")
+    gamma: float = Field(0.0728, ge=0, le=10.0, description="surface tension coefficient, N/m (water 0.0728; at most "
+                         "10, 4 x any liquid's (molten metals 1-2.5): the sound speed and the step follow sqrt(gamma))")
 
 
 class WallAdhesion(Model):

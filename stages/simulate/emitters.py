@@ -74,7 +74,7 @@ def _mesh_points(em: MeshEmitter, l0: float, resolve: Callable[[str], Path], met
     path = resolve(em.mesh)
     v, faces, closed = _read_mesh(em, path, meters_per_unit, up_axis)
     v = apply_placement(v, em)
-    pts = lattice(v.min(axis=0) - 0.5 * l0, v.max(axis=0) + 0.5 * l0, l0)  # centred on the mesh's box
+    pts = lattice(v.min(axis=0), v.max(axis=0), l0)  # centred in the mesh's box, l0 / 2 inside a box mesh's faces
     if not closed:
         log.warning("fluid emitter mesh %s is not closed: filled where its winding number exceeds 1/2 (an open "
                     "container up to its rim)", path)
