@@ -145,7 +145,7 @@ class TrimeshImport(Stage):
 
     kind = "mesh_import"
     name = "trimesh"
-    version = "4"
+    version = "5"
     Params = ImportParams
     outputs = ("walls",)
     reads = ("scene.units", "walls", "fluid.spacing")  # fluid.spacing: a shell's default thickness

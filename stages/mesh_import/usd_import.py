@@ -89,7 +89,10 @@ def _animation(stage, prim, codes: list[float]) -> tuple[np.ndarray, np.ndarray]
         cache.SetTime(Usd.TimeCode(c))
         mats.append(np.asarray(cache.GetLocalToWorldTransform(prim), np.float64).T)  # pxr: row vectors
     rest_inv = np.linalg.inv(mats[0])
-    return np.asarray(every) / float(stage.GetTimeCodesPerSecond()), np.array([m @ rest_inv for m in mats])
+    # the shot starts at startTimeCode (studios use 1001), as in camera.py: code start is time 0
+    start = stage.GetStartTimeCode() if stage.HasAuthoredMetadata("startTimeCode") else 0.0
+    times = (np.asarray(every) - start) / float(stage.GetTimeCodesPerSecond())
+    return times, np.array([m @ rest_inv for m in mats])
 
 
 def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str,
@@ -204,6 +207,6 @@ class UsdImport(TrimeshImport):
     """Wall meshes from OpenUSD stages (and built-ins / mesh files, as ``trimesh`` does)."""
 
     name = "usd"
-    version = "2"
+    version = "3"
     default = False
     description = "walls from OpenUSD UsdGeom.Mesh prims (world transforms, units, up axis)"

@@ -1,0 +1,69 @@
+"""mesh_import: assets as studios and DCCs write them (shots from code 1001, point instancers, polygon
+soups welded by distance, OBJ relative indices and free layout)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.stage import StageError
+from pipeline.testing import run_stage
+from stages.common.formats import WallMesh
+from stages.common.motion import RigidMotion
+from stages.mesh_import.trimesh_import import TrimeshImport
+
+SCENE = {"name": "t", "units": {"meters_per_unit": 1.0, "up_axis": "Z"}}
+CUBE_COUNTS = [4] * 6
+CUBE_INDICES = [0, 3, 2, 1, 4, 5, 6, 7, 0, 1, 5, 4, 1, 2, 6, 5, 2, 3, 7, 6, 3, 0, 4, 7]
+
+
+def _import(tmp_path, walls, **params):
+    out = run_stage(TrimeshImport, tmp_path / "out", scene={"scene": SCENE, "walls": walls}, params=params,
+                    config_dir=tmp_path)
+    return WallMesh.load(out)
+
+
+def _cube_points(h):
+    return [(x, y, z) for z in (-h, h) for x, y in ((-h, -h), (h, -h), (h, h), (-h, h))]
+
+
+def _define_cube(stage, path, h=0.05):
+    from pxr import UsdGeom
+
+    mesh = UsdGeom.Mesh.Define(stage, path)
+    mesh.CreatePointsAttr(_cube_points(h))
+    mesh.CreateFaceVertexCountsAttr(CUBE_COUNTS)
+    mesh.CreateFaceVertexIndicesAttr(CUBE_INDICES)
+    return mesh
+
+
+def _new_stage(path):
+    from pxr import Usd, UsdGeom
+
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    return stage
+
+
+def test_usd_animation_from_code_1001_moves_as_from_code_0(tmp_path):
+    """A shot authored from startTimeCode 1001 starts at time 0: the wall keyed 0.1 m over 30 codes at
+    30 codes/s is at 0.05 m after 0.5 s, as the same wall keyed from code 0 (it stood still for 33 s)."""
+    from pxr import Gf, UsdGeom
+
+    poses = {}
+    for start in (0, 1001):
+        stage = _new_stage(tmp_path / f"anim{start}.usda")
+        stage.SetStartTimeCode(start)
+        stage.SetEndTimeCode(start + 30)
+        stage.SetTimeCodesPerSecond(30)
+        op = UsdGeom.Xform.Define(stage, "/World/Mover").AddTranslateOp()
+        op.Set(Gf.Vec3d(0, 0, 0), start)
+        op.Set(Gf.Vec3d(0.1, 0, 0), start + 30)
+        _define_cube(stage, "/World/Mover/Cube")
+        stage.GetRootLayer().Save()
+        motion = RigidMotion.from_json(_import(tmp_path, [{"usd": f"anim{start}.usda"}]).walls[0]["motion"])
+        poses[start] = [motion.pose(t) for t in (0.0, 0.5, 1.0)]
+    np.testing.assert_allclose(poses[1001][1][1], [0.05, 0, 0], atol=1e-9)
+    for a, b in zip(poses[0], poses[1001]):
+        np.testing.assert_allclose(a[0], b[0], atol=1e-12)
+        np.testing.assert_allclose(a[1], b[1], atol=1e-12)
