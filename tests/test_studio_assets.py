@@ -67,3 +67,21 @@ def test_usd_animation_from_code_1001_moves_as_from_code_0(tmp_path):
     for a, b in zip(poses[0], poses[1001]):
         np.testing.assert_allclose(a[0], b[0], atol=1e-12)
         np.testing.assert_allclose(a[1], b[1], atol=1e-12)
+
+
+def test_a_polygon_soup_with_float_noise_across_a_rounding_boundary_welds_closed(tmp_path):
+    """A cube exported as a triangle soup, each corner written once per triangle with noise of a few 1e-9
+    (under the weld tolerance, 1e-7 of the 0.17 diagonal) around 0.05000005, where rounding to 7 digits
+    splits it: every copy is welded, the cube is closed (8 vertices) and a solid, not an open shell."""
+    h = 0.05000005  # half-way between 0.0500000 and 0.0500001
+    v = np.array(_cube_points(h))
+    tris = np.array(CUBE_INDICES).reshape(-1, 4)[:, [0, 1, 2, 0, 2, 3]].reshape(-1, 3)
+    lines = []
+    for k, t in enumerate(tris):
+        jitter = 2e-9 if k % 2 else -2e-9  # neighbouring triangles' copies on either side of the boundary
+        lines += [f"v {x + jitter:.12f} {y + jitter:.12f} {z + jitter:.12f}" for x, y, z in v[t]]
+    lines += [f"f {3 * k + 1} {3 * k + 2} {3 * k + 3}" for k in range(len(tris))]
+    (tmp_path / "soup.obj").write_text("\n".join(lines) + "\n")
+    wall = _import(tmp_path, [{"file": "soup.obj"}]).walls[0]
+    assert wall["report"]["vertices"] == 8 and wall["report"]["welded_vertices"] == 28
+    assert wall["report"]["watertight"] and wall["fluid"] == "outside"
