@@ -85,3 +85,42 @@ def test_a_polygon_soup_with_float_noise_across_a_rounding_boundary_welds_closed
     wall = _import(tmp_path, [{"file": "soup.obj"}]).walls[0]
     assert wall["report"]["vertices"] == 8 and wall["report"]["welded_vertices"] == 28
     assert wall["report"]["watertight"] and wall["fluid"] == "outside"
+
+
+def _cube_obj(face_vertex, sep=" ", indent="", comment=""):
+    v = [f"{indent}v{sep}{sep.join(f'{c:g}' for c in p)}{comment}" for p in _cube_points(0.1)]
+    extra = [f"{indent}vt 0 0", f"{indent}vn 0 0 1"]
+    quads = np.array(CUBE_INDICES).reshape(-1, 4)
+    f = [f"{indent}f{sep}{sep.join(face_vertex(i) for i in q)}{comment}" for q in quads]
+    return "\n".join(v + extra + f) + "\n"
+
+
+@pytest.mark.parametrize("name, text", [
+    ("negidx_vn", _cube_obj(lambda i: f"{i - 8}//-1")),
+    ("negidx_vtvn", _cube_obj(lambda i: f"{i - 8}/-1/-1")),
+    ("tabs", _cube_obj(lambda i: str(i + 1), sep="\t")),
+    ("indent", _cube_obj(lambda i: str(i + 1), indent="  ")),
+    ("comment", _cube_obj(lambda i: str(i + 1), comment="  # corner")),
+])
+def test_valid_obj_layouts_import_as_the_plain_file(tmp_path, name, text):
+    """Relative indices with /vt or /vn, tabs, indented lines and trailing comments are valid OBJ (trimesh
+    refused or misread them): the cube comes in as the plain-index file's does."""
+    (tmp_path / "plain.obj").write_text(_cube_obj(lambda i: str(i + 1)))
+    (tmp_path / f"{name}.obj").write_text(text)
+    plain = _import(tmp_path, [{"file": "plain.obj"}])
+    wm = _import(tmp_path, [{"file": f"{name}.obj"}])
+    assert wm.walls[0]["report"]["watertight"] and wm.walls[0]["report"]["faces"] == 12
+    np.testing.assert_array_equal(wm.vertices, plain.vertices)
+    np.testing.assert_array_equal(_triangles(wm.faces), _triangles(plain.faces))  # trimesh orders them otherwise
+
+
+def _triangles(f):
+    """The triangles as a set: each rotated to start at its smallest index (winding kept), rows sorted."""
+    f = np.array([np.roll(t, -int(np.argmin(t))) for t in f])
+    return f[np.lexsort(f.T[::-1])]
+
+
+def test_obj_relative_index_out_of_range_names_the_file(tmp_path):
+    (tmp_path / "bad.obj").write_text(_cube_obj(lambda i: f"{i - 9}//-1"))
+    with pytest.raises(StageError, match=r"bad\.obj: .*out of range"):
+        _import(tmp_path, [{"file": "bad.obj"}])
