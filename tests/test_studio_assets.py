@@ -124,3 +124,61 @@ def test_obj_relative_index_out_of_range_names_the_file(tmp_path):
     (tmp_path / "bad.obj").write_text(_cube_obj(lambda i: f"{i - 9}//-1"))
     with pytest.raises(StageError, match=r"bad\.obj: .*out of range"):
         _import(tmp_path, [{"file": "bad.obj"}])
+
+
+def _instancer_and_meshes(tmp_path, animated=False):
+    """A Y-up centimetre stage with a PointInstancer (under a moved Xform; its cube prototype has its own
+    offset) of two instances, one turned and scaled; and the same two cubes as plain meshes placed by
+    xformOps (an instance: scale, then turn, then move, after the prototype root's own transform)."""
+    from pxr import Gf, UsdGeom, Vt
+
+    pos = [Gf.Vec3f(0, 10, 0), Gf.Vec3f(50, 10, 0)]
+    rot = [Gf.Quatf(1, 0, 0, 0), Gf.Quatf(Gf.Rotation(Gf.Vec3d(0, 1, 0), 90).GetQuat())]
+    scale = [Gf.Vec3f(1, 1, 1), Gf.Vec3f(2, 1, 1)]
+    for name in ("inst", "meshes"):
+        stage = _new_stage(tmp_path / f"{name}.usda")
+        UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+        UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+        UsdGeom.Xform.Define(stage, "/World").AddTranslateOp().Set(Gf.Vec3d(0, 0, -20))
+        if name == "inst":
+            pi = UsdGeom.PointInstancer.Define(stage, "/World/PI")
+            proto = _define_cube(stage, "/World/PI/Protos/Cube", h=10)
+            proto.AddTranslateOp().Set(Gf.Vec3d(300, 0, 0))  # part of each instance's transform
+            pi.CreatePrototypesRel().SetTargets([proto.GetPath()])
+            pi.CreateProtoIndicesAttr([0, 0])
+            pi.CreateOrientationsfAttr(Vt.QuatfArray(rot))
+            pi.CreateScalesAttr(Vt.Vec3fArray(scale))
+            pi.CreatePositionsAttr(Vt.Vec3fArray(pos))
+            if animated:
+                pi.GetPositionsAttr().Set(Vt.Vec3fArray(pos), 0)
+                pi.GetPositionsAttr().Set(Vt.Vec3fArray([p + Gf.Vec3f(0, 5, 0) for p in pos]), 10)
+        else:
+            for k in range(2):
+                cube = _define_cube(stage, f"/World/C{k}", h=10)
+                cube.AddTranslateOp().Set(Gf.Vec3d(pos[k]))
+                cube.AddOrientOp().Set(rot[k])
+                cube.AddScaleOp().Set(scale[k])
+                cube.AddTranslateOp(opSuffix="proto").Set(Gf.Vec3d(300, 0, 0))
+        stage.GetRootLayer().Save()
+
+
+def test_point_instancer_instances_are_walls_placed_as_meshes_would_be(tmp_path):
+    """Each instance of a PointInstancer is a wall mesh where the instancer puts it (units and up axis
+    converted as for other meshes); the prototype itself is no wall (it came in alone, at its own place)."""
+    _instancer_and_meshes(tmp_path)
+    inst = _import(tmp_path, [{"usd": "inst.usda"}])
+    meshes = _import(tmp_path, [{"usd": "meshes.usda"}])
+    assert inst.walls[0]["report"]["prims"] == ["/World/PI[0]", "/World/PI[1]"]
+    assert len(inst.faces) == len(meshes.faces) == 24 and inst.walls[0]["report"]["watertight"]
+    gap = np.linalg.norm(inst.vertices[:, None] - meshes.vertices[None], axis=2)  # the same corners (float32 noise)
+    assert gap.min(axis=0).max() < 1e-5 and gap.min(axis=1).max() < 1e-5
+    # metres, Z up: instance 0 at x 2.9..3.1 m, instance 1 (the prototype's 3 m offset doubled, turned) at y 6..6.4 m
+    np.testing.assert_allclose(inst.vertices.min(axis=0), [0.4, 0.1, 0.0], atol=1e-6)
+    np.testing.assert_allclose(inst.vertices.max(axis=0), [3.1, 6.4, 0.2], atol=1e-6)
+
+
+def test_an_animated_point_instancer_is_refused_in_one_line(tmp_path):
+    _instancer_and_meshes(tmp_path, animated=True)
+    with pytest.raises(StageError, match=r"inst\.usda:/World/PI: a PointInstancer with animated positions") as e:
+        _import(tmp_path, [{"usd": "inst.usda"}])
+    assert "\n" not in str(e.value)
