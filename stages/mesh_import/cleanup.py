@@ -18,9 +18,10 @@ def clean_mesh(mesh: trimesh.Trimesh, weld_tolerance: float) -> tuple[trimesh.Tr
     """
     import trimesh  # imported where used: a cached run or `pipeline status` need not load it (~1 s)
     report: dict[str, Any] = {"vertices_in": int(len(mesh.vertices)), "faces_in": int(len(mesh.faces))}
-    m = trimesh.Trimesh(np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64), process=False)
-    n_v = len(m.vertices)
-    m.merge_vertices(merge_tex=True, merge_norm=True, digits_vertex=_digits(weld_tolerance))
+    v = np.asarray(mesh.vertices, np.float64)
+    keep, inverse = weld(v, weld_tolerance)
+    m = trimesh.Trimesh(v[keep], inverse[np.asarray(mesh.faces, np.int64)], process=False)
+    n_v = len(v)
     m.remove_unreferenced_vertices()
     report["welded_vertices"] = int(n_v - len(m.vertices))
 
@@ -51,8 +52,26 @@ def clean_mesh(mesh: trimesh.Trimesh, weld_tolerance: float) -> tuple[trimesh.Tr
     return m, report
 
 
-def _digits(tolerance: float) -> int:
-    return int(max(0, np.floor(-np.log10(max(tolerance, 1e-15)))))
+def weld(vertices: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+    """(kept (K,) vertex indices, (N,) index into kept of each vertex): every pair closer than
+    ``tolerance`` is one vertex, chains of them too (the first vertex of each cluster stays). Rounding to
+    decimal digits left duplicates a float32 ulp apart unwelded where they straddled a rounding boundary."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    n = len(vertices)
+    pairs = cKDTree(vertices).query_pairs(tolerance, output_type="ndarray") if n else np.zeros((0, 2), np.int64)
+    if len(pairs) == 0:
+        return np.arange(n), np.arange(n)
+    # clusters of the "closer than tolerance" graph (union-find): labels in order of first vertex
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    _, keep, inverse = np.unique(label, return_index=True, return_inverse=True)
+    order = np.argsort(keep)  # kept vertices in file order
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    return keep[order], rank[inverse.reshape(-1)]
 
 
 def _largest_hole(vertices: np.ndarray, boundary: np.ndarray) -> float:

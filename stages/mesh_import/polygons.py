@@ -180,18 +180,19 @@ def _ear_clip(xy, starts, counts):
 _OBJ_NGON = re.compile(rb"^[ \t]*f[ \t]+\S+[ \t]+\S+[ \t]+\S+[ \t]+\S", re.M)  # a face of 4 or more vertices
 
 
-def obj_polygons(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+def obj_polygons(data: bytes, triangles_too: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """(vertices, counts, indices) of the faces of an OBJ file's bytes, every object and group alike; None
-    when every face is a triangle. Only ``v`` and ``f`` lines count; a face vertex ``a``, ``a/t``,
-    ``a//n`` or ``a/t/n`` is vertex ``a``, counted from 1, or from the last vertex so far when negative.
-    Raises ValueError on an index out of range."""
-    if _OBJ_NGON.search(data) is None:
+    when every face is a triangle (unless ``triangles_too``). Only ``v`` and ``f`` lines count, tokens split at
+    any white space, ``#`` starting a comment anywhere; a face vertex ``a``, ``a/t``, ``a//n`` or ``a/t/n`` is
+    vertex ``a``, counted from 1, or from the last vertex so far when negative. Raises ValueError on an
+    index out of range."""
+    if not triangles_too and _OBJ_NGON.search(data) is None:
         return None
     verts: list[list[bytes]] = []
     counts: list[int] = []
     indices: list[int] = []
     for line in data.splitlines():
-        tok = line.split()
+        tok = line.split(b"#", 1)[0].split()
         if not tok:
             continue
         if tok[0] == b"v":

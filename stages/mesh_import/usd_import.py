@@ -60,14 +60,14 @@ def _triangulate(counts: np.ndarray, indices: np.ndarray, holes: np.ndarray, whe
     return tris[keep[face_of_tri]]
 
 
-def _sample_codes(prim) -> list[float]:
-    """The time codes at which the xformOps of ``prim`` or any ancestor are sampled (sorted; empty when
-    its world transform is static)."""
+def _sample_codes(prim, stop=None) -> list[float]:
+    """The time codes at which the xformOps of ``prim`` or any ancestor (below ``stop``) are sampled (sorted;
+    empty when its world transform is static)."""
     from pxr import UsdGeom
 
     codes: set[float] = set()
     p = prim
-    while p and p.IsValid() and not p.IsPseudoRoot():
+    while p and p.IsValid() and not p.IsPseudoRoot() and p != stop:
         if p.IsA(UsdGeom.Xformable):
             for op in UsdGeom.Xformable(p).GetOrderedXformOps():
                 codes.update(op.GetAttr().GetTimeSamples())
@@ -89,7 +89,65 @@ def _animation(stage, prim, codes: list[float]) -> tuple[np.ndarray, np.ndarray]
         cache.SetTime(Usd.TimeCode(c))
         mats.append(np.asarray(cache.GetLocalToWorldTransform(prim), np.float64).T)  # pxr: row vectors
     rest_inv = np.linalg.inv(mats[0])
-    return np.asarray(every) / float(stage.GetTimeCodesPerSecond()), np.array([m @ rest_inv for m in mats])
+    # the shot starts at startTimeCode (studios use 1001), as in camera.py: code start is time 0
+    start = stage.GetStartTimeCode() if stage.HasAuthoredMetadata("startTimeCode") else 0.0
+    times = (np.asarray(every) - start) / float(stage.GetTimeCodesPerSecond())
+    return times, np.array([m @ rest_inv for m in mats])
+
+
+def _instances(stage, instancer, path: Path, hidden_too: bool) -> list[tuple]:
+    """(prototype mesh, name, (4, 4) row-vector matrix mesh -> instancer space) of every instance of a
+    PointInstancer (each mesh of its prototype), at its earliest time; instances masked by inactiveIds or
+    invisibleIds are left out, and meshes hidden within their prototype unless ``hidden_too``. An animated
+    instancer (its per-instance arrays, or a prototype's xformOps, time-sampled) is refused rather than
+    frozen; the instancer's own transform may move (a rigid wall)."""
+    from pxr import Usd, UsdGeom
+
+    pi = UsdGeom.PointInstancer(instancer)
+    where = f"{path}:{instancer.GetPath()}"
+    animated = [n for n in pi.GetSchemaAttributeNames(False) if instancer.GetAttribute(n).GetNumTimeSamples() > 1]
+    if animated:
+        raise StageError(f"{where}: a PointInstancer with animated {', '.join(animated)} cannot be a wall "
+                         "(walls move rigidly; bake it to meshes)")
+    t = Usd.TimeCode.EarliestTime()
+    xforms = pi.ComputeInstanceTransformsAtTime(t, t, UsdGeom.PointInstancer.IncludeProtoXform,
+                                                UsdGeom.PointInstancer.IgnoreMask)
+    protos = [stage.GetPrimAtPath(q) for q in pi.GetPrototypesRel().GetForwardedTargets()]
+    index = list(pi.GetProtoIndicesAttr().Get(t) or [])
+    if len(xforms) != len(index) or any(i < 0 or i >= len(protos) or not protos[i] for i in index):
+        raise StageError(f"{where}: PointInstancer's protoIndices, positions or prototypes do not match")
+    mask = list(pi.ComputeMaskAtTime(t))
+    cache = UsdGeom.XformCache(t)
+    parts: dict[int, list] = {}  # prototype -> [(mesh, name suffix, mesh -> prototype root's own frame)]
+    for i in set(index):
+        root = protos[i]
+        # the instance transform includes the prototype root's own xformOps: place meshes relative to the root
+        to_root = np.linalg.inv(np.asarray(cache.GetLocalToWorldTransform(root), np.float64))
+        parts[i] = []
+        for mesh in Usd.PrimRange(root, Usd.TraverseInstanceProxies()):
+            if not mesh.IsA(UsdGeom.Mesh) or (not hidden_too and _hidden_below(mesh, root)):
+                continue
+            if _sample_codes(mesh, stop=root.GetParent()):
+                raise StageError(f"{where}: prototype {mesh.GetPath()} is animated; an instancer wall must be static "
+                                 "(bake it to meshes)")
+            suffix = "" if mesh == root else "/" + str(mesh.GetPath().MakeRelativePath(root.GetPath()))
+            parts[i].append((mesh, suffix, np.asarray(cache.GetLocalToWorldTransform(mesh), np.float64) @ to_root))
+    return [(mesh, f"{instancer.GetPath()}[{k}]{suffix}", m @ np.asarray(xf, np.float64))
+            for k, (xf, i) in enumerate(zip(xforms, index)) if not mask or mask[k] for mesh, suffix, m in parts[i]]
+
+
+def _hidden_below(prim, root) -> bool:
+    """A prototype's mesh made invisible within the prototype (the prototype's ancestors do not count: a
+    scope hiding prototypes does not hide the instances)."""
+    from pxr import Usd, UsdGeom
+
+    p = prim
+    while True:
+        if UsdGeom.Imageable(p).GetVisibilityAttr().Get(Usd.TimeCode.EarliestTime()) == UsdGeom.Tokens.invisible:
+            return True
+        if p == root:
+            return False
+        p = p.GetParent()
 
 
 def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str,
@@ -135,18 +193,32 @@ def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str,
     meshes = [p for p in chosen if p.IsA(UsdGeom.Mesh)]
     purposes = {p: UsdGeom.Imageable(p).ComputePurpose() for p in meshes}
     left_out = {p: "purpose guide" for p in meshes if purposes[p] == UsdGeom.Tokens.guide}
+    # a PointInstancer's prototypes are no walls themselves (the /** traversal picked them up at the
+    # prototype's own place and dropped the instances): each instance is, placed as the instancer places it
+    owner = {}
+    for pi in (p for p in prims if p.IsA(UsdGeom.PointInstancer)):
+        roots = [pi.GetPath(), *UsdGeom.PointInstancer(pi).GetPrototypesRel().GetForwardedTargets()]
+        owner.update({p: pi for p in prims if p != pi and p not in owner
+                      and any(p.GetPath().HasPrefix(r) for r in roots)})
+    left_out.update({p: f"prototype of {owner[p].GetPath()}" for p in meshes if p in owner})
+    items = [(p, None) for p in meshes]
+    for pi in (p for p in chosen if p.IsA(UsdGeom.PointInstancer) and p not in owner):
+        if wall.include_invisible or UsdGeom.Imageable(pi).ComputeVisibility() != UsdGeom.Tokens.invisible:
+            items += [(m, (pi, name, xf)) for m, name, xf in _instances(stage, pi, path, wall.include_invisible)]
     if any(purposes[p] == UsdGeom.Tokens.render for p in meshes):
         left_out.update({p: "purpose proxy beside render meshes" for p in meshes if purposes[p] == UsdGeom.Tokens.proxy})
     first = Usd.TimeCode.EarliestTime()  # the default value, or the earliest sample of a prim with samples only
-    for prim in meshes:
+    for prim, instance in items:
         img = UsdGeom.Imageable(prim)
-        if prim in left_out:
+        if instance is None and prim in left_out:
             continue
-        if not wall.include_invisible and img.ComputeVisibility(Usd.TimeCode.Default()) == UsdGeom.Tokens.invisible:
+        if (instance is None and not wall.include_invisible
+                and img.ComputeVisibility(Usd.TimeCode.Default()) == UsdGeom.Tokens.invisible):
             left_out[prim] = "invisible"
             continue
         mesh = UsdGeom.Mesh(prim)
-        where = f"{path}:{prim.GetPath()}"
+        name = str(prim.GetPath()) if instance is None else instance[1]
+        where = f"{path}:{name}"
         pts = np.asarray(mesh.GetPointsAttr().Get(first) or [], np.float64).reshape(-1, 3)
         counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get(first) or [], np.int64)
         idx = np.asarray(mesh.GetFaceVertexIndicesAttr().Get(first) or [], np.int64)
@@ -164,8 +236,9 @@ def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str,
         tris = _triangulate(counts, idx, holes, where, pts)
         if mesh.GetOrientationAttr().Get() == UsdGeom.Tokens.leftHanded:
             tris = tris[:, ::-1]
-        codes = _sample_codes(prim)
-        moves = _animation(stage, prim, codes) if codes else None
+        mover = prim if instance is None else instance[0]  # an instance moves with its instancer
+        codes = _sample_codes(mover)
+        moves = _animation(stage, mover, codes) if codes else None
         if moves is not None and np.allclose(moves[1], np.eye(4), rtol=0, atol=1e-12):
             moves = None  # sampled but standing still (e.g. a single sample): a static wall
         if used and not _same_motion(animation, moves):
@@ -174,7 +247,9 @@ def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str,
         animation = moves
         if codes:  # the rest pose: the earliest sample
             cache.SetTime(Usd.TimeCode(codes[0]))
-        world = np.asarray(cache.GetLocalToWorldTransform(prim), np.float64)  # row-vector convention
+        world = np.asarray(cache.GetLocalToWorldTransform(mover), np.float64)  # row-vector convention
+        if instance is not None:
+            world = instance[2] @ world
         cache.SetTime(Usd.TimeCode.Default())
         p = pts @ world[:3, :3] + world[3, :3]
         if np.linalg.det(world[:3, :3]) < 0:  # a mirroring transform flips the winding
@@ -182,7 +257,7 @@ def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str,
         verts.append(p @ to_scene.T)
         faces.append(tris + offset)
         offset += len(p)
-        used.append(str(prim.GetPath()))
+        used.append(name)
     if left_out and log is not None and used:
         log.info("%s: left out %s", path, ", ".join(f"{p.GetPath()} ({why})" for p, why in left_out.items()))
     if not used:
@@ -204,6 +279,6 @@ class UsdImport(TrimeshImport):
     """Wall meshes from OpenUSD stages (and built-ins / mesh files, as ``trimesh`` does)."""
 
     name = "usd"
-    version = "2"
+    version = "3"
     default = False
     description = "walls from OpenUSD UsdGeom.Mesh prims (world transforms, units, up axis)"

@@ -1,0 +1,184 @@
+"""mesh_import: assets as studios and DCCs write them (shots from code 1001, point instancers, polygon
+soups welded by distance, OBJ relative indices and free layout)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.stage import StageError
+from pipeline.testing import run_stage
+from stages.common.formats import WallMesh
+from stages.common.motion import RigidMotion
+from stages.mesh_import.trimesh_import import TrimeshImport
+
+SCENE = {"name": "t", "units": {"meters_per_unit": 1.0, "up_axis": "Z"}}
+CUBE_COUNTS = [4] * 6
+CUBE_INDICES = [0, 3, 2, 1, 4, 5, 6, 7, 0, 1, 5, 4, 1, 2, 6, 5, 2, 3, 7, 6, 3, 0, 4, 7]
+
+
+def _import(tmp_path, walls, **params):
+    out = run_stage(TrimeshImport, tmp_path / "out", scene={"scene": SCENE, "walls": walls}, params=params,
+                    config_dir=tmp_path)
+    return WallMesh.load(out)
+
+
+def _cube_points(h):
+    return [(x, y, z) for z in (-h, h) for x, y in ((-h, -h), (h, -h), (h, h), (-h, h))]
+
+
+def _define_cube(stage, path, h=0.05):
+    from pxr import UsdGeom
+
+    mesh = UsdGeom.Mesh.Define(stage, path)
+    mesh.CreatePointsAttr(_cube_points(h))
+    mesh.CreateFaceVertexCountsAttr(CUBE_COUNTS)
+    mesh.CreateFaceVertexIndicesAttr(CUBE_INDICES)
+    return mesh
+
+
+def _new_stage(path):
+    from pxr import Usd, UsdGeom
+
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    return stage
+
+
+def test_usd_animation_from_code_1001_moves_as_from_code_0(tmp_path):
+    """A shot authored from startTimeCode 1001 starts at time 0: the wall keyed 0.1 m over 30 codes at
+    30 codes/s is at 0.05 m after 0.5 s, as the same wall keyed from code 0 (it stood still for 33 s)."""
+    from pxr import Gf, UsdGeom
+
+    poses = {}
+    for start in (0, 1001):
+        stage = _new_stage(tmp_path / f"anim{start}.usda")
+        stage.SetStartTimeCode(start)
+        stage.SetEndTimeCode(start + 30)
+        stage.SetTimeCodesPerSecond(30)
+        op = UsdGeom.Xform.Define(stage, "/World/Mover").AddTranslateOp()
+        op.Set(Gf.Vec3d(0, 0, 0), start)
+        op.Set(Gf.Vec3d(0.1, 0, 0), start + 30)
+        _define_cube(stage, "/World/Mover/Cube")
+        stage.GetRootLayer().Save()
+        motion = RigidMotion.from_json(_import(tmp_path, [{"usd": f"anim{start}.usda"}]).walls[0]["motion"])
+        poses[start] = [motion.pose(t) for t in (0.0, 0.5, 1.0)]
+    np.testing.assert_allclose(poses[1001][1][1], [0.05, 0, 0], atol=1e-9)
+    for a, b in zip(poses[0], poses[1001]):
+        np.testing.assert_allclose(a[0], b[0], atol=1e-12)
+        np.testing.assert_allclose(a[1], b[1], atol=1e-12)
+
+
+def test_a_polygon_soup_with_float_noise_across_a_rounding_boundary_welds_closed(tmp_path):
+    """A cube exported as a triangle soup, each corner written once per triangle with noise of a few 1e-9
+    (under the weld tolerance, 1e-7 of the 0.17 diagonal) around 0.05000005, where rounding to 7 digits
+    splits it: every copy is welded, the cube is closed (8 vertices) and a solid, not an open shell."""
+    h = 0.05000005  # half-way between 0.0500000 and 0.0500001
+    v = np.array(_cube_points(h))
+    tris = np.array(CUBE_INDICES).reshape(-1, 4)[:, [0, 1, 2, 0, 2, 3]].reshape(-1, 3)
+    lines = []
+    for k, t in enumerate(tris):
+        jitter = 2e-9 if k % 2 else -2e-9  # neighbouring triangles' copies on either side of the boundary
+        lines += [f"v {x + jitter:.12f} {y + jitter:.12f} {z + jitter:.12f}" for x, y, z in v[t]]
+    lines += [f"f {3 * k + 1} {3 * k + 2} {3 * k + 3}" for k in range(len(tris))]
+    (tmp_path / "soup.obj").write_text("\n".join(lines) + "\n")
+    wall = _import(tmp_path, [{"file": "soup.obj"}]).walls[0]
+    assert wall["report"]["vertices"] == 8 and wall["report"]["welded_vertices"] == 28
+    assert wall["report"]["watertight"] and wall["fluid"] == "outside"
+
+
+def _cube_obj(face_vertex, sep=" ", indent="", comment=""):
+    v = [f"{indent}v{sep}{sep.join(f'{c:g}' for c in p)}{comment}" for p in _cube_points(0.1)]
+    extra = [f"{indent}vt 0 0", f"{indent}vn 0 0 1"]
+    quads = np.array(CUBE_INDICES).reshape(-1, 4)
+    f = [f"{indent}f{sep}{sep.join(face_vertex(i) for i in q)}{comment}" for q in quads]
+    return "\n".join(v + extra + f) + "\n"
+
+
+@pytest.mark.parametrize("name, text", [
+    ("negidx_vn", _cube_obj(lambda i: f"{i - 8}//-1")),
+    ("negidx_vtvn", _cube_obj(lambda i: f"{i - 8}/-1/-1")),
+    ("tabs", _cube_obj(lambda i: str(i + 1), sep="\t")),
+    ("indent", _cube_obj(lambda i: str(i + 1), indent="  ")),
+    ("comment", _cube_obj(lambda i: str(i + 1), comment="  # corner")),
+])
+def test_valid_obj_layouts_import_as_the_plain_file(tmp_path, name, text):
+    """Relative indices with /vt or /vn, tabs, indented lines and trailing comments are valid OBJ (trimesh
+    refused or misread them): the cube comes in as the plain-index file's does."""
+    (tmp_path / "plain.obj").write_text(_cube_obj(lambda i: str(i + 1)))
+    (tmp_path / f"{name}.obj").write_text(text)
+    plain = _import(tmp_path, [{"file": "plain.obj"}])
+    wm = _import(tmp_path, [{"file": f"{name}.obj"}])
+    assert wm.walls[0]["report"]["watertight"] and wm.walls[0]["report"]["faces"] == 12
+    np.testing.assert_array_equal(wm.vertices, plain.vertices)
+    np.testing.assert_array_equal(_triangles(wm.faces), _triangles(plain.faces))  # trimesh orders them otherwise
+
+
+def _triangles(f):
+    """The triangles as a set: each rotated to start at its smallest index (winding kept), rows sorted."""
+    f = np.array([np.roll(t, -int(np.argmin(t))) for t in f])
+    return f[np.lexsort(f.T[::-1])]
+
+
+def test_obj_relative_index_out_of_range_names_the_file(tmp_path):
+    (tmp_path / "bad.obj").write_text(_cube_obj(lambda i: f"{i - 9}//-1"))
+    with pytest.raises(StageError, match=r"bad\.obj: .*out of range"):
+        _import(tmp_path, [{"file": "bad.obj"}])
+
+
+def _instancer_and_meshes(tmp_path, animated=False):
+    """A Y-up centimetre stage with a PointInstancer (under a moved Xform; its cube prototype has its own
+    offset) of two instances, one turned and scaled; and the same two cubes as plain meshes placed by
+    xformOps (an instance: scale, then turn, then move, after the prototype root's own transform)."""
+    from pxr import Gf, UsdGeom, Vt
+
+    pos = [Gf.Vec3f(0, 10, 0), Gf.Vec3f(50, 10, 0)]
+    rot = [Gf.Quatf(1, 0, 0, 0), Gf.Quatf(Gf.Rotation(Gf.Vec3d(0, 1, 0), 90).GetQuat())]
+    scale = [Gf.Vec3f(1, 1, 1), Gf.Vec3f(2, 1, 1)]
+    for name in ("inst", "meshes"):
+        stage = _new_stage(tmp_path / f"{name}.usda")
+        UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+        UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+        UsdGeom.Xform.Define(stage, "/World").AddTranslateOp().Set(Gf.Vec3d(0, 0, -20))
+        if name == "inst":
+            pi = UsdGeom.PointInstancer.Define(stage, "/World/PI")
+            proto = _define_cube(stage, "/World/PI/Protos/Cube", h=10)
+            proto.AddTranslateOp().Set(Gf.Vec3d(300, 0, 0))  # part of each instance's transform
+            pi.CreatePrototypesRel().SetTargets([proto.GetPath()])
+            pi.CreateProtoIndicesAttr([0, 0])
+            pi.CreateOrientationsfAttr(Vt.QuatfArray(rot))
+            pi.CreateScalesAttr(Vt.Vec3fArray(scale))
+            pi.CreatePositionsAttr(Vt.Vec3fArray(pos))
+            if animated:
+                pi.GetPositionsAttr().Set(Vt.Vec3fArray(pos), 0)
+                pi.GetPositionsAttr().Set(Vt.Vec3fArray([p + Gf.Vec3f(0, 5, 0) for p in pos]), 10)
+        else:
+            for k in range(2):
+                cube = _define_cube(stage, f"/World/C{k}", h=10)
+                cube.AddTranslateOp().Set(Gf.Vec3d(pos[k]))
+                cube.AddOrientOp().Set(rot[k])
+                cube.AddScaleOp().Set(scale[k])
+                cube.AddTranslateOp(opSuffix="proto").Set(Gf.Vec3d(300, 0, 0))
+        stage.GetRootLayer().Save()
+
+
+def test_point_instancer_instances_are_walls_placed_as_meshes_would_be(tmp_path):
+    """Each instance of a PointInstancer is a wall mesh where the instancer puts it (units and up axis
+    converted as for other meshes); the prototype itself is no wall (it came in alone, at its own place)."""
+    _instancer_and_meshes(tmp_path)
+    inst = _import(tmp_path, [{"usd": "inst.usda"}])
+    meshes = _import(tmp_path, [{"usd": "meshes.usda"}])
+    assert inst.walls[0]["report"]["prims"] == ["/World/PI[0]", "/World/PI[1]"]
+    assert len(inst.faces) == len(meshes.faces) == 24 and inst.walls[0]["report"]["watertight"]
+    gap = np.linalg.norm(inst.vertices[:, None] - meshes.vertices[None], axis=2)  # the same corners (float32 noise)
+    assert gap.min(axis=0).max() < 1e-5 and gap.min(axis=1).max() < 1e-5
+    # metres, Z up: instance 0 at x 2.9..3.1 m, instance 1 (the prototype's 3 m offset doubled, turned) at y 6..6.4 m
+    np.testing.assert_allclose(inst.vertices.min(axis=0), [0.4, 0.1, 0.0], atol=1e-6)
+    np.testing.assert_allclose(inst.vertices.max(axis=0), [3.1, 6.4, 0.2], atol=1e-6)
+
+
+def test_an_animated_point_instancer_is_refused_in_one_line(tmp_path):
+    _instancer_and_meshes(tmp_path, animated=True)
+    with pytest.raises(StageError, match=r"inst\.usda:/World/PI: a PointInstancer with animated positions") as e:
+        _import(tmp_path, [{"usd": "inst.usda"}])
+    assert "\n" not in str(e.value)
