@@ -182,3 +182,27 @@ def test_an_animated_point_instancer_is_refused_in_one_line(tmp_path):
     with pytest.raises(StageError, match=r"inst\.usda:/World/PI: a PointInstancer with animated positions") as e:
         _import(tmp_path, [{"usd": "inst.usda"}])
     assert "\n" not in str(e.value)
+
+
+def test_a_usd_file_without_units_or_up_axis_is_warned_about(tmp_path, caplog):
+    """USD's fallbacks are centimetres and Y up: a cube written in metres by a tool that states neither came
+    in as a 1 mm cube lying on its side, without a word (a user's sweep). Imported by the fallbacks, as USD
+    says, but warned about; a file stating both is not."""
+    import logging
+
+    from pxr import Usd
+
+    bare = Usd.Stage.CreateNew(str(tmp_path / "bare.usda"))
+    _define_cube(bare, "/Cube")
+    bare.GetRootLayer().Save()
+    stated = _new_stage(tmp_path / "stated.usda")
+    _define_cube(stated, "/Cube")
+    stated.GetRootLayer().Save()
+    with caplog.at_level(logging.WARNING):
+        mesh = _import(tmp_path, [{"usd": "bare.usda"}])
+    assert np.allclose(np.ptp(mesh.vertices, axis=0), 0.001)  # 0.1 cm: the fallback, as USD reads it
+    assert any("states no metersPerUnit and no upAxis" in r.getMessage() for r in caplog.records), caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        _import(tmp_path, [{"usd": "stated.usda"}])
+    assert not any("states no" in r.getMessage() for r in caplog.records)

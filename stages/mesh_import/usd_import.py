@@ -171,6 +171,11 @@ def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str,
         raise StageError(f"{path}: cannot open as USD ({str(e).strip().splitlines()[-1][:200]})") from None
     if stage is None:
         raise StageError(f"{path}: cannot open as USD")
+    unstated = [key for key in ("metersPerUnit", "upAxis") if not stage.HasAuthoredMetadata(key)]
+    if unstated and log is not None:
+        # USD's fallbacks are centimetres and Y up: a file written in metres without them comes in 100 x small
+        log.warning("%s states no %s: USD's fallback (%s) is used", path, " and no ".join(unstated),
+                    ", ".join({"metersPerUnit": "centimetres", "upAxis": "Y up"}[k] for k in unstated))
     mpu = float(UsdGeom.GetStageMetersPerUnit(stage))
     to_scene = up_axis_matrix(str(UsdGeom.GetStageUpAxis(stage)), scene_up)[:3, :3] * (mpu / scene_mpu)
 
