@@ -206,3 +206,16 @@ def test_a_usd_file_without_units_or_up_axis_is_warned_about(tmp_path, caplog):
     with caplog.at_level(logging.WARNING):
         _import(tmp_path, [{"usd": "stated.usda"}])
     assert not any("states no" in r.getMessage() for r in caplog.records)
+
+
+def test_a_quad_obj_with_an_inf_coordinate_is_one_line_without_numpy_warnings(tmp_path):
+    """The n-gon triangulation ran on the non-finite points before the check that refuses them, and numpy's
+    RuntimeWarnings were printed above the one-line error."""
+    import warnings
+
+    (tmp_path / "bad.obj").write_text("v 0 0 0\nv 1 0 0\nv 1 1 inf\nv 0 1 0\nv 0 0 1\nf 1 2 3 4\nf 1 2 5\n")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        with pytest.raises(StageError, match="bad.obj: vertex coordinates contain NaN or Inf"):
+            _import(tmp_path, [{"file": "bad.obj"}])
+    assert not [w for w in caught if issubclass(w.category, RuntimeWarning)], [str(w.message) for w in caught]

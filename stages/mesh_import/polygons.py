@@ -35,6 +35,11 @@ def triangulate(points: np.ndarray, counts: np.ndarray, indices: np.ndarray) -> 
     """Triangles ((T, 3) int64 indices into ``points``) of the polygons given as counts (each >= 3) and
     concatenated vertex indices, and (T,) the polygon of each triangle. Every polygon gives counts - 2
     triangles in polygon order, so each triangle's position is that of the plain fan."""
+    with np.errstate(invalid="ignore", over="ignore"):  # NaN / Inf points: the callers refuse them in one line
+        return _triangulate(points, counts, indices)
+
+
+def _triangulate(points: np.ndarray, counts: np.ndarray, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     counts = np.asarray(counts, np.int64)
     indices = np.asarray(indices, np.int64)
     corner, face_of_tri = fan(counts)
