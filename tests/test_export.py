@@ -398,3 +398,41 @@ def test_a_drained_frame_has_usds_empty_extent(tmp_path):
     from stages.export.usd_layers import extent_of
     lo, hi = (np.array(c) for c in extent_of(np.zeros((0, 3), np.float32)))
     assert (lo > hi).all()
+
+
+@pytest.mark.parametrize("translate", [(0.0, 0.0, 0.0), (1.0, 0.0, 0.0)], ids=["sublayered", "referenced"])
+def test_an_asset_animated_from_code_1001_moves_in_step_with_the_shot(tmp_path, translate):
+    """Studios start a shot at code 1001; mesh_import simulates an animated asset from its startTimeCode, so
+    the exported scene must play the asset from there at our code 0 (a layer offset), or the composed wall
+    stands still for 1001 codes and moves 42 s late, away from the fluid it pushed."""
+    stage = Usd.Stage.CreateNew(str(tmp_path / "set.usda"))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    stage.SetStartTimeCode(1001)
+    stage.SetEndTimeCode(1031)
+    stage.SetTimeCodesPerSecond(48)  # not ours (24): USD scales the codes itself
+    root = UsdGeom.Xform.Define(stage, "/Set")
+    stage.SetDefaultPrim(root.GetPrim())
+    box = UsdGeom.Xform.Define(stage, "/Set/Box")
+    op = box.AddTranslateOp()
+    op.Set(Gf.Vec3d(0, 0, 0), 1001)
+    op.Set(Gf.Vec3d(0.3, 0, 0), 1031)
+    stage.GetRootLayer().Save()
+    inputs = folders(tmp_path)
+    to_scene = np.eye(4)
+    to_scene[0, 3] = translate[0]
+    tank_walls(inputs["walls"], (0.0, 0.0, 0.0), {"source": "set.usda", "usd": "set.usda", "prims": ["/Set/Box"],
+                                                   "asset_to_scene": to_scene.ravel().tolist()})
+    surfaces(inputs["surface"], np.array([0.0, 0.0, 0.3]))
+    particles(inputs["particles"], np.array([0.0, 0.0, 0.3]))
+    sc = scene(walls=[{"usd": "set.usda", "prims": ["/Set/Box"], "fluid": "inside", "translate": list(translate)}])
+    # in the asset's frame (the default) the asset is sublayered; in the scene's, moved, it is referenced
+    params = {"fluid_units": "scene"} if any(translate) else {}
+    out = run_stage(UsdExport, tmp_path / "usd", scene=sc, inputs=inputs, config_dir=tmp_path, params=params)
+    composed = Usd.Stage.Open(str(out / "scene.usda"))
+    prim = next(p for p in composed.Traverse() if p.GetName() == "Box")
+    assert (str(prim.GetPath()) == "/Set/Box") == (not any(translate)), prim.GetPath()
+    for code, seconds in ((0, 0.0), (2, 2 / FPS), (3, 3 / FPS)):
+        x = UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(code).ExtractTranslation()[0]
+        # the asset's own pose at its start + seconds: 0.3 m over 30 codes at 48 codes a second
+        assert abs(x - (translate[0] + 0.3 * min(seconds * 48 / 30, 1.0))) < 1e-9, (code, x)

@@ -88,6 +88,18 @@ def _has_own_prims(asset: Path) -> bool:
     return stage.GetPrimAtPath(ROOT).IsValid()
 
 
+def _shot_offset(asset: Path, fps: float):
+    """The layer offset that puts the asset's startTimeCode at our code 0 (studios start shots at 1001;
+    mesh_import simulated the asset's animation from its start), or None when it starts at 0. USD scales
+    the time codes by the two layers' timeCodesPerSecond itself; the offset is in our codes."""
+    from pxr import Sdf, Usd
+
+    stage = Usd.Stage.Open(str(asset), Usd.Stage.LoadNone)
+    if not stage.HasAuthoredMetadata("startTimeCode") or stage.GetStartTimeCode() == 0:
+        return None
+    return Sdf.LayerOffset(-stage.GetStartTimeCode() * fps / stage.GetTimeCodesPerSecond(), 1.0)
+
+
 def _reference_roots(asset: Path, infos: list[dict]) -> list[str | None]:
     """The asset's root prims to reference: its default prim (None) and any other root holding a wall's
     prim; without a default prim, the roots holding the walls (a reference to the missing default prim
@@ -119,7 +131,7 @@ def _safe_name(name: str, used: set[str]) -> str:
 class UsdExport(Stage):
     kind = "export"
     name = "usd"
-    version = "6"
+    version = "7"
     Params = UsdParams
     inputs = ("walls", "particles")
     optional_inputs = ("surface",)
@@ -196,20 +208,26 @@ class UsdExport(Stage):
                                                    progress))
         if self._write_walls(out / "walls.usdc", walls, set(usd_walls), to_target, metrics, frames):
             sublayers.append("./walls.usdc")
-        references: list[tuple[str, np.ndarray, list[str | None]]] = []
+        references: list[tuple[str, np.ndarray, list[str | None], object]] = []
+        offsets: dict[str, object] = {}  # sublayer -> its layer offset
         for asset, asset_to_scene in assets.items():
             rel = self._copy_asset(asset, out / "assets")
             asset_to_target = to_target @ asset_to_scene
+            offset = _shot_offset(asset, scene.frames.fps)
             if np.allclose(asset_to_target, np.eye(4), atol=1e-9) and not _has_own_prims(asset):
                 sublayers.append(f"./{rel}")  # prim paths kept exactly
+                offsets[f"./{rel}"] = offset
             else:
-                references.append((f"./{rel}", asset_to_target, _reference_roots(asset, asset_walls[asset])))
+                references.append((f"./{rel}", asset_to_target, _reference_roots(asset, asset_walls[asset]), offset))
         progress.advance()
 
         # the root: metrics, camera, sublayers (strongest first), assets that need a transform
         root = ul.new_stage(out / "scene.usda", **metrics)
         root.GetRootLayer().subLayerPaths = sublayers
-        for k, (rel, m, prims) in enumerate(references):
+        for i, layer in enumerate(sublayers):
+            if offsets.get(layer) is not None:
+                root.GetRootLayer().subLayerOffsets[i] = offsets[layer]
+        for k, (rel, m, prims, offset) in enumerate(references):
             xf = UsdGeom.Xform.Define(root, f"/World/Asset_{k}")
             if not np.allclose(m, np.eye(4), atol=1e-9):  # an asset referenced only for its /World prims
                 xf.AddTransformOp().Set(ul.to_gf_matrix(m))
@@ -219,10 +237,11 @@ class UsdExport(Stage):
             for j, prim in enumerate(prims):
                 name = "Asset" if j == 0 else _safe_name(prim.lstrip("/"), used)
                 refs = root.DefinePrim(f"/World/Asset_{k}/{name}").GetReferences()
+                shift = offset if offset is not None else Sdf.LayerOffset()
                 if prim is None:
-                    refs.AddReference(rel)
+                    refs.AddReference(rel, shift)
                 else:
-                    refs.AddReference(rel, prim)
+                    refs.AddReference(rel, prim, shift)
         cam = ctx.scene["camera"]
         aspect = params.camera_aspect or (cam.resolution[0] / cam.resolution[1] if cam.resolution else 16 / 9)
 
