@@ -56,8 +56,9 @@ def _time_code(stage, seconds: float):
     has none) and runs at its timeCodesPerSecond."""
     from pxr import Usd
 
-    start = stage.GetStartTimeCode() if stage.HasAuthoredMetadata("startTimeCode") else 0.0
-    return Usd.TimeCode(start + seconds * stage.GetTimeCodesPerSecond())
+    from .usd_stage import shot_start
+
+    return Usd.TimeCode(shot_start(stage) + seconds * stage.GetTimeCodesPerSecond())
 
 
 def usd_camera_moves(path: Path, prim: str | None, who: str = "camera") -> bool:

@@ -6,6 +6,11 @@ from pathlib import Path
 from pxr import Usd, UsdGeom
 
 
+def shot_start(stage: Usd.Stage) -> float:
+    """The time code a file's shot starts at: its startTimeCode (studios use 1001), 0 when it has none."""
+    return stage.GetStartTimeCode() if stage.HasAuthoredMetadata("startTimeCode") else 0.0
+
+
 def new_stage(path: Path, *, up_axis: str, meters_per_unit: float, fps: float, count: int,
               root: str = "World") -> Usd.Stage:
     """A new layer with the stage metrics every layer of ours carries, and its default prim."""

@@ -94,10 +94,11 @@ def _shot_offset(asset: Path, fps: float):
     the time codes by the two layers' timeCodesPerSecond itself; the offset is in our codes."""
     from pxr import Sdf, Usd
 
+    from stages.common.usd_stage import shot_start
+
     stage = Usd.Stage.Open(str(asset), Usd.Stage.LoadNone)
-    if not stage.HasAuthoredMetadata("startTimeCode") or stage.GetStartTimeCode() == 0:
-        return None
-    return Sdf.LayerOffset(-stage.GetStartTimeCode() * fps / stage.GetTimeCodesPerSecond(), 1.0)
+    start = shot_start(stage)
+    return Sdf.LayerOffset(-start * fps / stage.GetTimeCodesPerSecond(), 1.0) if start else None
 
 
 def _reference_roots(asset: Path, infos: list[dict]) -> list[str | None]:

@@ -89,9 +89,9 @@ def _animation(stage, prim, codes: list[float]) -> tuple[np.ndarray, np.ndarray]
         cache.SetTime(Usd.TimeCode(c))
         mats.append(np.asarray(cache.GetLocalToWorldTransform(prim), np.float64).T)  # pxr: row vectors
     rest_inv = np.linalg.inv(mats[0])
-    # the shot starts at startTimeCode (studios use 1001), as in camera.py: code start is time 0
-    start = stage.GetStartTimeCode() if stage.HasAuthoredMetadata("startTimeCode") else 0.0
-    times = (np.asarray(every) - start) / float(stage.GetTimeCodesPerSecond())
+    from stages.common.usd_stage import shot_start
+
+    times = (np.asarray(every) - shot_start(stage)) / float(stage.GetTimeCodesPerSecond())  # the file's shot start is t = 0
     return times, np.array([m @ rest_inv for m in mats])
 
 

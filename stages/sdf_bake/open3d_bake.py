@@ -198,7 +198,7 @@ def shell_depths(tri: np.ndarray) -> np.ndarray | None:
     eps = 1e-3 * np.linalg.norm(hi - lo, axis=1)
     unit = cross / np.maximum(np.linalg.norm(cross, axis=1, keepdims=True), 1e-300)
     probe = tri.mean(axis=1) - (np.sign(vol) * eps)[part][:, None] * unit  # a hair into the part
-    holds = {}  # (d, c): closed shell d holds part c
+    holds: set[tuple[int, int]] = set()  # (d, c): closed shell d holds part c
     for d in shells:
         cand = np.flatnonzero(np.all(lo >= lo[d] - eps[d], axis=1) & np.all(hi <= hi[d] + eps[d], axis=1))
         cand = cand[cand != d]
@@ -210,8 +210,7 @@ def shell_depths(tri: np.ndarray) -> np.ndarray | None:
                                            np.ascontiguousarray(probe[sel], np.float64)))
         outside = np.zeros(n_parts, np.bool_)
         outside[part[sel][w <= 0.5]] = True
-        for c in cand[~outside[cand]]:
-            holds[(int(d), int(c))] = True
+        holds.update((int(d), int(c)) for c in cand[~outside[cand]])
     depth = np.zeros(n_parts, np.int64)
     for d, c in holds:
         if (c, d) not in holds:

@@ -601,20 +601,17 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
     solver.guard = Guard(v_bound=ballistic_speed(setup, getattr(solver, "effects", None)), l0=setup.spacing)
     effects = getattr(solver, "effects", None)
     own = ballistic_speed(setup)  # falling, the emitters and the walls: no effect's
-    tension = capillary_speed(setup.effects, setup.density, setup.spacing)
-    if solver.guard.v_bound > 10.0 * (own + tension):
+    # (surface tension's speed is the scene's own too: a droplet in zero gravity is no misuse)
+    if solver.guard.v_bound > 10.0 * (own + capillary_speed(setup.effects, setup.density, setup.spacing)):
         # an attractor of strength 1e9 in a 0.4 m tank: escape speed 4.5e5 m/s, steps of 1e-7 s, a run of hours
         # that looked hung
         ctx.log.warning("the effects (wind, attractor) allow speeds up to %.3g m/s, %.0f x what falling and the "
                         "emitters give (%.3g m/s): the time steps shrink as much and the run takes that much longer; "
                         "check their strength", solver.guard.v_bound, solver.guard.v_bound / own, own)
-    # surface tension's speed does not lower the floor its own step limit is held to (1e6 N/m would creep on)
-    floor = Guard(v_bound=max(solver.guard.v_bound - tension, math.sqrt(9.81 * setup.spacing)), l0=setup.spacing).dt_floor
-    if effects is not None and effects.dt_limit < floor:
-        # the run would stop at its first step with "the time step fell below the floor", or creep on at steps an
-        # absurd setting asks for (surface tension 1e6 N/m): say which setting
+    if effects is not None and effects.dt_limit < solver.guard.dt_floor:
+        # the run would stop at its first step with "the time step fell below the floor": say which setting
         raise StageError(f"simulate.{solver_name}: {effects.dt_limit_by} needs time steps of {effects.dt_limit:.3g} s, "
-                         f"below this scene's floor of {floor:.3g} s (a blow-up): lower it")
+                         f"below this scene's floor of {solver.guard.dt_floor:.3g} s (a blow-up): lower it")
     if resumed is not None:
         start, state = resumed
         solver.load_state(state)
