@@ -219,3 +219,97 @@ def test_a_quad_obj_with_an_inf_coordinate_is_one_line_without_numpy_warnings(tm
         with pytest.raises(StageError, match="bad.obj: vertex coordinates contain NaN or Inf"):
             _import(tmp_path, [{"file": "bad.obj"}])
     assert not [w for w in caught if issubclass(w.category, RuntimeWarning)], [str(w.message) for w in caught]
+
+
+# (type, attributes in cm, closed volume in cm^3 or the Plane's area in cm^2, local half-extents in cm)
+SHAPES = {
+    "Cube": ({"size": 40.0}, 40.0 ** 3, (20, 20, 20)),
+    "Sphere": ({"radius": 15.0}, 4 / 3 * np.pi * 15 ** 3, (15, 15, 15)),
+    "Cylinder": ({"radius": 10.0, "height": 30.0, "axis": "X"}, np.pi * 100 * 30, (15, 10, 10)),
+    "Cone": ({"radius": 10.0, "height": 30.0, "axis": "Y"}, np.pi * 100 * 30 / 3, (10, 15, 10)),
+    "Capsule": ({"radius": 5.0, "height": 20.0, "axis": "Z"}, np.pi * 25 * 20 + 4 / 3 * np.pi * 125, (5, 5, 15)),
+    "Cylinder_1": ({"radiusBottom": 10.0, "radiusTop": 5.0, "height": 20.0, "axis": "Z"},
+                   np.pi * 20 / 3 * (100 + 50 + 25), (10, 10, 10)),
+    "Plane": ({"width": 40.0, "length": 20.0, "axis": "X"}, 40.0 * 20.0, (0, 10, 20)),
+}
+
+
+@pytest.mark.parametrize("kind", list(SHAPES))
+def test_usd_shapes_are_walls_of_their_own_size_and_place(tmp_path, kind):
+    """A layout's implicit shapes (a Cube floor, a Sphere rock) are walls: tessellated at their schema's
+    size, axis and place (a Y-up centimetre stage under a moved parent, into a metre Z-up scene), closed
+    and outward except the Plane (an open sheet); they were left out without a word."""
+    from pxr import Gf, Usd, UsdGeom
+
+    attrs, measure, half = SHAPES[kind]
+    stage = _new_stage(tmp_path / "set.usda")
+    UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.Xform.Define(stage, "/World").AddTranslateOp().Set(Gf.Vec3d(100, 200, 300))
+    prim = stage.DefinePrim("/World/Shape", kind)
+    UsdGeom.Xformable(prim).AddTranslateOp().Set(Gf.Vec3d(0, 50, 0))
+    for name, value in attrs.items():
+        prim.GetAttribute(name).Set(value)
+    stage.GetRootLayer().Save()
+    mesh = _import(tmp_path, [{"usd": "set.usda"}])
+    assert mesh.walls[0]["report"]["prims"] == ["/World/Shape"]
+    # back to the stage's own frame (cm, Y up: z_scene = y_usd, y_scene = -z_usd), relative to the shape's centre
+    v = mesh.vertices.astype(np.float64) * 100.0
+    local = np.stack([v[:, 0], v[:, 2], -v[:, 1]], axis=1) - [100, 250, 300]
+    np.testing.assert_allclose(np.abs(local).max(axis=0), half, atol=1e-3)
+    tri = local[mesh.faces]
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    if kind == "Plane":
+        assert not mesh.walls[0]["report"]["watertight"]
+        assert 0.5 * np.linalg.norm(cross, axis=1).sum() == pytest.approx(measure, rel=1e-9)
+        assert np.allclose(cross[:, 1:], 0) and (cross[:, 0] > 0).all()  # the normal along +X, the plane's axis
+        return
+    assert mesh.walls[0]["report"]["watertight"]
+    volume = float(np.einsum("ij,ij->i", tri[:, 0], cross).sum() / 6.0)
+    assert volume == pytest.approx(measure, rel=2e-3)  # outward (> 0), the tessellation within 0.2 %
+    if kind == "Sphere":
+        np.testing.assert_allclose(np.linalg.norm(local, axis=1), 15.0, rtol=1e-6)
+    if kind == "Cone":  # the apex is at +height/2 along the axis
+        top = local[:, 1] > 15 - 1e-3
+        assert top.any() and np.abs(local[top][:, [0, 2]]).max() < 1e-3
+
+
+def test_a_shape_with_a_negative_radius_is_refused_in_one_line(tmp_path):
+    from pxr import UsdGeom
+
+    stage = _new_stage(tmp_path / "bad.usda")
+    UsdGeom.Sphere.Define(stage, "/World/Rock").GetRadiusAttr().Set(-1.0)
+    stage.GetRootLayer().Save()
+    with pytest.raises(StageError, match=r"bad\.usda:/World/Rock: Sphere radius -1\.0 must be a positive number") as e:
+        _import(tmp_path, [{"usd": "bad.usda"}])
+    assert "\n" not in str(e.value)
+
+
+@pytest.mark.parametrize("axis", ["X", "invalid"])
+def test_an_up_axis_usd_does_not_allow_is_refused_in_one_line(tmp_path, axis):
+    """usd-wg's upAxis_X and upAxis_invalid: USD allows Y or Z; these were turned as if Z up were Y."""
+    (tmp_path / "x.usda").write_text(f'#usda 1.0\n(\n    upAxis = "{axis}"\n    metersPerUnit = 0.01\n)\n'
+                                     'def Cube "C"\n{\n}\n')
+    with pytest.raises(StageError, match=rf"x\.usda: upAxis '{axis}' is not Y or Z") as e:
+        _import(tmp_path, [{"usd": "x.usda"}])
+    assert "\n" not in str(e.value)
+
+
+def test_a_sublayer_in_other_units_is_read_as_usd_reads_it_and_warned_about(tmp_path, caplog):
+    """usd-wg's metersPerUnit_mix: USD composes with the root layer's metersPerUnit only, so a sublayered
+    metre cube in a centimetre stage is 2 cm wide (as usdview shows it); that trap is said, not hidden."""
+    import logging
+
+    (tmp_path / "metre.usda").write_text('#usda 1.0\n(\n    upAxis = "Z"\n    metersPerUnit = 1\n)\n'
+                                         'def Cube "C"\n{\n}\n')
+    (tmp_path / "shot.usda").write_text('#usda 1.0\n(\n    upAxis = "Z"\n    metersPerUnit = 0.01\n'
+                                        '    subLayers = [@metre.usda@]\n)\n')
+    with caplog.at_level(logging.WARNING):
+        mesh = _import(tmp_path, [{"usd": "shot.usda"}])
+    assert np.allclose(np.ptp(mesh.vertices, axis=0), 0.02)
+    assert any("1 layer(s) state other units" in r.getMessage() and "metre.usda (metersPerUnit 1.0)" in r.getMessage()
+               for r in caplog.records), caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        _import(tmp_path, [{"usd": "metre.usda"}])
+    assert not any("other units" in r.getMessage() for r in caplog.records)

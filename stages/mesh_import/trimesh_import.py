@@ -164,7 +164,7 @@ class TrimeshImport(Stage):
 
     kind = "mesh_import"
     name = "trimesh"
-    version = "5"
+    version = "6"
     Params = ImportParams
     outputs = ("walls",)
     reads = ("scene.units", "walls", "fluid.spacing")  # fluid.spacing: a shell's default thickness

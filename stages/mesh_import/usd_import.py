@@ -1,9 +1,9 @@
 """mesh_import.usd: wall meshes from OpenUSD (.usda/.usdc/.usdz) read with usd-core.
 
-Selects ``UsdGeom.Mesh`` prims by path or glob pattern (``fnmatch``: ``*`` also crosses ``/``, so
-``/World/*`` is every descendant of /World), skips prims whose computed visibility is invisible unless
-the wall sets ``include_invisible``, and never uses non-mesh prims (Xform, Scope, gprims such as
-Cube: tessellate them in the DCC). Each mesh goes to world space through ``UsdGeom.XformCache``
+Selects ``UsdGeom.Mesh`` prims and the implicit shapes (Cube, Sphere, Cylinder, Cone, Capsule, Plane:
+tessellated here) by path or glob pattern (``fnmatch``: ``*`` also crosses ``/``, so ``/World/*`` is
+every descendant of /World), skips prims whose computed visibility is invisible unless the wall sets
+``include_invisible``, and never uses other prims (Xform, Scope, curves, points). Each mesh goes to world space through ``UsdGeom.XformCache``
 (nested xformOps, resetXformStack), n-gons are triangulated from faceVertexCounts (ear clipping where a fan would cross a concave face), faces listed in
 ``holeIndices`` are dropped, left-handed meshes are re-wound, and the points are converted to the
 scene's units and up axis from the stage's metersPerUnit (USD's fallback: centimetres) and upAxis.
@@ -14,6 +14,7 @@ scene mixing kinds works with either; it exists so a config can name the USD rea
 from __future__ import annotations
 
 import fnmatch
+import math
 from pathlib import Path
 
 import numpy as np
@@ -58,6 +59,98 @@ def _triangulate(counts: np.ndarray, indices: np.ndarray, holes: np.ndarray, whe
         keep[holes[(holes >= 0) & (holes < len(counts))]] = False
     tris, face_of_tri = triangulate(points, counts, indices)
     return tris[keep[face_of_tri]]
+
+
+# UsdGeom's implicit shapes a layout places without a mesh (a Cube floor, Sphere rocks): tessellated here
+# finely enough that the distance field is the shape's own (sagitta <= 2e-4 of the radius)
+GPRIMS = ("Cube", "Sphere", "Cylinder", "Cylinder_1", "Cone", "Capsule", "Capsule_1", "Plane")
+_SECTIONS = 160
+_SHAPE_ATTRS = ("size", "radius", "radiusTop", "radiusBottom", "height", "width", "length", "axis")
+
+
+def _is_shape(prim) -> bool:
+    from pxr import UsdGeom
+
+    return prim.IsA(UsdGeom.Mesh) or prim.GetTypeName() in GPRIMS
+
+
+def _shape_triangles(prim, t, where: str, log) -> tuple[np.ndarray, np.ndarray] | None:
+    """A Mesh or gprim as (points, outward triangles) in its own frame at time ``t``; None for a mesh
+    without points or faces. An animated shape is read at ``t`` (walls move rigidly only)."""
+    from pxr import UsdGeom
+
+    if prim.IsA(UsdGeom.Mesh):
+        mesh = UsdGeom.Mesh(prim)
+        pts = np.asarray(mesh.GetPointsAttr().Get(t) or [], np.float64).reshape(-1, 3)
+        counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get(t) or [], np.int64)
+        idx = np.asarray(mesh.GetFaceVertexIndicesAttr().Get(t) or [], np.int64)
+        holes = np.asarray(mesh.GetHoleIndicesAttr().Get(t) or [], np.int64)
+        if len(pts) == 0 or len(counts) == 0:
+            return None
+        animated = "points" if mesh.GetPointsAttr().GetNumTimeSamples() > 1 else ""
+        if not np.isfinite(pts).all():
+            raise StageError(f"{where}: points contain NaN or Inf")
+        if len(idx) and (idx.min() < 0 or idx.max() >= len(pts)):
+            raise StageError(f"{where}: face vertex index {int(idx.max())} out of range (mesh has {len(pts)} points)")
+        tris = _triangulate(counts, idx, holes, where, pts)
+    else:
+        attrs = {n: prim.GetAttribute(n) for n in _SHAPE_ATTRS if prim.GetAttribute(n)}
+        animated = ", ".join(n for n, a in attrs.items() if a.GetNumTimeSamples() > 1)
+        pts, tris = _gprim_triangles(prim.GetTypeName(), {n: a.Get(t) for n, a in attrs.items()}, where)
+    if animated and log is not None:
+        log.warning("%s: its %s are animated (a deforming shape); the wall is its shape at the first sample "
+                    "(walls move rigidly only)", where, animated)
+    if UsdGeom.Gprim(prim).GetOrientationAttr().Get() == UsdGeom.Tokens.leftHanded:
+        tris = tris[:, ::-1]
+    return pts, tris
+
+
+def _gprim_triangles(kind: str, a: dict, where: str) -> tuple[np.ndarray, np.ndarray]:
+    """The UsdGeom schema's shape (its attributes ``a``; the schema's fallbacks where unauthored): centred
+    on the origin, round shapes about ``axis``; a Plane is an open sheet (a shell), the rest closed."""
+    import trimesh
+
+    def size(name: str, fallback: float) -> float:
+        v = a.get(name)
+        v = fallback if v is None else float(v)
+        if not (math.isfinite(v) and v > 0):
+            raise StageError(f"{where}: {kind} {name} {v} must be a positive number")
+        return v
+
+    axis = str(a.get("axis") or "Z")
+    if kind == "Cube":
+        m = trimesh.creation.box(extents=[size("size", 2.0)] * 3)
+        return m.vertices, m.faces
+    if kind == "Sphere":
+        m = trimesh.creation.icosphere(subdivisions=5, radius=size("radius", 1.0))
+        return m.vertices, m.faces
+    if kind == "Plane":
+        w, l = size("width", 2.0) / 2, size("length", 2.0) / 2
+        # width and length along (z, y) for axis X, (x, z) for Y, (x, y) for Z; the normal along +axis
+        corners = {"X": [[0, -l, w], [0, -l, -w], [0, l, -w], [0, l, w]],
+                   "Y": [[-w, 0, -l], [-w, 0, l], [w, 0, l], [w, 0, -l]],
+                   "Z": [[-w, -l, 0], [w, -l, 0], [w, l, 0], [-w, l, 0]]}[axis]
+        return np.array(corners, np.float64), np.array([[0, 1, 2], [0, 2, 3]])
+    h = size("height", 1.0 if kind.startswith("Capsule") else 2.0) / 2
+    r_fallback = 0.5 if kind.startswith("Capsule") else 1.0
+    if kind.endswith("_1"):
+        bottom, top = size("radiusBottom", r_fallback), size("radiusTop", r_fallback)
+    else:
+        bottom = size("radius", r_fallback)
+        top = 0.0 if kind == "Cone" else bottom
+    # a profile (radius, height) from the axis back to it, turned about z
+    if kind.startswith("Capsule"):  # hemispheres of their radii on the ends of the spine
+        q = np.linspace(0.0, np.pi / 2, _SECTIONS // 4 + 1)
+        profile = np.concatenate([np.c_[bottom * np.sin(q), -h - bottom * np.cos(q)],
+                                  np.c_[top * np.cos(q), h + top * np.sin(q)]])
+    else:
+        profile = np.array([[0.0, -h], [bottom, -h], [top, h], [0.0, h]])
+    m = trimesh.creation.revolve(profile, sections=_SECTIONS)
+    m.merge_vertices()
+    v = m.vertices
+    # turn z onto the axis (a cyclic permutation: a rotation, the winding stays outward)
+    v = {"X": v[:, [2, 0, 1]], "Y": v[:, [1, 2, 0]], "Z": v}[axis]
+    return np.ascontiguousarray(v), m.faces
 
 
 def _sample_codes(prim, stop=None) -> list[float]:
@@ -125,7 +218,7 @@ def _instances(stage, instancer, path: Path, hidden_too: bool) -> list[tuple]:
         to_root = np.linalg.inv(np.asarray(cache.GetLocalToWorldTransform(root), np.float64))
         parts[i] = []
         for mesh in Usd.PrimRange(root, Usd.TraverseInstanceProxies()):
-            if not mesh.IsA(UsdGeom.Mesh) or (not hidden_too and _hidden_below(mesh, root)):
+            if not _is_shape(mesh) or (not hidden_too and _hidden_below(mesh, root)):
                 continue
             if _sample_codes(mesh, stop=root.GetParent()):
                 raise StageError(f"{where}: prototype {mesh.GetPath()} is animated; an instancer wall must be static "
@@ -176,8 +269,21 @@ def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str,
         # USD's fallbacks are centimetres and Y up: a file written in metres without them comes in 100 x small
         log.warning("%s states no %s: USD's fallback (%s) is used", path, " and no ".join(unstated),
                     ", ".join({"metersPerUnit": "centimetres", "upAxis": "Y up"}[k] for k in unstated))
-    mpu = float(UsdGeom.GetStageMetersPerUnit(stage))
-    to_scene = up_axis_matrix(str(UsdGeom.GetStageUpAxis(stage)), scene_up)[:3, :3] * (mpu / scene_mpu)
+    mpu, up = float(UsdGeom.GetStageMetersPerUnit(stage)), str(UsdGeom.GetStageUpAxis(stage))
+    if up not in ("Y", "Z"):  # USD has no X up; anything else was turned as if it were Z up
+        raise StageError(f"{path}: upAxis {up!r} is not Y or Z, the two USD allows")
+    if not (math.isfinite(mpu) and mpu > 0):
+        raise StageError(f"{path}: metersPerUnit {mpu} must be a positive number")
+    if log is not None:  # USD composes with the root layer's metadata only: a layer in other units is not rescaled
+        stated = {"metersPerUnit": mpu, "upAxis": up}
+        other = [f"{Path(layer.identifier).name} ({key} {layer.pseudoRoot.GetInfo(key)})"
+                 for layer in stage.GetUsedLayers() for key, value in stated.items()
+                 if layer.pseudoRoot.HasInfo(key) and layer.pseudoRoot.GetInfo(key) != value]
+        if other:
+            log.warning("%s: %d layer(s) state other units than the stage's (metersPerUnit %s, upAxis %s): %s; "
+                        "USD does not convert them, so their prims are read in the stage's", path, len(other),
+                        mpu, up, ", ".join(other[:3]) + (", ..." if len(other) > 3 else ""))
+    to_scene = up_axis_matrix(up, scene_up)[:3, :3] * (mpu / scene_mpu)
 
     cache = UsdGeom.XformCache(Usd.TimeCode.Default())
     prims = [p for p in stage.Traverse(Usd.TraverseInstanceProxies())]
@@ -195,9 +301,9 @@ def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str,
 
     verts, faces, used, offset = [], [], [], 0
     animation: tuple | None = None
-    meshes = [p for p in chosen if p.IsA(UsdGeom.Mesh)]
-    purposes = {p: UsdGeom.Imageable(p).ComputePurpose() for p in meshes}
-    left_out = {p: "purpose guide" for p in meshes if purposes[p] == UsdGeom.Tokens.guide}
+    shapes = [p for p in chosen if _is_shape(p)]
+    purposes = {p: UsdGeom.Imageable(p).ComputePurpose() for p in shapes}
+    left_out = {p: "purpose guide" for p in shapes if purposes[p] == UsdGeom.Tokens.guide}
     # a PointInstancer's prototypes are no walls themselves (the /** traversal picked them up at the
     # prototype's own place and dropped the instances): each instance is, placed as the instancer places it
     owner = {}
@@ -205,13 +311,13 @@ def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str,
         roots = [pi.GetPath(), *UsdGeom.PointInstancer(pi).GetPrototypesRel().GetForwardedTargets()]
         owner.update({p: pi for p in prims if p != pi and p not in owner
                       and any(p.GetPath().HasPrefix(r) for r in roots)})
-    left_out.update({p: f"prototype of {owner[p].GetPath()}" for p in meshes if p in owner})
-    items = [(p, None) for p in meshes]
+    left_out.update({p: f"prototype of {owner[p].GetPath()}" for p in shapes if p in owner})
+    items = [(p, None) for p in shapes]
     for pi in (p for p in chosen if p.IsA(UsdGeom.PointInstancer) and p not in owner):
         if wall.include_invisible or UsdGeom.Imageable(pi).ComputeVisibility() != UsdGeom.Tokens.invisible:
             items += [(m, (pi, name, xf)) for m, name, xf in _instances(stage, pi, path, wall.include_invisible)]
-    if any(purposes[p] == UsdGeom.Tokens.render for p in meshes):
-        left_out.update({p: "purpose proxy beside render meshes" for p in meshes if purposes[p] == UsdGeom.Tokens.proxy})
+    if any(purposes[p] == UsdGeom.Tokens.render for p in shapes):
+        left_out.update({p: "purpose proxy beside render meshes" for p in shapes if purposes[p] == UsdGeom.Tokens.proxy})
     first = Usd.TimeCode.EarliestTime()  # the default value, or the earliest sample of a prim with samples only
     for prim, instance in items:
         img = UsdGeom.Imageable(prim)
@@ -221,26 +327,13 @@ def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str,
                 and img.ComputeVisibility(Usd.TimeCode.Default()) == UsdGeom.Tokens.invisible):
             left_out[prim] = "invisible"
             continue
-        mesh = UsdGeom.Mesh(prim)
         name = str(prim.GetPath()) if instance is None else instance[1]
         where = f"{path}:{name}"
-        pts = np.asarray(mesh.GetPointsAttr().Get(first) or [], np.float64).reshape(-1, 3)
-        counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get(first) or [], np.int64)
-        idx = np.asarray(mesh.GetFaceVertexIndicesAttr().Get(first) or [], np.int64)
-        holes = np.asarray(mesh.GetHoleIndicesAttr().Get(first) or [], np.int64)
-        if len(pts) == 0 or len(counts) == 0:
+        shape = _shape_triangles(prim, first, where, log)
+        if shape is None:
             left_out[prim] = "no points or faces"
             continue
-        if mesh.GetPointsAttr().GetNumTimeSamples() > 1 and log is not None:
-            log.warning("%s: its points are animated (a deforming mesh); the wall is its shape at the first sample "
-                        "(walls move rigidly only)", where)
-        if not np.isfinite(pts).all():
-            raise StageError(f"{where}: points contain NaN or Inf")
-        if len(idx) and (idx.min() < 0 or idx.max() >= len(pts)):
-            raise StageError(f"{where}: face vertex index {int(idx.max())} out of range (mesh has {len(pts)} points)")
-        tris = _triangulate(counts, idx, holes, where, pts)
-        if mesh.GetOrientationAttr().Get() == UsdGeom.Tokens.leftHanded:
-            tris = tris[:, ::-1]
+        pts, tris = shape
         mover = prim if instance is None else instance[0]  # an instance moves with its instancer
         codes = _sample_codes(mover)
         moves = _animation(stage, mover, codes) if codes else None
@@ -267,7 +360,7 @@ def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str,
         log.info("%s: left out %s", path, ", ".join(f"{p.GetPath()} ({why})" for p, why in left_out.items()))
     if not used:
         why = f" (left out: {', '.join(f'{p.GetPath()} ({w})' for p, w in left_out.items())})" if left_out else ""
-        raise StageError(f"{path}: no visible UsdGeom.Mesh prim with faces matches {wall.prims}{why}")
+        raise StageError(f"{path}: no visible UsdGeom.Mesh or shape prim (Cube, Sphere, ...) with faces matches {wall.prims}{why}")
     units = np.eye(4)
     units[:3, :3] = to_scene
     return np.concatenate(verts), np.concatenate(faces), used, units, animation
@@ -284,6 +377,6 @@ class UsdImport(TrimeshImport):
     """Wall meshes from OpenUSD stages (and built-ins / mesh files, as ``trimesh`` does)."""
 
     name = "usd"
-    version = "3"
+    version = "4"
     default = False
-    description = "walls from OpenUSD UsdGeom.Mesh prims (world transforms, units, up axis)"
+    description = "walls from OpenUSD UsdGeom.Mesh prims and shapes (world transforms, units, up axis)"
