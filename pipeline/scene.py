@@ -227,6 +227,9 @@ class UsdWall(MeshWall):
     usd: InputFile = Field(description=".usda/.usdc/.usdz path, relative to the config file")
     prims: list[str] = Field(default_factory=lambda: ["/**"], description="prim paths or glob patterns to use as walls")
     include_invisible: bool = Field(False, description="also use prims whose visibility is 'invisible'")
+    subdivide: int = Field(0, ge=0, le=4, description="refine subdivision cages (a mesh's subdivisionScheme "
+                           "catmullClark, USD's fallback, or loop) this many levels, to the smooth surface a "
+                           "renderer draws; 0: the cage as-is (recorded in the walls report)")
 
     _usd = field_validator("usd")(_format_check(USD_SUFFIXES, "a USD file"))
 

@@ -356,7 +356,7 @@ def test_usd_walls_take_sampled_points_and_leave_out_guides_and_doubled_proxies(
     stage.GetRootLayer().Save()
     wall = SimpleNamespace(prims=["/**"], include_invisible=False)
     with caplog.at_level(logging.INFO):
-        v, f, used, _, _ = read_usd_wall(tmp_path / "set.usda", wall, 1.0, "Z", logging.getLogger("t"))
+        v, f, used, _, _, _ = read_usd_wall(tmp_path / "set.usda", wall, 1.0, "Z", logging.getLogger("t"))
     assert used == ["/World/RockStatic", "/World/RockCached", "/World/Statue/Render"]
     cached = v[f[12:24].ravel()]  # the second cube's triangles: at its first sample, not 0.5 higher
     np.testing.assert_allclose(cached.min(axis=0), [0.25, -0.05, 0.0], atol=1e-7)

@@ -313,3 +313,47 @@ def test_a_sublayer_in_other_units_is_read_as_usd_reads_it_and_warned_about(tmp_
     with caplog.at_level(logging.WARNING):
         _import(tmp_path, [{"usd": "metre.usda"}])
     assert not any("other units" in r.getMessage() for r in caplog.records)
+
+
+def test_a_subdivision_cage_is_recorded_as_is_or_refined_to_its_limit_surface(tmp_path, caplog):
+    """A catmullClark cage (the usd-wg teapot's kind) is the wall as authored unless the wall asks for
+    ``subdivide``; either way the walls report says which. Refined, a cube cage (+-1) approaches
+    Catmull-Clark's limit surface: the face centre's limit is x = (16 + 4 * 3 + 20/9) / 36 = 0.8395
+    (the valence-4 limit mask on the first level's points), reached from above (0.878, 0.849, 0.842)."""
+    import logging
+
+    from pxr import UsdGeom
+
+    stage = _new_stage(tmp_path / "cage.usda")
+    cube = _define_cube(stage, "/World/Cage", h=1.0)
+    cube.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.catmullClark)
+    stage.GetRootLayer().Save()
+    with caplog.at_level(logging.INFO):
+        as_is = _import(tmp_path, [{"usd": "cage.usda"}])
+    assert as_is.walls[0]["report"]["subdivision"] == {"/World/Cage": "catmullClark cage as-is"}
+    assert "subdivision cage(s), taken as-is" in caplog.text
+    np.testing.assert_allclose(np.abs(as_is.vertices).max(axis=0), 1.0)
+    centre = []
+    for levels in (2, 3, 4):
+        mesh = _import(tmp_path, [{"usd": "cage.usda", "subdivide": levels}])
+        assert mesh.walls[0]["report"]["subdivision"] == {"/World/Cage": f"catmullClark cage refined {levels} levels"}
+        assert mesh.walls[0]["report"]["watertight"] and len(mesh.faces) == 12 * 4 ** levels
+        centre.append(float(mesh.vertices[:, 0].max()))
+    np.testing.assert_allclose(centre, [0.87847, 0.84918, 0.84192], atol=1e-5)
+    assert 0.8395 < centre[-1] < centre[-2] < centre[-3]
+
+
+def test_catmull_clark_keeps_a_flat_open_patch_flat_with_its_corners():
+    """USD's boundary rule edgeAndCorner: boundary edges are creases and a vertex of one face stays put,
+    so a flat quad patch keeps its outline and plane (its area within the boundary curves' rounding)."""
+    from stages.mesh_import.subdivision import catmull_clark
+
+    grid = np.array([[x, y, 0.0] for y in range(3) for x in range(3)])
+    quads = [[0, 1, 4, 3], [1, 2, 5, 4], [3, 4, 7, 6], [4, 5, 8, 7]]
+    p, c, i = catmull_clark(grid, [4] * 4, np.ravel(quads), 3)
+    assert len(c) == 4 * 4 ** 3 and (c == 4).all()
+    assert np.abs(p[:, 2]).max() == 0.0
+    np.testing.assert_allclose(p[:, :2].min(axis=0), 0.0, atol=1e-12)
+    np.testing.assert_allclose(p[:, :2].max(axis=0), 2.0, atol=1e-12)
+    for corner in ([0, 0], [2, 0], [2, 2], [0, 2]):
+        assert np.isclose(np.linalg.norm(p[:, :2] - corner, axis=1).min(), 0.0)

@@ -287,10 +287,13 @@ class TrimeshImport(Stage):
             path = ctx.resolve(w.usd)
             if path.suffix.lower() not in (".usd", ".usda", ".usdc", ".usdz"):
                 raise StageError(f"{path}: unsupported USD format {path.suffix!r}; expected .usd, .usda, .usdc or .usdz")
-            v, f, prims, to_units, animation = read_usd_wall(path, w, units.meters_per_unit, units.up_axis, ctx.log)
+            v, f, prims, to_units, animation, cages = read_usd_wall(path, w, units.meters_per_unit, units.up_axis,
+                                                                    ctx.log)
             # the asset's frame -> the scene's, so export can reference the asset in place
             to_scene = placement_matrix(v, w) @ to_units
             extra = {"prims": prims, "asset_to_scene": to_scene.ravel().tolist()}
+            if cages:
+                extra["subdivision"] = cages
             if animation is not None:
                 if w.motion is not None:
                     raise StageError(f"{path}: {prims[0]} is animated in the USD file and the wall has a motion "

@@ -74,9 +74,12 @@ def _is_shape(prim) -> bool:
     return prim.IsA(UsdGeom.Mesh) or prim.GetTypeName() in GPRIMS
 
 
-def _shape_triangles(prim, t, where: str, log) -> tuple[np.ndarray, np.ndarray] | None:
+def _shape_triangles(prim, t, where: str, log, subdivide: int = 0,
+                     record: dict | None = None) -> tuple[np.ndarray, np.ndarray] | None:
     """A Mesh or gprim as (points, outward triangles) in its own frame at time ``t``; None for a mesh
-    without points or faces. An animated shape is read at ``t`` (walls move rigidly only)."""
+    without points or faces. An animated shape is read at ``t`` (walls move rigidly only). A subdivision
+    cage (catmullClark, USD's fallback, or loop) is refined ``subdivide`` levels, or taken as it is;
+    ``record`` maps the prim to what was done with an authored cage."""
     from pxr import UsdGeom
 
     if prim.IsA(UsdGeom.Mesh):
@@ -92,7 +95,14 @@ def _shape_triangles(prim, t, where: str, log) -> tuple[np.ndarray, np.ndarray] 
             raise StageError(f"{where}: points contain NaN or Inf")
         if len(idx) and (idx.min() < 0 or idx.max() >= len(pts)):
             raise StageError(f"{where}: face vertex index {int(idx.max())} out of range (mesh has {len(pts)} points)")
-        tris = _triangulate(counts, idx, holes, where, pts)
+        scheme = str(mesh.GetSubdivisionSchemeAttr().Get())
+        authored = mesh.GetSubdivisionSchemeAttr().HasAuthoredValue()
+        if subdivide and scheme in ("catmullClark", "loop"):
+            pts, tris = _subdivided(pts, counts, idx, holes, scheme, subdivide, where, prim, log)
+        else:
+            tris = _triangulate(counts, idx, holes, where, pts)
+        if record is not None and scheme in ("catmullClark", "loop") and (authored or subdivide):
+            record[str(prim.GetPath())] = f"{scheme} cage " + (f"refined {subdivide} levels" if subdivide else "as-is")
     else:
         attrs = {n: prim.GetAttribute(n) for n in _SHAPE_ATTRS if prim.GetAttribute(n)}
         animated = ", ".join(n for n, a in attrs.items() if a.GetNumTimeSamples() > 1)
@@ -103,6 +113,31 @@ def _shape_triangles(prim, t, where: str, log) -> tuple[np.ndarray, np.ndarray] 
     if UsdGeom.Gprim(prim).GetOrientationAttr().Get() == UsdGeom.Tokens.leftHanded:
         tris = tris[:, ::-1]
     return pts, tris
+
+
+def _subdivided(pts, counts, idx, holes, scheme: str, levels: int, where: str, prim,
+                log) -> tuple[np.ndarray, np.ndarray]:
+    """The cage refined ``levels`` times by its scheme (hole faces left out first: their edges become the
+    boundary), as triangles."""
+    import trimesh
+
+    from .subdivision import catmull_clark
+
+    if (counts < 3).any() or counts.sum() != len(idx):
+        _triangulate(counts, idx, holes, where, pts)  # its one-line refusal
+    keep = np.ones(len(counts), bool)
+    keep[holes[(holes >= 0) & (holes < len(counts))]] = False
+    corner_keep = np.repeat(keep, counts)
+    counts, idx = counts[keep], idx[corner_keep]
+    sharp = [n for n in ("creaseIndices", "cornerIndices") if prim.GetAttribute(n).HasAuthoredValue()]
+    if sharp and log is not None:
+        log.warning("%s: its %s are not applied by the refinement (smooth there)", where, " and ".join(sharp))
+    if scheme == "loop":
+        tris = _triangulate(counts, idx, np.zeros(0, np.int64), where, pts)
+        v, f = trimesh.remesh.subdivide_loop(pts, tris, iterations=levels)
+        return np.asarray(v, np.float64), np.asarray(f, np.int64)
+    v, c, i = catmull_clark(pts, counts, idx, levels)
+    return v, _triangulate(c, i, np.zeros(0, np.int64), where, v)
 
 
 def _gprim_triangles(kind: str, a: dict, where: str) -> tuple[np.ndarray, np.ndarray]:
@@ -244,11 +279,12 @@ def _hidden_below(prim, root) -> bool:
 
 
 def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str,
-                  log=None) -> tuple[np.ndarray, np.ndarray, list[str], np.ndarray, tuple | None]:
+                  log=None) -> tuple[np.ndarray, np.ndarray, list[str], np.ndarray, tuple | None, dict]:
     """World-space vertices (scene units, scene up axis), triangles, the prim paths used, the 4x4
-    matrix (column vectors) from the stage's world frame to the scene's units and up axis, and the
-    wall's animation: None when static, else (times s, (K, 4, 4) matrices taking the rest pose to the
-    pose at each time, in the stage's world frame). An animated wall's vertices are in its rest pose:
+    matrix (column vectors) from the stage's world frame to the scene's units and up axis, the
+    wall's animation (None when static, else (times s, (K, 4, 4) matrices taking the rest pose to the
+    pose at each time, in the stage's world frame)) and what became of each authored subdivision cage
+    (prim -> "catmullClark cage as-is" or "... refined N levels"; the wall's ``subdivide``). An animated wall's vertices are in its rest pose:
     the world transform at its earliest time sample. Every prim of one wall must move alike (one rigid
     body). Points authored only as time samples (a cached or deforming mesh) are read at their earliest sample
     (read at the default time, such a prim was left out without a word); guide meshes (purpose guide: rigs,
@@ -301,6 +337,7 @@ def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str,
 
     verts, faces, used, offset = [], [], [], 0
     animation: tuple | None = None
+    cages: dict[str, str] = {}  # prim -> what became of its authored subdivision cage
     shapes = [p for p in chosen if _is_shape(p)]
     purposes = {p: UsdGeom.Imageable(p).ComputePurpose() for p in shapes}
     left_out = {p: "purpose guide" for p in shapes if purposes[p] == UsdGeom.Tokens.guide}
@@ -329,7 +366,7 @@ def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str,
             continue
         name = str(prim.GetPath()) if instance is None else instance[1]
         where = f"{path}:{name}"
-        shape = _shape_triangles(prim, first, where, log)
+        shape = _shape_triangles(prim, first, where, log, getattr(wall, "subdivide", 0), cages)
         if shape is None:
             left_out[prim] = "no points or faces"
             continue
@@ -356,6 +393,11 @@ def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str,
         faces.append(tris + offset)
         offset += len(p)
         used.append(name)
+    as_is = [p for p, what in cages.items() if what.endswith("as-is")]
+    if as_is and log is not None:
+        log.info("%s: %s %s subdivision cage(s), taken as-is (the wall's subdivide: N refines them as a "
+                 "renderer does)", path, ", ".join(as_is[:3]) + (", ..." if len(as_is) > 3 else ""),
+                 cages[as_is[0]].split()[0])
     if left_out and log is not None and used:
         log.info("%s: left out %s", path, ", ".join(f"{p.GetPath()} ({why})" for p, why in left_out.items()))
     if not used:
@@ -363,7 +405,7 @@ def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str,
         raise StageError(f"{path}: no visible UsdGeom.Mesh or shape prim (Cube, Sphere, ...) with faces matches {wall.prims}{why}")
     units = np.eye(4)
     units[:3, :3] = to_scene
-    return np.concatenate(verts), np.concatenate(faces), used, units, animation
+    return np.concatenate(verts), np.concatenate(faces), used, units, animation, cages
 
 
 def _same_motion(a: tuple | None, b: tuple | None) -> bool:

@@ -44,8 +44,8 @@ def _read_mesh(em: MeshEmitter, path: Path, meters_per_unit: float, up_axis: str
     if is_usd(em.mesh):
         from stages.mesh_import.usd_import import read_usd_wall
 
-        v, f, _, _, _ = read_usd_wall(path, SimpleNamespace(prims=em.prims, include_invisible=False), meters_per_unit,
-                                      up_axis)
+        v, f = read_usd_wall(path, SimpleNamespace(prims=em.prims, include_invisible=False), meters_per_unit,
+                             up_axis)[:2]
         mesh = trimesh.Trimesh(v, f)  # merges the prims' shared vertices, so a closed model reads as closed
         return np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64), bool(mesh.is_watertight)
     try:  # read as a wall file is: concave n-gons triangulated right (a fan across a notch filled it)
