@@ -13,8 +13,14 @@ def _coords(v: np.ndarray) -> np.ndarray:
 
 
 def signed_volume(v: np.ndarray, f: np.ndarray) -> float:
-    """Volume enclosed by a closed mesh; positive when the faces are oriented outwards (summed in float64)."""
-    return float(_signed_volume(_coords(v), np.ascontiguousarray(f)))
+    """Volume enclosed by a closed mesh; positive when the faces are oriented outwards. Summed in float64
+    about the mesh's own centre: about the origin, a fluid 1000 m away had terms 1e12 x its volume, and
+    in float32 products the sign was a coin toss."""
+    v = _coords(v)
+    if len(v) == 0 or len(f) == 0:
+        return 0.0
+    centre = 0.5 * (v.min(axis=0).astype(np.float64) + v.max(axis=0).astype(np.float64))
+    return float(_signed_volume(v, np.ascontiguousarray(f), centre))
 
 
 def face_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
@@ -84,14 +90,16 @@ def _vertex_normals(v, f, out):
 
 
 @nb.njit(cache=True)
-def _signed_volume(v, f):
-    """Volume enclosed by the closed mesh (v, f); positive when faces are oriented outwards."""
+def _signed_volume(v, f, o):
+    """Volume enclosed by the closed mesh (v, f), in float64 about the point o; positive when faces are
+    oriented outwards."""
     s = 0.0
     for t in range(f.shape[0]):
         a = f[t, 0]
         b = f[t, 1]
         c = f[t, 2]
-        s += (v[a, 0] * (v[b, 1] * v[c, 2] - v[b, 2] * v[c, 1])
-              + v[a, 1] * (v[b, 2] * v[c, 0] - v[b, 0] * v[c, 2])
-              + v[a, 2] * (v[b, 0] * v[c, 1] - v[b, 1] * v[c, 0]))
+        ax, ay, az = np.float64(v[a, 0]) - o[0], np.float64(v[a, 1]) - o[1], np.float64(v[a, 2]) - o[2]
+        bx, by, bz = np.float64(v[b, 0]) - o[0], np.float64(v[b, 1]) - o[1], np.float64(v[b, 2]) - o[2]
+        cx, cy, cz = np.float64(v[c, 0]) - o[0], np.float64(v[c, 1]) - o[1], np.float64(v[c, 2]) - o[2]
+        s += ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)
     return s / 6.0

@@ -154,8 +154,15 @@ def ghost_particles(x, vol, dist, origin, inv_h_sdf, radius, out_x, out_vol, kee
     n is the mean of the sampler's normals a thousandth of an SDF cell either side of the particle: the
     trilinear gradient is one-sided at a node, and on a ridge of d (a tank's edge seen from inside) one
     side gives zero, so a particle exactly on a node (an emitter lattice next to a wall) got an image
-    or none by the last bit of its position, i.e. by the scene's units. Both sides agree off ridges."""
+    or none by the last bit of its position, i.e. by the scene's units. Both sides agree off ridges.
+
+    A particle gets no image where open space lies behind its wall within the image's reach (d + radius
+    from the wall point, probed every half SDF cell): beside a shell (0.6 l0 thick) or an open box's 1 l0
+    sides the image and its kernel lay past the wall, where the cut by d keeps them, and drew water
+    under a bowl that had none (a user's sweep). There the surface keeps its own fall-off, and wall_snap
+    puts it on the wall."""
     e = 1e-3 / inv_h_sdf
+    step = 0.5 / inv_h_sdf
     for q in nb.prange(x.shape[0]):
         px, py, pz = x[q, 0], x[q, 1], x[q, 2]
         d, _, _, _ = sdf_sample(dist, origin[0], origin[1], origin[2], inv_h_sdf, px, py, pz)
@@ -167,7 +174,14 @@ def ghost_particles(x, vol, dist, origin, inv_h_sdf, radius, out_x, out_vol, kee
             norm = math.sqrt(nx * nx + ny * ny + nz * nz)  # 2 off ridges, 0 between two opposite walls
             if norm > 0.0:
                 nx, ny, nz = nx / norm, ny / norm, nz / norm
-        keep[q] = norm > 0.5
+        ok = norm > 0.5
+        if ok:  # behind a wall thinner than the image's reach, the image would be water in open space
+            wx, wy, wz = px - d * nx, py - d * ny, pz - d * nz  # the wall point
+            s = step
+            while ok and s <= d + radius:
+                ok = _sdf_distance(dist, origin, inv_h_sdf, wx - s * nx, wy - s * ny, wz - s * nz) <= 0.0
+                s += step
+        keep[q] = ok
         out_x[q, 0] = px - 2.0 * d * nx
         out_x[q, 1] = py - 2.0 * d * ny
         out_x[q, 2] = pz - 2.0 * d * nz

@@ -44,7 +44,7 @@ from typing import Mapping
 
 import numba as nb
 import numpy as np
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from pipeline.stage import Artifact, Context, Params, Stage
 from stages.common.formats import ParticleMeta, SurfaceMesh, load_particle_frame, save_surface
@@ -81,13 +81,50 @@ def grid_buffer(shape) -> np.ndarray:
     return buf[:n].reshape(tuple(int(s) for s in shape))
 
 
+def keep_piece_volumes(raw: np.ndarray, smooth: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """The smoothed vertices with each connected piece of water scaled about its centre back to its raw
+    volume: a low-pass filter shrinks what is small against its pass band, and a drop of one particle
+    went to 2 % of its volume in 50 passes, to nothing in 200. A piece shrunk below a quarter is kept raw."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    n = len(raw)
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]]])
+    _, label = connected_components(coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n)),
+                                    directed=False)
+    k = int(label.max()) + 1 if n else 0
+    count = np.bincount(label, minlength=k)[:, None]
+
+    def volumes(v):  # per piece, in float64 about each piece's centre
+        v = v.astype(np.float64)
+        centre = np.stack([np.bincount(label, v[:, a], minlength=k) for a in range(3)], axis=1) / count
+        q = v - centre[label]
+        a, b, c = q[faces[:, 0]], q[faces[:, 1]], q[faces[:, 2]]
+        return np.bincount(label[faces[:, 0]], np.einsum("ij,ij->i", a, np.cross(b, c)) / 6.0, minlength=k), centre
+
+    before, _ = volumes(raw)
+    after, centre = volumes(smooth)
+    ok = (before > 0) & (after > 0.25 * before)
+    scale = np.where(ok, np.cbrt(np.where(ok, before, 1.0) / np.where(ok, after, 1.0)), 1.0)
+    out = centre[label] + (smooth.astype(np.float64) - centre[label]) * scale[label][:, None]
+    out[~ok[label]] = raw[~ok[label]]
+    return out.astype(smooth.dtype)
+
+
 class MarchingCubesParams(Params):
+    @field_validator("smoothing_iterations")
+    @classmethod
+    def _not_one(cls, n: int) -> int:
+        if n == 1:  # VTK's windowed sinc filter needs two: with one it shrank the surface to 0.3 % of its volume
+            raise ValueError("1 pass is no Taubin filter: use 0 (off) or 2 and more")
+        return n
+
     cell: float = Field(0.5, gt=0.05, le=2.0, description="grid spacing in units of the particle spacing l0")
     radius: float = Field(1.7, ge=1.0, le=4.0, description="kernel support of each particle's density, in l0")
     iso: float = Field(0.63, gt=0.0, lt=1.0, description="iso level of Phi (1 inside the fluid, 0 outside); with "
                        "radius 1.7 a lone particle keeps about l0^3 and a flat surface lies l0/2 above the top layer")
-    smoothing_iterations: int = Field(0, ge=0, le=200, description="Taubin smoothing passes (0 = off); "
-                                                                   "keeps the volume")
+    smoothing_iterations: int = Field(0, ge=0, le=200, description="Taubin (windowed sinc) smoothing passes "
+                                      "(0 = off, else at least 2); each piece of water keeps its volume")
     anisotropic: bool = Field(False, description="anisotropic kernels (Yu and Turk 2013) stretched along the "
                                                 "neighbours' spread: smoother sheets and flat surfaces")
     anisotropic_smoothing: float = Field(0.0, ge=0.0, le=1.0, description="with anisotropic: Yu and Turk's lambda "
@@ -188,12 +225,14 @@ def extract(x: np.ndarray, vol: np.ndarray, l0: float, params: MarchingCubesPara
     t2 = time.perf_counter()
     if surf.n_points == 0:
         return SurfaceMesh.empty()
-    if params.smoothing_iterations:
-        surf = surf.smooth_taubin(n_iter=params.smoothing_iterations, pass_band=0.1)
-    verts = np.asarray(surf.points)  # float32 from VTK, kept: no float64 copy of millions of vertices
     # flying edges makes triangles only: the cells' connectivity, without pyvista's legacy (n, i, j, k)
     # array (building it took a third of a second at 4M triangles)
     faces = vtk_to_numpy(surf.GetPolys().GetConnectivityArray()).astype(np.int32).reshape(-1, 3)
+    if params.smoothing_iterations:
+        raw = np.asarray(surf.points).copy()
+        surf = surf.smooth_taubin(n_iter=params.smoothing_iterations, pass_band=0.1, normalize_coordinates=True)
+        surf.points = keep_piece_volumes(raw, np.asarray(surf.points), faces)
+    verts = np.asarray(surf.points)  # float32 from VTK, kept: no float64 copy of millions of vertices
     if signed_volume(verts, faces) < 0:  # orient outwards (Phi falls off outside the fluid)
         faces = np.ascontiguousarray(faces[:, ::-1])
     normals = vertex_normals(verts, faces)
