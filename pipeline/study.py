@@ -43,7 +43,7 @@ import json
 import os
 import tempfile
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from multiprocessing import get_context
 from pathlib import Path
 from typing import Any, Callable, Literal
@@ -52,6 +52,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from .config import OUTPUT_NAMES
 from .errors import ConfigError, StageFailed
+from .executors import exit_with_parent
 from .publish import check_out_dir, publish_file
 from .stage import STAGE_KINDS
 
@@ -227,15 +228,28 @@ def _run_variant(args: tuple, executor=None, events=None) -> VariantResult:
     except ConfigError as e:
         raise ConfigError(f"variant {name}: {e}") from None
     stage = next((s for s in report.stages if s.kind == study.time), None)
-    metrics: dict[str, float | None] = {m.name: None for m in study.metrics}
+    return VariantResult(overrides=overrides, seconds=stage.cost_seconds if stage else 0.0,
+                         metrics={m.name: None for m in study.metrics}, out=str(out),
+                         cpu_seconds=stage.cpu_seconds if stage else 0.0)
+
+
+def _measure(study: StudyConfig, result: VariantResult, study_dir: Path) -> VariantResult:
+    """The variant's metrics, once every variant has run: a metric may read another variant's outputs (the
+    distance to the finest run), which variants running side by side had not written yet, or had written
+    for the study's former config (a user's sweep: wrong distances, exit 0, with --workers 2)."""
+    if result.error:
+        return result
+    out, name = Path(result.out), variant_name(result.overrides)
+    metrics: dict[str, float | None] = dict(result.metrics)
     error = None
     for m in study.metrics:
         if m.function is not None:
             try:
-                value = _metric_function(m.function)(out, study_dir=Path(study_dir), **m.args)
+                value = _metric_function(m.function)(out, study_dir=study_dir, **m.args)
             except Exception as e:  # noqa: BLE001 - a user's metric: one line naming it, in the variant's row
-                error = f"metric {m.name} ({m.function}): {type(e).__name__}: {' '.join(str(e).split())}"
-                break
+                # the first failure is the row's error; the metrics that do not depend on it are still given
+                error = error or f"metric {m.name} ({m.function}): {type(e).__name__}: {' '.join(str(e).split())}"
+                continue
         else:
             f = out / m.file
             if not f.is_file():
@@ -244,8 +258,7 @@ def _run_variant(args: tuple, executor=None, events=None) -> VariantResult:
             if value is None:
                 raise ConfigError(f"metric {m.name}: {m.file} of variant {name} has no key {m.key}")
         metrics[m.name] = float(value) if isinstance(value, (int, float)) else None
-    return VariantResult(overrides=overrides, seconds=stage.cost_seconds if stage else 0.0, metrics=metrics,
-                         out=str(out), cpu_seconds=stage.cpu_seconds if stage else 0.0, error=error)
+    return replace(result, metrics=metrics, error=error)
 
 
 def failed_variant(study: StudyConfig, overrides: dict[str, Any], out: str, error: str,
@@ -279,7 +292,8 @@ def run_study(path: str | Path, *, cache_dir: Path | None = None, out_dir: Path 
     if executor == "dask":
         results = _run_on_dask(study, jobs, base, cache, scheduler, workers, events)
     elif workers > 1 and executor != "inline":
-        with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
+        with ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=exit_with_parent,
+                                 initargs=(os.getpid(),)) as pool:
             futs = [pool.submit(_run_variant, j) for j in jobs]
             results = [f.result() for f in as_completed(futs)]
         order = {json.dumps(j[2], sort_keys=True): i for i, j in enumerate(jobs)}
@@ -291,6 +305,7 @@ def run_study(path: str | Path, *, cache_dir: Path | None = None, out_dir: Path 
                                         if events else None))
             if events:
                 events({"label": label, "state": "failed" if results[-1].error else "done"})
+    results = [_measure(study, r, path.parent) for r in results]
     write_report(study, results, out_root)
     failed = [r for r in results if r.error]
     if failed:

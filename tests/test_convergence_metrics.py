@@ -88,8 +88,13 @@ def test_distance_to_finest(tmp_path):
     assert val.distance_to_finest(coarse, finest={"spacing": 0.0125}, column_width=a) == pytest.approx(0.02 / a)
     assert val.distance_to_finest(fine, finest={"spacing": 0.0125}, column_width=a) == 0.0
     other = write_run(tmp_path / "variants" / "spacing-0.025_use-mps", front=0.25 + 3.0 * t, spacing=0.025)
-    with pytest.raises(ValueError, match="list the finest value first"):
+    with pytest.raises(ValueError, match="no finest run"):
         val.distance_to_finest(other, finest={"spacing": 0.0125}, column_width=a)
+    # a finest run of another shot (other frames) is no reference: it was compared over the shorter one
+    short = write_run(tmp_path / "variants" / "spacing-0.025_use-dfsph", front=0.25 + 3.0 * t[:10], spacing=0.025)
+    write_run(tmp_path / "variants" / "spacing-0.0125_use-dfsph", front=0.25 + 3.0 * t, spacing=0.0125)
+    with pytest.raises(ValueError, match="has 20 frames, this one 10"):
+        val.distance_to_finest(short, finest={"spacing": 0.0125}, column_width=a)
 
 
 def test_observed_order_and_cost_per_halving():

@@ -65,6 +65,19 @@ def test_study_metric_from_a_function(toy_config):
     assert [r.metrics["error"] for r in results] == [10.0, 5.0, 2.5]
 
 
+@pytest.mark.parametrize("workers", [1, 2])
+def test_a_metric_reading_another_variant_sees_this_studys_run_of_it(toy_config, workers):
+    """A metric that reads another variant (the distance to the finest run) was computed as each variant
+    ended: before the reference had run (listed after it, or beside it with --workers 2), or against the
+    reference's run of the study's former config (a user's sweep: wrong distances, exit 0). Metrics are
+    measured once every variant has run."""
+    path = toy_config.parent / "study.yaml"
+    path.write_text(STUDY.replace("file: particles/stats.json, key: stats.error",
+                                  "function: 'toy_stages:minus_reference', args: {reference: {steps: 4}}"))
+    results, _ = run_study(path, workers=workers)
+    assert [r.metrics["error"] for r in results] == [0.75, 0.25, 0.0] and not any(r.error for r in results)
+
+
 STUDIES = sorted(p for p in (REPO / "configs").rglob("*.yaml") if "out" not in p.parts and "study_version" in p.read_text())
 
 

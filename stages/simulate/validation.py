@@ -227,16 +227,17 @@ def finest_variant(out_dir: Path, finest: dict) -> Path:
 def distance_to_finest(out_dir: Path, *, study_dir: Path | None = None, finest: dict, column_width: float,
                        axis: str = "x") -> float:
     """RMS over frames of the surge-front position's distance to the same solver's finest run of the study,
-    over the column width a: the self-convergence error (0 for the finest run itself). The finest run must
-    have run first: list the finest value first in the study's sweep."""
+    over the column width a: the self-convergence error (0 for the finest run itself). The study measures
+    once every variant has run, so the finest run is this study's."""
     ref = finest_variant(out_dir, finest)
     if not (ref / "particles" / "meta.json").is_file():
-        raise ValueError(f"distance_to_finest: the finest run {ref} has not run yet: list the finest value first "
-                         f"in the study's sweep")
-    _, f0, _ = front_history(out_dir, axis=axis)
-    _, f1, _ = front_history(ref, axis=axis)
-    n = min(len(f0), len(f1))
-    return float(np.sqrt(np.mean((f0[:n] - f1[:n]) ** 2)) / column_width)
+        raise ValueError(f"distance_to_finest: no finest run {ref}: is {finest} one of the study's sweep values?")
+    t0, f0, _ = front_history(out_dir, axis=axis)
+    t1, f1, _ = front_history(ref, axis=axis)
+    if len(f0) != len(f1) or not np.allclose(t0, t1):
+        raise ValueError(f"distance_to_finest: the finest run {ref.name} has {len(f1)} frames, this one {len(f0)}: "
+                         "compare runs of the same shot")
+    return float(np.sqrt(np.mean((f0 - f1) ** 2)) / column_width)
 
 
 def observed_order(spacings, errors) -> float:
