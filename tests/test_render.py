@@ -382,6 +382,10 @@ def test_render_every_second_frame_and_the_movie_keeps_time(tmp_path, inputs):
         n, secs = imageio_ffmpeg.count_frames_and_secs(str(out / "movie.mp4"))
         shown = [0, 3, 6] if selection[0] == 0 else [3, 6]
         assert n == len(shown) and secs == pytest.approx(len(shown) * 0.3, abs=0.02), (n, secs)
+    # a selection holding no rendered frame (--frames 1:3 with every 3) says why, not only "no rendered frames"
+    with pytest.raises(StageError, match=r"render skipped all 2 selected frames \(1\.\.2; render\.every"):
+        run_stage(FfmpegMovie, tmp_path / "m7_none", scene={"scene": {"name": "t", "frames": {"fps": 10, "count": 7}}},
+                  inputs={"frames": tmp_path / "seven_1"}, frames=(1, 2))
     (frames / ".frame_00003.skipped").unlink()  # a lost frame is an error, not a skip
     with pytest.raises(StageError, match="frame_00003.png"):
         run_stage(FfmpegMovie, tmp_path / "m2", scene=scene, inputs={"frames": frames})

@@ -39,7 +39,9 @@ def _camera_prim(path: Path, prim: str | None, who: str):
 
     if not path.is_file():
         raise StageError(f"{who}: camera.usd: {path} not found")
-    stage = Usd.Stage.Open(str(path))
+    from .usd_stage import open_stage
+
+    stage = open_stage(path, f"{who}: camera.usd: ")
     if prim:
         cam_prim = stage.GetPrimAtPath(prim)
         if not cam_prim or not cam_prim.IsA(UsdGeom.Camera):

@@ -1,9 +1,34 @@
 """A new USD layer with the stage metrics every layer of ours carries (STYLE.md pattern 13)."""
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 from pxr import Usd, UsdGeom
+
+
+def usd_error(e: Exception) -> str:
+    """The first cause in a pxr error, on one line without C++ namespaces: "bad.usda:4:1: parse error
+    matching TupleValueClose at '}' in </M.points>" rather than the last of its stacked messages."""
+    for chunk in str(e).split("Error in "):
+        m = re.search(r" : '(.*)'\s*$", chunk, re.S)
+        if m:
+            text = re.sub(r"pxrInternal_v\w+?__pxrReserved__::|Sdf_TextFileFormatParser::", "", m.group(1))
+            return " ".join(text.split())[:300]
+    return " ".join(str(e).split())[:300] or type(e).__name__
+
+
+def open_stage(path: Path, who: str = "") -> Usd.Stage:
+    """The USD stage at ``path``, or a StageError naming the file and the parser's first complaint."""
+    from pipeline.stage import StageError
+
+    try:
+        stage = Usd.Stage.Open(str(path))
+    except Exception as e:  # pxr raises Tf.ErrorException with stacked C++ messages
+        raise StageError(f"{who}{path}: cannot open as USD ({usd_error(e)})") from None
+    if stage is None:
+        raise StageError(f"{who}{path}: cannot open as USD")
+    return stage
 
 
 def shot_start(stage: Usd.Stage) -> float:

@@ -37,7 +37,9 @@ def usd_dependencies(path: Path) -> list[Path]:
     try:
         layers, assets, _unresolved = UsdUtils.ComputeAllDependencies(str(path))
     except Exception as e:  # a damaged layer: say so now rather than when hashing
-        raise StageError(f"{path}: cannot open as USD ({str(e).strip().splitlines()[-1][:200]})") from None
+        from stages.common.usd_stage import usd_error
+
+        raise StageError(f"{path}: cannot open as USD ({usd_error(e)})") from None
     files = {Path(layer.realPath) for layer in layers if layer.realPath}
     files |= {Path(a) for a in assets}
     files.add(path)
@@ -292,14 +294,11 @@ def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str,
     same object twice). ``log`` hears what was left out and why."""
     from pxr import Usd, UsdGeom
 
+    from stages.common.usd_stage import open_stage
+
     if not path.is_file():
         raise StageError(f"{path}: USD file not found")
-    try:
-        stage = Usd.Stage.Open(str(path))
-    except Exception as e:  # pxr raises Tf.ErrorException with a multi-line message
-        raise StageError(f"{path}: cannot open as USD ({str(e).strip().splitlines()[-1][:200]})") from None
-    if stage is None:
-        raise StageError(f"{path}: cannot open as USD")
+    stage = open_stage(path)
     unstated = [key for key in ("metersPerUnit", "upAxis") if not stage.HasAuthoredMetadata(key)]
     if unstated and log is not None:
         # USD's fallbacks are centimetres and Y up: a file written in metres without them comes in 100 x small

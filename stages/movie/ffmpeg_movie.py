@@ -59,7 +59,9 @@ class FfmpegMovie(Stage):
             elif not skipped_frame_marker(folder, f).is_file():  # render's every: n
                 raise StageError(f"movie.ffmpeg: rendered frame missing: {frame_png(folder, f)}")
         if not frames:
-            raise StageError("movie.ffmpeg: no rendered frames")
+            raise StageError(f"movie.ffmpeg: no rendered frames: render skipped all {len(every)} selected frames "
+                             f"({every[0]}..{every[-1]}; render.every: n draws frames 0, n, 2n, ...): select frames "
+                             "holding one (--frames) or lower render.every")
         paths = [frame_png(inputs["frames"].frame(f), f) for f in frames]
         # frames the render stage skipped (render.every: n) keep the simulated time: each rendered frame stays on
         # screen until the next one, n frames later (fps * rendered / selected ran 1.29 x fast for 7 frames, n = 3)
