@@ -19,6 +19,7 @@ import fcntl
 import hashlib
 import json
 import logging
+import math
 import os
 import re
 import shutil
@@ -88,6 +89,13 @@ log = logging.getLogger("pipeline")
 
 class LockTimeout(StageFailed):
     """Another run held a key's lock longer than the lock timeout (exit 1, one line)."""
+
+    def __init__(self, message: str) -> None:
+        super().__init__(message, user_error=False)
+
+
+class CacheBusy(StageFailed):
+    """``clean`` while a run uses the cache (exit 1, one line)."""
 
     def __init__(self, message: str) -> None:
         super().__init__(message, user_error=False)
@@ -176,6 +184,8 @@ class Cache:
                               f"(choose another with --cache)")
         check_env()  # before anything is swept or waited for
         self.lock_timeout = default_lock_timeout() if lock_timeout is None else float(lock_timeout)
+        if not math.isfinite(self.lock_timeout) or self.lock_timeout < 0:  # nan passed the CLI's range and waited forever
+            raise ConfigError(f"--lock-timeout {lock_timeout}: expected a number of seconds >= 0")
 
     # -- paths -----------------------------------------------------------------------------------
     def entry_dir(self, kind: str, key: str) -> Path:
@@ -214,6 +224,29 @@ class Cache:
         return True
 
     # -- writing ---------------------------------------------------------------------------------
+    @contextmanager
+    def in_use(self) -> Iterator[None]:
+        """Held, shared, by every run for its whole length: ``clean`` takes it alone, so it never removes
+        an entry a running shot made and is about to read (a clean during a run broke the run)."""
+        path = self.root / "locks" / "runs.lock"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with open(path, "a+") as fh:
+            fcntl.flock(fh, fcntl.LOCK_SH)  # a clean holds it alone only while it removes entries
+            yield
+
+    @contextmanager
+    def alone(self, what: str) -> Iterator[None]:
+        """Hold the cache with no run using it, or raise CacheBusy (exit 1) at once."""
+        path = self.root / "locks" / "runs.lock"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with open(path, "a+") as fh:
+            try:
+                fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                raise CacheBusy(f"{what}: a run is using the cache {self.root}; try again when it has ended "
+                                "(nothing was removed)") from None
+            yield
+
     @contextmanager
     def lock(self, key: str, what: str = "") -> Iterator[None]:
         """Hold the key's lock; while another run holds it, say who (pid, host, since when) and give

@@ -28,6 +28,13 @@ class StageFailed(PipelineError):
         self.exit_code = 2 if user_error else 1
 
 
+class InputChanged(PipelineError):
+    """An input file changed while a stage used it: its key names the former content, so nothing the
+    stage made from it is kept (exit 1: run again)."""
+
+    exit_code = 1
+
+
 class FrameError(Exception):
     """A per-frame job failed (raised in the worker, picklable): the frame, a one-line cause, the
     worker's traceback, and whether it was the input's fault."""

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import os
 import signal
+import threading
+import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from multiprocessing import get_context
 from typing import Any, Callable, Iterable, Iterator, Protocol
@@ -39,7 +41,21 @@ class InlineExecutor:
         pass
 
 
-def _init_worker(threads: int) -> None:
+def exit_with_parent(parent: int) -> None:
+    """In a worker process: end it when ``parent``, the process that started it, is gone (killed with
+    SIGKILL, or by the OOM killer, it cannot stop its workers; they idled on, 380 MB each, adopted by
+    init). The parent's pid comes from the parent: a worker may start after the parent died."""
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(1.0)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
+
+
+def _init_worker(threads: int, parent: int) -> None:
+    exit_with_parent(parent)
     # each worker gets its share of the cores for numba, set before numba is imported
     os.environ["NUMBA_NUM_THREADS"] = str(threads)
     os.environ.setdefault("OMP_NUM_THREADS", str(threads))
@@ -57,7 +73,7 @@ class ProcessExecutor:
         self.workers = max(1, int(workers))
         threads = max(1, (os.cpu_count() or 1) // self.workers)
         self._pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=get_context("spawn"),
-                                         initializer=_init_worker, initargs=(threads,))
+                                         initializer=_init_worker, initargs=(threads, os.getpid()))
 
     def map_unordered(self, fn, jobs):
         futures = [self._pool.submit(fn, job) for job in jobs]

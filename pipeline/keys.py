@@ -29,7 +29,7 @@ from typing import Any
 
 from .cache import Cache, file_sha256, hash_key
 from .config import Config, dump_model
-from .errors import ConfigError, StageFailed
+from .errors import ConfigError, InputChanged, StageFailed
 from .graph import Graph, Node
 from .reads import FRAMES, input_files, read_values, resolve
 from .stage import Context, Stage, StageError
@@ -137,6 +137,17 @@ def _file_name(path: Path, config_dir: Path) -> str:
 
 
 _FILE_HASHES: dict[tuple[str, int, int], str] = {}
+
+
+def check_inputs_unchanged(config_dir: str | Path, files: dict[str, str]) -> None:
+    """Raise InputChanged if a file of ``files`` (a key's {name: sha256}) no longer has the content the key
+    was made from: a stage reads its inputs after the plan hashed them (a camera after the whole
+    simulation), and an edit in between made an entry under the old key from the new content."""
+    changed = [name for name, sha in files.items()
+               if not (path := Path(config_dir, name)).is_file() or _file_hash(path) != sha]
+    if changed:
+        raise InputChanged(f"{', '.join(changed)} changed while the run used it; nothing made from it "
+                           "was kept: run again")
 
 
 def _file_hash(path: Path) -> str:

@@ -13,6 +13,7 @@ import threading
 import time
 import traceback
 from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
+from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -23,7 +24,7 @@ from .errors import CacheMissError, ConfigError, FrameError, PipelineError, Stag
 from .estimate import check_size, check_stages
 from .executors import Executor, make_executor
 from .graph import Graph, Node, build_graph
-from .keys import Plan, context, frame_key, plan, record_resume, resume_source
+from .keys import Plan, check_inputs_unchanged, context, frame_key, plan, record_resume, resume_source
 from .publish import check_out_dir, drop_stale, publish, read_record_keys, write_run_json
 from .registry import Registry
 from .reads import FRAMES, SceneReads
@@ -88,6 +89,7 @@ class FrameJob:
     force: bool
     lock_timeout: float | None = None
     fault_log: str | None = None  # the run's log: faulthandler writes native crashes of workers there
+    files: dict[str, str] = field(default_factory=dict)  # the input files the key was made from
 
 
 _worker_fault_log: tuple[str, Any] | None = None  # (path, open file) in a worker process
@@ -121,7 +123,8 @@ def run_frame_job(job: FrameJob) -> tuple[int, str, float, float, bool]:
         raise
     except BaseException as exc:  # noqa: BLE001 - re-raised with the frame, picklable
         user = isinstance(exc, StageError) or (isinstance(exc, PipelineError) and exc.exit_code == 2)
-        raise FrameError(job.frame, f"{type(exc).__name__}: {exc}" if not user else str(exc),
+        plain = user or isinstance(exc, PipelineError)  # our own one-line errors need no type name
+        raise FrameError(job.frame, f"{type(exc).__name__}: {exc}" if not plain else str(exc),
                          "".join(traceback.format_exception(exc)), user) from None
 
 
@@ -141,6 +144,7 @@ def _frame_job(job: FrameJob) -> tuple[int, str, float, float, bool]:
                           frames=job.frames if FRAMES in job.stage_cls.reads else None,
                           log=logging.getLogger(f"stage.{job.stage_cls.qualname()}"))
             job.stage_cls().run_frame(ctx, job.inputs, job.params, job.frame)
+            check_inputs_unchanged(job.config_dir, job.files)
             seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
             entry = cache.commit(job.kind, key, tmp, {"stage_key": job.stage_key, "frame": job.frame,
                                                       "stage": job.stage_cls.qualname(), "seconds": seconds,
@@ -320,6 +324,8 @@ def _execute(p: Plan, out_dir: Path, force: frozenset[str], executor: Executor |
             reports[kind] = sr
             state[kind] = {"key": sr.key, "components": p.components[kind], "seconds": sr.seconds,
                            "status": sr.status, "time": time.time()}
+            if graph.nodes[kind].per_frame:  # `clean` removes the frames this run made, not the config's only
+                state[kind]["frames"] = list(p.frames)
             try:
                 cache.write_state(config.path, state)
             except OSError as exc:
@@ -433,6 +439,8 @@ def _run_whole(p: Plan, node: Node, key: str, inputs: dict[str, Artifact], runna
             _cached_times(sr, hit.manifest)
             return sr, hit.path
         tmp = cache.new_tmp(key)
+        if forced:  # a killed run's checkpoints of this key: --force recomputes, it does not resume them
+            shutil.rmtree(cache.checkpoint_dir(key), ignore_errors=True)
         resume = p.resume.get(node.kind)
         ctx = context(config, node, tmp, p.frames, checkpoint_dir=cache.checkpoint_dir(key),
                       resume_from=resume_source(cache, node.kind, resume) if resume and not forced else None,
@@ -441,6 +449,7 @@ def _run_whole(p: Plan, node: Node, key: str, inputs: dict[str, Artifact], runna
         t0, c0 = time.perf_counter(), time.process_time()
         try:
             node.cls().run(ctx, inputs, node.params)
+            check_inputs_unchanged(config.dir, p.components[node.kind]["files"])
             seconds = time.perf_counter() - t0
             sr.cost_seconds = seconds - ctx.warmup_seconds
             sr.cpu_seconds = time.process_time() - c0 - ctx.warmup_cpu_seconds
@@ -490,7 +499,7 @@ def _run_per_frame(p: Plan, node: Node, key: str, inputs: dict[str, Artifact], r
     jobs = [FrameJob(cache_root=str(cache.root), kind=node.kind, stage_cls=node.cls, params=node.params,
                      scene=scene, config_dir=str(config.dir), frames=p.frames,
                      inputs=inputs, stage_key=key, frame=f, force=forced, lock_timeout=cache.lock_timeout,
-                     fault_log=fault_log) for f in todo]
+                     fault_log=fault_log, files=p.components[node.kind]["files"]) for f in todo]
     bar = bars.make(f"{node.kind} frames", len(jobs))
     try:
         for frame, path, seconds, cpu, ran in executor.map_unordered(run_frame_job, jobs):
@@ -565,6 +574,11 @@ def run(config_path: str | Path, *, registry: Registry | None = None, overrides:
             raise ConfigError(f"--force {f}: not a stage this run includes ({', '.join(graph.order())})")
     cache = Cache(Path(cache_dir) if cache_dir else default_cache_dir(config), lock_timeout=lock_timeout)
     out = Path(os.path.abspath(out_dir)) if out_dir else default_out_dir(config)
+    real_out, real_cache = Path(os.path.realpath(out)), Path(os.path.realpath(cache.root))
+    if real_out == real_cache or real_cache in real_out.parents or real_out in real_cache.parents:
+        # the cache's entries would be published over (or its sweep would delete published outputs)
+        raise ConfigError(f"the output folder {out} and the cache folder {cache.root} overlap; "
+                          "choose another --out or --cache (nothing was changed)")
     check_out_dir(out, [n for n in graph.outputs] + ["run.json"])
     try:
         try:
@@ -573,8 +587,13 @@ def run(config_path: str | Path, *, registry: Registry | None = None, overrides:
             raise StageFailed(f"cannot read input file {exc.filename}: {exc.strerror or exc}", user_error=True) from None
         allow_large = allow_large or config.allow_large
         check_size(p, allow_large=allow_large)
-        return execute(p, out_dir=out, force=frozenset(force), executor=executor, progress=progress, events=events,
-                       allow_large=allow_large)
+        with ExitStack() as held:
+            try:
+                held.enter_context(cache.in_use())
+            except OSError as exc:  # a full disk, a read-only cache: one line and a log, as any cache write
+                raise _outside(f"cache {cache.root}", exc, cache) from exc
+            return execute(p, out_dir=out, force=frozenset(force), executor=executor, progress=progress,
+                           events=events, allow_large=allow_large)
     except (PipelineError, KeyboardInterrupt, SystemExit):
         raise
     except Exception as exc:  # noqa: BLE001 - anything else is still one line, exit 1, and a log

@@ -124,14 +124,23 @@ def clean(config_path: str | Path, *, registry: Registry | None = None, stage: s
     # the last run's keys (the state is per config file, whatever overrides that run had): not with overrides,
     # which name one variant
     last = cache.read_state(config.path) if not overrides else {}
+    with cache.alone("clean"):
+        return _remove(cache, graph, p, last, stage)
+
+
+def _remove(cache: Cache, graph, p, last: dict, stage: str | None) -> int:
+    """Remove the planned entries of each stage (or ``stage``) and those of the last run (its frames)."""
     removed = 0
     for kind in graph.order():
         if stage is not None and kind != stage:
             continue
-        keys = {p.keys[kind]} | ({last[kind]["key"]} if kind in last else set())
-        for key in keys:
+        keys = {p.keys[kind]: p.frames}
+        if kind in last:  # the last run's frames: a shot since shortened left its tail behind
+            made = set(keys.get(last[kind]["key"], ())) | set(last[kind].get("frames", p.frames))
+            keys[last[kind]["key"]] = tuple(sorted(made))
+        for key, frames in keys.items():
             if graph.nodes[kind].per_frame:
-                removed += sum(cache.remove(kind, frame_key(key, f)) for f in p.frames)
+                removed += sum(cache.remove(kind, frame_key(key, f)) for f in frames)
             else:
                 removed += int(cache.remove(kind, key))
                 shutil.rmtree(cache.checkpoint_dir(key), ignore_errors=True)

@@ -96,6 +96,25 @@ def test_a_frame_range_that_selects_nothing_is_refused_up_front(frames, toy_conf
     assert not (tmp_path / "c").exists() and not (tmp_path / "o").exists()
 
 
+@pytest.mark.parametrize("cache, out", [("o/c", "o"), ("c", "c/o"), ("c", "c")])
+def test_a_cache_and_an_output_folder_that_overlap_are_refused_up_front(cache, out, toy_config, tmp_path):
+    """--cache inside the output folder wrote entries among the published outputs and then blamed the user
+    for "a file the pipeline did not publish" (and every later run too); --out inside the cache was
+    accepted and its outputs deleted by a later run's sweep (a user's sweep)."""
+    result = CliRunner().invoke(main, ["run", str(toy_config), "--cache", str(tmp_path / cache),
+                                       "--out", str(tmp_path / out)])
+    _one_line_exit_2(result)
+    assert "overlap" in result.stderr
+    assert not (tmp_path / cache).exists() and not (tmp_path / out).exists()
+
+
+def test_a_lock_timeout_that_is_not_a_number_is_refused(toy_config, tmp_path):
+    """nan passed the option's range check and waited forever ("gives up after nan s")."""
+    result = CliRunner().invoke(main, ["run", str(toy_config), "--lock-timeout", "nan", "--cache", str(tmp_path / "c")])
+    _one_line_exit_2(result)
+    assert "--lock-timeout nan" in result.stderr
+
+
 def test_a_cache_path_that_is_a_file(toy_config, tmp_path):
     (tmp_path / "c").write_text("mine")
     result = CliRunner().invoke(main, ["run", str(toy_config), "--cache", str(tmp_path / "c"), "--out", str(tmp_path / "o")])

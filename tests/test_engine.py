@@ -106,6 +106,51 @@ def test_external_file_content_is_hashed(toy_config):
     assert "v2" in (Path(r.out) / "frames" / "frame_00000.txt").read_text()
 
 
+def test_an_input_edited_during_the_run_leaves_no_entry_under_the_old_key(toy_config):
+    """Keys hash the input files when the run is planned; a stage reads them later (a camera after the
+    whole simulation). A user's edit in between made an entry under the old content's key from the new
+    content, and later runs served it as up to date (a user's sweep: frames and USD from camera B where
+    the key said A; frames 0-12 from A and 13-29 from B in one entry). Now the stage fails (exit 1, one
+    line) and keeps nothing; the next run makes the entry from what the file holds then."""
+    src = toy_config.parent / "model.txt"
+    src.write_text("A")
+    edit = ("mesh_import.source=model.txt", "mesh_import.edit=B")
+    with pytest.raises(StageFailed, match=r"stage mesh_import.toy: model\.txt changed while the run used it") as e:
+        run(toy_config, overrides=edit)
+    assert e.value.exit_code == 1
+    src.write_text("A")  # the user puts it back: nothing made under A's key from B (or from A) may be served
+    rows = {s.kind: s.state for s in pipeline.status(toy_config, registry=Registry.from_entry_points(),
+                                                     overrides=("mesh_import.source=model.txt",))}
+    assert rows["mesh_import"] == "missing"
+    r = run(toy_config, overrides=("mesh_import.source=model.txt",))
+    assert "walls 1 A" in (Path(r.out) / "frames" / "frame_00000.txt").read_text()
+
+    # per frame: a camera edited while frame 1 is drawn keeps frame 0 (made from A) and refuses frame 1
+    cam = toy_config.parent / "cam.txt"
+    cam.write_text("camera A")
+    (toy_config.parent / "edit_camera").touch()
+    shot = ("mesh_import.source=model.txt", "render.camera=cam.txt", "render.edit_at=1")
+    with pytest.raises(StageFailed, match=r"stage render.toy frame 1 .*cam\.txt changed while the run used it"):
+        run(toy_config, overrides=shot)
+    assert ran(toy_config, "render") == 4 + 2
+    cam.write_text("camera A")
+    run(toy_config, overrides=shot)
+    assert ran(toy_config, "render") == 4 + 2 + 3  # frame 0 served from cache, frames 1-3 made from A
+
+
+def test_force_recomputes_instead_of_resuming_a_killed_runs_checkpoints(toy_config):
+    """A killed run leaves checkpoints under its key; a later run resumes from them, but --force means
+    "recompute": it resumed (a user's sweep: "resumed from the checkpoint at frame 30" in 1 s)."""
+    r = run(toy_config, until="simulate")
+    key = next(s.key for s in r.stages if s.kind == "simulate")
+    cache = Cache(toy_config.parent / ".pipeline")
+    cache.checkpoint_dir(key).mkdir(parents=True, exist_ok=True)
+    (cache.checkpoint_dir(key) / "state_00030.npz").write_bytes(b"x")
+    r = run(toy_config, until="simulate", force=("simulate",))
+    entry = cache.lookup("simulate", key)
+    assert statuses(r)["simulate"] == "forced" and (entry.path / "checkpoints_seen.txt").read_text() == ""
+
+
 def test_only_needs_cached_inputs(toy_config):
     with pytest.raises(CacheMissError, match="mesh_import.toy is not cached"):
         run(toy_config, only="simulate")
@@ -219,6 +264,30 @@ def test_clean_removes_entries(toy_config):
     assert n == 4
     r = run(toy_config)
     assert statuses(r)["render"] == "ran" and statuses(r)["surface_extract"] == "cached"
+
+
+def test_clean_removes_the_frames_of_a_shot_since_shortened(toy_config):
+    """The last run made 4 frames, the config now has 2: clean looped over the config's frames only and
+    left frames 2-3 of every per-frame stage behind (a user's sweep)."""
+    run(toy_config)
+    toy_config.write_text(toy_config.read_text().replace("count: 4", "count: 2"))
+    n = pipeline.clean(toy_config, registry=Registry.from_entry_points(), stage="render")
+    assert n == 4
+    cache = Cache(toy_config.parent / ".pipeline")
+    assert not any((cache.root / "render").rglob("manifest.json"))
+
+
+def test_clean_while_a_run_uses_the_cache_is_refused_and_removes_nothing(toy_config):
+    """A clean during a run removed entries the run had made and was about to read, and the run failed
+    blaming the user (exit 2). The run holds the cache shared for its length; clean needs it alone."""
+    run(toy_config)
+    cache = Cache(toy_config.parent / ".pipeline")
+    with cache.in_use():  # as a running shot does
+        with pytest.raises(StageFailed, match=r"clean: a run is using the cache .*\(nothing was removed\)") as e:
+            pipeline.clean(toy_config, registry=Registry.from_entry_points())
+    assert e.value.exit_code == 1
+    assert all(s == "cached" for s in statuses(run(toy_config)).values())
+    assert pipeline.clean(toy_config, registry=Registry.from_entry_points()) > 0  # and after the run, it cleans
 
 
 def _cli_env(toy_plugin) -> dict:

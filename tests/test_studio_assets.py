@@ -357,3 +357,17 @@ def test_catmull_clark_keeps_a_flat_open_patch_flat_with_its_corners():
     np.testing.assert_allclose(p[:, :2].max(axis=0), 2.0, atol=1e-12)
     for corner in ([0, 0], [2, 0], [2, 2], [0, 2]):
         assert np.isclose(np.linalg.norm(p[:, :2] - corner, axis=1).min(), 0.0)
+
+
+def test_a_malformed_usd_wall_or_camera_names_the_line_it_breaks_on(tmp_path):
+    """A broken .usda said "cannot open as USD (')": the last of pxr's stacked messages, cut. Now the
+    parser's first complaint, with the file's line and column; a camera file too (it was a traceback)."""
+    from stages.common.camera import usd_camera_moves
+
+    bad = tmp_path / "bad.usda"
+    bad.write_text('#usda 1.0\ndef Mesh "M" {\n  point3f[] points = [(0,0,0), (1,0\n}\n')
+    with pytest.raises(StageError, match=r"bad\.usda: cannot open as USD \(.*bad\.usda:4:1: parse error") as e:
+        _import(tmp_path, [{"usd": "bad.usda"}])
+    assert "\n" not in str(e.value) and "pxrInternal" not in str(e.value)
+    with pytest.raises(StageError, match=r"camera: camera\.usd: .*bad\.usda: cannot open as USD \(.*4:1: parse error"):
+        usd_camera_moves(bad, None)

@@ -24,6 +24,7 @@ class ToyImport(Stage):
     class Params(Params):
         value: int = Field(1, description="written into the artifact")
         source: str | None = Field(None, description="an external file whose content is hashed")
+        edit: str | None = Field(None, description="written into source after reading it (a user's edit mid-run)")
 
     def external_files(self, ctx, params):
         return [ctx.resolve(params.source)] if params.source else []
@@ -33,6 +34,8 @@ class ToyImport(Stage):
         text = f"walls {params.value}"
         if params.source:
             text += " " + ctx.resolve(params.source).read_text()
+            if params.edit is not None:
+                ctx.resolve(params.source).write_text(params.edit)
         (ctx.out_dir / "walls.txt").write_text(text)
 
 
@@ -91,6 +94,8 @@ class ToySimulate(Stage):
                 fh.flush()
                 progress.advance()
         (ctx.out_dir / "done.txt").write_text("ok")
+        seen = sorted(os.listdir(ctx.checkpoint_dir)) if ctx.checkpoint_dir and ctx.checkpoint_dir.is_dir() else []
+        (ctx.out_dir / "checkpoints_seen.txt").write_text(" ".join(seen))  # what a resume would start from
         # a made-up accuracy figure that improves with steps, for the study tests
         (ctx.out_dir / "stats.json").write_text(f'{{"stats": {{"error": {1.0 / params.steps}}}}}')
 
@@ -119,10 +124,20 @@ class ToyRender(Stage):
     class Params(Params):
         width: int = Field(64, ge=1)
         sleep: float = Field(0.0, ge=0)
+        camera: str | None = Field(None, description="an external file read by every frame")
+        edit_at: int | None = Field(None, description="the frame during which the camera file is edited, once: "
+                                    "if the file edit_camera is beside the config (removed then)")
+
+    def external_files(self, ctx, params):
+        return [ctx.resolve(params.camera)] if params.camera else []
 
     def run_frame(self, ctx, inputs, params, frame):
         _bump(ctx, "render")
         _span(ctx, "render", params.sleep)
+        marker = ctx.config_dir / "edit_camera"
+        if params.camera and frame == params.edit_at and marker.exists():
+            marker.unlink()
+            ctx.resolve(params.camera).write_text("camera B")
         src = (inputs["raw_surface"].frame(frame) / f"surface_{frame:05d}.txt").read_text()
         (ctx.out_dir / f"frame_{frame:05d}.txt").write_text(f"{src} | render {params.width}")
 
@@ -173,3 +188,14 @@ def scaled_error(out_dir, *, study_dir, factor):
     """A study metric computed by a function (pipeline.study Metric.function)."""
     import json
     return factor * json.loads((out_dir / "particles" / "stats.json").read_text())["stats"]["error"]
+
+
+def minus_reference(out_dir, *, study_dir, reference):
+    """A study metric that reads another variant's outputs (as the distance to the finest run does)."""
+    import json
+
+    from stages.simulate.validation import finest_variant
+
+    def error(folder):
+        return json.loads((folder / "particles" / "stats.json").read_text())["stats"]["error"]
+    return error(out_dir) - error(finest_variant(out_dir, reference))

@@ -114,6 +114,27 @@ def _group(pgid: int) -> list[str]:
     return out
 
 
+def test_pool_workers_end_when_the_run_is_killed_alone(tmp_path):
+    """SIGKILL to the run's process only (what the OOM killer does) cannot stop its workers: they idled on,
+    adopted by init, 380 MB each (a user's sweep). Each worker now ends once its parent is gone."""
+    cfg = write_config(tmp_path, count=4)
+    proc = _start("run", str(cfg), "--cache", str(tmp_path / "c"), "--workers", "2", "-q", "--set", "render.sleep=30")
+    deadline = time.monotonic() + 60
+    while _lines(tmp_path / "ran_render.log") == 0:
+        assert proc.poll() is None, proc.communicate()
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    proc.kill()  # the run's process alone, not its group
+    proc.wait(timeout=30)  # (not communicate: the workers hold its pipes open while they live)
+    left = _group(proc.pid)
+    for _ in range(100):
+        if not left:
+            break
+        time.sleep(0.1)
+        left = _group(proc.pid)
+    assert not left, f"workers outlived the killed run: {left}"
+
+
 def _resume_is_consistent(tmp_path: Path) -> None:
     r = run_cli("run", str(tmp_path / "shot.yaml"), "--cache", str(tmp_path / "c"), "-q")
     assert r.returncode == 0, r.stderr
