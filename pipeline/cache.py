@@ -24,6 +24,7 @@ import os
 import re
 import shutil
 import socket
+import tempfile
 import time
 import uuid
 from contextlib import contextmanager
@@ -81,6 +82,20 @@ def file_in_the_way(path: Path) -> Path | None:
             return None
         if parent.exists() or parent.is_symlink():
             return parent
+    return None
+
+
+def unwritable(path: Path) -> str | None:
+    """Why ``path`` (a folder, maybe not there yet) cannot be written, else None: tried by making and
+    removing a folder in it or in its closest existing ancestor (a run under /proc ran every stage and
+    then failed to publish)."""
+    base = next((p for p in (Path(path), *Path(path).parents) if p.is_dir()), None)
+    if base is None:
+        return None
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=".pipeline-write-test.", dir=base))
+    except OSError as exc:
+        return f"{base} is not writable ({exc.strerror or exc})"
     return None
 
 

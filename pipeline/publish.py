@@ -19,7 +19,7 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any, Iterable
 
-from .cache import file_in_the_way, owner_is_dead, owner_tag, parse_owner_tag
+from .cache import file_in_the_way, owner_is_dead, owner_tag, parse_owner_tag, unwritable
 from .errors import PipelineError
 from .graph import Graph
 from .stage import Artifact
@@ -104,6 +104,9 @@ def check_out_dir(out_dir: Path, names: Iterable[str], files: Iterable[str] = ("
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise OutputRefused(f"output folder {out_dir} is a file, not a folder; choose another --out")
+    why = unwritable(out_dir)
+    if why is not None:
+        raise OutputRefused(f"output folder {out_dir} cannot be written: {why}; choose another --out")
     blocker = file_in_the_way(out_dir)
     if blocker is not None:
         raise OutputRefused(f"output folder {out_dir} cannot be made: {blocker} is a file, not a folder; move it away "

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-from .cache import Cache, hash_key, owner_tag
+from .cache import Cache, hash_key, owner_tag, unwritable
 from .config import OUTPUT_NAMES, Config, load_config
 from .errors import CacheMissError, ConfigError, FrameError, PipelineError, StageFailed
 from .estimate import check_size, check_stages
@@ -580,6 +580,9 @@ def run(config_path: str | Path, *, registry: Registry | None = None, overrides:
         raise ConfigError(f"the output folder {out} and the cache folder {cache.root} overlap; "
                           "choose another --out or --cache (nothing was changed)")
     check_out_dir(out, [n for n in graph.outputs] + ["run.json"])
+    why = unwritable(cache.root)
+    if why is not None:  # found before any stage runs, not when the first entry is committed
+        raise ConfigError(f"cache folder {cache.root} cannot be written: {why} (choose another with --cache)")
     try:
         try:
             p = plan(config, graph, cache, frames)

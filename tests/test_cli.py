@@ -108,6 +108,15 @@ def test_a_cache_and_an_output_folder_that_overlap_are_refused_up_front(cache, o
     assert not (tmp_path / cache).exists() and not (tmp_path / out).exists()
 
 
+@pytest.mark.parametrize("flag", ["--out", "--cache"])
+def test_an_unwritable_output_or_cache_folder_is_refused_before_any_stage(flag, toy_config, tmp_path):
+    """--out /proc/x ran every stage and then failed to publish with a FileNotFoundError (exit 1)."""
+    result = CliRunner().invoke(main, ["run", str(toy_config), flag, "/proc/x/y"])
+    _one_line_exit_2(result)
+    assert "cannot be written: /proc is not writable" in result.stderr
+    assert not (toy_config.parent / "ran_mesh_import.log").exists()
+
+
 def test_a_lock_timeout_that_is_not_a_number_is_refused(toy_config, tmp_path):
     """nan passed the option's range check and waited forever ("gives up after nan s")."""
     result = CliRunner().invoke(main, ["run", str(toy_config), "--lock-timeout", "nan", "--cache", str(tmp_path / "c")])

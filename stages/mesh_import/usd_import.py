@@ -147,10 +147,10 @@ def _gprim_triangles(kind: str, a: dict, where: str) -> tuple[np.ndarray, np.nda
     on the origin, round shapes about ``axis``; a Plane is an open sheet (a shell), the rest closed."""
     import trimesh
 
-    def size(name: str, fallback: float) -> float:
+    def size(name: str, fallback: float, zero: bool = False) -> float:
         v = a.get(name)
         v = fallback if v is None else float(v)
-        if not (math.isfinite(v) and v > 0):
+        if not (math.isfinite(v) and (v > 0 or (zero and v == 0))):
             raise StageError(f"{where}: {kind} {name} {v} must be a positive number")
         return v
 
@@ -171,7 +171,9 @@ def _gprim_triangles(kind: str, a: dict, where: str) -> tuple[np.ndarray, np.nda
     h = size("height", 1.0 if kind.startswith("Capsule") else 2.0) / 2
     r_fallback = 0.5 if kind.startswith("Capsule") else 1.0
     if kind.endswith("_1"):
-        bottom, top = size("radiusBottom", r_fallback), size("radiusTop", r_fallback)
+        bottom, top = size("radiusBottom", r_fallback, zero=True), size("radiusTop", r_fallback, zero=True)
+        if bottom == top == 0:
+            raise StageError(f"{where}: {kind} radiusBottom and radiusTop are both 0")
     else:
         bottom = size("radius", r_fallback)
         top = 0.0 if kind == "Cone" else bottom
