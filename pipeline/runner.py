@@ -5,6 +5,7 @@ Status and clean are in pipeline.status.
 from __future__ import annotations
 
 import faulthandler
+import json
 import logging
 import os
 import shutil
@@ -65,6 +66,7 @@ class RunReport:
     overrides: list[str] = field(default_factory=list)
     frames: list[int] | None = None
     finished: str = ""
+    settings: dict[str, Any] = field(default_factory=dict)  # the config as this run read it (--set applied)
 
     def stage(self, kind: str) -> StageReport:
         return next(s for s in self.stages if s.kind == kind)
@@ -285,7 +287,8 @@ def _execute(p: Plan, out_dir: Path, force: frozenset[str], executor: Executor |
     t_start = time.perf_counter()
     count = config.scene.scene.frames.count
     report = RunReport(config=str(config.path), scene=config.name, cache=str(cache.root), out=str(out_dir),
-                       overrides=list(config.overrides), frames=None if p.frames == tuple(range(count)) else list(p.frames))
+                       overrides=list(config.overrides), frames=None if p.frames == tuple(range(count)) else list(p.frames),
+                       settings=json.loads(json.dumps(config.raw, default=str)))
     artifacts: dict[str, Artifact] = {}
     reports: dict[str, StageReport] = {}
     state = cache.read_state(config.path)

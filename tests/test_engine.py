@@ -57,6 +57,9 @@ def test_first_run_runs_everything_second_run_nothing(toy_config):
     run(toy_config, overrides=("surface_extract.iso=0.7",), frames=(1, 2))
     manifest = json.loads((out / "run.json").read_text())
     assert manifest["overrides"] == ["surface_extract.iso=0.7"] and manifest["frames"] == [1, 2]
+    # and the settings themselves, as read (the file may be edited after the run: run.json kept only its path)
+    assert manifest["settings"]["stages"]["surface_extract"]["iso"] == 0.7
+    assert manifest["settings"]["scene"]["frames"]["count"] == 4
 
 
 def test_only_the_stages_the_outputs_need_run(toy_config):
