@@ -485,9 +485,12 @@ def test_surface_extract_cuts_the_fluid_at_the_moved_wall(tmp_path):
         v = load_surface(out, frame).vertices.astype(np.float64)
         d, _ = body.sample(motion.to_rest(v, t))
         results[name] = d[d < 0.6 * L0]  # the raw surface facing the paddle
-    # on the moved face (up to the trilinear rounding at its edges): measured median 0.02 l0, max 0.09 l0
+    # on the moved face: measured median 0.04 l0, 90 % within 0.09 l0. The paddle is 1 l0 thick, so the
+    # mirror images of one side count on that side only (they drew water behind thin walls, issue of
+    # session 22); 9 % of these vertices, mid-face, stay 0.2-0.54 l0 off it before wall_snap (with the
+    # images counted on both sides: max 0.09 l0, and fake water behind one-sided thin walls)
     walls, none = np.abs(results["walls"]) / L0, np.abs(results["none"]) / L0
-    assert len(walls) > 100 and np.median(walls) < 0.05 and walls.max() < 0.15
+    assert len(walls) > 100 and np.median(walls) < 0.05 and np.percentile(walls, 90) < 0.1 and walls.max() < 0.6
     assert np.median(none) > 0.15  # without the moving wall the surface floats off its face (0.22 l0)
 
 

@@ -52,7 +52,8 @@ from stages.common.meshes import signed_volume, vertex_normals
 from stages.common.sdf import SDFGrid, load_bodies, posed_field
 
 from .anisotropic import anisotropic_kernels, scatter_anisotropic
-from .implicit import cut_by_walls, ghost_particles, order_and_chunks, particle_volumes, scatter_implicit
+from .implicit import (add_seen_images, cut_by_walls, ghost_particles, order_and_chunks, particle_volumes,
+                       scatter_clipped, scatter_implicit)
 
 SLABS_PER_CHUNK = 4  # z slabs per parallel task: many tasks for balance, each particle in ~ 2R / (4 h) of them
 _kept = threading.local()  # per thread: the grid buffer kept across frames (grid_buffer)
@@ -187,14 +188,32 @@ def extract(x: np.ndarray, vol: np.ndarray, l0: float, params: MarchingCubesPara
     grid_lo = x.min(axis=0) - pad - 0.25 * h
     shape = np.ceil((x.max(axis=0) + pad - grid_lo) / h).astype(np.int64) + 1  # (nx, ny, nz)
     n_real = len(x)
+    n_thin = 0  # images beside thin walls, last in x: scattered clipped to the wall's near side
     if sdf is not None and params.wall_term:
         gx = np.empty_like(x)
         gv = np.empty_like(vol)
         keep = np.empty(len(x), np.bool_)
-        ghost_particles(x, vol, sdf.dist, sdf.origin, 1.0 / sdf.spacing, R, gx, gv, keep)
-        x = np.concatenate([x, gx[keep]])
-        vol = np.concatenate([vol, gv[keep]])
+        plane = np.empty((len(x), 4))
+        ghost_particles(x, vol, sdf.dist, sdf.origin, 1.0 / sdf.spacing, R, gx, gv, keep, plane)
+        thin = keep & np.isfinite(plane[:, 3])
+        solid = keep & ~thin
+        n_thin = int(thin.sum())
+        thin_src, thin_x, thin_in = x[thin], gx[thin], gv[thin]
+        x = np.concatenate([x, gx[solid]])
+        vol = np.concatenate([vol, gv[solid]])
+    vol_in = vol
     vol = particle_volumes(x, vol, R)  # the mirror images count: the wall carries its share of rho
+    if n_thin:  # and beside thin walls, on their own side only
+        from scipy.spatial import cKDTree
+
+        near = cKDTree(x[:n_real]).query_ball_point(thin_x, R)
+        pairs_g = np.repeat(np.arange(n_thin), [len(n) for n in near])
+        pairs_i = np.fromiter((i for n in near for i in n), np.int64, len(pairs_g))
+        summed = vol_in[:n_real] / vol[:n_real]
+        add_seen_images(x, vol_in, summed, pairs_g, pairs_i, thin_x, thin_in, thin_src, R, sdf.dist, sdf.origin,
+                        1.0 / sdf.spacing)
+        vol[:n_real] = vol_in[:n_real] / summed
+        thin_vol = vol[np.flatnonzero(thin)]  # an image occupies its particle's volume
     reach = R
     if params.anisotropic:
         x, metric, extent = anisotropic_kernels(x, R, params.anisotropic_smoothing)  # centres, ellipsoids
@@ -213,6 +232,8 @@ def extract(x: np.ndarray, vol: np.ndarray, l0: float, params: MarchingCubesPara
                             first, last, bounds, grid_lo, 1.0 / h, R, phi)
     else:
         scatter_implicit(xs, vs, first, last, bounds, grid_lo, 1.0 / h, R, phi)
+    if n_thin:
+        scatter_clipped(thin_x, thin_vol, thin_src, grid_lo, 1.0 / h, R, phi, sdf.dist, sdf.origin, 1.0 / sdf.spacing)
     if sdf is not None and params.wall_term:
         cut_by_walls(phi, grid_lo, h, params.iso, R, sdf.dist, sdf.origin, 1.0 / sdf.spacing)
     t1 = time.perf_counter()
