@@ -115,3 +115,12 @@ def test_an_emitter_lattice_is_centred_in_its_box_and_sphere():
     ball, _ = emit([SphereEmitter(sphere={"center": [0.3, 0.2, 0.1], "radius": 0.047})], 0.01, lambda p: p)
     assert np.allclose(ball.mean(axis=0), [0.3, 0.2, 0.1], atol=1e-12)
     assert np.allclose(np.sort(ball[:, 0] - 0.3), np.sort(0.3 - ball[:, 0]), atol=1e-12)  # mirror symmetric
+    # a radius of whole spacings puts 6 lattice points on the sphere: all in, in m, cm and mm alike (the
+    # metre scene kept 3 of them by rounding: 254 against 257 particles, off centre)
+    counts = set()
+    for k in (1.0, 100.0, 1000.0):
+        ball, _ = emit([SphereEmitter(sphere={"center": [0.0, 0.0, 0.12 * k], "radius": 0.08 * k})], 0.02 * k,
+                       lambda p: p)
+        counts.add(len(ball))
+        assert np.allclose(ball.mean(axis=0) / k, [0.0, 0.0, 0.12], atol=1e-9)
+    assert counts == {257}

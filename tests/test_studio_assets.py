@@ -231,7 +231,18 @@ SHAPES = {
     "Cylinder_1": ({"radiusBottom": 10.0, "radiusTop": 5.0, "height": 20.0, "axis": "Z"},
                    np.pi * 20 / 3 * (100 + 50 + 25), (10, 10, 10)),
     "Plane": ({"width": 40.0, "length": 20.0, "axis": "X"}, 40.0 * 20.0, (0, 10, 20)),
+    # USD's capsule of unequal ends is the hull of the two spheres (centres 10 apart): two caps and the
+    # tangent frustum between them (it was a cone from equator to equator, 1.8 l0 inside the drawn one)
+    "Capsule_1": ({"radiusBottom": 10.0, "radiusTop": 3.0, "height": 10.0, "axis": "Z"}, None, (10, 10, 15)),
 }
+
+
+def _capsule_hull_volume(r1: float, r2: float, spine: float) -> float:
+    s = (r1 - r2) / spine  # sin of the tangent latitude
+    c1, c2 = r1 * (1 + s), r2 * (1 - s)  # the caps' heights
+    frustum = spine + (r2 - r1) * s
+    return (np.pi * c1 ** 2 * (3 * r1 - c1) / 3 + np.pi * c2 ** 2 * (3 * r2 - c2) / 3
+            + np.pi * frustum / 3 * (1 - s * s) * (r1 * r1 + r1 * r2 + r2 * r2))
 
 
 @pytest.mark.parametrize("kind", list(SHAPES))
@@ -242,6 +253,7 @@ def test_usd_shapes_are_walls_of_their_own_size_and_place(tmp_path, kind):
     from pxr import Gf, Usd, UsdGeom
 
     attrs, measure, half = SHAPES[kind]
+    measure = _capsule_hull_volume(10.0, 3.0, 10.0) if measure is None else measure
     stage = _new_stage(tmp_path / "set.usda")
     UsdGeom.SetStageMetersPerUnit(stage, 0.01)
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
@@ -371,3 +383,90 @@ def test_a_malformed_usd_wall_or_camera_names_the_line_it_breaks_on(tmp_path):
     assert "\n" not in str(e.value) and "pxrInternal" not in str(e.value)
     with pytest.raises(StageError, match=r"camera: camera\.usd: .*bad\.usda: cannot open as USD \(.*4:1: parse error"):
         usd_camera_moves(bad, None)
+
+
+def test_instancer_prototypes_leave_out_guides_and_proxies_and_nested_instancers_are_refused(tmp_path):
+    """Inside an instancer's prototype a guide Cube (a rig helper 51 x the rock) and a proxy beside the
+    render Sphere became walls at every instance; an instancer inside a prototype came in at its own
+    place without its instances (a user's sweep). Guides and proxies are left out as outside instancers;
+    a nested instancer is refused in one line."""
+    from pxr import Gf, UsdGeom, Vt
+
+    stage = _new_stage(tmp_path / "rocks.usda")
+    pi = UsdGeom.PointInstancer.Define(stage, "/World/Inst")
+    UsdGeom.Sphere.Define(stage, "/World/Inst/Protos/Rock/Render").GetRadiusAttr().Set(0.1)
+    for name, purpose, size in (("Helper", UsdGeom.Tokens.guide, 0.6), ("Proxy", UsdGeom.Tokens.proxy, 0.25)):
+        cube = UsdGeom.Cube.Define(stage, f"/World/Inst/Protos/Rock/{name}")
+        cube.GetSizeAttr().Set(size)
+        cube.CreatePurposeAttr(purpose)
+    UsdGeom.Imageable(stage.GetPrimAtPath("/World/Inst/Protos/Rock/Render")).CreatePurposeAttr(UsdGeom.Tokens.render)
+    pi.CreatePrototypesRel().SetTargets(["/World/Inst/Protos/Rock"])
+    pi.CreateProtoIndicesAttr([0, 0])
+    pi.CreatePositionsAttr(Vt.Vec3fArray([Gf.Vec3f(0, 0, 0), Gf.Vec3f(1, 0, 0)]))
+    stage.GetRootLayer().Save()
+    mesh = _import(tmp_path, [{"usd": "rocks.usda"}])
+    assert mesh.walls[0]["report"]["prims"] == ["/World/Inst[0]/Render", "/World/Inst[1]/Render"]
+    np.testing.assert_allclose(mesh.vertices.min(axis=0), [-0.1, -0.1, -0.1], atol=1e-9)
+
+    inner = UsdGeom.PointInstancer.Define(stage, "/World/Inst/Protos/Rock/Pebbles")
+    inner.CreatePrototypesRel().SetTargets(["/World/Inst/Protos/Rock/Render"])
+    inner.CreateProtoIndicesAttr([0])
+    inner.CreatePositionsAttr(Vt.Vec3fArray([Gf.Vec3f(0.2, 0, 0)]))
+    stage.GetRootLayer().Save()
+    with pytest.raises(StageError, match=r"rocks\.usda:/World/Inst: prototype /World/Inst/Protos/Rock holds another "
+                                         r"PointInstancer") as e:
+        _import(tmp_path, [{"usd": "rocks.usda"}])
+    assert "\n" not in str(e.value)
+
+
+def test_a_usd_camera_in_an_up_axis_usd_does_not_allow_is_refused_as_walls_are(tmp_path):
+    """A camera file with upAxis X was turned as if it were Z up, and one with metersPerUnit 0 sat at the
+    origin, without a word (walls refuse both)."""
+    from stages.common.camera import usd_camera
+
+    for name, head in (("x", 'upAxis = "X"\n    metersPerUnit = 0.01'), ("zero", 'upAxis = "Z"\n    metersPerUnit = 0')):
+        (tmp_path / f"{name}.usda").write_text(f'#usda 1.0\n(\n    {head}\n)\ndef Camera "Cam"\n{{\n}}\n')
+        with pytest.raises(StageError, match=rf"camera: camera\.usd: .*{name}\.usda: (upAxis 'X' is not Y or Z|"
+                                             r"metersPerUnit 0\.0 must be a positive number)"):
+            usd_camera(tmp_path / f"{name}.usda", None, "Z", 1.0)
+
+
+def test_a_hole_in_a_subdivision_cage_leaves_its_neighbours_on_the_closed_cages_limit(tmp_path):
+    """A hole face refines with the cage and only its children are left out (OpenSubdiv draws the hole's
+    neighbours as on the closed cage: the cube's faces reach 0.842 at 4 levels); removed first, it made
+    the rim a boundary crease and the sides bulged to 0.918, 8 % outside what a renderer draws."""
+    from pxr import UsdGeom
+
+    stage = _new_stage(tmp_path / "holed.usda")
+    cube = _define_cube(stage, "/World/Cage", h=1.0)
+    cube.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.catmullClark)
+    cube.CreateHoleIndicesAttr([1])  # the top face (z = +1)
+    stage.GetRootLayer().Save()
+    closed_stage = _new_stage(tmp_path / "closed.usda")
+    _define_cube(closed_stage, "/World/Cage", h=1.0).CreateSubdivisionSchemeAttr(UsdGeom.Tokens.catmullClark)
+    closed_stage.GetRootLayer().Save()
+    holed = _import(tmp_path, [{"usd": "holed.usda", "subdivide": 4, "shell": {"thickness": 0.01}}])
+    closed = _import(tmp_path, [{"usd": "closed.usda", "subdivide": 4}])
+    assert len(holed.faces) == len(closed.faces) * 5 // 6  # one face's children of six
+    assert holed.vertices[:, 0].max() == pytest.approx(closed.vertices[:, 0].max(), abs=1e-9)  # 0.8419, not 0.918
+    assert holed.vertices[:, 0].max() == pytest.approx(0.84192, abs=1e-4)
+
+
+def test_a_usd_emitter_without_units_is_warned_about_as_a_wall_is(tmp_path, caplog):
+    """A USD emitter stating no metersPerUnit was read as centimetres without a word (the same file as a
+    wall is warned about)."""
+    import logging
+
+    from pxr import Usd
+
+    from pipeline.scene import MeshEmitter
+    from stages.simulate.emitters import emit
+
+    bare = Usd.Stage.CreateNew(str(tmp_path / "water.usda"))
+    _define_cube(bare, "/Water", h=10.0)
+    bare.GetRootLayer().Save()
+    with caplog.at_level(logging.WARNING):
+        x, _ = emit([MeshEmitter(mesh="water.usda")], 0.02, lambda p: tmp_path / p, 1.0,
+                    logging.getLogger("t"))
+    assert len(x) == 1000  # a 20 cm cube at 2 cm, as USD's centimetre fallback reads it
+    assert "states no metersPerUnit and no upAxis" in caplog.text

@@ -83,6 +83,8 @@ def usd_camera(path: Path, prim: str | None, up_axis: str, meters_per_unit: floa
     with only time samples sat at the origin)."""
     from pxr import UsdGeom
 
+    from .usd_stage import stage_units
+
     stage, cam_prim = _camera_prim(path, prim, who)
     cam = UsdGeom.Camera(cam_prim).GetCamera(_time_code(stage, seconds))
     frustum = cam.frustum
@@ -91,8 +93,8 @@ def usd_camera(path: Path, prim: str | None, up_axis: str, meters_per_unit: floa
     up = np.array(frustum.ComputeUpVector())
     view_angle = float(cam.GetFieldOfView(cam.FOVVertical))
     # the file's units and up axis -> the scene's (Y-up -> Z-up is +90 degrees about X)
-    scale = UsdGeom.GetStageMetersPerUnit(stage) / meters_per_unit
-    file_up = str(UsdGeom.GetStageUpAxis(stage))
+    file_mpu, file_up = stage_units(stage, f"{who}: camera.usd: {path}")
+    scale = file_mpu / meters_per_unit
     rot = np.eye(3)
     if file_up != up_axis:
         rot = np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0]], float)

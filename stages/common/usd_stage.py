@@ -31,6 +31,21 @@ def open_stage(path: Path, who: str = "") -> Usd.Stage:
     return stage
 
 
+def stage_units(stage: Usd.Stage, where: str) -> tuple[float, str]:
+    """The stage's (metersPerUnit, upAxis), or a StageError naming ``where``: USD allows only Y or Z up
+    (X was turned as if Z up were Y) and a unit must be a positive length."""
+    import math
+
+    from pipeline.stage import StageError
+
+    mpu, up = float(UsdGeom.GetStageMetersPerUnit(stage)), str(UsdGeom.GetStageUpAxis(stage))
+    if up not in ("Y", "Z"):
+        raise StageError(f"{where}: upAxis {up!r} is not Y or Z, the two USD allows")
+    if not (math.isfinite(mpu) and mpu > 0):
+        raise StageError(f"{where}: metersPerUnit {mpu} must be a positive number")
+    return mpu, up
+
+
 def shot_start(stage: Usd.Stage) -> float:
     """The time code a file's shot starts at: its startTimeCode (studios use 1001), 0 when it has none."""
     return stage.GetStartTimeCode() if stage.HasAuthoredMetadata("startTimeCode") else 0.0

@@ -110,7 +110,7 @@ def _shape_triangles(prim, t, where: str, log, subdivide: int = 0,
         animated = ", ".join(n for n, a in attrs.items() if a.GetNumTimeSamples() > 1)
         pts, tris = _gprim_triangles(prim.GetTypeName(), {n: a.Get(t) for n, a in attrs.items()}, where)
     if animated and log is not None:
-        log.warning("%s: its %s are animated (a deforming shape); the wall is its shape at the first sample "
+        log.warning("%s: animated %s (a deforming shape); the wall is its shape at the first sample "
                     "(walls move rigidly only)", where, animated)
     if UsdGeom.Gprim(prim).GetOrientationAttr().Get() == UsdGeom.Tokens.leftHanded:
         tris = tris[:, ::-1]
@@ -119,8 +119,8 @@ def _shape_triangles(prim, t, where: str, log, subdivide: int = 0,
 
 def _subdivided(pts, counts, idx, holes, scheme: str, levels: int, where: str, prim,
                 log) -> tuple[np.ndarray, np.ndarray]:
-    """The cage refined ``levels`` times by its scheme (hole faces left out first: their edges become the
-    boundary), as triangles."""
+    """The cage refined ``levels`` times by its scheme, as triangles. Hole faces refine with the rest (their
+    neighbours' limit surface is the closed cage's, as OpenSubdiv draws it) and their children are left out."""
     import trimesh
 
     from .subdivision import catmull_clark
@@ -129,17 +129,17 @@ def _subdivided(pts, counts, idx, holes, scheme: str, levels: int, where: str, p
         _triangulate(counts, idx, holes, where, pts)  # its one-line refusal
     keep = np.ones(len(counts), bool)
     keep[holes[(holes >= 0) & (holes < len(counts))]] = False
-    corner_keep = np.repeat(keep, counts)
-    counts, idx = counts[keep], idx[corner_keep]
     sharp = [n for n in ("creaseIndices", "cornerIndices") if prim.GetAttribute(n).HasAuthoredValue()]
     if sharp and log is not None:
         log.warning("%s: its %s are not applied by the refinement (smooth there)", where, " and ".join(sharp))
-    if scheme == "loop":
-        tris = _triangulate(counts, idx, np.zeros(0, np.int64), where, pts)
+    if scheme == "loop":  # (trimesh's loop refinement keeps no parent faces: holes are left out first)
+        tris = _triangulate(counts, idx, holes, where, pts)
         v, f = trimesh.remesh.subdivide_loop(pts, tris, iterations=levels)
         return np.asarray(v, np.float64), np.asarray(f, np.int64)
     v, c, i = catmull_clark(pts, counts, idx, levels)
-    return v, _triangulate(c, i, np.zeros(0, np.int64), where, v)
+    # the quads come in their cage face's order: n per n-gon at the first level, then 4 per quad
+    parent = np.repeat(np.arange(len(counts)), counts)[np.arange(len(c)) // 4 ** (levels - 1)]
+    return v, _triangulate(c, i, np.flatnonzero(~keep[parent]), where, v)
 
 
 def _gprim_triangles(kind: str, a: dict, where: str) -> tuple[np.ndarray, np.ndarray]:
@@ -178,18 +178,48 @@ def _gprim_triangles(kind: str, a: dict, where: str) -> tuple[np.ndarray, np.nda
         bottom = size("radius", r_fallback)
         top = 0.0 if kind == "Cone" else bottom
     # a profile (radius, height) from the axis back to it, turned about z
-    if kind.startswith("Capsule"):  # hemispheres of their radii on the ends of the spine
-        q = np.linspace(0.0, np.pi / 2, _SECTIONS // 4 + 1)
-        profile = np.concatenate([np.c_[bottom * np.sin(q), -h - bottom * np.cos(q)],
-                                  np.c_[top * np.cos(q), h + top * np.sin(q)]])
+    if kind.startswith("Capsule"):  # the hull of spheres of the two radii on the ends of the spine
+        if abs(bottom - top) >= 2 * h:  # one sphere holds the other: the hull is the larger sphere
+            c, r = (-h, bottom) if bottom > top else (h, top)
+            q = np.linspace(-np.pi / 2, np.pi / 2, _SECTIONS // 2 + 1)
+            profile = np.c_[r * np.cos(q), c + r * np.sin(q)]
+        else:  # the cone tangent to both meets them at latitude a, sin a = (bottom - top) / spine length
+            a = math.asin((bottom - top) / (2 * h))
+            lo = np.linspace(-np.pi / 2, a, _SECTIONS // 4 + 1)
+            hi = np.linspace(a, np.pi / 2, _SECTIONS // 4 + 1)
+            profile = np.concatenate([np.c_[bottom * np.cos(lo), -h + bottom * np.sin(lo)],
+                                      np.c_[top * np.cos(hi), h + top * np.sin(hi)]])
+        profile[[0, -1], 0] = 0.0  # the poles exactly on the axis
     else:
         profile = np.array([[0.0, -h], [bottom, -h], [top, h], [0.0, h]])
-    m = trimesh.creation.revolve(profile, sections=_SECTIONS)
-    m.merge_vertices()
-    v = m.vertices
+    v, f = _revolve(profile, _SECTIONS)
     # turn z onto the axis (a cyclic permutation: a rotation, the winding stays outward)
     v = {"X": v[:, [2, 0, 1]], "Y": v[:, [1, 2, 0]], "Z": v}[axis]
-    return np.ascontiguousarray(v), m.faces
+    return np.ascontiguousarray(v), f
+
+
+def _revolve(profile: np.ndarray, sections: int) -> tuple[np.ndarray, np.ndarray]:
+    """The closed surface of a profile (radius, height) from a pole on the z axis to a pole, turned about
+    z: a ring of ``sections`` vertices per inner point, fans at the poles, outward faces (trimesh's
+    revolve dropped a pole whose neighbour was close to the axis and left the mesh open)."""
+    inner = profile[1:-1][profile[1:-1, 0] > 0]  # a cone's tip is its pole
+    t = np.linspace(0.0, 2.0 * np.pi, sections, endpoint=False)
+    rings = np.stack([np.outer(inner[:, 0], np.cos(t)), np.outer(inner[:, 0], np.sin(t)),
+                      np.repeat(inner[:, 1:2], sections, axis=1)], axis=-1).reshape(-1, 3)
+    v = np.concatenate([[[0.0, 0.0, profile[0, 1]]], rings, [[0.0, 0.0, profile[-1, 1]]]])
+    n, top = len(inner), len(v) - 1
+    j = np.arange(sections)
+    ring = lambda k: 1 + k * sections + j  # noqa: E731 - vertex indices of ring k
+    nxt = lambda k: 1 + k * sections + (j + 1) % sections  # noqa: E731
+    faces = [np.stack([np.zeros(sections, np.int64), nxt(0), ring(0)], axis=1),
+             np.stack([np.full(sections, top), ring(n - 1), nxt(n - 1)], axis=1)]
+    for k in range(n - 1):
+        faces += [np.stack([ring(k), nxt(k), nxt(k + 1)], axis=1), np.stack([ring(k), nxt(k + 1), ring(k + 1)], axis=1)]
+    f = np.concatenate(faces)
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    if np.einsum("ij,ij->i", a, np.cross(b, c)).sum() < 0:  # wound inwards: turn every face
+        f = f[:, ::-1]
+    return v, np.ascontiguousarray(f)
 
 
 def _sample_codes(prim, stop=None) -> list[float]:
@@ -256,8 +286,18 @@ def _instances(stage, instancer, path: Path, hidden_too: bool) -> list[tuple]:
         # the instance transform includes the prototype root's own xformOps: place meshes relative to the root
         to_root = np.linalg.inv(np.asarray(cache.GetLocalToWorldTransform(root), np.float64))
         parts[i] = []
-        for mesh in Usd.PrimRange(root, Usd.TraverseInstanceProxies()):
+        prims = list(Usd.PrimRange(root, Usd.TraverseInstanceProxies()))
+        nested = next((p for p in prims if p.IsA(UsdGeom.PointInstancer)), None)
+        if nested is not None:  # its instances would need placing twice; its prototype came in at its own place
+            raise StageError(f"{where}: prototype {root.GetPath()} holds another PointInstancer ({nested.GetPath()}); "
+                             "nested instancers are not read as walls (flatten the inner one to meshes)")
+        purposes = {p: UsdGeom.Imageable(p).ComputePurpose() for p in prims if _is_shape(p)}
+        has_render = UsdGeom.Tokens.render in purposes.values()
+        for mesh in prims:
             if not _is_shape(mesh) or (not hidden_too and _hidden_below(mesh, root)):
+                continue
+            # as outside instancers: guides (rigs, helpers) are no walls, nor proxies beside render shapes
+            if purposes[mesh] == UsdGeom.Tokens.guide or (has_render and purposes[mesh] == UsdGeom.Tokens.proxy):
                 continue
             if _sample_codes(mesh, stop=root.GetParent()):
                 raise StageError(f"{where}: prototype {mesh.GetPath()} is animated; an instancer wall must be static "
@@ -296,7 +336,7 @@ def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str,
     same object twice). ``log`` hears what was left out and why."""
     from pxr import Usd, UsdGeom
 
-    from stages.common.usd_stage import open_stage
+    from stages.common.usd_stage import open_stage, stage_units
 
     if not path.is_file():
         raise StageError(f"{path}: USD file not found")
@@ -306,16 +346,16 @@ def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str,
         # USD's fallbacks are centimetres and Y up: a file written in metres without them comes in 100 x small
         log.warning("%s states no %s: USD's fallback (%s) is used", path, " and no ".join(unstated),
                     ", ".join({"metersPerUnit": "centimetres", "upAxis": "Y up"}[k] for k in unstated))
-    mpu, up = float(UsdGeom.GetStageMetersPerUnit(stage)), str(UsdGeom.GetStageUpAxis(stage))
-    if up not in ("Y", "Z"):  # USD has no X up; anything else was turned as if it were Z up
-        raise StageError(f"{path}: upAxis {up!r} is not Y or Z, the two USD allows")
-    if not (math.isfinite(mpu) and mpu > 0):
-        raise StageError(f"{path}: metersPerUnit {mpu} must be a positive number")
+    mpu, up = stage_units(stage, str(path))
     if log is not None:  # USD composes with the root layer's metadata only: a layer in other units is not rescaled
         stated = {"metersPerUnit": mpu, "upAxis": up}
-        other = [f"{Path(layer.identifier).name} ({key} {layer.pseudoRoot.GetInfo(key)})"
-                 for layer in stage.GetUsedLayers() for key, value in stated.items()
-                 if layer.pseudoRoot.HasInfo(key) and layer.pseudoRoot.GetInfo(key) != value]
+        other = {}  # layer name -> what it states otherwise
+        for layer in stage.GetUsedLayers():
+            says = [f"{key} {layer.pseudoRoot.GetInfo(key)}" for key, value in stated.items()
+                    if layer.pseudoRoot.HasInfo(key) and layer.pseudoRoot.GetInfo(key) != value]
+            if says:
+                other[Path(layer.identifier).name] = ", ".join(says)
+        other = [f"{name} ({says})" for name, says in other.items()]
         if other:
             log.warning("%s: %d layer(s) state other units than the stage's (metersPerUnit %s, upAxis %s): %s; "
                         "USD does not convert them, so their prims are read in the stage's", path, len(other),

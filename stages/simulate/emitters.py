@@ -31,7 +31,8 @@ def lattice(lo, hi, l0: float) -> np.ndarray:
     return np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1)
 
 
-def _read_mesh(em: MeshEmitter, path: Path, meters_per_unit: float, up_axis: str) -> tuple[np.ndarray, np.ndarray, bool]:
+def _read_mesh(em: MeshEmitter, path: Path, meters_per_unit: float, up_axis: str,
+               log=None) -> tuple[np.ndarray, np.ndarray, bool]:
     """(vertices in scene units and up axis before the emitter's placement, triangles, closed?) of a mesh
     file or of the chosen meshes of a USD file (read as mesh_import reads a USD wall: world transforms,
     metersPerUnit, upAxis; an animated prim at its rest pose)."""
@@ -44,8 +45,9 @@ def _read_mesh(em: MeshEmitter, path: Path, meters_per_unit: float, up_axis: str
     if is_usd(em.mesh):
         from stages.mesh_import.usd_import import read_usd_wall
 
+        # with the log: a file without units, layers in other units, cages are said as for a wall
         v, f = read_usd_wall(path, SimpleNamespace(prims=em.prims, include_invisible=False), meters_per_unit,
-                             up_axis)[:2]
+                             up_axis, log)[:2]
         mesh = trimesh.Trimesh(v, f)  # merges the prims' shared vertices, so a closed model reads as closed
         return np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64), bool(mesh.is_watertight)
     try:  # read as a wall file is: concave n-gons triangulated right (a fan across a notch filled it)
@@ -72,7 +74,7 @@ def _mesh_points(em: MeshEmitter, l0: float, resolve: Callable[[str], Path], met
     from stages.common.placement import apply_placement
 
     path = resolve(em.mesh)
-    v, faces, closed = _read_mesh(em, path, meters_per_unit, up_axis)
+    v, faces, closed = _read_mesh(em, path, meters_per_unit, up_axis, log)
     v = apply_placement(v, em)
     pts = lattice(v.min(axis=0), v.max(axis=0), l0)  # centred in the mesh's box, l0 / 2 inside a box mesh's faces
     if not closed:
@@ -95,7 +97,9 @@ def emit(emitters, l0: float, resolve: Callable[[str], Path], meters_per_unit: f
             c = np.asarray(em.sphere.center, float)
             r = em.sphere.radius
             pts = lattice(c - r - 0.5 * l0, c + r + 0.5 * l0, l0)  # centred on c: symmetric about it
-            pts = pts[np.linalg.norm(pts - c, axis=1) <= r]
+            # points on the sphere (a radius of whole spacings) are in, in any units: by rounding, the metre
+            # scene kept 3 of 6 such points and the cm and mm scenes all 6 (254 against 257 particles)
+            pts = pts[np.linalg.norm(pts - c, axis=1) <= r + 1e-6 * l0]
         elif isinstance(em, MeshEmitter):
             pts = _mesh_points(em, l0, resolve, meters_per_unit, up_axis, log)
         else:  # pragma: no cover - the scene model admits only these
