@@ -15,6 +15,7 @@ of a key records who holds it; a run waiting for it says so and gives up after `
 """
 from __future__ import annotations
 
+import errno
 import fcntl
 import hashlib
 import json
@@ -95,6 +96,8 @@ def unwritable(path: Path) -> str | None:
     try:
         os.rmdir(tempfile.mkdtemp(prefix=".pipeline-write-test.", dir=base))
     except OSError as exc:
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT):  # full, not unwritable: the run fails where it writes (exit 1)
+            return None
         return f"{base} is not writable ({exc.strerror or exc})"
     return None
 

@@ -6,6 +6,7 @@ whichever executor ran it. Time stepping of one simulation never goes through an
 """
 from __future__ import annotations
 
+import logging
 import os
 import signal
 import threading
@@ -133,6 +134,9 @@ class DaskExecutor:
         # it) and commits a valid entry under its key's lock; a LocalCluster's workers are ended with it
         # (their unfinished entries are temporary folders, swept by the next run)
         cluster = getattr(self._client, "cluster", None)
+        # the nanny's notes on the worker processes it is told to end ("exit status was already read") are
+        # the expected end of an interrupted run, not news for the user
+        logging.getLogger("distributed").setLevel(logging.ERROR)
         try:
             self._client.cancel(getattr(self, "_futures", []))
             self._client.close(timeout=2)

@@ -117,6 +117,21 @@ def test_an_unwritable_output_or_cache_folder_is_refused_before_any_stage(flag, 
     assert not (toy_config.parent / "ran_mesh_import.log").exists()
 
 
+def test_a_full_disk_is_no_unwritable_folder(tmp_path):
+    """The up-front check refuses folders that cannot be written (exit 2, a user's choice), not a full disk
+    (exit 1 where the run writes, as the disk-full suite checks)."""
+    import errno
+    from unittest import mock
+
+    from pipeline.cache import unwritable
+
+    full = OSError(errno.ENOSPC, "No space left on device")
+    with mock.patch("tempfile.mkdtemp", side_effect=full):
+        assert unwritable(tmp_path / "out") is None
+    with mock.patch("tempfile.mkdtemp", side_effect=OSError(errno.EROFS, "Read-only file system")):
+        assert "Read-only file system" in unwritable(tmp_path / "out")
+
+
 def test_a_lock_timeout_that_is_not_a_number_is_refused(toy_config, tmp_path):
     """nan passed the option's range check and waited forever ("gives up after nan s")."""
     result = CliRunner().invoke(main, ["run", str(toy_config), "--lock-timeout", "nan", "--cache", str(tmp_path / "c")])
