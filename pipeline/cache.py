@@ -246,24 +246,26 @@ class Cache:
     def in_use(self) -> Iterator[None]:
         """Held, shared, by every run for its whole length: ``clean`` takes it alone, so it never removes
         an entry a running shot made and is about to read (a clean during a run broke the run)."""
-        path = self.root / "locks" / "runs.lock"
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with open(path, "a+") as fh:
+        with self._runs_lock() as fh:
             fcntl.flock(fh, fcntl.LOCK_SH)  # a clean holds it alone only while it removes entries
             yield
 
     @contextmanager
     def alone(self, what: str) -> Iterator[None]:
         """Hold the cache with no run using it, or raise CacheBusy (exit 1) at once."""
-        path = self.root / "locks" / "runs.lock"
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with open(path, "a+") as fh:
+        with self._runs_lock() as fh:
             try:
                 fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
                 raise CacheBusy(f"{what}: a run is using the cache {self.root}; try again when it has ended "
                                 "(nothing was removed)") from None
             yield
+
+    def _runs_lock(self):
+        """The file runs share and clean takes alone (open for flock)."""
+        path = self.root / "locks" / "runs.lock"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        return open(path, "a+")
 
     @contextmanager
     def lock(self, key: str, what: str = "") -> Iterator[None]:

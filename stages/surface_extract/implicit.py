@@ -146,7 +146,7 @@ def order_and_chunks(x: np.ndarray, grid_lo: np.ndarray, h: float, radius: float
 
 
 @nb.njit(cache=True, parallel=True)
-def ghost_particles(x, vol, dist, origin, inv_h_sdf, radius, out_x, out_vol, keep, out_plane):
+def ghost_particles(x, vol, dist, origin, inv_h_sdf, radius, out_x, out_vol, keep, thin):
     """Mirror images x_j - 2 d_j n_j of the particles within ``radius`` of a wall (d, n from the SDF
     sampler): the wall's share of the density (PHYSICS.md (11)-(12), (17)-(18)) carried by the fluid
     that is actually there, so Phi stays about 1 up to the wall instead of falling to 0.5 on it.
@@ -159,9 +159,9 @@ def ghost_particles(x, vol, dist, origin, inv_h_sdf, radius, out_x, out_vol, kee
     Behind a wall thinner than the image's reach (d + radius from the wall point; probed every half SDF
     cell, the probe enters the wall and leaves it), the image would count past the wall too: beside a
     shell (0.6 l0) or an open box's 1 l0 sides it drew water under a bowl that had none (a user's
-    sweep). Such an image gets ``out_plane`` = (n, c): it counts only at nodes with n . node >= c, i.e.
-    not beyond the wall's far face (c = -inf: a solid wall behind, no limit). Dropping it instead left
-    the surface up to 0.55 l0 off a thin paddle with water on both sides."""
+    sweep). Such an image is marked ``thin``: it counts only where its particle sees through no wall
+    (scatter_clipped, add_seen_images). Dropping it instead left the surface up to 0.55 l0 off a thin
+    paddle with water on both sides."""
     e = 1e-3 / inv_h_sdf
     step = 0.5 / inv_h_sdf
     for q in nb.prange(x.shape[0]):
@@ -176,7 +176,7 @@ def ghost_particles(x, vol, dist, origin, inv_h_sdf, radius, out_x, out_vol, kee
             if norm > 0.0:
                 nx, ny, nz = nx / norm, ny / norm, nz / norm
         ok = norm > 0.5
-        limit = -math.inf
+        behind = False
         if ok:
             wx, wy, wz = px - d * nx, py - d * ny, pz - d * nz  # the wall point
             s = step
@@ -184,15 +184,12 @@ def ghost_particles(x, vol, dist, origin, inv_h_sdf, radius, out_x, out_vol, kee
             while s <= d + radius:
                 if _sdf_distance(dist, origin, inv_h_sdf, wx - s * nx, wy - s * ny, wz - s * nz) < 0.0:
                     inside = True
-                elif inside:  # out of the wall again: its far face is about here
-                    limit = nx * wx + ny * wy + nz * wz - (s - 0.5 * step)
+                elif inside:  # out of the wall again: open space within the image's reach
+                    behind = True
                     break
                 s += step
         keep[q] = ok
-        out_plane[q, 0] = nx
-        out_plane[q, 1] = ny
-        out_plane[q, 2] = nz
-        out_plane[q, 3] = limit
+        thin[q] = behind
         out_x[q, 0] = px - 2.0 * d * nx
         out_x[q, 1] = py - 2.0 * d * ny
         out_x[q, 2] = pz - 2.0 * d * nz
@@ -214,7 +211,7 @@ def _seen(sx, sy, sz, x, y, z, dist, origin, inv_h_sdf) -> bool:
 
 
 @nb.njit(cache=True)
-def add_seen_images(x, vol, summed, pairs_g, pairs_i, img, img_vol, src, radius, dist, origin, inv_h_sdf):
+def add_seen_images(x, summed, pairs_g, pairs_i, img, img_vol, src, radius, dist, origin, inv_h_sdf):
     """summed_i += img_vol_g W(|x_i - img_g|) for the pairs (g, i) whose image source sees particle i: the
     images beside thin walls count in the density of the fluid on their own side only."""
     r2max = radius * radius

@@ -188,14 +188,14 @@ def extract(x: np.ndarray, vol: np.ndarray, l0: float, params: MarchingCubesPara
     grid_lo = x.min(axis=0) - pad - 0.25 * h
     shape = np.ceil((x.max(axis=0) + pad - grid_lo) / h).astype(np.int64) + 1  # (nx, ny, nz)
     n_real = len(x)
-    n_thin = 0  # images beside thin walls, last in x: scattered clipped to the wall's near side
+    n_thin = 0  # images beside thin walls, kept apart (thin_*): they count on their particle's side only
     if sdf is not None and params.wall_term:
         gx = np.empty_like(x)
         gv = np.empty_like(vol)
         keep = np.empty(len(x), np.bool_)
-        plane = np.empty((len(x), 4))
-        ghost_particles(x, vol, sdf.dist, sdf.origin, 1.0 / sdf.spacing, R, gx, gv, keep, plane)
-        thin = keep & np.isfinite(plane[:, 3])
+        behind = np.empty(len(x), np.bool_)
+        ghost_particles(x, vol, sdf.dist, sdf.origin, 1.0 / sdf.spacing, R, gx, gv, keep, behind)
+        thin = keep & behind
         solid = keep & ~thin
         n_thin = int(thin.sum())
         thin_src, thin_x, thin_in = x[thin], gx[thin], gv[thin]
@@ -210,10 +210,10 @@ def extract(x: np.ndarray, vol: np.ndarray, l0: float, params: MarchingCubesPara
         pairs_g = np.repeat(np.arange(n_thin), [len(n) for n in near])
         pairs_i = np.fromiter((i for n in near for i in n), np.int64, len(pairs_g))
         summed = vol_in[:n_real] / vol[:n_real]
-        add_seen_images(x, vol_in, summed, pairs_g, pairs_i, thin_x, thin_in, thin_src, R, sdf.dist, sdf.origin,
+        add_seen_images(x, summed, pairs_g, pairs_i, thin_x, thin_in, thin_src, R, sdf.dist, sdf.origin,
                         1.0 / sdf.spacing)
         vol[:n_real] = vol_in[:n_real] / summed
-        thin_vol = vol[np.flatnonzero(thin)]  # an image occupies its particle's volume
+        thin_vol = vol[:n_real][thin]  # an image occupies its particle's volume
     reach = R
     if params.anisotropic:
         x, metric, extent = anisotropic_kernels(x, R, params.anisotropic_smoothing)  # centres, ellipsoids
