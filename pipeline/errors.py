@@ -35,6 +35,13 @@ class InputChanged(PipelineError):
     exit_code = 1
 
 
+class CodeChanged(PipelineError):
+    """A stage's source changed on disk after this process imported it: the key would name the new code
+    while the old one ran (exit 1: run again in a new process)."""
+
+    exit_code = 1
+
+
 class FrameError(Exception):
     """A per-frame job failed (raised in the worker, picklable): the frame, a one-line cause, the
     worker's traceback, and whether it was the input's fault."""

@@ -11,8 +11,8 @@ from __future__ import annotations
 import logging
 from typing import Any
 
-from .errors import ConfigError
-from .keys import context
+from .errors import ConfigError, StageFailed
+from .keys import call_hook, context
 from .stage import StageError
 from .memory import human, refusal
 
@@ -27,7 +27,7 @@ def check_stages(config: Any, graph: Any) -> None:
         node = graph.nodes[kind]
         ctx = context(config, node, config.dir, frames, extra_reads=node.cls.estimate_reads)
         try:
-            node.cls().check(ctx, node.params)
+            call_hook(node, "check", ctx, node.params)
         except StageError as e:
             raise ConfigError(f"{config.where('stages', kind, 'use')}: {e}") from None
 
@@ -40,9 +40,13 @@ def plan_size(p: Any) -> dict[str, dict[str, float]]:
     for kind in p.graph.order():
         node = p.graph.nodes[kind]
         ctx = context(p.config, node, p.config.dir, p.frames, extra_reads=node.cls.estimate_reads)
-        est = node.cls().estimate(ctx, node.params)
+        est = call_hook(node, "estimate", ctx, node.params)
         if est:
-            sizes[kind] = {k: float(v) for k, v in est.items() if v is not None}
+            try:
+                sizes[kind] = {k: float(v) for k, v in est.items() if v is not None}
+            except (AttributeError, TypeError, ValueError) as e:
+                raise StageFailed(f"stage {node.label}: its estimate() returned {est!r}, not a mapping of numbers "
+                                  f"({e})", user_error=False) from None
     return sizes
 
 

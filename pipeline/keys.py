@@ -19,17 +19,19 @@ that read left out: a run with a larger value continues from the cached entry of
 from __future__ import annotations
 
 import hashlib
+import importlib.util
 import json
 import os
 import re
 import sys
+import traceback
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from .cache import Cache, file_sha256, hash_key
 from .config import Config, dump_model
-from .errors import ConfigError, InputChanged, StageFailed
+from .errors import ConfigError, InputChanged, PipelineError, StageFailed
 from .graph import Graph, Node
 from .reads import FRAMES, input_files, read_values, resolve
 from .stage import Context, Stage, StageError
@@ -57,6 +59,20 @@ def selection_key(stage_key: str, frames: tuple[int, ...]) -> str:
 
 def context(config: Config, node: Node, out_dir: Path, frames: tuple[int, ...], **kw: Any) -> Context:
     return Context.for_stage(node.cls, config.sections(), out_dir=out_dir, config_dir=config.dir, frames=frames, **kw)
+
+
+def call_hook(node: Node, hook: str, *args: Any) -> Any:
+    """A stage's plan-time hook (check, estimate, external_files). StageError passes (the scene's fault);
+    anything else is a bug in the stage, shown as one line naming the stage, the hook and where it raised."""
+    try:
+        return getattr(node.cls(), hook)(*args)
+    except (StageError, PipelineError):
+        raise
+    except Exception as e:  # noqa: BLE001 - a plugin's own bug
+        tb = traceback.extract_tb(e.__traceback__)
+        where = f" (at {tb[-1].filename}:{tb[-1].lineno})" if tb else ""
+        raise StageFailed(f"stage {node.label}: its {hook}() failed: {type(e).__name__}: {e}{where}",
+                          user_error=False) from e
 
 
 def plan(config: Config, graph: Graph, cache: Cache, frames: tuple[int, ...] | None = None) -> Plan:
@@ -106,7 +122,7 @@ def _files(config: Config, node: Node, values: dict[str, Any], frames: tuple[int
     found += [(f"stages.{node.kind}.{where}", ("stages", node.kind) + _field_path(where), resolve(config.dir, p))
               for where, p in input_files(node.params, "")]
     try:
-        extra = node.cls().external_files(context(config, node, config.dir, frames), node.params)
+        extra = call_hook(node, "external_files", context(config, node, config.dir, frames), node.params)
     except StageError as e:
         raise StageFailed(f"stage {node.label}: {e}", user_error=True) from None
     found += [("external file", ("stages", node.kind), Path(f)) for f in extra]
@@ -164,51 +180,131 @@ _SOURCES: dict[str, tuple[tuple[int, int], str, tuple[str, ...]]] = {}  # file -
 # costs seconds, and a false match in a docstring only adds a module to the hash
 _FROM_IMPORT = re.compile(r"^[ \t]*from[ \t]+(\.*)([\w.]*)[ \t]+import[ \t]+(\([^)]*\)|[^\n#;]*)", re.M)
 _IMPORT = re.compile(r"^[ \t]*import[ \t]+([\w., \t]+)", re.M)
+_IMPORT_MODULE = re.compile(r"import_module\(\s*[\"']([\w.]+)[\"']")
 
 
 def code_hashes(cls: type[Stage]) -> dict[str, str]:
-    """``{module: sha256 of its source}`` for the stage's module and every module of the project
-    (``pipeline``, ``stages`` and the stage's own top-level package) it imports, transitively; imports
-    inside functions count too, the packages' ``__init__`` only when imported by name (pipeline's would pull
-    in the whole engine). Parsed sources are reused while a file's size and mtime are unchanged."""
+    """``{module: sha256 of its source}`` for the stage's module and every module of source code it imports,
+    transitively: the project's (``pipeline``, ``stages``), the stage's own top-level package, and any other
+    module outside the standard library and site-packages (a studio library on PYTHONPATH, an editable
+    install, a sibling module); imports inside functions and ``import_module("...")`` literals count too,
+    the packages' ``__init__`` only when imported by name (pipeline's would pull in the whole engine).
+    A package installed in site-packages counts by its version (``{top: "version X"}``), not its sources: an
+    upgrade of numba or trimesh re-keys what was made with it. A stage whose module has no source file
+    (a class defined in a notebook cell or ``python -c``) cannot be hashed: it gets a key no later run
+    shares, so it is recomputed on every run (and said once). Parsed sources are reused while a file's size
+    and mtime are unchanged."""
     roots = {"pipeline", "stages", cls.__module__.split(".")[0]}
     out: dict[str, str] = {}
     todo = [cls.__module__]
     seen: set[str] = set()
     while todo:
         name = todo.pop()
-        if name in seen:
+        top = name.split(".")[0]
+        if name in seen or top in seen or (top not in roots and top in _STDLIB):
             continue
         seen.add(name)
         file = _module_file(name)
         if file is None:
+            if name == cls.__module__:
+                out[name] = _unhashable(cls)
+            continue
+        if top not in roots and _installed(file):
+            seen.add(top)
+            out[top] = _installed_version(top, file)
             continue
         sha, imports = _source(file, name)
         out[name] = sha
-        todo += [m for m in imports if m.split(".")[0] in roots]
+        todo += imports
     return dict(sorted(out.items()))
+
+
+def changed_since_loaded(cls: type[Stage]) -> list[str]:
+    """Modules of the stage's code that this process has loaded and whose file changed on disk since this
+    process first hashed it: a run would key the new source but execute the old (a notebook, a DCC session,
+    a script calling ``pipeline.run`` again after an edit)."""
+    changed = []
+    for name, sha in code_hashes(cls).items():
+        file = getattr(sys.modules.get(name), "__file__", None)
+        if file and _FIRST_SEEN.get(file, sha) != sha:
+            changed.append(name)
+    return changed
+
+
+_FIRST_SEEN: dict[str, str] = {}  # file -> its sha when this process first hashed it (close to when it was imported)
+_STDLIB = frozenset(sys.stdlib_module_names) | frozenset(sys.builtin_module_names) | {"__future__"}
+_VERSIONS: dict[str, str] = {}
+_WARNED_UNHASHABLE: set[type] = set()
+
+
+def _installed(file: str) -> bool:
+    """A module installed into an environment (site-packages), not source being worked on."""
+    parts = Path(file).parts
+    return "site-packages" in parts or "dist-packages" in parts
+
+
+def _installed_version(top: str, file: str) -> str:
+    """An installed package's version, the same on every host sharing a cache (its files' mtimes are not)."""
+    if top not in _VERSIONS:
+        from importlib import metadata
+
+        version = getattr(sys.modules.get(top), "__version__", None)
+        if not isinstance(version, str):
+            try:
+                version = metadata.version(top)
+            except metadata.PackageNotFoundError:
+                names = metadata.packages_distributions().get(top) or []
+                version = metadata.version(names[0]) if names else None
+        # a module no distribution records: its own source stands in for a version
+        _VERSIONS[top] = f"version {version}" if version else "source " + _source(file, top)[0]
+    return _VERSIONS[top]
+
+
+def _unhashable(cls: type) -> str:
+    if cls not in _WARNED_UNHASHABLE:
+        _WARNED_UNHASHABLE.add(cls)
+        import logging
+
+        logging.getLogger("pipeline").warning(
+            "stage %s is defined in %s, which has no source file: its code cannot be hashed, so it is recomputed "
+            "on every run (define it in a module file to cache it)", cls.qualname(), cls.__module__)
+    return "unhashable " + os.urandom(8).hex()
 
 
 def _module_file(name: str) -> str | None:
     """The source file of module ``name``, found without importing anything (an import may compile
-    numba kernels); None when it is not a module of an imported top-level package."""
+    numba kernels; a top-level package not imported yet is looked up on sys.path, so the answer does not
+    depend on what this process happened to import already); None when there is no such source file."""
     mod = sys.modules.get(name)
     if mod is not None:
         file = getattr(mod, "__file__", None)
     else:
         top, *rest = name.split(".")
-        pkg_dirs = getattr(sys.modules.get(top), "__path__", None)
-        if not rest or not pkg_dirs:
+        pkg = sys.modules.get(top)
+        if pkg is not None:
+            pkg_dirs, origin = getattr(pkg, "__path__", None), getattr(pkg, "__file__", None)
+        else:
+            try:
+                spec = importlib.util.find_spec(top)
+            except (ImportError, ValueError):
+                spec = None
+            if spec is None:
+                return None
+            pkg_dirs, origin = spec.submodule_search_locations, spec.origin
+        if not rest:
+            file = origin
+        elif not pkg_dirs:
             return None
-        file = None
-        for d in pkg_dirs:
-            base = Path(d).joinpath(*rest)
-            for cand in (base.with_suffix(".py"), base / "__init__.py"):
-                if cand.is_file():
-                    file = str(cand)
+        else:
+            file = None
+            for d in pkg_dirs:
+                base = Path(d).joinpath(*rest)
+                for cand in (base.with_suffix(".py"), base / "__init__.py"):
+                    if cand.is_file():
+                        file = str(cand)
+                        break
+                if file:
                     break
-            if file:
-                break
     return file if file and file.endswith(".py") else None
 
 
@@ -220,6 +316,7 @@ def _source(file: str, name: str) -> tuple[str, tuple[str, ...]]:
         return hit[1], hit[2]
     data = Path(file).read_bytes()
     sha = hashlib.sha256(data).hexdigest()[:16]
+    _FIRST_SEEN.setdefault(file, sha)
     package = name if file.endswith("__init__.py") else name.rpartition(".")[0]
     imports: list[str] = []
     text = data.decode("utf-8", "replace")
@@ -234,6 +331,7 @@ def _source(file: str, name: str) -> tuple[str, tuple[str, ...]]:
         imports += [f"{base}.{n.split()[0]}" for n in names.replace("\\", " ").split(",") if n.split()]  # submodules
     for m in _IMPORT.finditer(text):
         imports += [n.split()[0] for n in m.group(1).split(",") if n.split()]
+    imports += _IMPORT_MODULE.findall(text)
     _SOURCES[file] = (sig, sha, tuple(dict.fromkeys(i for i in imports if i)))
     return sha, _SOURCES[file][2]
 

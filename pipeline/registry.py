@@ -26,6 +26,11 @@ class _Entry:
     error: str | None = None
 
 
+def _origin(ep: EntryPoint | None) -> str:
+    dist = getattr(ep, "dist", None)
+    return f"{ep.value if ep else '?'} (from {dist.name} {dist.version})" if dist is not None else (ep.value if ep else "?")
+
+
 class Registry:
     def __init__(self) -> None:
         self._entries: dict[tuple[str, str], _Entry] = {}
@@ -38,6 +43,11 @@ class Registry:
             if not name or kind not in STAGE_KINDS:
                 reg._entries[(kind, name or "?")] = _Entry(kind, name, ep.value, ep,
                                                            error=f"entry point name {ep.name!r} must be <kind>.<name> with a known kind")
+                continue
+            known = reg._entries.get((kind, name))
+            if known is not None and known.source != ep.value:  # which one loads would depend on sys.path order
+                known.error = (f"registered twice, as {_origin(known.entry_point)} and as {_origin(ep)}: "
+                               "uninstall one (or rename its entry point)")
                 continue
             reg._entries[(kind, name)] = _Entry(kind, name, ep.value, ep)
         return reg

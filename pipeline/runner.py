@@ -21,11 +21,12 @@ from typing import Any, Callable
 
 from .cache import Cache, hash_key, owner_tag, unwritable
 from .config import OUTPUT_NAMES, Config, load_config
-from .errors import CacheMissError, ConfigError, FrameError, PipelineError, StageFailed
+from .errors import CacheMissError, CodeChanged, ConfigError, FrameError, PipelineError, StageFailed
 from .estimate import check_size, check_stages
 from .executors import Executor, make_executor
 from .graph import Graph, Node, build_graph
-from .keys import Plan, check_inputs_unchanged, context, frame_key, plan, record_resume, resume_source
+from .keys import (Plan, changed_since_loaded, check_inputs_unchanged, context, frame_key, plan, record_resume,
+                   resume_source)
 from .publish import check_out_dir, drop_stale, publish, read_record_keys, write_run_json
 from .registry import Registry
 from .reads import FRAMES, SceneReads
@@ -121,13 +122,24 @@ def run_frame_job(job: FrameJob) -> tuple[int, str, float, float, bool]:
     Any failure comes back as FrameError naming the frame (with the worker's traceback)."""
     try:
         return _frame_job(job)
-    except (KeyboardInterrupt, SystemExit):
+    except KeyboardInterrupt:
         raise
+    except SystemExit as exc:  # the stage's own sys.exit(): a failed frame, not the end of this worker
+        raise FrameError(job.frame, f"the stage called sys.exit({exc.code!r})", "".join(traceback.format_exception(exc)),
+                         False) from None
     except BaseException as exc:  # noqa: BLE001 - re-raised with the frame, picklable
         user = isinstance(exc, StageError) or (isinstance(exc, PipelineError) and exc.exit_code == 2)
         plain = user or isinstance(exc, PipelineError)  # our own one-line errors need no type name
         raise FrameError(job.frame, f"{type(exc).__name__}: {exc}" if not plain else str(exc),
                          "".join(traceback.format_exception(exc)), user) from None
+
+
+def _check_wrote(out_dir: Path, stage_cls: type[Stage]) -> None:
+    """A stage that returned without writing anything would be committed as an empty entry and served as
+    done, the fault surfacing later as a missing input of the next stage."""
+    if not any(out_dir.iterdir()):
+        raise StageFailed(f"wrote nothing into its output folder (ctx.out_dir), where its outputs "
+                          f"({', '.join(stage_cls.outputs)}) belong", user_error=False)
 
 
 def _frame_job(job: FrameJob) -> tuple[int, str, float, float, bool]:
@@ -146,6 +158,7 @@ def _frame_job(job: FrameJob) -> tuple[int, str, float, float, bool]:
                           frames=job.frames if FRAMES in job.stage_cls.reads else None,
                           log=logging.getLogger(f"stage.{job.stage_cls.qualname()}"))
             job.stage_cls().run_frame(ctx, job.inputs, job.params, job.frame)
+            _check_wrote(tmp, job.stage_cls)
             check_inputs_unchanged(job.config_dir, job.files)
             seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
             entry = cache.commit(job.kind, key, tmp, {"stage_key": job.stage_key, "frame": job.frame,
@@ -452,6 +465,7 @@ def _run_whole(p: Plan, node: Node, key: str, inputs: dict[str, Artifact], runna
         t0, c0 = time.perf_counter(), time.process_time()
         try:
             node.cls().run(ctx, inputs, node.params)
+            _check_wrote(tmp, node.cls)
             check_inputs_unchanged(config.dir, p.components[node.kind]["files"])
             seconds = time.perf_counter() - t0
             sr.cost_seconds = seconds - ctx.warmup_seconds
@@ -462,8 +476,10 @@ def _run_whole(p: Plan, node: Node, key: str, inputs: dict[str, Artifact], runna
                 "components": p.components[node.kind]})
         except BaseException as exc:
             cache.discard(tmp)
-            if isinstance(exc, (KeyboardInterrupt, SystemExit)):
+            if isinstance(exc, KeyboardInterrupt):
                 raise
+            if isinstance(exc, SystemExit):  # the stage's own sys.exit(): a failed stage, said as one
+                exc = RuntimeError(f"the stage called sys.exit({exc.code!r})").with_traceback(exc.__traceback__)
             raise _fail(node, key, config, exc, cache) from exc
         shutil.rmtree(cache.checkpoint_dir(key), ignore_errors=True)
         if resume:
@@ -591,6 +607,12 @@ def run(config_path: str | Path, *, registry: Registry | None = None, overrides:
             p = plan(config, graph, cache, frames)
         except OSError as exc:  # an input file that exists but cannot be read (permissions, I/O)
             raise StageFailed(f"cannot read input file {exc.filename}: {exc.strerror or exc}", user_error=True) from None
+        for node in graph.nodes.values():
+            changed = changed_since_loaded(node.cls)
+            if changed:
+                raise CodeChanged(f"stage {node.label}: {', '.join(changed)} changed on disk since this process "
+                                  "imported it; run again in a new process (or restart the notebook's kernel) to "
+                                  "run the new code (nothing was run)")
         allow_large = allow_large or config.allow_large
         check_size(p, allow_large=allow_large)
         with ExitStack() as held:

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, ClassVar, Mapping
 
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ValidationError, ConfigDict
 
 from .memory import refusal
 from .reads import FRAMES, SceneReads, UndeclaredRead, check_read
@@ -218,10 +218,23 @@ class Stage:
             raise TypeError(f"stage {where}: Params must be a pydantic model")
         if cls.Params.model_config.get("extra") != "forbid":
             raise TypeError(f"stage {where}: Params must forbid unknown keys (extra='forbid')")
+        for attr in ("inputs", "optional_inputs", "outputs", "reads", "estimate_reads"):
+            value = getattr(cls, attr)
+            if isinstance(value, str) or not all(isinstance(v, str) for v in value):
+                raise TypeError(f"stage {where}: {attr} must be a tuple of names, not {value!r}")
         if not cls.outputs:
             raise TypeError(f"stage {where}: declares no outputs")
-        if isinstance(cls.reads, str):
-            raise TypeError(f"stage {where}: reads must be a tuple of names, not a string")
+        if "use" in cls.Params.model_fields:  # the config's 'use:' picks the implementation: never a parameter
+            raise TypeError(f"stage {where}: Params may not have a field named 'use'")
+        defaults = {n: f.get_default(call_default_factory=True) for n, f in cls.Params.model_fields.items()
+                    if not f.is_required()}
+        try:  # a default the model's own constraints refuse would run, and be keyed, as if valid
+            cls.Params.model_validate(defaults)
+        except ValidationError as e:
+            for err in e.errors():
+                if err["type"] != "missing":  # a required field has no default to check
+                    raise TypeError(f"stage {where}: Params default of {'.'.join(map(str, err['loc']))} "
+                                    f"({err.get('input')!r}) is not valid: {err['msg']}") from None
         for read in cls.reads:
             try:
                 check_read(read)

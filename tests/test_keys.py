@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+import numpy as np
 import pytest
 import trimesh
 
@@ -13,6 +14,8 @@ from pipeline import Registry
 from pipeline.cache import Cache
 from pipeline.config import load_config
 from pipeline.graph import build_graph
+import pipeline.keys as keys_module
+from pipeline.errors import CodeChanged
 from pipeline.keys import plan
 from pipeline.reads import UndeclaredRead
 from pipeline.testing import scene_sections, stage_context
@@ -225,9 +228,55 @@ def test_a_code_change_in_an_imported_module_invalidates(tmp_path, toy_config, m
     rows = {s.kind: s for s in pipeline.status(toy_config, registry=registry, overrides=sets)}
     assert rows["simulate"].state == "stale" and "code changed: codepkg.helper" in rows["simulate"].reason
     assert rows["sdf_bake"].state == "cached"
+    # this process still holds the old helper: a run here would key the new source and execute the old one
+    with pytest.raises(CodeChanged, match="codepkg.helper changed on disk since this process imported it"):
+        pipeline.run(toy_config, registry=registry, overrides=sets)
+    assert len((toy_config.parent / "ran_code.log").read_text().split()) == 1
+    import importlib
+
+    import codepkg.helper
+    importlib.reload(codepkg.helper)  # what a new process would load
+    monkeypatch.setattr(codepkg.sim, "text", codepkg.helper.text)
+    monkeypatch.setattr(keys_module, "_FIRST_SEEN", {})
     r3 = pipeline.run(toy_config, registry=registry, overrides=sets)
     assert statuses(r3)["simulate"] == "ran" and statuses(r3)["sdf_bake"] == "cached"
     assert len((toy_config.parent / "ran_code.log").read_text().split()) == 2
+    particles = next((toy_config.parent / "out").rglob("particles.txt"), None)
+    assert particles is None or particles.read_text() == "two"
+
+
+def test_code_outside_the_stage_package_is_keyed(tmp_path, toy_config, monkeypatch):
+    """A studio library beside the plugin (not installed in site-packages), a sibling top-level module and
+    a module loaded by import_module("...") are hashed; installed packages count by their version."""
+    (tmp_path / "studiolib").mkdir()
+    (tmp_path / "studiolib" / "__init__.py").write_text("")
+    (tmp_path / "studiolib" / "colors.py").write_text("RED = 1\n")
+    (tmp_path / "solohelp.py").write_text("def f():\n    return 1\n")
+    (tmp_path / "dynhelp.py").write_text("X = 1\n")
+    (tmp_path / "solo.py").write_text(
+        "import importlib\nimport numpy\nfrom pipeline.stage import Stage\nfrom studiolib.colors import RED\n"
+        "import solohelp\n\n\nclass Solo(Stage):\n    kind, name, version = 'simulate', 'solo', '1'\n"
+        "    inputs, outputs = ('sdf',), ('particles',)\n\n    def run(self, ctx, inputs, params):\n"
+        "        importlib.import_module('dynhelp')\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    from solo import Solo
+
+    code = keys_module.code_hashes(Solo)
+    assert {"studiolib.colors", "solohelp", "dynhelp", "solo"} <= set(code)
+    assert code["numpy"] == f"version {np.__version__}"
+    assert not any(name.startswith("numpy.") for name in code)  # installed: its version, not its sources
+
+
+def test_a_stage_without_a_source_file_is_never_served_from_cache():
+    """A class made in a notebook cell or by python -c has no file to hash: every plan keys it anew."""
+    namespace: dict = {"__name__": "__main__"}
+    exec("from pipeline.stage import Stage\n"
+         "class Cell(Stage):\n    kind, name, version = 'simulate', 'cell', '1'\n"
+         "    inputs, outputs = ('sdf',), ('particles',)\n    def run(self, ctx, inputs, params): pass\n", namespace)
+    cell = namespace["Cell"]
+    cell.__module__ = "__notebook_cell__"
+    first, second = keys_module.code_hashes(cell), keys_module.code_hashes(cell)
+    assert first["__notebook_cell__"].startswith("unhashable") and first != second
 
 
 # -- a partial frame run does not poison whole-run stages -----------------------------------------------

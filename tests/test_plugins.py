@@ -1,0 +1,122 @@
+"""A studio's own stages: the mistakes a plugin author makes are named in one line, and never leave a
+result in the cache that a fresh run would not make."""
+from __future__ import annotations
+
+import textwrap
+
+import pytest
+from pydantic import Field
+
+import pipeline
+from pipeline import Registry
+from pipeline.errors import ConfigError, PipelineError, StageFailed
+from pipeline.stage import Params, Stage
+from toy_stages import ToySurface
+
+
+def _registry(*classes):
+    registry = Registry.from_entry_points()
+    for cls in classes:
+        registry.add(cls)
+    return registry
+
+
+def _render(name, body):
+    """A toy render stage (per frame) whose run_frame is ``body``."""
+    return type(f"Render_{name}", (Stage,), {
+        "kind": "render", "name": name, "version": "1", "inputs": ("raw_surface",), "outputs": ("frames",),
+        "per_frame": True, "run_frame": body})
+
+
+def _cache_entries(cache, kind):
+    root = cache / kind
+    return [p for p in root.glob("*/*") if p.is_dir()] if root.is_dir() else []
+
+
+def test_a_stage_that_writes_nothing_fails_and_commits_nothing(toy_config, tmp_path):
+    quiet = _render("quiet", lambda self, ctx, inputs, params, frame: None)
+    with pytest.raises(StageFailed, match=r"stage render.quiet frame \d failed .*: wrote nothing into its output folder") as exc:
+        pipeline.run(toy_config, registry=_registry(quiet), overrides=("render.use=quiet",), cache_dir=tmp_path / "c")
+    assert exc.value.exit_code == 1
+    assert _cache_entries(tmp_path / "c", "render") == []  # nothing that looks done
+
+
+def test_a_stage_calling_sys_exit_is_a_failed_stage_not_a_silent_exit(toy_config, tmp_path):
+    def body(self, ctx, inputs, params, frame):
+        raise SystemExit(3)
+
+    with pytest.raises(StageFailed, match=r"stage render.exits frame \d failed .*the stage called sys.exit\(3\)"):
+        pipeline.run(toy_config, registry=_registry(_render("exits", body)), overrides=("render.use=exits",),
+                     cache_dir=tmp_path / "c")
+
+
+@pytest.mark.parametrize("hook", ["check", "estimate"])
+def test_a_bug_in_a_plan_time_hook_names_the_stage_and_where(toy_config, tmp_path, hook):
+    def broken(self, ctx, params):
+        return {}["missing"]
+
+    cls = type("Broken", (ToySurface,), {"name": "broken", hook: broken})
+    with pytest.raises(StageFailed, match=rf"stage surface_extract.broken: its {hook}\(\) failed: KeyError: 'missing' "
+                                          rf"\(at .*test_plugins.py:\d+\)"):
+        pipeline.run(toy_config, registry=_registry(cls), overrides=("surface_extract.use=broken",),
+                     cache_dir=tmp_path / "c")
+
+
+def test_an_estimate_that_is_not_numbers_is_named(toy_config, tmp_path):
+    cls = type("Junk", (ToySurface,), {"name": "junk", "estimate": lambda self, ctx, params: {"memory_bytes": "lots"}})
+    with pytest.raises(StageFailed, match=r"surface_extract.junk: its estimate\(\) returned \{'memory_bytes': 'lots'\}"):
+        pipeline.run(toy_config, registry=_registry(cls), overrides=("surface_extract.use=junk",),
+                     cache_dir=tmp_path / "c")
+
+
+def test_the_contract_refuses_what_would_run_wrongly():
+    class BadDefault(ToySurface):
+        name = "bad_default"
+
+        class Params(Params):
+            iterations: int = Field(-5, ge=0)
+
+    class StringOutputs(ToySurface):
+        name, outputs = "string_outputs", "raw_surface"
+
+    class UseField(ToySurface):
+        name = "use_field"
+
+        class Params(Params):
+            use: str = "x"
+
+    class Required(ToySurface):
+        name = "required"
+
+        class Params(Params):
+            lut: str  # required: no default to check
+
+    registry = Registry()
+    with pytest.raises(PipelineError, match=r"Params default of iterations \(-5\) is not valid: Input should be greater"):
+        registry.add(BadDefault)
+    with pytest.raises(PipelineError, match="outputs must be a tuple of names, not 'raw_surface'"):
+        registry.add(StringOutputs)
+    with pytest.raises(PipelineError, match="Params may not have a field named 'use'"):
+        registry.add(UseField)
+    registry.add(Required)
+
+
+def _dist(root, dist, entries):
+    info = root / f"{dist.replace('-', '_')}-0.1.dist-info"
+    info.mkdir(parents=True)
+    (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {dist}\nVersion: 0.1\n")
+    (info / "entry_points.txt").write_text("[pipeline.stages]\n" + textwrap.dedent(entries))
+
+
+def test_two_packages_registering_one_name_are_refused_not_picked_by_path_order(toy_config, tmp_path, monkeypatch):
+    _dist(tmp_path / "a", "studio-a", "surface_extract.dup = toy_stages:ToySurface\n")
+    _dist(tmp_path / "b", "studio-b", "surface_extract.dup = other_stages:Surface\n")
+    _dist(tmp_path / "c", "studio-c", "wall_snap.distance = toy_stages:ToySurface\n")  # a built-in's name
+    for d in "abc":
+        monkeypatch.syspath_prepend(str(tmp_path / d))
+    registry = Registry.from_entry_points()
+    with pytest.raises(ConfigError, match=r"surface_extract.dup .*registered twice, as .*\(from studio-\w 0.1\) and as "
+                                          r".*\(from studio-\w 0.1\): uninstall one"):
+        pipeline.run(toy_config, registry=registry, overrides=("surface_extract.use=dup",), cache_dir=tmp_path / "c1")
+    assert "registered twice" in registry.load_error("wall_snap", "distance")
+    assert registry.load_error("surface_extract", "toy") is None  # the others load as before
