@@ -194,11 +194,12 @@ def extract(x: np.ndarray, vol: np.ndarray, l0: float, params: MarchingCubesPara
         gv = np.empty_like(vol)
         keep = np.empty(len(x), np.bool_)
         behind = np.empty(len(x), np.bool_)
-        ghost_particles(x, vol, sdf.dist, sdf.origin, 1.0 / sdf.spacing, R, gx, gv, keep, behind)
+        depth = np.empty(len(x))
+        ghost_particles(x, vol, sdf.dist, sdf.origin, 1.0 / sdf.spacing, R, gx, gv, keep, behind, depth)
         thin = keep & behind
         solid = keep & ~thin
         n_thin = int(thin.sum())
-        thin_src, thin_x, thin_in = x[thin], gx[thin], gv[thin]
+        thin_src, thin_x, thin_in, thin_depth = x[thin], gx[thin], gv[thin], depth[thin]
         x = np.concatenate([x, gx[solid]])
         vol = np.concatenate([vol, gv[solid]])
     vol_in = vol
@@ -210,7 +211,7 @@ def extract(x: np.ndarray, vol: np.ndarray, l0: float, params: MarchingCubesPara
         pairs_g = np.repeat(np.arange(n_thin), [len(n) for n in near])
         pairs_i = np.fromiter((i for n in near for i in n), np.int64, len(pairs_g))
         summed = vol_in[:n_real] / vol[:n_real]
-        add_seen_images(x, summed, pairs_g, pairs_i, thin_x, thin_in, thin_src, R, sdf.dist, sdf.origin,
+        add_seen_images(x, summed, pairs_g, pairs_i, thin_x, thin_in, thin_src, thin_depth, R, sdf.dist, sdf.origin,
                         1.0 / sdf.spacing)
         vol[:n_real] = vol_in[:n_real] / summed
         thin_vol = vol[:n_real][thin]  # an image occupies its particle's volume
@@ -233,7 +234,8 @@ def extract(x: np.ndarray, vol: np.ndarray, l0: float, params: MarchingCubesPara
     else:
         scatter_implicit(xs, vs, first, last, bounds, grid_lo, 1.0 / h, R, phi)
     if n_thin:
-        scatter_clipped(thin_x, thin_vol, thin_src, grid_lo, 1.0 / h, R, phi, sdf.dist, sdf.origin, 1.0 / sdf.spacing)
+        scatter_clipped(thin_x, thin_vol, thin_src, thin_depth, grid_lo, 1.0 / h, R, phi, sdf.dist, sdf.origin,
+                        1.0 / sdf.spacing)
     if sdf is not None and params.wall_term:
         cut_by_walls(phi, grid_lo, h, params.iso, R, sdf.dist, sdf.origin, 1.0 / sdf.spacing)
     t1 = time.perf_counter()
