@@ -436,3 +436,24 @@ def test_an_asset_animated_from_code_1001_moves_in_step_with_the_shot(tmp_path, 
         x = UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(code).ExtractTranslation()[0]
         # the asset's own pose at its start + seconds: 0.3 m over 30 codes at 48 codes a second
         assert abs(x - (translate[0] + 0.3 * min(seconds * 48 / 30, 1.0))) < 1e-9, (code, x)
+
+
+@pytest.mark.parametrize("mpu", [1.0, 0.01])
+def test_the_usd_cameras_clipping_range_holds_the_whole_scene(tmp_path, mpu):
+    """A camera beside the tank aimed at a point far past it: the near plane was 1 % of the distance to that
+    point, 1.5 m, and cut 71 % of the water a user's frames showed. Near and far now hold the walls' box
+    (padded) from the eye, in any units."""
+    inputs = folders(tmp_path)
+    box = tank_walls(inputs["walls"])
+    surfaces(inputs["surface"], (-0.5, 0.0, 0.4))
+    particles(inputs["particles"], (-0.5, 0.0, 0.4))
+    sc = scene(mpu=mpu)  # the walls and surfaces are in the config's units as given
+    sc["camera"] = {"position": [1.2, -0.5, 0.6], "focal_point": [-150.0, -0.5, 0.5]}
+    out = run_stage(UsdExport, tmp_path / "usd", scene=sc, params={"particles": False}, inputs=inputs)
+    stage = Usd.Stage.Open(str(out / "scene.usda"))
+    camera = UsdGeom.Camera(stage.GetPrimAtPath("/World/Camera"))
+    near, far = camera.GetClippingRangeAttr().Get()
+    eye = np.array([1.2, -0.5, 0.6])
+    reach = np.linalg.norm(box.vertices - eye, axis=1)  # every corner of the tank, and the water inside it
+    assert 0 < near < 0.2 and far >= reach.max(), (near, far)  # the tank's nearest face is 0.2 from the eye
+    assert far / near < 1e6

@@ -453,3 +453,28 @@ def test_a_kept_plotter_draws_what_a_fresh_one_draws(tmp_path, inputs):
             np.testing.assert_array_equal(img, iio.imread(fresh / f"frame_{f:05d}.png"))
             np.testing.assert_array_equal(img, iio.imread(kept / f"frame_{f:05d}.png"))
             assert water_mask(img[..., :3]).sum() > 50  # not blank
+
+
+def test_every_frame_of_a_process_keeps_its_colour_bar(tmp_path, inputs):
+    """The plotter is kept from frame to frame: pyvista remembered the removed bar's title and did not draw it
+    again, so only the first frame a process drew had the colour bar (a user's sweep; with --workers 2, one
+    frame per worker)."""
+    import imageio.v3 as iio
+
+    out = run_stage(PyvistaRender, tmp_path / "p", scene=SCENE, inputs=inputs, frames=(0, 1, 2),
+                    params={"resolution": [320, 180], "show": "particles", "color_by": "pressure", "label": False})
+    background = np.array([0x20, 0x24, 0x2C])
+    drawn = []
+    for f in (0, 1, 2):
+        img = iio.imread(out / f"frame_{f:05d}.png")[..., :3].astype(int)
+        right = img[:, int(0.85 * img.shape[1]):]  # the bar and its labels
+        drawn.append(int((np.abs(right - background).sum(axis=2) > 60).sum()))
+    assert min(drawn) > 0.5 * max(drawn) > 0, drawn
+
+
+@pytest.mark.parametrize("fps", [1, 24, 29.97, 100, 120, 600, 1000])
+def test_the_time_label_tells_consecutive_frames_apart(fps):
+    from stages.render.pyvista_render import time_label
+
+    labels = [time_label(f, fps) for f in range(50)]
+    assert len(set(labels)) == 50 and labels[0] == "t = " + "0." + "0" * (len(labels[1]) - 8) + " s"

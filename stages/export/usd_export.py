@@ -252,10 +252,19 @@ class UsdExport(Stage):
             return (ul.apply(to_target, eye[None])[0], ul.apply(to_target, target[None])[0],
                     ul.apply_linear(to_target, up[None])[0], view_angle)
 
-        camera = ul.define_camera(root, "/World/Camera", *pose(frames[0] / scene.frames.fps), aspect, mpu)
+        first = pose(frames[0] / scene.frames.fps)
+        camera = ul.define_camera(root, "/World/Camera", *first, aspect, mpu)
+        eyes = [first[0]]
         if cam.usd is not None and usd_camera_moves(ctx.resolve(cam.usd), cam.prim, "export.usd"):
             # an animated shot camera is exported with its motion, sampled at the frames (as render draws them)
-            ul.animate_camera(camera, [(f, *pose(f / scene.frames.fps)) for f in frames])
+            poses = [(f, *pose(f / scene.frames.fps)) for f in frames]
+            ul.animate_camera(camera, poses)
+            eyes = [p[1] for p in poses]
+        if len(walls.vertices):  # the walls' box (at rest), in the layer's frame
+            lo, hi = walls.vertices.min(axis=0).astype(float), walls.vertices.max(axis=0).astype(float)
+            box = ul.apply(to_target, np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                                                for z in (lo[2], hi[2])]))
+            ul.fit_clipping(camera, np.array(eyes), box.min(axis=0), box.max(axis=0))
         root.GetRootLayer().Save()
         progress.advance()
 

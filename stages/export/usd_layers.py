@@ -154,6 +154,20 @@ def define_camera(stage: Usd.Stage, path: str, eye: np.ndarray, target: np.ndarr
     return camera
 
 
+def fit_clipping(camera: UsdGeom.Camera, eyes: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> None:
+    """Near and far planes around the scene's box [lo, hi] (padded by half its diagonal: splashes leave the
+    walls' box) as seen from every eye of the shot: a range relative to the eye's distance to its target
+    clipped the water in front of a camera aimed past it (71 % of a surface in a user's sweep)."""
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    pad = 0.5 * float(np.linalg.norm(hi - lo)) or 1.0
+    lo, hi = lo - pad, hi + pad
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    eyes = np.atleast_2d(np.asarray(eyes, float))
+    nearest = min(float(np.linalg.norm(np.maximum(np.maximum(lo - e, e - hi), 0.0))) for e in eyes)
+    farthest = max(float(np.linalg.norm(corners - e, axis=1).max()) for e in eyes)
+    camera.GetClippingRangeAttr().Set(Gf.Vec2f(max(0.5 * nearest, 1e-4 * farthest), 2.0 * farthest))
+
+
 def animate_camera(camera: UsdGeom.Camera, poses: Iterable[tuple[float, np.ndarray, np.ndarray, np.ndarray, float]]) -> None:
     """Time samples of a camera ``define_camera`` made: (time code, eye, target, up, vertical view angle) each; the
     film back stays, the focal length follows the view angle."""

@@ -286,6 +286,13 @@ class PyvistaRender(Stage):
         plotter.scalar_bars[bar["title"]].SetVerticalTitleSeparation(round(0.6 * bar["title_font_size"]))
 
 
+def time_label(frame: int, fps: float) -> str:
+    """"t = 0.03 s", with as many decimals as tell consecutive frames apart (at 600 fps six frames read
+    t = 0.01 s with two)."""
+    decimals = max(2, math.ceil(math.log10(fps) - 1e-9))
+    return f"t = {frame / fps:.{decimals}f} s"
+
+
 # -- one plotter kept across the frames of a process ------------------------------------------------
 class View:
     """An offscreen plotter kept from frame to frame: a new plotter per frame (a new EGL/OSMesa context,
@@ -322,7 +329,9 @@ class View:
             plotter.render_window.MakeCurrent()  # removing an actor frees its GL buffers: in this context
         try:
             for name in self.frame_actors:
-                plotter.remove_actor(name, reset_camera=False, render=False)  # its scalar bar goes with it
+                plotter.remove_actor(name, reset_camera=False, render=False)
+            for title in list(plotter.scalar_bars.keys()):  # pyvista keeps a removed bar's title and would not
+                plotter.remove_scalar_bar(title, render=False)  # draw it again: only a process's first frame had it
             before = set(plotter.renderer.actors)
             if self.moving:  # the camera frames the walls at rest; moving walls drawn at the frame's time
                 PyvistaRender._add_walls(plotter, walls.posed(frame / fps), eye, params, moving=True)
@@ -333,7 +342,7 @@ class View:
                 PyvistaRender._add_particles(plotter, inputs, frame, params,
                                              ctx.scene["scene"].units.meters_per_unit)
             if params.label:
-                plotter.add_text(f"t = {frame / fps:.2f} s", position="lower_left",
+                plotter.add_text(time_label(frame, fps), position="lower_left",
                                  font_size=max(9, round(params.resolution[1] / 40)), color="white", render=False)
             self.frame_actors = [name for name in plotter.renderer.actors if name not in before]
             plotter.camera_position = [tuple(eye), tuple(centre), tuple(up)]
