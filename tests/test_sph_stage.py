@@ -40,9 +40,10 @@ def test_stage_writes_frames_meta_usd_and_drops_particles_in_walls(tmp_path, cap
     with caplog.at_level(logging.WARNING):
         out = run_stage(SPHSimulate, tmp_path / "out", scene=SCENE, params={"threads": 1}, inputs={"sdf": sdf})
     meta = ParticleMeta.load(out)
-    # the box starts 0.04 behind the x = 0 wall: two lattice columns (8 x 10 x 2 per column) are dropped
-    assert meta.stats["dropped_in_wall"] == 2 * 10 * 10
-    assert "dropped 200" in caplog.text
+    # the box starts 0.04 behind the x = 0 wall, where this SDF grid ends: two lattice columns (8 x 10 x 2 per
+    # column) are dropped, counted as outside the domain (they were counted as in walls)
+    assert meta.stats["dropped_outside_domain"] == 2 * 10 * 10 and meta.stats["dropped_in_wall"] == 0
+    assert "dropped 200 of 800 emitted particles outside the simulation domain, x -0.01..0.31, y -0.01..0.22, z -0.01..0.41" in caplog.text
     f0 = load_particle_frame(out, 0)
     f6 = load_particle_frame(out, 6)
     assert len(f0) == 6 * 10 * 10
@@ -124,3 +125,35 @@ def test_an_emitter_lattice_is_centred_in_its_box_and_sphere():
         counts.add(len(ball))
         assert np.allclose(ball.mean(axis=0) / k, [0.0, 0.0, 0.12], atol=1e-9)
     assert counts == {257}
+
+
+@pytest.mark.parametrize("case", ["in_walls", "outside", "too_small"])
+def test_no_particles_says_why(tmp_path, case):
+    """All emitted particles dropped: the error says whether they were in walls (a closed mesh is a solid
+    unless its wall says fluid: inside), outside the domain, or never emitted."""
+    from pipeline.stage import StageError
+
+    sdf = _sdf(tmp_path)
+    box = {"in_walls": {"min": [0.0, 0.0, -0.02], "max": [0.3, 0.2, 0.0]},  # in the floor
+           "outside": {"min": [0.5, 0.5, 0.5], "max": [0.7, 0.7, 0.7]},
+           "too_small": {"min": [0.1, 0.1, 0.1], "max": [0.105, 0.105, 0.105]}}[case]
+    scene = {**SCENE, "fluid": {"spacing": L0, "emitters": [{"box": box}]}}
+    expected = {"in_walls": r"\d+ of \d+ lie inside a wall or within l0 / 2 of one; a closed wall mesh is a solid",
+                "outside": r"all \d+ lie outside the simulation domain, x -0.01..0.31, y -0.01..0.22, z -0.01..0.41",
+                "too_small": r"every emitter is smaller than fluid.spacing \(0.02\) or empty"}[case]
+    with pytest.raises(StageError, match="the emitters produced no particles in the fluid region: " + expected):
+        run_stage(SPHSimulate, tmp_path / "out", scene=scene, params={"threads": 1}, inputs={"sdf": sdf})
+
+
+def test_fluid_thrown_out_of_the_domain_is_counted_and_said_with_the_box(tmp_path, caplog):
+    sdf = tmp_path / "floor"  # a floor alone: the domain is the grid's box
+    sdf.mkdir()
+    grid_from_function(lambda p: p[:, 2], [0, 0, 0], [0.3, 0.2, 0.4], L0 / 2).save(sdf)
+    scene = {**SCENE, "fluid": {"spacing": L0, "emitters": [
+        {"box": {"min": [0.1, 0.06, 0.2], "max": [0.16, 0.12, 0.26]}, "velocity": [0.0, 0.0, 6.0]}]}}
+    with caplog.at_level(logging.WARNING):
+        out = run_stage(SPHSimulate, tmp_path / "out", scene=scene, params={"threads": 1}, inputs={"sdf": sdf})
+    meta = ParticleMeta.load(out)
+    assert meta.stats["escaped"] == 27 and len(load_particle_frame(out, 6)) == 0
+    assert "left the simulation domain, x -0.01..0.31, y -0.01..0.22, z -0.01..0.41, and were removed (the walls' box" in caplog.text
+    assert "27 of the 27 particles emitted left the simulation domain during the shot" in caplog.text

@@ -29,7 +29,7 @@ from stages.common.sdf import SDFGrid, body_walls, load_bodies, posed_field
 from stages.common.usd_points import write_points_layer
 
 from .effects import WATER_GAMMA
-from .emitters import drop_inside_walls, drop_overlaps, emit
+from .emitters import box_text, drop_inside_walls, drop_overlaps, emit
 from .inflow import Inflow, Sink, from_config, in_sinks, inflow_blocked
 from .kernels import count_blown
 from .walls.maps import set_pose
@@ -444,6 +444,7 @@ class Setup:
     effects: Any  # pipeline.scene.Effects
     meters_per_unit: float  # of the scene: frames are written back in scene units
     dropped: int = 0  # emitted particles dropped because they started inside a wall
+    dropped_outside: int = 0  # ... or outside the domain
     bodies: list = field(default_factory=list)  # moving walls: (SDFGrid in its rest frame, RigidMotion), SI
     inflows: list[Inflow] = field(default_factory=list)  # inflow.py, SI
     sinks: list[Sink] = field(default_factory=list)
@@ -485,10 +486,21 @@ def prepare(ctx: Context, inputs: Mapping[str, Artifact], who: str, moving_walls
     x, v = emit(fluid.emitters, l0, ctx.resolve, mpu, ctx.log, scene.units.up_axis)
     x, v, _ = drop_overlaps(x, v, l0, ctx.log)
     # the moving walls where they stand at t = 0 count like the static ones
-    x, v, dropped = drop_inside_walls(x, v, posed_field(sdf, bodies, 0.0), l0, ctx.log)
+    emitted = len(x)
+    counts: dict = {}
+    x, v, dropped = drop_inside_walls(x, v, posed_field(sdf, bodies, 0.0), l0, ctx.log, counts=counts)
     if len(x) == 0 and not fluid.inflow:
-        raise StageError(f"{who}: the emitters produced no particles in the fluid region "
-                         "(fluid.emitters outside the walls or smaller than fluid.spacing?)")
+        if emitted == 0:
+            why = f"every emitter is smaller than fluid.spacing ({l0:g}) or empty"
+        elif counts["outside"] == emitted:
+            why = (f"all {emitted} lie outside the simulation domain, {box_text(sdf.origin, sdf.upper)} (the walls' "
+                   "box, or scene.domain)")
+        else:
+            why = (f"{counts['in_wall']} of {emitted} lie inside a wall or within l0 / 2 of one"
+                   + (f" and {counts['outside']} outside the domain" if counts["outside"] else "")
+                   + "; a closed wall mesh is a solid with the fluid outside unless its walls[] entry says "
+                     "fluid: inside")
+        raise StageError(f"{who}: the emitters produced no particles in the fluid region: {why}")
     if mpu != 1.0:  # scene units -> metres
         x, v, l0 = x * mpu, v * mpu, l0 * mpu
         # the distances scaled in float64 and rounded once: float32 times float32(mpu) rounds twice, and that
@@ -525,7 +537,8 @@ def prepare(ctx: Context, inputs: Mapping[str, Artifact], who: str, moving_walls
         raise StageError(f"{who}: fluid.settle is for a fluid among walls at rest, but the scene has walls animated "
                          "in their USD file; set fluid.settle to 0")
     return Setup(x=x, v=v, sdf=sdf, spacing=l0, density=fluid.density, gravity=gravity, up=up, v_ref=v_ref,
-                 domain=domain, effects=effects, meters_per_unit=mpu, dropped=dropped, inflows=inflows, sinks=sinks,
+                 domain=domain, effects=effects, meters_per_unit=mpu, dropped=counts["in_wall"],
+                 dropped_outside=counts["outside"], inflows=inflows, sinks=sinks,
                  bodies=bodies, settle=fluid.settle)
 
 
@@ -587,8 +600,9 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
     fps = scene.frames.fps
     ckpt_dir = getattr(ctx, "checkpoint_dir", None)
     ckpt_dir = Path(ckpt_dir) if ckpt_dir is not None else None
-    dropped = setup.dropped
-    stats: dict = {"emitted": int(len(setup.x) + dropped), "dropped_in_wall": dropped, "density_error_mean": [],
+    stats: dict = {"emitted": int(len(setup.x) + setup.dropped + setup.dropped_outside),
+                   "dropped_in_wall": setup.dropped, "dropped_outside_domain": setup.dropped_outside, "escaped": 0,
+                   "density_error_mean": [],
                    "density_error_max": [], "inside_wall": [], "extent_min": [], "extent_max": [],
                    "wall_seconds": 0.0}
     resumed, source = latest_checkpoint(ckpt_dir, count), ckpt_dir
@@ -634,6 +648,8 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
         progress.advance()
     if start + 1 < count:
         ctx.warm_up(lambda: _warm_up(solver, fps))
+    lo, hi = setup.domain if setup.domain is not None else (setup.sdf.origin, setup.sdf.upper)
+    domain_box = (np.asarray(lo) / setup.meters_per_unit, np.asarray(hi) / setup.meters_per_unit)  # scene units
     t0 = time.perf_counter()
     for f in range(start + 1, count):
         try:
@@ -642,7 +658,10 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
             raise SimulationDiverged(_blow_up_line(e, f, solver, solver_name, ckpt_dir)) from e
         gone = solver.remove_escaped()
         if gone:
-            ctx.log.warning("frame %d: %d particles left the domain and were removed", f, gone)
+            stats["escaped"] += gone
+            ctx.log.warning("frame %d: %d particles left the simulation domain, %s, and were removed%s", f, gone,
+                            box_text(*domain_box), "" if scene.domain is not None else
+                            " (the walls' box and a margin: scene.domain gives the fluid more room)")
         fr = to_scene_units(solver.frame(), setup.meters_per_unit)
         write_frame(ctx.out_dir, f, fr, ckpt_dir)
         _frame_stats(stats, fr, solver)
@@ -652,6 +671,10 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
             save_checkpoint(ckpt_dir, f, {**solver.state(), **_stats_to(stats)})
         progress.advance()
     stats["wall_seconds"] += time.perf_counter() - t0
+    if stats["escaped"]:  # said frame by frame above; once more where the run ends, with the share
+        ctx.log.warning("%d of the %d particles emitted left the simulation domain during the shot and were removed%s",
+                        stats["escaped"], stats["emitted"], "" if scene.domain is not None else
+                        " (set scene.domain to keep fluid thrown out of the walls' box)")
     for i, n in enumerate(solver.inflow_skipped):
         if n:
             ctx.log.warning("inflow %d: %d of its %d layers were skipped (blocked by the fluid at the nozzle)", i, n,
@@ -726,6 +749,8 @@ def _frame_stats(stats: dict, fr: ParticleFrame, solver: Solver) -> None:
 def _stats_to(stats: dict) -> dict:
     out = {f"stat_{k}": np.asarray(stats[k]) for k in _LIST_STATS}
     out.update(stat_dropped_in_wall=np.int64(stats["dropped_in_wall"]), stat_emitted=np.int64(stats["emitted"]),
+               stat_dropped_outside_domain=np.int64(stats["dropped_outside_domain"]),
+               stat_escaped=np.int64(stats["escaped"]),
                stat_wall_seconds=np.float64(stats["wall_seconds"]))
     return out
 
@@ -735,6 +760,8 @@ def _stats_from(state: dict, stats: dict) -> dict:
     for k in _LIST_STATS:
         stats[k] = state[f"stat_{k}"].tolist()
     stats["dropped_in_wall"] = int(state["stat_dropped_in_wall"])
+    stats["dropped_outside_domain"] = int(state.get("stat_dropped_outside_domain", 0))  # older checkpoints: none
+    stats["escaped"] = int(state.get("stat_escaped", 0))
     stats["emitted"] = int(state["stat_emitted"])
     stats["wall_seconds"] = float(state["stat_wall_seconds"])
     return stats

@@ -133,9 +133,12 @@ def drop_overlaps(x: np.ndarray, v: np.ndarray, l0: float, log: logging.Logger) 
 
 
 def drop_inside_walls(x: np.ndarray, v: np.ndarray, sdf, l0: float, log: logging.Logger,
-                      min_distance: float = 0.5) -> tuple[np.ndarray, np.ndarray, int]:
+                      min_distance: float = 0.5, counts: dict | None = None) -> tuple[np.ndarray, np.ndarray, int]:
     """Keep particles whose SDF distance is at least ``min_distance`` l0 (particles spawned inside a
-    solid make the first step explode) and that lie in the SDF grid; warn with the count dropped."""
+    solid make the first step explode) and that lie in the SDF grid; warn with the count dropped.
+    ``counts`` (optional) receives how many were dropped at walls ("in_wall") and outside the grid ("outside")."""
+    if counts is not None:
+        counts.update(in_wall=0, outside=0)
     if len(x) == 0:
         return x, v, 0
     d, _ = sdf.sample(x)
@@ -148,9 +151,16 @@ def drop_inside_walls(x: np.ndarray, v: np.ndarray, sdf, l0: float, log: logging
         log.warning("dropped %d of %d emitted particles inside or within %.2g l0 of a wall", near_wall, len(x),
                     min_distance)
     if outside:
-        log.warning("dropped %d of %d emitted particles outside the simulation domain (scene.domain, or the walls' "
-                    "box)", outside, len(x))
+        log.warning("dropped %d of %d emitted particles outside the simulation domain, %s (scene.domain sets it; "
+                    "without it, the walls' box and a margin)", outside, len(x), box_text(sdf.origin, sdf.upper))
+    if counts is not None:
+        counts.update(in_wall=near_wall, outside=outside)
     return np.ascontiguousarray(x[keep]), np.ascontiguousarray(v[keep]), dropped
+
+
+def box_text(lo, hi) -> str:
+    """"x -0.2..0.2, y -0.2..0.2, z -0.12..0.52": a box for a message, in the caller's units."""
+    return ", ".join(f"{a} {float(l):.4g}..{float(h):.4g}" for a, l, h in zip("xyz", lo, hi))
 
 
 def emitter_files(ctx) -> list[Path]:
