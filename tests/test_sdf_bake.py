@@ -230,6 +230,28 @@ def test_exact_queries_grow_with_wall_area_not_domain_volume():
     assert big.dist[0, 0, 0] == pytest.approx(band) and (big.dist < 0).sum() == (small.dist < 0).sum()
 
 
+def test_parity_warns_of_a_model_whose_parts_cut_into_each_other(tmp_path, caplog):
+    """Two intersecting closed spheres in one file: parity (the default) calls their overlap fluid, so the
+    bake says so and names the option that fixes it; spheres apart, one inside the other (a cavity) or
+    the winding sign give no warning."""
+    import logging
+
+    sphere = lambda c, r=0.5: trimesh.creation.icosphere(subdivisions=3, radius=r).apply_translation(c)  # noqa: E731
+    cases = {"cutting": [sphere([-0.2, 0, 0]), sphere([0.2, 0.05, 0])],
+             "apart": [sphere([-0.6, 0, 0], 0.3), sphere([0.6, 0, 0], 0.3)],
+             "nested": [sphere([0, 0, 0]), sphere([0, 0, 0], 0.2)]}
+    warned = {}
+    for name, parts in cases.items():
+        trimesh.util.concatenate(parts).export(tmp_path / f"{name}.ply")
+        for sign in ("parity", "winding"):
+            caplog.clear()
+            with caplog.at_level(logging.WARNING):
+                _bake(tmp_path / f"{name}_{sign}", [{"file": str(tmp_path / f"{name}.ply"), "fluid": "outside"}],
+                      sign=sign)
+            warned[name, sign] = "cut into each other" in caplog.text
+    assert warned == {("cutting", "parity"): True, **{k: False for k in warned if k != ("cutting", "parity")}}
+
+
 def test_winding_sign_keeps_interpenetrating_parts_inside_where_parity_does_not(tmp_path):
     """A solid made of two closed spheres that intersect, as one triangle soup (a model of
     interpenetrating parts): the generalized winding number (sign: winding) puts the whole union

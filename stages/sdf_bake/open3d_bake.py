@@ -157,14 +157,11 @@ def exact_signed_distance(fields: list[WallField], pts: np.ndarray) -> np.ndarra
     return d
 
 
-def shell_depths(tri: np.ndarray) -> np.ndarray | None:
-    """Nesting depth of each triangle of ``tri`` (T, 3, 3): how many closed shells hold its part
-    (vertices welded where equal; a part is a connected set of triangles; a closed shell is a part
-    whose every edge is met once each way). Part c lies in closed shell d when every one of c's
-    triangle centroids, moved a hair into c, has |w_d| > 1/2 (so an obstacle standing on a tank's floor
-    counts, two interpenetrating parts do not); parts that hold each other (duplicates) do not count.
-    None when nothing is nested (the common case)."""
-    import igl
+def _closed_parts(tri: np.ndarray):
+    """The parts of ``tri`` (T, 3, 3) (vertices welded where equal; a part is a connected set of triangles)
+    and which are closed shells (every edge met once each way): (part of each triangle, number of parts,
+    the closed shells, each part's box lo / hi and size eps / 1000, each triangle's centroid moved a hair into
+    its part); None for fewer than two parts or no closed shell."""
     from scipy import sparse
     from scipy.sparse.csgraph import connected_components
 
@@ -198,6 +195,28 @@ def shell_depths(tri: np.ndarray) -> np.ndarray | None:
     eps = 1e-3 * np.linalg.norm(hi - lo, axis=1)
     unit = cross / np.maximum(np.linalg.norm(cross, axis=1, keepdims=True), 1e-300)
     probe = tri.mean(axis=1) - (np.sign(vol) * eps)[part][:, None] * unit  # a hair into the part
+    return part, n_parts, shells, lo, hi, eps, probe
+
+
+def _inside_shell(tri: np.ndarray, part: np.ndarray, d: int, points: np.ndarray) -> np.ndarray:
+    """|w| > 1/2 of closed shell ``d`` at ``points``."""
+    import igl
+
+    own = tri[part == d].reshape(-1, 3)
+    w = igl.fast_winding_number(own.astype(np.float64), np.arange(len(own), dtype=np.int64).reshape(-1, 3),
+                                np.ascontiguousarray(points, np.float64))
+    return np.abs(w) > 0.5
+
+
+def shell_depths(tri: np.ndarray) -> np.ndarray | None:
+    """Nesting depth of each triangle of ``tri`` (T, 3, 3): how many closed shells hold its part
+    (``_closed_parts``). Part c lies in closed shell d when every one of c's triangle centroids, moved a hair
+    into c, has |w_d| > 1/2 (so an obstacle standing on a tank's floor counts, two interpenetrating parts do
+    not); parts that hold each other (duplicates) do not count. None when nothing is nested (the common case)."""
+    found = _closed_parts(tri)
+    if found is None:
+        return None
+    part, n_parts, shells, lo, hi, eps, probe = found
     holds: set[tuple[int, int]] = set()  # (d, c): closed shell d holds part c
     for d in shells:
         cand = np.flatnonzero(np.all(lo >= lo[d] - eps[d], axis=1) & np.all(hi <= hi[d] + eps[d], axis=1))
@@ -205,17 +224,43 @@ def shell_depths(tri: np.ndarray) -> np.ndarray | None:
         if len(cand) == 0:
             continue
         sel = np.flatnonzero(np.isin(part, cand))
-        own = tri[part == d].reshape(-1, 3)
-        w = np.abs(igl.fast_winding_number(own.astype(np.float64), np.arange(len(own), dtype=np.int64).reshape(-1, 3),
-                                           np.ascontiguousarray(probe[sel], np.float64)))
+        inside = _inside_shell(tri, part, d, probe[sel])
         outside = np.zeros(n_parts, np.bool_)
-        outside[part[sel][w <= 0.5]] = True
+        outside[part[sel][~inside]] = True
         holds.update((int(d), int(c)) for c in cand[~outside[cand]])
     depth = np.zeros(n_parts, np.int64)
     for d, c in holds:
         if (c, d) not in holds:
             depth[c] += 1
     return depth[part] if depth.any() else None
+
+
+def interpenetrating_parts(tri: np.ndarray, probes_per_part: int = 64) -> int:
+    """How many pairs of closed parts of ``tri`` cut into each other: some of one part's surface inside the
+    other closed shell and some outside it (a part wholly inside another is a nested shell, not counted).
+    Parity calls such an overlap outside the solid; the winding number does not. Sampled: at most
+    ``probes_per_part`` surface points of each part, shells checked against parts their boxes overlap."""
+    found = _closed_parts(tri)
+    if found is None:
+        return 0
+    part, n_parts, shells, lo, hi, eps, probe = found
+    rng = np.random.default_rng(0)
+    order = np.argsort(part, kind="stable")
+    starts = np.searchsorted(part[order], np.arange(n_parts + 1))
+    pairs = set()
+    for d in shells:
+        cand = np.flatnonzero(np.all(lo <= hi[d] + eps[d], axis=1) & np.all(hi >= lo[d] - eps[d], axis=1))
+        cand = cand[cand != d]
+        for c in cand:
+            if (min(c, d), max(c, d)) in pairs:
+                continue
+            tris = order[starts[c]:starts[c + 1]]
+            if len(tris) > probes_per_part:
+                tris = rng.choice(tris, probes_per_part, replace=False)
+            inside = _inside_shell(tri, part, d, probe[tris])
+            if inside.any() and not inside.all():
+                pairs.add((min(c, d), max(c, d)))
+    return len(pairs)
 
 
 def winding_inside(tri: np.ndarray, origin: np.ndarray, h: float, shape: tuple[int, int, int],
@@ -433,6 +478,7 @@ def bake(wm: WallMesh, lo: np.ndarray, hi: np.ndarray, h: float, band: float, ex
     dist = np.full(shape, band, np.float32)
     seconds = {"distance": 0.0, "sign": 0.0}
     counts = {"exact_nodes": 0, "propagated_nodes": 0, "sign_ties": 0, "thin_faces": 0}
+    cutting: dict[str, int] = {}  # wall -> pairs of its closed parts that cut into each other
     for i, info in enumerate(wm.walls):
         tri = wm.vertices[wm.faces[wm.wall_id == i]]
         if not len(tri):
@@ -441,8 +487,13 @@ def bake(wm: WallMesh, lo: np.ndarray, hi: np.ndarray, h: float, band: float, ex
                       seconds, shell=float(shells[i]), sign=sign, min_thickness=min_thickness,
                       watertight=bool(info.get("report", {}).get("watertight", False)))
         counts = {k: counts[k] + c[k] for k in counts}
+        if sign == "parity" and not shells[i] > 0:  # parity calls the overlap of two closed parts outside
+            n = interpenetrating_parts(tri)
+            if n:
+                cutting[info.get("name") or f"walls[{i}]"] = n
     stats = {"shape": list(shape), "nodes": int(np.prod(shape)), "seconds": time.perf_counter() - t0,
-             "distance_seconds": seconds["distance"], "sign_seconds": seconds["sign"], **counts}
+             "distance_seconds": seconds["distance"], "sign_seconds": seconds["sign"], **counts,
+             "interpenetrating": cutting}
     return SDFGrid(origin=np.asarray(lo, np.float64), spacing=float(h), dist=dist, band=float(band),
                    shell_thickness=shells), stats
 
@@ -519,3 +570,7 @@ class Open3dBake(Stage):
         ctx.log.info("sdf %s nodes, %d exact + %d propagated band nodes, %d tied signs, %d faces of thin parts "
                      "thickened, %.2f s", "x".join(map(str, stats["shape"])), stats["exact_nodes"],
                      stats["propagated_nodes"], stats["sign_ties"], stats["thin_faces"], stats["seconds"])
+        for wall, n in stats["interpenetrating"].items():
+            ctx.log.warning("sdf_bake: %s: %d pair(s) of its closed parts cut into each other; the parity sign calls "
+                            "their overlap open space (fluid may fill it): set sdf_bake: {sign: winding} for such a "
+                            "model", wall, n)
