@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import logging
 import os
+import shutil
 import sys
 from pathlib import Path
 
@@ -56,6 +57,12 @@ def _guard(fn):
             os._exit(130)
         except click.exceptions.Exit:
             raise
+        except BrokenPipeError:  # `pipeline stages | head`: the reader left; nothing to say to it
+            try:
+                os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit's flush
+            except OSError:
+                pass
+            sys.exit(141)
         except Exception as e:  # noqa: BLE001 - outside the library's contract: still one line
             click.echo(f"error: {type(e).__name__}: {_one_line(e)}", err=True)
             sys.exit(1)
@@ -193,25 +200,50 @@ def status(config, overrides, cache_dir, frames):
 
 
 @main.command()
+@click.option("--json", "as_json", is_flag=True, help="One JSON object per implementation (machine readable).")
 @_guard
-def stages():
-    """Every installed stage implementation, its version and parameters."""
+def stages(as_json):
+    """Every installed stage implementation, its version and parameters; exit 1 if one cannot be loaded."""
+    import json
+
     from rich.console import Console
     from rich.table import Table
 
     reg = Registry.from_entry_points()
-    table = Table("stage", "implementation", "version", "per frame", "parameters (default)")
+    rows = []
     for kind, name, source in reg.entries():
+        row = {"kind": kind, "name": name, "source": source}
         try:
             cls = reg.get(kind, name)
         except PipelineError as e:
-            table.add_row(kind, name, "-", "-", f"[red]cannot load: {e}[/]")
+            rows.append({**row, "error": str(e)})
             continue
-        params = ", ".join(f"{n}={f.get_default(call_default_factory=True)!r}" if not f.is_required() else f"{n} (required)"
-                           for n, f in cls.Params.model_fields.items())
-        table.add_row(kind, name + (" *" if cls.default else ""), cls.version, "yes" if cls.per_frame else "no", params or "-")
-    Console(width=200).print(table)
-    click.echo("* = default implementation of its kind")
+        rows.append({**row, "version": cls.version, "default": bool(cls.default), "per_frame": bool(cls.per_frame),
+                     "inputs": list(cls.inputs), "optional_inputs": list(cls.optional_inputs),
+                     "outputs": list(cls.outputs), "description": cls.description,
+                     "params": {n: {"default": None if f.is_required() else f.get_default(call_default_factory=True),
+                                    "required": f.is_required(), "description": f.description or ""}
+                                for n, f in cls.Params.model_fields.items()}})
+    broken = [r for r in rows if "error" in r]
+    if as_json:
+        for r in rows:
+            click.echo(json.dumps(r, default=str))
+    else:
+        table = Table("stage", "implementation", "version", "per frame", "parameters (default)")
+        for r in rows:
+            if "error" in r:
+                table.add_row(r["kind"], r["name"], "-", "-", f"[red]{r['error']}[/]")
+                continue
+            params = ", ".join(f"{n}={p['default']!r}" if not p["required"] else f"{n} (required)"
+                               for n, p in r["params"].items())
+            table.add_row(r["kind"], r["name"] + (" *" if r["default"] else ""), r["version"],
+                          "yes" if r["per_frame"] else "no", params or "-")
+        Console(width=max(120, shutil.get_terminal_size((200, 24)).columns)).print(table)
+        click.echo("* = default implementation of its kind")
+    if broken:
+        click.echo(f"error: {len(broken)} stage implementation(s) cannot be loaded: "
+                   + "; ".join(f"{r['kind']}.{r['name']} ({r['source']})" for r in broken), err=True)
+        sys.exit(1)
 
 
 @main.command()

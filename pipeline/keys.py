@@ -248,13 +248,11 @@ def _installed_version(top: str, file: str) -> str:
     if top not in _VERSIONS:
         from importlib import metadata
 
-        version = getattr(sys.modules.get(top), "__version__", None)
-        if not isinstance(version, str):
-            try:
-                version = metadata.version(top)
-            except metadata.PackageNotFoundError:
-                names = metadata.packages_distributions().get(top) or []
-                version = metadata.version(names[0]) if names else None
+        try:
+            version = metadata.version(top)
+        except metadata.PackageNotFoundError:
+            names = metadata.packages_distributions().get(top) or []
+            version = metadata.version(names[0]) if names else None
         # a module no distribution records: its own source stands in for a version
         _VERSIONS[top] = f"version {version}" if version else "source " + _source(file, top)[0]
     return _VERSIONS[top]

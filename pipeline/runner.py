@@ -9,7 +9,6 @@ import json
 import logging
 import os
 import shutil
-import sys
 import threading
 import time
 import traceback
@@ -71,6 +70,16 @@ class RunReport:
 
     def stage(self, kind: str) -> StageReport:
         return next(s for s in self.stages if s.kind == kind)
+
+    def artifact(self, name: str) -> Artifact:
+        """The cache entry of artifact ``name`` ("particles", "raw_surface", "surface", "sdf", "walls", ...) that
+        this run made or found: ``.path`` for a whole-run artifact, ``.frame(i)`` for a per-frame one; read it
+        with ``stages.common.formats`` and do not write into it (it is shared by every run of its key).
+        Only in the process that ran (not in run.json)."""
+        made = getattr(self, "_artifacts", {})
+        if name not in made:
+            raise KeyError(f"this run has no artifact {name!r} (it has: {', '.join(sorted(made)) or 'none'})")
+        return made[name]
 
     def ran(self) -> list[str]:
         return [s.kind for s in self.stages if s.status != "cached"]
@@ -264,7 +273,8 @@ def execute(p: Plan, *, out_dir: Path, force: frozenset[str] = frozenset(), exec
     """Run the plan. Inline, stages go one by one in dependency order; with a pool executor, independent
     branches (e.g. render frames and export) are driven concurrently by threads of this process while
     their per-frame jobs run in the pool's worker processes. faulthandler writes native crashes (VTK,
-    numba) of this process and of the workers into the run's log under the cache's logs/. ``allow_large``:
+    numba) of this process (unless the host enabled faulthandler itself) and of the workers into the run's
+    log under the cache's logs/. ``allow_large``:
     stages' own memory checks (Context.check_memory) let anything pass."""
     cache = p.cache
     try:
@@ -275,17 +285,16 @@ def execute(p: Plan, *, out_dir: Path, force: frozenset[str] = frozenset(), exec
         fault_fh = open(fault_log, "w")
     except OSError as exc:
         raise _outside(f"cache {cache.root}", exc, cache) from exc
-    was_enabled = faulthandler.is_enabled()
-    faulthandler.enable(fault_fh)
+    # a host that enabled faulthandler itself (an application embedding the library, pytest,
+    # PYTHONFAULTHANDLER) keeps it: its file cannot be asked for, so it could not be given back
+    ours = not faulthandler.is_enabled()
+    if ours:
+        faulthandler.enable(fault_fh)
     try:
         return _execute(p, out_dir, force, executor, progress, str(fault_log), events, allow_large)
     finally:
-        faulthandler.disable()
-        if was_enabled:  # e.g. pytest's or PYTHONFAULTHANDLER's, to the real stderr
-            try:
-                faulthandler.enable(sys.__stderr__)
-            except (AttributeError, ValueError, OSError):
-                pass
+        if ours:
+            faulthandler.disable()
         fault_fh.close()
         try:
             if fault_log.stat().st_size == 0:
@@ -357,6 +366,7 @@ def _execute(p: Plan, out_dir: Path, force: frozenset[str], executor: Executor |
         else:
             _run_branches(graph, order, lambda k: run_node(k, bars), finish)
     report.stages = [reports[k] for k in order]
+    report._artifacts = dict(artifacts)  # RunReport.artifact; not a field: run.json holds no cache paths
     try:
         # two runs publishing into one folder (the same config run twice) take turns
         with cache.lock(hash_key({"publish": str(out_dir)}), f"publish into {out_dir}"):
@@ -578,12 +588,32 @@ def run(config_path: str | Path, *, registry: Registry | None = None, overrides:
         from_: str | None = None, until: str | None = None, force: tuple[str, ...] = (),
         frames: tuple[int, ...] | None = None, executor: Executor | None = None,
         progress: bool = False, lock_timeout: float | None = None, allow_large: bool = False,
-        events: Events | None = None) -> RunReport:
+        events: Events | None = None, workers: int = 1) -> RunReport:
     """Run what the config's outputs need; returns the report (also written to out/run.json).
+
+    The library's entry point (the CLI's ``pipeline run`` calls it): ``overrides`` are ``--set`` assignments
+    ("simulate.cfl=0.3", a sequence), ``workers`` > 1 runs per-frame jobs in that many processes (a pool
+    made and closed here; a script using it needs the ``if __name__ == "__main__":`` guard of spawned
+    processes), or pass an ``executor`` (pipeline.executors.make_executor) to keep one across runs. Errors
+    are ``PipelineError`` subclasses with ``exit_code``; ``report.artifact(name)`` finds an artifact's entry.
 
     Refuses (exit 2, nothing written) an output folder holding things the pipeline did not publish
     where it would write, and a plan whose memory estimate exceeds the available memory unless
     ``allow_large`` (or the config's ``allow_large: true``)."""
+    if isinstance(overrides, str):  # iterated, a string is one --set per character
+        raise ConfigError(f"overrides: expected a sequence of path=value assignments, got the string {overrides!r} "
+                          f"(write ({overrides!r},))")
+    if executor is None and workers > 1:
+        pool = make_executor("processes", workers)
+        try:
+            report = run(config_path, registry=registry, overrides=overrides, cache_dir=cache_dir, out_dir=out_dir,
+                         only=only, from_=from_, until=until, force=force, frames=frames, executor=pool,
+                         progress=progress, lock_timeout=lock_timeout, allow_large=allow_large, events=events)
+        except BaseException:
+            pool.abort()  # as the CLI: do not wait for queued or running jobs
+            raise
+        pool.close()
+        return report
     registry = registry or Registry.from_entry_points()
     config = load_config(config_path, registry, overrides)
     graph = select(build_graph(config), only, from_, until)

@@ -120,3 +120,33 @@ def test_two_packages_registering_one_name_are_refused_not_picked_by_path_order(
         pipeline.run(toy_config, registry=registry, overrides=("surface_extract.use=dup",), cache_dir=tmp_path / "c1")
     assert "registered twice" in registry.load_error("wall_snap", "distance")
     assert registry.load_error("surface_extract", "toy") is None  # the others load as before
+
+
+def test_pipeline_stages_lists_json_and_fails_on_a_broken_plugin(toy_plugin, tmp_path, monkeypatch):
+    import json
+
+    from click.testing import CliRunner
+
+    from pipeline.cli import main
+
+    result = CliRunner().invoke(main, ["stages", "--json"])
+    assert result.exit_code == 0, result.output
+    rows = {(r["kind"], r["name"]): r for r in map(json.loads, result.output.splitlines())}
+    toy = rows["surface_extract", "toy"]
+    assert toy["source"] == "toy_stages:ToySurface" and toy["outputs"] == ["raw_surface"] and toy["per_frame"]
+    assert toy["params"]["iso"] == {"default": 0.5, "required": False, "description": ""}
+    _dist(tmp_path, "studio-broken", "render.broken = no_such_module:Render\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    result = CliRunner().invoke(main, ["stages"])
+    assert result.exit_code == 1 and "1 stage implementation(s) cannot be loaded: render.broken" in result.output
+
+
+def test_the_library_runs_with_workers_reads_artifacts_and_refuses_a_string_of_overrides(toy_config, tmp_path):
+    report = pipeline.run(toy_config, cache_dir=tmp_path / "c", out_dir=tmp_path / "o", workers=2)
+    assert report.stage("render").frames_ran == 4
+    surface = report.artifact("raw_surface")
+    assert surface.frame(2).joinpath("surface_00002.txt").read_text().endswith("surface 2 iso 0.5")
+    with pytest.raises(KeyError, match="no artifact 'nothing'"):
+        report.artifact("nothing")
+    with pytest.raises(ConfigError, match="expected a sequence of path=value assignments, got the string"):
+        pipeline.run(toy_config, overrides="surface_extract.iso=0.4", cache_dir=tmp_path / "c")
