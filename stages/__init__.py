@@ -8,6 +8,7 @@ functions it calls or inlines from other modules, so after an update that change
 sph_kernels' integrate kept running the old eq. 16 push-out from its cache (session 14)."""
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import shutil
@@ -26,10 +27,41 @@ def numba_cache_dir(root: Path, base: str) -> str:
     return os.path.join(base, digest.hexdigest()[:16])
 
 
-def _use_versioned_numba_cache() -> None:
+def _numba_base() -> tuple[str, bool]:
+    """The folder the versioned numba caches live in, and whether the user chose it (NUMBA_CACHE_DIR)."""
     user_base = os.environ.get("NUMBA_CACHE_DIR")
-    base = user_base or os.path.join(os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"),
-                                     "fluid-pipeline", "numba")
+    return (user_base or os.path.join(os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"),
+                                      "fluid-pipeline", "numba")), bool(user_base)
+
+
+@contextlib.contextmanager
+def numba_cache_for(file: str | os.PathLike):
+    """For a studio's stage package whose numba kernels are cached (``cache=True``): the kernels decorated
+    inside this block are cached in a folder named by the sources of the package holding ``file``, as this
+    package's are, so an edit to a helper kernel in another of its modules is compiled anew (numba checks
+    only the file of the function it caches). In the package's ``__init__.py``::
+
+        with stages.numba_cache_for(__file__):
+            from . import kernels
+    """
+    import numba
+
+    base, _ = _numba_base()
+    path = numba_cache_dir(Path(file).resolve().parent, os.path.join(base, "plugins"))
+    before = numba.config.CACHE_DIR
+    try:
+        os.makedirs(path, exist_ok=True)
+        numba.config.CACHE_DIR = path
+    except OSError:
+        pass  # a read-only home: numba keeps its own cache locations
+    try:
+        yield path
+    finally:
+        numba.config.CACHE_DIR = before
+
+
+def _use_versioned_numba_cache() -> None:
+    base, user_base = _numba_base()
     path = numba_cache_dir(Path(__file__).resolve().parent, base)
     try:
         os.makedirs(path, exist_ok=True)

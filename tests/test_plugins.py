@@ -11,6 +11,7 @@ import pipeline
 from pipeline import Registry
 from pipeline.errors import ConfigError, PipelineError, StageFailed
 from pipeline.stage import Params, Stage
+from conftest import REPO
 from toy_stages import ToySurface
 
 
@@ -150,3 +151,29 @@ def test_the_library_runs_with_workers_reads_artifacts_and_refuses_a_string_of_o
         report.artifact("nothing")
     with pytest.raises(ConfigError, match="expected a sequence of path=value assignments, got the string"):
         pipeline.run(toy_config, overrides="surface_extract.iso=0.4", cache_dir=tmp_path / "c")
+
+
+def test_a_plugins_cached_kernels_follow_an_edit_to_a_helper_kernel(tmp_path):
+    """numba's on-disk cache checks only the file of the function it caches: a plugin kernel calling a helper
+    kernel in another module kept the old helper after an edit (a user's sweep: max|v| 1.475 instead of 14.75).
+    Decorated inside stages.numba_cache_for, the package's kernels are cached by all of its sources."""
+    import os
+    import subprocess
+    import sys
+
+    pkg = tmp_path / "nbpkg"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("import stages\nwith stages.numba_cache_for(__file__):\n    from . import kern\n")
+    (pkg / "kern.py").write_text("import numba\nfrom .kernhelp import f\n\n\n@numba.njit(cache=True)\n"
+                                 "def scale(x):\n    return f(x) * 2.0\n")
+    helper = pkg / "kernhelp.py"
+    helper.write_text("import numba\n\n\n@numba.njit(cache=True)\ndef f(x):\n    return x * 1.0\n")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), str(REPO)]),
+               NUMBA_CACHE_DIR=str(tmp_path / "numba"))
+    code = "import nbpkg; print(nbpkg.kern.scale(1.5))"
+    first = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+    assert first.stdout.strip() == "3.0", first.stderr
+    helper.write_text("import numba\n\n\n@numba.njit(cache=True)\ndef f(x):\n    return x * 10.0\n")
+    again = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+    assert again.stdout.strip() == "30.0", again.stderr
+    assert list((tmp_path / "numba" / "plugins").iterdir()), "the package's kernels are cached under plugins/"
