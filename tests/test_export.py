@@ -457,3 +457,37 @@ def test_the_usd_cameras_clipping_range_holds_the_whole_scene(tmp_path, mpu):
     reach = np.linalg.norm(box.vertices - eye, axis=1)  # every corner of the tank, and the water inside it
     assert 0 < near < 0.2 and far >= reach.max(), (near, far)  # the tank's nearest face is 0.2 from the eye
     assert far / near < 1e6
+
+
+def test_a_set_referencing_geometry_outside_its_folder_comes_along(tmp_path):
+    """sets/set.usda references ../geo/tank.usda (a studio's sets/ + geo/ layout): the export copied only the
+    set's own folder, the reference pointed at a usd/geo/ that did not exist, and the tank came in empty (in
+    scene.usda and the usdz), exit 0. Both files are copied with their layout now, and the copy composes."""
+    from pxr import Sdf, UsdUtils
+
+    from stages.mesh_import import trimesh_import
+
+    (tmp_path / "geo").mkdir()
+    (tmp_path / "sets").mkdir()
+    write_cm_y_up_asset(tmp_path / "geo" / "tank.usda")
+    stage = Usd.Stage.CreateNew(str(tmp_path / "sets" / "set.usda"))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+    root = UsdGeom.Xform.Define(stage, "/Set")
+    stage.SetDefaultPrim(root.GetPrim())
+    stage.DefinePrim("/Set/Geo").GetReferences().AddReference("../geo/tank.usda")
+    stage.GetRootLayer().Save()
+    inputs = folders(tmp_path)
+    sc = scene(walls=[{"usd": "sets/set.usda", "fluid": "inside"}])
+    run_stage(trimesh_import.TrimeshImport, inputs["walls"], scene=sc, config_dir=tmp_path)
+    walls = WallMesh.load(inputs["walls"])
+    centre = 0.5 * (walls.vertices.min(0) + walls.vertices.max(0))
+    surfaces(inputs["surface"], centre)
+    particles(inputs["particles"], centre)
+    out = run_stage(UsdExport, tmp_path / "usd", scene=sc, inputs=inputs, config_dir=tmp_path, params={"usdz": True})
+    for name in ("scene.usda", "scene.usdz"):
+        stage = Usd.Stage.Open(str(out / name))
+        tanks = [UsdGeom.Mesh(p) for p in stage.Traverse() if p.GetName() == "Tank"]
+        assert len(tanks) == 1 and len(tanks[0].GetPointsAttr().Get() or []) == 8, name
+        _, _, unresolved = UsdUtils.ComputeAllDependencies(Sdf.AssetPath(str(out / name)))
+        assert unresolved == [], (name, unresolved)

@@ -19,6 +19,7 @@ asset and can be sublayered straight into the shot.
 """
 from __future__ import annotations
 
+import os
 import shutil
 from pathlib import Path, PurePosixPath, PureWindowsPath
 from typing import Literal, Mapping
@@ -212,7 +213,7 @@ class UsdExport(Stage):
         references: list[tuple[str, np.ndarray, list[str | None], object]] = []
         offsets: dict[str, object] = {}  # sublayer -> its layer offset
         for asset, asset_to_scene in assets.items():
-            rel = self._copy_asset(asset, out / "assets")
+            rel = self._copy_asset(asset, out / "assets", ctx.log)
             asset_to_target = to_target @ asset_to_scene
             offset = _shot_offset(asset, scene.frames.fps)
             if np.allclose(asset_to_target, np.eye(4), atol=1e-9) and not _has_own_prims(asset):
@@ -376,20 +377,21 @@ class UsdExport(Stage):
         return True
 
     @staticmethod
-    def _copy_asset(asset: Path, dest: Path) -> str:
-        """Copy an asset and the local files it depends on, keeping their relative layout."""
+    def _copy_asset(asset: Path, dest: Path, log=None) -> str:
+        """Copy an asset and every local file it depends on, keeping their relative layout from the folder
+        they all share: a set in sets/ that references ../geo/ keeps that reference (copied from the asset's
+        own folder only, the geometry was left behind and the set came in empty)."""
         from pxr import Sdf, UsdUtils
 
-        base = asset.parent.resolve()
-        layers, files, _unresolved = UsdUtils.ComputeAllDependencies(Sdf.AssetPath(str(asset)))
+        layers, files, unresolved = UsdUtils.ComputeAllDependencies(Sdf.AssetPath(str(asset)))
         paths = {asset.resolve()} | {Path(layer.realPath).resolve() for layer in layers if layer.realPath}
         paths |= {Path(f).resolve() for f in files}
+        base = Path(os.path.commonpath([str(p.parent) for p in paths]))
         for p in paths:
-            try:
-                rel = p.relative_to(base)
-            except ValueError:
-                continue  # outside the asset's folder: stays an absolute dependency
-            target = dest / rel
+            target = dest / p.relative_to(base)
             target.parent.mkdir(parents=True, exist_ok=True)
             shutil.copyfile(p, target)
+        if unresolved and log is not None:
+            log.warning("export.usd: %s refers to %d file(s) that cannot be found (first: %s); the copy refers to "
+                        "them too", asset.name, len(unresolved), unresolved[0])
         return f"assets/{asset.resolve().relative_to(base)}"
