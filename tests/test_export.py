@@ -491,3 +491,38 @@ def test_a_set_referencing_geometry_outside_its_folder_comes_along(tmp_path):
         assert len(tanks) == 1 and len(tanks[0].GetPointsAttr().Get() or []) == 8, name
         _, _, unresolved = UsdUtils.ComputeAllDependencies(Sdf.AssetPath(str(out / name)))
         assert unresolved == [], (name, unresolved)
+
+
+def test_the_surface_carries_the_waters_velocities_for_motion_blur(tmp_path):
+    """The surface's topology changes every frame, so a renderer can blur it only from authored velocities
+    (UsdGeomPointBased): a ball of particles spinning about z at 2 rad/s and drifting at 0.5 m/s along x gives
+    its surface vertices v = (0.5, 0, 0) + w x r within w l0 (the neighbourhood of a vertex at the free surface
+    is one-sided: its particles' mean lies up to a spacing inside), in units per second."""
+    inputs = folders(tmp_path)
+    tank_walls(inputs["walls"])
+    centre = np.array([-0.5, 0.0, 0.4])
+    surf = surfaces(inputs["surface"], centre)
+    g = np.arange(-0.3, 0.3001, 0.025)
+    x = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    x = x[np.linalg.norm(x, axis=1) <= 0.3]  # the surfaces (radius 0.2-0.26) inside it
+    omega, drift = np.array([0.0, 0.0, 2.0]), np.array([0.5, 0.0, 0.0])
+    ParticleMeta(spacing=0.025, mass=0.0156, density=1000.0, support=0.05, fps=FPS, frame_count=FRAMES,
+                 up_axis="Z", meters_per_unit=1.0, solver="synthetic").save(inputs["particles"])
+    for f in range(FRAMES):
+        n = len(x)
+        save_particle_frame(inputs["particles"], f, ParticleFrame(centre + x, drift + np.cross(omega, x),
+                                                                  np.full(n, 1000.0), np.zeros(n), np.arange(n)))
+    out = run_stage(UsdExport, tmp_path / "usd", scene=scene(), inputs=inputs, params={"particles": False})
+    stage = Usd.Stage.Open(str(out / "scene.usda"))  # held: a prim of a dropped stage is invalid
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/World/Fluid/Surface"))
+    assert mesh.GetVelocitiesAttr().GetTimeSamples() == list(range(FRAMES))
+    for f, m in enumerate(surf):
+        v = np.array(mesh.GetVelocitiesAttr().Get(f))
+        expected = drift + np.cross(omega, m.vertices - centre)
+        assert v.shape == m.vertices.shape
+        assert np.abs(v - expected).max() < 2.0 * 0.025, f
+    out = run_stage(UsdExport, tmp_path / "off", scene=scene(), inputs=inputs,
+                    params={"particles": False, "surface_velocities": False})
+    stage = Usd.Stage.Open(str(out / "scene.usda"))
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/World/Fluid/Surface"))
+    assert not mesh.GetVelocitiesAttr().HasAuthoredValue()

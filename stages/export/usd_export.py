@@ -32,6 +32,7 @@ from stages.common.camera import camera_files, shot_camera, usd_camera_moves
 from stages.common.formats import ParticleMeta, WallMesh, load_particle_frame, load_surface
 
 from . import usd_layers as ul
+from .surface_velocity import surface_velocities
 
 
 def _inside_path(v: str | None) -> str | None:
@@ -50,6 +51,9 @@ def _inside_path(v: str | None) -> str | None:
 class UsdParams(Params):
     surface: bool = Field(True, description="export the fluid surface (needs the wall_snap stage)")
     particles: bool = Field(True, description="export the particles as time-sampled UsdGeom.Points")
+    surface_velocities: bool = Field(True, description="author the surface's velocities, interpolated from the "
+                                     "particles: a renderer's motion blur of a mesh whose topology changes every "
+                                     "frame needs them")
     fluid_units: Literal["auto", "scene", "asset"] = Field(
         "auto", description="frame of the written layers: the scene's units/up axis, or the studio asset's "
         "(auto: the asset's when a wall came from a USD asset)")
@@ -202,7 +206,8 @@ class UsdExport(Stage):
         progress = ctx.progress("writing USD layers", len(frames) * (params.surface + params.particles) + 2)
 
         if params.surface:
-            self._write_surface(out / "fluid_surface.usdc", inputs["surface"], frames, to_target, metrics, progress)
+            self._write_surface(out / "fluid_surface.usdc", inputs["surface"], frames, to_target, metrics, progress,
+                                inputs["particles"] if params.surface_velocities else None)
             sublayers.append("./fluid_surface.usdc")
         if params.particles:
             whole = frames == list(range(count))
@@ -287,7 +292,10 @@ class UsdExport(Stage):
 
     # -- layers ----------------------------------------------------------------------------------------
     @staticmethod
-    def _write_surface(path: Path, surface: Artifact, frames: list[int], m: np.ndarray, metrics: dict, progress) -> None:
+    def _write_surface(path: Path, surface: Artifact, frames: list[int], m: np.ndarray, metrics: dict, progress,
+                       particles: Artifact | None = None) -> None:
+        """The surface layer; with ``particles``, each vertex's velocity as the particles' near it (within 2 l0,
+        weighted (1 - r^2 / 4 l0^2)^3 over the 8 nearest; the nearest one's beyond), in units per second."""
         from pxr import UsdGeom
 
         stage = ul.new_stage(path, **metrics)
@@ -303,7 +311,11 @@ class UsdExport(Stage):
             except FileNotFoundError:
                 raise StageError(f"export.usd: {folder} has no surface for frame {f}") from None
             faces = s.faces[:, ::-1] if flip else s.faces
-            ul.set_mesh(mesh, ul.apply(m, s.vertices), faces, ul.apply_normals(m, s.normals) if len(s.normals) else s.normals, f)
+            velocities = None
+            if particles is not None and particles.path is not None:
+                velocities = ul.apply_linear(m, surface_velocities(s.vertices, particles.path, f))
+            ul.set_mesh(mesh, ul.apply(m, s.vertices), faces, ul.apply_normals(m, s.normals) if len(s.normals) else s.normals, f,
+                        velocities)
             progress.advance()
         ul.bind(mesh.GetPrim(), material)
         stage.GetRootLayer().Save()

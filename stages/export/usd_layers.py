@@ -100,14 +100,17 @@ def define_mesh(stage: Usd.Stage, path: str) -> UsdGeom.Mesh:
 
 
 def set_mesh(mesh: UsdGeom.Mesh, vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray | None,
-             time=Usd.TimeCode.Default()) -> None:
-    """Author one sample of a triangle mesh (topology may differ between samples)."""
+             time=Usd.TimeCode.Default(), velocities: np.ndarray | None = None) -> None:
+    """Author one sample of a triangle mesh (topology may differ between samples), with its points'
+    velocities (units per second) when given."""
     faces = np.ascontiguousarray(faces, np.int32).reshape(-1, 3)
     mesh.GetPointsAttr().Set(vec3f(vertices), time)
     mesh.GetFaceVertexCountsAttr().Set(Vt.IntArray.FromNumpy(np.full(len(faces), 3, np.int32)), time)
     mesh.GetFaceVertexIndicesAttr().Set(Vt.IntArray.FromNumpy(faces.ravel()), time)
     if normals is not None:
         mesh.GetNormalsAttr().Set(vec3f(normals), time)
+    if velocities is not None:
+        mesh.GetVelocitiesAttr().Set(vec3f(velocities), time)
     mesh.GetExtentAttr().Set(extent_of(np.asarray(vertices, np.float32)), time)
 
 
