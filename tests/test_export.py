@@ -526,3 +526,62 @@ def test_the_surface_carries_the_waters_velocities_for_motion_blur(tmp_path):
     stage = Usd.Stage.Open(str(out / "scene.usda"))
     mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/World/Fluid/Surface"))
     assert not mesh.GetVelocitiesAttr().HasAuthoredValue()
+
+
+def test_a_fast_turning_wall_stays_rigid_between_frames_and_colliders_are_guides(tmp_path):
+    """A wall turning 13 degrees a frame: its matrix op was interpolated entry by entry, so at mid-frame it
+    shrank by 1.2 % (determinant 0.988). Translate + orient ops interpolate rigidly: the determinant is 1 at
+    every half frame and the poses at the frames are the simulated ones. A built-in tank is a collider drawn
+    as a guide (it hid the water in viewers that draw back faces), the particles beside a surface too, and
+    the scene has a model hierarchy (/World an assembly, the fluid a component)."""
+    from pxr import Kind
+
+    from stages.common.motion import RigidMotion
+
+    inputs = folders(tmp_path)
+    tank = trimesh.creation.box(extents=(2.0, 1.0, 1.0)).apply_translation([0.0, 0.0, 0.5])
+    paddle = trimesh.creation.box(extents=(0.1, 0.6, 0.4)).apply_translation([0.3, 0.0, 0.4])
+    motion = RigidMotion.from_keyframes([{"time": 0.0}, {"time": FRAMES / FPS, "rotate": [0, 0, 13.0 * FRAMES]}],
+                                        [0.3, 0.0, 0.4])
+    WallMesh(np.vstack([tank.vertices, paddle.vertices]), np.vstack([tank.faces, paddle.faces + 8]),
+             np.repeat(np.arange(2, dtype=np.int32), 12),
+             [{"name": "tank", "fluid": "inside", "source": "builtin:box_tank"},
+              {"name": "paddle", "fluid": "outside", "source": "paddle.obj", "motion": motion.to_json()}]
+             ).save(inputs["walls"])
+    surfaces(inputs["surface"], (-0.5, 0.0, 0.4))
+    particles(inputs["particles"], (-0.5, 0.0, 0.4))
+    out = run_stage(UsdExport, tmp_path / "usd", scene=scene(), inputs=inputs)
+    stage = Usd.Stage.Open(str(out / "scene.usda"))
+    prim = stage.GetPrimAtPath("/World/Walls/paddle")
+    xf = UsdGeom.Xformable(prim)
+    for f in range(FRAMES - 1):
+        at_frame = np.array(xf.ComputeLocalToWorldTransform(f)).T  # USD's row vectors -> column vectors
+        np.testing.assert_allclose(at_frame, motion.matrix(f / FPS), atol=1e-6)
+        between = np.array(xf.ComputeLocalToWorldTransform(f + 0.5)).T
+        assert abs(np.linalg.det(between[:3, :3]) - 1.0) < 1e-9, f
+    assert UsdGeom.Imageable(stage.GetPrimAtPath("/World/Walls/tank")).GetPurposeAttr().Get() == UsdGeom.Tokens.guide
+    assert UsdGeom.Imageable(prim).GetPurposeAttr().Get() == UsdGeom.Tokens.default_  # the user's own model
+    assert UsdGeom.Imageable(stage.GetPrimAtPath("/World/Particles")).GetPurposeAttr().Get() == UsdGeom.Tokens.guide
+    assert Usd.ModelAPI(stage.GetPrimAtPath("/World")).GetKind() == Kind.Tokens.assembly
+    assert Usd.ModelAPI(stage.GetPrimAtPath("/World/Fluid")).GetKind() == Kind.Tokens.component
+    assert compliance_problems(out / "scene.usda")[0] == []
+
+
+def test_the_same_export_gives_the_same_usdz_bytes(tmp_path):
+    """The usdz's zip entries carried the files' write times: every re-export differed (a farm's checksum
+    dedup saw a change each time). The layers were already identical; the package is now too."""
+    import hashlib
+    import time
+
+    inputs = folders(tmp_path)
+    tank_walls(inputs["walls"])
+    surfaces(inputs["surface"], (-0.5, 0.0, 0.4))
+    particles(inputs["particles"], (-0.5, 0.0, 0.4))
+    digests = []
+    for run in ("a", "b"):
+        out = run_stage(UsdExport, tmp_path / run, scene=scene(), inputs=inputs, params={"usdz": True})
+        digests.append(hashlib.sha256((out / "scene.usdz").read_bytes()).hexdigest())
+        time.sleep(2.1)  # zip times have a 2 s resolution
+    assert digests[0] == digests[1]
+    with pytest.raises(Exception, match="fluid_layer_path is the surface's layer: it needs surface: true"):
+        UsdExport.Params(fluid_layer_path="layers/fluid.usdc", surface=False)

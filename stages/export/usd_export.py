@@ -25,7 +25,7 @@ from pathlib import Path, PurePosixPath, PureWindowsPath
 from typing import Literal, Mapping
 
 import numpy as np
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 
 from pipeline.stage import Artifact, Context, Params, Stage, StageError
 from stages.common.camera import camera_files, shot_camera, usd_camera_moves
@@ -66,6 +66,12 @@ class UsdParams(Params):
                                         "itself is the scene's camera section)")
 
     _fluid_layer_inside = field_validator("fluid_layer_path")(_inside_path)
+
+    @model_validator(mode="after")
+    def _layer_needs_surface(self):
+        if self.fluid_layer_path and not self.surface:  # it was skipped without a word
+            raise ValueError("fluid_layer_path is the surface's layer: it needs surface: true")
+        return self
 
 
 USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
@@ -249,6 +255,7 @@ class UsdExport(Stage):
                     refs.AddReference(rel, shift)
                 else:
                     refs.AddReference(rel, prim, shift)
+        ul.model_hierarchy(root, surface=params.surface, particles=params.particles, assets=len(references))
         cam = ctx.scene["camera"]
         aspect = params.camera_aspect or (cam.resolution[0] / cam.resolution[1] if cam.resolution else 16 / 9)
 
@@ -287,6 +294,15 @@ class UsdExport(Stage):
             Sdf.Layer.FindOrOpen(str(out / "fluid_surface.usdc")).Export(str(target))
             ctx.log.info("fluid layer written to usd/%s", params.fluid_layer_path)  # where it is published
         if params.usdz:
+            # the zip entries carry their files' times: fixed (SOURCE_DATE_EPOCH, else 2000-01-01), the same
+            # export gives the same bytes (a farm's checksums saw every re-export as a change)
+            try:
+                stamp = max(float(os.environ.get("SOURCE_DATE_EPOCH", "")), 315532800.0)  # zip times start in 1980
+            except ValueError:
+                stamp = 946684800.0
+            for f in out.rglob("*"):
+                if f.is_file():
+                    os.utime(f, (stamp, stamp))
             if not UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(str(out / "scene.usda")), str(out / "scene.usdz")):
                 raise StageError(f"export.usd: could not package {out / 'scene.usdz'}")
 
@@ -380,11 +396,12 @@ class UsdExport(Stage):
                 local = local[:, ::-1]
             ul.set_mesh(mesh, ul.apply(m, walls.vertices[idx]), local, None)
             if i in motions:  # the rest pose above, moved by the wall's motion seen in the written frame
-                op = mesh.AddTransformOp()
-                for f in frames:
-                    op.Set(ul.to_gf_matrix(m @ motions[i].matrix(f / metrics["fps"]) @ to_source), f)
+                ul.animate_rigidly(mesh, [(f, m @ motions[i].matrix(f / metrics["fps"]) @ to_source) for f in frames])
                 # the extent bounds the points as authored (the rest pose): USD applies the transform to it
-            mesh.GetPrim().SetCustomDataByKey("source", str(walls.walls[i].get("source", "")))
+            source = str(walls.walls[i].get("source", ""))
+            mesh.GetPrim().SetCustomDataByKey("source", source)
+            if source.startswith("builtin:"):  # a collider made for the simulation, not a set piece: drawn only
+                mesh.CreatePurposeAttr(UsdGeom.Tokens.guide)  # where guides are asked for (it hid the water)
         stage.GetRootLayer().Save()
         return True
 
