@@ -478,3 +478,21 @@ def test_the_time_label_tells_consecutive_frames_apart(fps):
 
     labels = [time_label(f, fps) for f in range(50)]
     assert len(set(labels)) == 50 and labels[0] == "t = " + "0." + "0" * (len(labels[1]) - 8) + " s"
+
+
+def test_a_render_resolution_of_another_aspect_than_the_shot_camera_is_said(tmp_path, inputs, caplog):
+    """render.resolution portrait without camera.resolution: the frames were framed for portrait while the
+    exported USD camera stayed 16:9 and closer (a user's sweep), without a word."""
+    import logging
+
+    from stages.render import pyvista_render
+
+    pyvista_render._WARNED.clear()
+    with caplog.at_level(logging.WARNING):
+        run_stage(PyvistaRender, tmp_path / "p", scene=SCENE, inputs=inputs, frames=(0, 1),
+                  params={"resolution": [90, 160]})
+    assert caplog.text.count("render.resolution 90x160 is not the shot camera's aspect (1280x720, the default)") == 1
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        run_stage(PyvistaRender, tmp_path / "q", scene=SCENE, inputs=inputs, frames=(0,), params={"resolution": [320, 180]})
+    assert "shot camera's aspect" not in caplog.text

@@ -211,7 +211,13 @@ class PyvistaRender(Stage):
             return
         choose_offscreen_backend()
         # the frame size: the stage's own, else the shot camera's (export's USD camera follows that one)
-        size = params.resolution or ctx.scene["camera"].resolution or DEFAULT_RESOLUTION
+        shot = ctx.scene["camera"].resolution or DEFAULT_RESOLUTION
+        if params.resolution and abs(params.resolution[0] / params.resolution[1] / (shot[0] / shot[1]) - 1) > 0.01:
+            _warn_once(ctx.log, f"render.resolution {params.resolution[0]}x{params.resolution[1]} is not the shot "
+                       f"camera's aspect ({shot[0]}x{shot[1]}{'' if ctx.scene['camera'].resolution else ', the default'}"
+                       "): the frames are framed for it, the exported USD camera is not; set camera.resolution to "
+                       "it so both agree")
+        size = params.resolution or shot
         params = params.model_copy(update={"resolution": tuple(size)})
         scene = ctx.scene["scene"]
         walls = load_walls(Path(inputs["walls"].path))
@@ -284,6 +290,16 @@ class PyvistaRender(Stage):
                          render=False, scalar_bar_args=bar)
         # the title clear of the top label (VTK sets it right on the bar's end)
         plotter.scalar_bars[bar["title"]].SetVerticalTitleSeparation(round(0.6 * bar["title_font_size"]))
+
+
+_WARNED: set[str] = set()
+
+
+def _warn_once(log, text: str) -> None:
+    """A warning about the whole shot, said once per process, not for every frame."""
+    if text not in _WARNED:
+        _WARNED.add(text)
+        log.warning(text)
 
 
 def time_label(frame: int, fps: float) -> str:
