@@ -274,6 +274,60 @@ def scatter_clipped(x, vol, src, src_depth, grid_lo, inv_h, radius, phi, dist, o
                     phi[k, j, i] += np.float32(cw * w * w * w)
 
 
+@nb.njit(cache=True)
+def _clear(sx, sy, sz, x, y, z, dist, origin, inv_h_sdf) -> bool:
+    """Whether the segment between two points in open space never enters a wall: d < 0 anywhere on it
+    (probed every quarter SDF cell). Strict, where _seen has a depth threshold: a thin wall cut between its
+    nodes reads a few hundredths of a spacing deep, and a node needs only one particle it sees clearly."""
+    length = math.sqrt((x - sx) ** 2 + (y - sy) ** 2 + (z - sz) ** 2)
+    n = int(length * 4.0 * inv_h_sdf) + 1
+    for m in range(1, n):
+        f = m / n
+        if _sdf_distance(dist, origin, inv_h_sdf, sx + f * (x - sx), sy + f * (y - sy), sz + f * (z - sz)) < 0.0:
+            return False
+    return True
+
+
+@nb.njit(cache=True, parallel=True)
+def hide_unseen(phi, grid_lo, h, floor, radius, x, starts, lo, inv_cell, dims, dist, origin, inv_h_sdf):
+    """Zero Phi at the nodes in open space near a wall (0 < d < radius) that no particle within ``radius``
+    sees through open space: water there is what the kernels (the particles' own, or a floor's mirror
+    images beside a thin divider) reached through a wall thinner than their support. The pour's glass at
+    1.25 cm and a 0.6 l0 divider standing on a floor drew water on their dry sides. Only nodes with
+    Phi >= ``floor`` are tested; most see their nearest particles at once. ``x`` sorted by the cell grid
+    (``starts``, ``lo``, ``inv_cell``, ``dims``) of cells >= ``radius``."""
+    nz, ny, nx = phi.shape
+    r2max = radius * radius
+    gx, gy, gz = dims[0], dims[1], dims[2]
+    for k in nb.prange(nz):
+        z = grid_lo[2] + k * h
+        for j in range(ny):
+            y = grid_lo[1] + j * h
+            for i in range(nx):
+                if phi[k, j, i] < floor:
+                    continue
+                xx = grid_lo[0] + i * h
+                d = _sdf_distance(dist, origin, inv_h_sdf, xx, y, z)
+                if d <= 0.0 or d >= radius:
+                    continue
+                cx, cy, cz = cell_coords(xx, y, z, lo[0], lo[1], lo[2], inv_cell, gx, gy, gz)
+                seen = False
+                for kz in range(max(cz - 1, 0), min(cz + 2, gz)):
+                    for ky in range(max(cy - 1, 0), min(cy + 2, gy)):
+                        base = (kz * gy + ky) * gx
+                        for p in range(starts[base + max(cx - 1, 0)], starts[base + min(cx + 1, gx - 1) + 1]):
+                            r2 = (x[p, 0] - xx) ** 2 + (x[p, 1] - y) ** 2 + (x[p, 2] - z) ** 2
+                            if r2 < r2max and _clear(x[p, 0], x[p, 1], x[p, 2], xx, y, z, dist, origin, inv_h_sdf):
+                                seen = True
+                                break
+                        if seen:
+                            break
+                    if seen:
+                        break
+                if not seen:
+                    phi[k, j, i] = 0.0
+
+
 @nb.njit(cache=True, parallel=True)
 def cut_by_walls(phi, grid_lo, h, iso, radius, dist, origin, inv_h_sdf):
     """Intersect the fluid with the wall-free region: Phi' = iso + min(Phi - iso, d / R).
