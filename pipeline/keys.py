@@ -66,13 +66,13 @@ def call_hook(node: Node, hook: str, *args: Any) -> Any:
     anything else is a bug in the stage, shown as one line naming the stage, the hook and where it raised."""
     try:
         return getattr(node.cls(), hook)(*args)
-    except (StageError, PipelineError):
+    except (StageError, PipelineError, KeyboardInterrupt):
         raise
-    except Exception as e:  # noqa: BLE001 - a plugin's own bug
+    except BaseException as e:  # noqa: BLE001 - a plugin's own bug, sys.exit() included
         tb = traceback.extract_tb(e.__traceback__)
         where = f" (at {tb[-1].filename}:{tb[-1].lineno})" if tb else ""
-        raise StageFailed(f"stage {node.label}: its {hook}() failed: {type(e).__name__}: {e}{where}",
-                          user_error=False) from e
+        what = f"called sys.exit({e.code!r})" if isinstance(e, SystemExit) else f"failed: {type(e).__name__}: {e}"
+        raise StageFailed(f"stage {node.label}: its {hook}() {what}{where}", user_error=False) from e
 
 
 def plan(config: Config, graph: Graph, cache: Cache, frames: tuple[int, ...] | None = None) -> Plan:

@@ -7,8 +7,10 @@ from __future__ import annotations
 import faulthandler
 import json
 import logging
+import multiprocessing
 import os
 import shutil
+import sys
 import threading
 import time
 import traceback
@@ -146,7 +148,7 @@ def run_frame_job(job: FrameJob) -> tuple[int, str, float, float, bool]:
 def _check_wrote(out_dir: Path, stage_cls: type[Stage]) -> None:
     """A stage that returned without writing anything would be committed as an empty entry and served as
     done, the fault surfacing later as a missing input of the next stage."""
-    if not any(out_dir.iterdir()):
+    if not any(f.is_file() for f in out_dir.rglob("*")):  # empty folders are no output either
         raise StageFailed(f"wrote nothing into its output folder (ctx.out_dir), where its outputs "
                           f"({', '.join(stage_cls.outputs)}) belong", user_error=False)
 
@@ -253,7 +255,8 @@ def _fail(node: Node, key: str, config: Config, exc: BaseException, cache: Cache
             text += f" ({write_log(cache, f'{node.kind}-{key[:12]}', ''.join(traceback.format_exception(exc)))})"
         return StageFailed(f"stage {node.label}: {text}", user_error=user)
     if type(exc).__name__ == "BrokenProcessPool":
-        exc_text = "a worker process died (killed, out of memory or a native crash; faulthandler output in the run log)"
+        exc_text = ("a worker process died (killed, out of memory or a native crash; faulthandler output in the run log; "
+                    "a script calling pipeline.run with workers needs the if __name__ == \"__main__\": guard)")
     else:
         exc_text = f"{type(exc).__name__}: {exc}"
     saved = write_log(cache, f"{node.kind}-{key[:12]}", "".join(traceback.format_exception(exc)))
@@ -489,7 +492,8 @@ def _run_whole(p: Plan, node: Node, key: str, inputs: dict[str, Artifact], runna
             if isinstance(exc, KeyboardInterrupt):
                 raise
             if isinstance(exc, SystemExit):  # the stage's own sys.exit(): a failed stage, said as one
-                exc = RuntimeError(f"the stage called sys.exit({exc.code!r})").with_traceback(exc.__traceback__)
+                exc = StageFailed(f"the stage called sys.exit({exc.code!r})", user_error=False).with_traceback(
+                    exc.__traceback__)
             raise _fail(node, key, config, exc, cache) from exc
         shutil.rmtree(cache.checkpoint_dir(key), ignore_errors=True)
         if resume:
@@ -603,6 +607,12 @@ def run(config_path: str | Path, *, registry: Registry | None = None, overrides:
     if isinstance(overrides, str):  # iterated, a string is one --set per character
         raise ConfigError(f"overrides: expected a sequence of path=value assignments, got the string {overrides!r} "
                           f"(write ({overrides!r},))")
+    if getattr(multiprocessing.current_process(), "_inheriting", False):
+        # a spawned worker importing the caller's script (no __main__ guard) reached its pipeline.run: say so
+        # once per worker instead of Python's bootstrapping traceback (about 290 lines for two workers)
+        print("error: pipeline.run was called while a worker process imported the calling script: put the call "
+              "under if __name__ == \"__main__\": (worker processes import the script again)", file=sys.stderr)
+        os._exit(1)
     if executor is None and workers > 1:
         pool = make_executor("processes", workers)
         try:

@@ -559,6 +559,8 @@ def test_a_fast_turning_wall_stays_rigid_between_frames_and_colliders_are_guides
         np.testing.assert_allclose(at_frame, motion.matrix(f / FPS), atol=1e-6)
         between = np.array(xf.ComputeLocalToWorldTransform(f + 0.5)).T
         assert abs(np.linalg.det(between[:3, :3]) - 1.0) < 1e-9, f
+        # turning about its pivot between frames too (a translate about the origin swung it off its path)
+        np.testing.assert_allclose(between, motion.matrix((f + 0.5) / FPS), atol=1e-6)
     assert UsdGeom.Imageable(stage.GetPrimAtPath("/World/Walls/tank")).GetPurposeAttr().Get() == UsdGeom.Tokens.guide
     assert UsdGeom.Imageable(prim).GetPurposeAttr().Get() == UsdGeom.Tokens.default_  # the user's own model
     assert UsdGeom.Imageable(stage.GetPrimAtPath("/World/Particles")).GetPurposeAttr().Get() == UsdGeom.Tokens.guide

@@ -34,8 +34,10 @@ def _cache_entries(cache, kind):
     return [p for p in root.glob("*/*") if p.is_dir()] if root.is_dir() else []
 
 
-def test_a_stage_that_writes_nothing_fails_and_commits_nothing(toy_config, tmp_path):
-    quiet = _render("quiet", lambda self, ctx, inputs, params, frame: None)
+@pytest.mark.parametrize("writes", ["nothing", "an empty folder"])
+def test_a_stage_that_writes_nothing_fails_and_commits_nothing(toy_config, tmp_path, writes):
+    quiet = _render("quiet", lambda self, ctx, inputs, params, frame: (ctx.out_dir / "sub").mkdir()
+                    if writes != "nothing" else None)
     with pytest.raises(StageFailed, match=r"stage render.quiet frame \d failed .*: wrote nothing into its output folder") as exc:
         pipeline.run(toy_config, registry=_registry(quiet), overrides=("render.use=quiet",), cache_dir=tmp_path / "c")
     assert exc.value.exit_code == 1
@@ -52,12 +54,17 @@ def test_a_stage_calling_sys_exit_is_a_failed_stage_not_a_silent_exit(toy_config
 
 
 @pytest.mark.parametrize("hook", ["check", "estimate"])
-def test_a_bug_in_a_plan_time_hook_names_the_stage_and_where(toy_config, tmp_path, hook):
+@pytest.mark.parametrize("bug", ["KeyError", "SystemExit"])
+def test_a_bug_in_a_plan_time_hook_names_the_stage_and_where(toy_config, tmp_path, hook, bug):
+    """sys.exit(0) in check() ended the run silently with exit 0 (and a library caller's script with it)."""
     def broken(self, ctx, params):
+        if bug == "SystemExit":
+            raise SystemExit(0)
         return {}["missing"]
 
     cls = type("Broken", (ToySurface,), {"name": "broken", hook: broken})
-    with pytest.raises(StageFailed, match=rf"stage surface_extract.broken: its {hook}\(\) failed: KeyError: 'missing' "
+    what = "failed: KeyError: 'missing'" if bug == "KeyError" else r"called sys.exit\(0\)"
+    with pytest.raises(StageFailed, match=rf"stage surface_extract.broken: its {hook}\(\) {what} "
                                           rf"\(at .*test_plugins.py:\d+\)"):
         pipeline.run(toy_config, registry=_registry(cls), overrides=("surface_extract.use=broken",),
                      cache_dir=tmp_path / "c")
@@ -177,3 +184,21 @@ def test_a_plugins_cached_kernels_follow_an_edit_to_a_helper_kernel(tmp_path):
     again = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
     assert again.stdout.strip() == "30.0", again.stderr
     assert list((tmp_path / "numba" / "plugins").iterdir()), "the package's kernels are cached under plugins/"
+
+
+def test_a_script_without_the_main_guard_is_told_so(toy_config, toy_plugin, tmp_path):
+    """pipeline.run(workers=2) at a script's top level: each spawned worker imports the script again and
+    reached pipeline.run while bootstrapping; about 290 lines of tracebacks ended in 'a worker process died
+    (killed, out of memory or a native crash)'. Each worker now says what to do in one line."""
+    import os
+    import subprocess
+    import sys
+
+    script = tmp_path / "noguard.py"
+    script.write_text(f"import pipeline\npipeline.run({str(toy_config)!r}, cache_dir={str(tmp_path / 'c')!r}, "
+                      f"out_dir={str(tmp_path / 'o')!r}, workers=2)\n")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(toy_plugin), str(REPO / "tests"), str(REPO)]))
+    r = subprocess.run([sys.executable, str(script)], env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode != 0
+    assert "put the call under if __name__ == \"__main__\":" in r.stderr
+    assert "bootstrapping phase" not in r.stderr

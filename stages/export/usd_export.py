@@ -396,7 +396,8 @@ class UsdExport(Stage):
                 local = local[:, ::-1]
             ul.set_mesh(mesh, ul.apply(m, walls.vertices[idx]), local, None)
             if i in motions:  # the rest pose above, moved by the wall's motion seen in the written frame
-                ul.animate_rigidly(mesh, [(f, m @ motions[i].matrix(f / metrics["fps"]) @ to_source) for f in frames])
+                ul.animate_rigidly(mesh, [(f, m @ motions[i].matrix(f / metrics["fps"]) @ to_source) for f in frames],
+                                   ul.apply(m, np.asarray(motions[i].pivot, float)[None])[0])
                 # the extent bounds the points as authored (the rest pose): USD applies the transform to it
             source = str(walls.walls[i].get("source", ""))
             mesh.GetPrim().SetCustomDataByKey("source", source)

@@ -171,19 +171,26 @@ def fit_clipping(camera: UsdGeom.Camera, eyes: np.ndarray, lo: np.ndarray, hi: n
     camera.GetClippingRangeAttr().Set(Gf.Vec2f(max(0.5 * nearest, 1e-4 * farthest), 2.0 * farthest))
 
 
-def animate_rigidly(prim: UsdGeom.Xformable, poses: Iterable[tuple[float, np.ndarray]]) -> None:
-    """Time samples of rigid poses (time code, 4x4 column-vector matrix) as a translate and an orient op: USD
-    interpolates those rigidly between samples (a matrix op is interpolated entry by entry, which shrank a wall
-    turning 13 degrees a frame by 1.2 % at mid-frame, and moved its pivot along a chord)."""
+def animate_rigidly(prim: UsdGeom.Xformable, poses: Iterable[tuple[float, np.ndarray]], pivot) -> None:
+    """Time samples of rigid poses (time code, 4x4 column-vector matrix) as translate, pivot and orient ops
+    about the motion's ``pivot``: USD interpolates them rigidly between samples, the wall turning about its
+    pivot (a matrix op is interpolated entry by entry: a wall turning 13 degrees a frame shrank 1.2 % at
+    mid-frame; a translate about the origin swung the wall 0.05 l0 off its path)."""
+    pivot = np.asarray(pivot, float)
     translate = prim.AddTranslateOp(UsdGeom.XformOp.PrecisionDouble)
+    at_pivot = prim.AddTranslateOp(UsdGeom.XformOp.PrecisionDouble, "pivot")
     orient = prim.AddOrientOp(UsdGeom.XformOp.PrecisionDouble)
+    prim.AddTranslateOp(UsdGeom.XformOp.PrecisionDouble, "pivot", isInverseOp=True)
+    at_pivot.Set(Gf.Vec3d(*map(float, pivot)))
     last = None
     for code, matrix in poses:
-        q = Gf.Matrix4d(np.asarray(matrix, float).T.tolist()).ExtractRotationQuat()
+        matrix = np.asarray(matrix, float)
+        q = Gf.Matrix4d(matrix.T.tolist()).ExtractRotationQuat()
         if last is not None and Gf.Dot(q, last) < 0:  # the same turn, on the short arc from the last sample
             q = -q
         last = q
-        translate.Set(Gf.Vec3d(*map(float, np.asarray(matrix, float)[:3, 3])), code)
+        moved = matrix[:3, :3] @ pivot + matrix[:3, 3]  # where the pivot is at this sample
+        translate.Set(Gf.Vec3d(*map(float, moved - pivot)), code)
         orient.Set(q, code)
 
 

@@ -247,6 +247,8 @@ def interpenetrating_parts(tri: np.ndarray, probes_per_part: int = 64) -> int:
     rng = np.random.default_rng(0)
     order = np.argsort(part, kind="stable")
     starts = np.searchsorted(part[order], np.arange(n_parts + 1))
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    area = 0.5 * np.linalg.norm(cross, axis=1)
     pairs = set()
     for d in shells:
         cand = np.flatnonzero(np.all(lo <= hi[d] + eps[d], axis=1) & np.all(hi >= lo[d] - eps[d], axis=1))
@@ -255,9 +257,15 @@ def interpenetrating_parts(tri: np.ndarray, probes_per_part: int = 64) -> int:
             if (min(c, d), max(c, d)) in pairs:
                 continue
             tris = order[starts[c]:starts[c + 1]]
-            if len(tris) > probes_per_part:
-                tris = rng.choice(tris, probes_per_part, replace=False)
-            inside = _inside_shell(tri, part, d, probe[tris])
+            # points spread over the part's surface by area (a centroid per triangle missed two crossing
+            # boxes: no box's triangle centre lies in the other), each moved a hair into the part
+            w = area[tris] / max(area[tris].sum(), 1e-300)
+            pick = rng.choice(tris, probes_per_part, p=w)
+            ab = rng.random((probes_per_part, 2))
+            ab = np.where(ab.sum(axis=1, keepdims=True) > 1.0, 1.0 - ab, ab)
+            pts = tri[pick, 0] + ab[:, :1] * (tri[pick, 1] - tri[pick, 0]) + ab[:, 1:] * (tri[pick, 2] - tri[pick, 0])
+            pts += probe[pick] - tri[pick].mean(axis=1)  # the centroid's hair-inward shift
+            inside = _inside_shell(tri, part, d, pts)
             if inside.any() and not inside.all():
                 pairs.add((min(c, d), max(c, d)))
     return len(pairs)
