@@ -9,6 +9,8 @@ points, so no config value can import or run arbitrary code).
 from __future__ import annotations
 
 import difflib
+import os
+import re
 
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -124,6 +126,11 @@ class _Loader(yaml.SafeLoader):
             self._too_deep()
         return super().add_indent(column)
 
+    def flatten_mapping(self, node):  # noqa: ANN001 - PyYAML's signature
+        own = sum(1 for k, _ in node.value if k.tag != "tag:yaml.org,2002:merge")
+        super().flatten_mapping(node)
+        node.merged_pairs = len(node.value) - own  # merged pairs come first; _walk checks duplicates among the rest
+
     def compose_node(self, parent, index):  # noqa: ANN001 - PyYAML's signature
         self._depth += 1
         try:
@@ -132,6 +139,28 @@ class _Loader(yaml.SafeLoader):
             return super().compose_node(parent, index)
         finally:
             self._depth -= 1
+
+
+# YAML 1.2's core schema for plain scalars instead of PyYAML's YAML 1.1: 010 was octal (8), 1:30 base 60 (90),
+# 0x10 and 1_000 numbers, yes/no/on/off booleans (so spacing: yes was 1.0); 1e-2 was a string. Now only
+# true/false are booleans, numbers are decimal (1e-2 included), and the rest stays text for the validation.
+_Loader.yaml_implicit_resolvers = {k: [(tag, rx) for tag, rx in v if tag not in (
+    "tag:yaml.org,2002:bool", "tag:yaml.org,2002:int", "tag:yaml.org,2002:float")]
+    for k, v in yaml.SafeLoader.yaml_implicit_resolvers.items()}
+_Loader.add_implicit_resolver("tag:yaml.org,2002:bool", re.compile(r"^(?:true|True|TRUE|false|False|FALSE)$"),
+                              list("tTfF"))
+_Loader.add_implicit_resolver("tag:yaml.org,2002:int", re.compile(r"^[-+]?[0-9]+$"), list("-+0123456789"))
+_Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^(?:[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN))$"),
+    list("-+.0123456789"))
+
+
+def _yaml_int(loader, node):  # noqa: ANN001 - PyYAML's constructor signature: decimal only ("010" is 10)
+    return int(loader.construct_scalar(node))
+
+
+_Loader.add_constructor("tag:yaml.org,2002:int", _yaml_int)
 
 
 def _expanded_size(node: yaml.Node, memo: dict[int, int]) -> int:
@@ -148,7 +177,10 @@ def _walk(node: yaml.Node, path: tuple, lines: _Lines) -> None:
     lines.lines[path] = node.start_mark.line + 1
     if isinstance(node, yaml.MappingNode):
         seen: set = set()
-        for k, v in node.value:
+        merged = getattr(node, "merged_pairs", 0)  # pairs a merge key (<<) brought in: a key after them overrides
+        for n, (k, v) in enumerate(node.value):
+            if n < merged:
+                continue
             if not isinstance(k, yaml.ScalarNode):
                 raise ConfigError(f"{lines.file}:{k.start_mark.line + 1}: {_dotted(path) or 'top level'}: keys must be plain names")
             if k.value in seen:
@@ -165,12 +197,30 @@ def _dotted(path: tuple) -> str:
     return ".".join(str(p) for p in path)
 
 
+def _unshared(value: Any) -> Any:
+    """A copy in which no two places hold the same dict or list (YAML aliases, merge keys): copy.deepcopy
+    keeps such sharing."""
+    if isinstance(value, dict):
+        return {k: _unshared(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_unshared(v) for v in value]
+    return value
+
+
 def safe_yaml(text: str, file: str) -> tuple[Any, yaml.Node | None]:
-    """Parse YAML safely with the depth limit; returns the data and its node tree (None when empty)."""
+    """Parse YAML safely with the depth limit; returns the data (no two places share an object: an alias is a
+    copy, so a --set through one does not change the other) and its node tree (None when empty)."""
+    bad = re.search(r"[\x00-\x08\x0b\x0c\x0e-\x1f\x7f]", text)  # the YAML reader refuses these, with no line
+    if bad:
+        raise ConfigError(f"{file}:{text.count(chr(10), 0, bad.start()) + 1}: a control character "
+                          f"(U+{ord(bad.group()):04X}) is not allowed in YAML (a binary file, or not saved as UTF-8?)")
     loader = _Loader(text, file)
     try:
         node = loader.get_single_node()
-        data = loader.construct_document(node) if node is not None else None
+        if node is not None and _expanded_size(node, {}) > MAX_NODES:  # before anything is expanded
+            raise ConfigError(f"{file}: the config expands to more than {MAX_NODES} values "
+                              f"(YAML aliases repeated inside aliases?)")
+        data = _unshared(loader.construct_document(node)) if node is not None else None
     except yaml.MarkedYAMLError as e:
         mark = e.problem_mark or e.context_mark
         line = f":{mark.line + 1}" if mark is not None else ""
@@ -189,9 +239,6 @@ def _parse_yaml(text: str, file: str) -> tuple[dict, _Lines]:
         raise ConfigError(f"{file}: the config is empty; expected a mapping with 'scene', 'fluid', 'outputs'...")
     if not isinstance(data, dict):
         raise ConfigError(f"{file}:1: top level: expected a mapping of sections, got {type(data).__name__}")
-    if _expanded_size(node, {}) > MAX_NODES:
-        raise ConfigError(f"{file}: the config expands to more than {MAX_NODES} values "
-                          f"(YAML aliases repeated inside aliases?)")
     _walk(node, (), lines)
     return data, lines
 
@@ -215,12 +262,14 @@ def apply_override(data: dict, assignment: str, lines: _Lines) -> None:
         raise
     except ConfigError:
         value = text
+    if isinstance(value, str) and "#" in text and value != text.strip():
+        value = text.strip()  # "shot #3": a shell argument, not YAML with a comment
     node: Any = data
     path: tuple = ()
     for i, part in enumerate(parts):
         last = i == len(parts) - 1
         if isinstance(node, list):
-            if not part.isdigit() or int(part) >= len(node):
+            if not (part.isascii() and part.isdigit()) or int(part) >= len(node):
                 raise ConfigError(f"--set {key}: {_dotted(path)} is a list of {len(node)}; {part!r} is not an index in it")
             part = int(part)
             parts[i] = part  # the override's path as the validation reports it (walls.0, not walls.'0')
@@ -326,12 +375,23 @@ def load_config(path: str | Path, registry: Registry, overrides: list[str] | tup
     if not path.is_file():
         raise ConfigError(f"{file}: config file not found")
     try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as e:
+        raw = path.read_bytes()
+        text = raw.decode("utf-8-sig" if raw.startswith(b"\xef\xbb\xbf") else "utf-8")
+    except OSError as e:
         raise ConfigError(f"{file}: cannot read the config: {e}") from None
+    except UnicodeDecodeError as e:
+        utf16 = raw[:2] in (b"\xff\xfe", b"\xfe\xff")
+        line = raw.count(b"\n", 0, e.start) + 1
+        raise ConfigError(f"{file}:{line}: not UTF-8 text (byte {e.start}); save the config "
+                          f"as UTF-8" + (" (this is UTF-16, what Windows PowerShell 5's > writes)" if utf16 else "")) from None
     data, lines = _parse_yaml(text, file)
     for assignment in overrides:
         apply_override(data, assignment, lines)
+    effects = data.get("effects")
+    if isinstance(effects, dict):  # "gravity:" with nothing after it is the effect with its defaults, as {} is:
+        for k, v in effects.items():  # null turned gravity off without a word (the fluid hung in the air)
+            if v is None:
+                effects[k] = {}
 
     if "study_version" in data and "config_version" not in data:
         raise ConfigError(f"{file}: a study (study_version), not a scene config: run it with `pipeline study {file}`")
@@ -373,7 +433,9 @@ def load_config(path: str | Path, registry: Registry, overrides: list[str] | tup
                 stages[kind] = _stage_params(kind, {}, registry, lines)
             except ConfigError as e:
                 unloadable[kind] = str(e)  # only matters if the graph needs it: then it is the error to show
-    return Config(path=path.resolve(), scene=scene, stages=stages, outputs=tuple(dict.fromkeys(outputs)), raw=data,
+    # absolute, not resolved: a config linked into a shot's folder reads the files beside the link and keeps
+    # its cache and outputs there (resolved, every shot linking one template shared the template's folder)
+    return Config(path=Path(os.path.abspath(path)), scene=scene, stages=stages, outputs=tuple(dict.fromkeys(outputs)), raw=data,
                   allow_large=allow_large, unloadable=unloadable, lines=lines, overrides=tuple(overrides))
 
 

@@ -627,6 +627,10 @@ def run(config_path: str | Path, *, registry: Registry | None = None, overrides:
     registry = registry or Registry.from_entry_points()
     config = load_config(config_path, registry, overrides)
     graph = select(build_graph(config), only, from_, until)
+    if config.scene.fluid is None and any(kind != "mesh_import" for kind in graph.nodes):
+        # refused by sdf_bake only after the walls had been imported and cached, naming no file or line
+        raise ConfigError(f"{config.path}: the config has no 'fluid' section; its spacing sets the SDF grid and the "
+                          f"particles, which {', '.join(graph.outputs)} need")
     check_stages(config, graph)
     for f in force:
         if f != "all" and f not in graph.nodes:

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import textwrap
 from pathlib import Path
 
 import pytest
@@ -56,3 +57,46 @@ def test_the_readme_config_reference_runs(tmp_path):
                           overrides=("scene.frames.count=2", "fluid.spacing=0.05"), until="simulate",
                           cache_dir=tmp_path / "cache", out_dir=tmp_path / "out")
     assert [s.status for s in report.stages] == ["ran", "ran", "ran"]
+
+
+def test_what_users_type_is_read_as_they_meant(tmp_path):
+    """YAML 1.1 read fps: 030 as 24 (octal), spacing: 1:30 as 90 (base 60) and yes as 1.0; an empty effect
+    key turned the effect off; a --set through an alias changed every place sharing it; a merge key with an
+    override was refused as a duplicate; a symlinked config read the files beside its target."""
+    from pipeline import Registry
+    from pipeline.config import load_config
+
+    text = textwrap.dedent("""\
+        config_version: 1
+        scene: {name: x, frames: {fps: 030, count: 2}}
+        fluid:
+          spacing: 1e-1
+          emitters:
+            - box: &b {min: [0, 0, 0], max: [1, 1, 1]}
+            - box: *b
+              velocity: [1, 0, 0]
+        effects:
+          gravity:
+          viscosity: {mu: 0.01}
+        stages:
+          simulate:
+            <<: {cfl: 0.3, threads: 1}
+            cfl: 0.2
+        """)
+    (tmp_path / "shot").mkdir()
+    (tmp_path / "template.yaml").write_text(text)
+    (tmp_path / "shot" / "linked.yaml").symlink_to(tmp_path / "template.yaml")
+    config = load_config(tmp_path / "shot" / "linked.yaml", Registry.from_entry_points(),
+                         ["fluid.emitters.0.box.max=[0.5, 0.5, 0.5]"])
+    scene = config.scene
+    assert scene.scene.frames.fps == 30 and scene.fluid.spacing == 0.1
+    assert scene.effects.gravity is not None and scene.effects.gravity.g == pytest.approx(9.81)
+    assert tuple(scene.fluid.emitters[0].box.max) == (0.5, 0.5, 0.5)
+    assert tuple(scene.fluid.emitters[1].box.max) == (1.0, 1.0, 1.0)  # the alias's other use is untouched
+    assert config.stages["simulate"].params.cfl == 0.2
+    assert config.dir == tmp_path / "shot"  # beside the link: its files, its cache and outputs
+    from pipeline.config import _Lines, apply_override
+
+    data = {"scene": {"name": "x"}}
+    apply_override(data, "scene.name=shot #3", _Lines("t.yaml"))  # a shell argument: no YAML comment in it
+    assert data["scene"]["name"] == "shot #3"
