@@ -163,9 +163,10 @@ def ghost_particles(x, vol, dist, origin, inv_h_sdf, radius, out_x, out_vol, kee
     (scatter_clipped, add_seen_images). Dropping it instead left the surface up to 0.55 l0 off a thin
     paddle with water on both sides. An image in open space beside no thin wall is dropped: between a tank's
     side and the edge of a plate above its floor the normals of the ridge pointed down past the plate's
-    edge, and those images drew water under the plate where there was none. ``depth``: how deep that wall reads in the sampled field (the least
-    d the probe met, < 0): a 0.6 l0 wall whose medial plane falls between SDF nodes reads 0.1 l0 deep at
-    most, shallower than any fixed threshold (the glass of the pour leaked 0.83 l0 of water past it)."""
+    edge, and those images drew water under the plate where there was none. ``depth``: how deep that wall
+    reads in the sampled field (the least d the probe met, < 0): a 0.6 l0 wall whose medial plane falls
+    between SDF nodes reads 0.1 l0 deep at most, shallower than any fixed threshold (the glass of the pour
+    leaked 0.83 l0 of water past it)."""
     e = 1e-3 / inv_h_sdf
     step = 0.5 / inv_h_sdf
     for q in nb.prange(x.shape[0]):
@@ -208,19 +209,25 @@ def ghost_particles(x, vol, dist, origin, inv_h_sdf, radius, out_x, out_vol, kee
 
 
 @nb.njit(cache=True)
-def _seen(sx, sy, sz, x, y, z, wall_depth, dist, origin, inv_h_sdf) -> bool:
-    """Whether the segment from (sx, sy, sz) to (x, y, z) stays out of the walls (probed every quarter SDF
-    cell; a wall is where d < -1/4 cell, or half the depth ``wall_depth`` (< 0) the wall beside the source
-    reads where that is shallower: the trilinear field of a thin wall reads < 0 just off its faces, and
-    a thin wall cut between its nodes reads only a fraction of its half-thickness deep)."""
+def _enters(sx, sy, sz, x, y, z, depth, dist, origin, inv_h_sdf) -> bool:
+    """Whether the segment from (sx, sy, sz) to (x, y, z) reads d < ``depth`` anywhere (probed every quarter
+    SDF cell): it enters a wall."""
     length = math.sqrt((x - sx) ** 2 + (y - sy) ** 2 + (z - sz) ** 2)
     n = int(length * 4.0 * inv_h_sdf) + 1
-    depth = max(-0.25 / inv_h_sdf, 0.5 * wall_depth)
     for m in range(1, n):
         f = m / n
         if _sdf_distance(dist, origin, inv_h_sdf, sx + f * (x - sx), sy + f * (y - sy), sz + f * (z - sz)) < depth:
-            return False
-    return True
+            return True
+    return False
+
+
+@nb.njit(cache=True)
+def _seen(sx, sy, sz, x, y, z, wall_depth, dist, origin, inv_h_sdf) -> bool:
+    """Whether the segment from (sx, sy, sz) to (x, y, z) stays out of the walls: a wall is where d < -1/4 cell,
+    or half the depth ``wall_depth`` (< 0) the wall beside the source reads where that is shallower (the
+    trilinear field of a thin wall reads < 0 just off its faces, and a thin wall cut between its nodes reads
+    only a fraction of its half-thickness deep)."""
+    return not _enters(sx, sy, sz, x, y, z, max(-0.25 / inv_h_sdf, 0.5 * wall_depth), dist, origin, inv_h_sdf)
 
 
 @nb.njit(cache=True)
@@ -274,20 +281,6 @@ def scatter_clipped(x, vol, src, src_depth, grid_lo, inv_h, radius, phi, dist, o
                     phi[k, j, i] += np.float32(cw * w * w * w)
 
 
-@nb.njit(cache=True)
-def _clear(sx, sy, sz, x, y, z, dist, origin, inv_h_sdf) -> bool:
-    """Whether the segment between two points in open space never enters a wall: d < 0 anywhere on it
-    (probed every quarter SDF cell). Strict, where _seen has a depth threshold: a thin wall cut between its
-    nodes reads a few hundredths of a spacing deep, and a node needs only one particle it sees clearly."""
-    length = math.sqrt((x - sx) ** 2 + (y - sy) ** 2 + (z - sz) ** 2)
-    n = int(length * 4.0 * inv_h_sdf) + 1
-    for m in range(1, n):
-        f = m / n
-        if _sdf_distance(dist, origin, inv_h_sdf, sx + f * (x - sx), sy + f * (y - sy), sz + f * (z - sz)) < 0.0:
-            return False
-    return True
-
-
 @nb.njit(cache=True, parallel=True)
 def hide_unseen(phi, grid_lo, h, floor, radius, x, starts, lo, inv_cell, dims, dist, origin, inv_h_sdf):
     """Zero Phi at the nodes in open space near a wall (0 < d < radius) that no particle within ``radius``
@@ -317,7 +310,11 @@ def hide_unseen(phi, grid_lo, h, floor, radius, x, starts, lo, inv_cell, dims, d
                         base = (kz * gy + ky) * gx
                         for p in range(starts[base + max(cx - 1, 0)], starts[base + min(cx + 1, gx - 1) + 1]):
                             r2 = (x[p, 0] - xx) ** 2 + (x[p, 1] - y) ** 2 + (x[p, 2] - z) ** 2
-                            if r2 < r2max and _clear(x[p, 0], x[p, 1], x[p, 2], xx, y, z, dist, origin, inv_h_sdf):
+                            # strict (d < 0 anywhere is a wall, where _seen has a threshold): a thin wall
+                            # cut between its nodes reads a few hundredths of a spacing deep, and a node
+                            # needs only one particle it sees clearly
+                            if r2 < r2max and not _enters(x[p, 0], x[p, 1], x[p, 2], xx, y, z, 0.0, dist, origin,
+                                                          inv_h_sdf):
                                 seen = True
                                 break
                         if seen:
