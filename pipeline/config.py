@@ -329,8 +329,14 @@ def _first_error(err: ValidationError, prefix: tuple, lines: _Lines, model: Any 
         missing = [str(x["loc"][-1]) for x in errors if x["type"] == "missing" and x["loc"][:-1] == e["loc"][:-1]]
         # the model's keys where the unknown one is (the union tags dropped: every member's keys)
         known = sorted(_model_fields(model, loc[len(prefix):-1])) if model is not None else []
-        close = difflib.get_close_matches(loc[-1], missing, n=1) or difflib.get_close_matches(loc[-1], known, n=1)
-        hint = f" (did you mean {close[0]}?)" if close else ""
+        kinds = {"walls": ("builtin", "file", "usd"), "emitters": ("box", "sphere", "mesh", "usd")}
+        owner = loc[-3] if len(loc) >= 3 and isinstance(loc[-2], int) else None
+        if owner in kinds and loc[-1] in kinds[owner]:  # a second kind key in one entry: "did you mean file?"
+            hint = f" (a {owner[:-1]} has one of {', '.join(kinds[owner])})"
+        else:
+            known = [k for k in known if k != loc[-1]]
+            close = difflib.get_close_matches(loc[-1], missing, n=1) or difflib.get_close_matches(loc[-1], known, n=1)
+            hint = f" (did you mean {close[0]}?)" if close else ""
     msg = e["msg"]
     if e["type"] == "extra_forbidden":
         msg = "unknown key"
@@ -398,7 +404,9 @@ def load_config(path: str | Path, registry: Registry, overrides: list[str] | tup
     unknown = [k for k in data if k not in TOP_LEVEL]
     if unknown:
         k = unknown[0]
-        raise ConfigError(f"{lines.where((k,))}: {k}: unknown section; expected one of {', '.join(TOP_LEVEL)}")
+        close = difflib.get_close_matches(str(k).lower(), TOP_LEVEL, n=1)
+        raise ConfigError(f"{lines.where((k,))}: {k}: unknown section"
+                          + (f" (did you mean {close[0]}?)" if close else f"; expected one of {', '.join(TOP_LEVEL)}"))
     version = data.get("config_version")
     if version != CONFIG_VERSION:
         raise ConfigError(f"{lines.where(('config_version',))}: config_version: expected {CONFIG_VERSION}, got {version!r}")
