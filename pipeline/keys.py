@@ -219,12 +219,12 @@ def code_hashes(cls: type[Stage]) -> dict[str, str]:
     return dict(sorted(out.items()))
 
 
-def changed_since_loaded(cls: type[Stage]) -> list[str]:
-    """Modules of the stage's code that this process has loaded and whose file changed on disk since this
-    process first hashed it: a run would key the new source but execute the old (a notebook, a DCC session,
-    a script calling ``pipeline.run`` again after an edit)."""
+def changed_since_loaded(code: dict[str, str]) -> list[str]:
+    """Modules of a stage's code hashes (the plan's ``components[kind]["code"]``) that this process has loaded
+    and whose file changed on disk since this process first hashed it: a run would key the new source but
+    execute the old (a notebook, a DCC session, a script calling ``pipeline.run`` again after an edit)."""
     changed = []
-    for name, sha in code_hashes(cls).items():
+    for name, sha in code.items():
         file = getattr(sys.modules.get(name), "__file__", None)
         if file and _FIRST_SEEN.get(file, sha) != sha:
             changed.append(name)

@@ -651,8 +651,8 @@ def run(config_path: str | Path, *, registry: Registry | None = None, overrides:
             p = plan(config, graph, cache, frames)
         except OSError as exc:  # an input file that exists but cannot be read (permissions, I/O)
             raise StageFailed(f"cannot read input file {exc.filename}: {exc.strerror or exc}", user_error=True) from None
-        for node in graph.nodes.values():
-            changed = changed_since_loaded(node.cls)
+        for kind, node in graph.nodes.items():
+            changed = changed_since_loaded(p.components[kind]["code"])
             if changed:
                 raise CodeChanged(f"stage {node.label}: {', '.join(changed)} changed on disk since this process "
                                   "imported it; run again in a new process (or restart the notebook's kernel) to "

@@ -281,57 +281,37 @@ def scatter_clipped(x, vol, src, src_depth, grid_lo, inv_h, radius, phi, dist, o
                     phi[k, j, i] += np.float32(cw * w * w * w)
 
 
-@nb.njit(cache=True, parallel=True)
-def hide_unseen(phi, grid_lo, h, floor, radius, x, starts, lo, inv_cell, dims, dist, origin, inv_h_sdf):
-    """Zero Phi at the nodes in open space near a wall (0 < d < radius) that no particle within ``radius``
-    sees through open space: water there is what the kernels (the particles' own, or a floor's mirror
-    images beside a thin divider) reached through a wall thinner than their support. The pour's glass at
-    1.25 cm and a 0.6 l0 divider standing on a floor drew water on their dry sides. Only nodes with
-    Phi >= ``floor`` are tested; most see their nearest particles at once. ``x`` sorted by the cell grid
-    (``starts``, ``lo``, ``inv_cell``, ``dims``) of cells >= ``radius``."""
-    nz, ny, nx = phi.shape
-    r2max = radius * radius
+@nb.njit(cache=True)
+def _seen_by_any(px, py, pz, radius, x, starts, lo, inv_cell, dims, dist, origin, inv_h_sdf) -> bool:
+    """Whether a particle within ``radius`` of (px, py, pz) sees it through open space. Strict (d < 0 anywhere
+    on the segment is a wall, where _seen has a threshold): a thin wall cut between its nodes reads a few
+    hundredths of a spacing deep, and one particle seen clearly is enough (most nodes see their nearest)."""
     gx, gy, gz = dims[0], dims[1], dims[2]
-    for k in nb.prange(nz):
-        z = grid_lo[2] + k * h
-        for j in range(ny):
-            y = grid_lo[1] + j * h
-            for i in range(nx):
-                if phi[k, j, i] < floor:
-                    continue
-                xx = grid_lo[0] + i * h
-                d = _sdf_distance(dist, origin, inv_h_sdf, xx, y, z)
-                if d <= 0.0 or d >= radius:
-                    continue
-                cx, cy, cz = cell_coords(xx, y, z, lo[0], lo[1], lo[2], inv_cell, gx, gy, gz)
-                seen = False
-                for kz in range(max(cz - 1, 0), min(cz + 2, gz)):
-                    for ky in range(max(cy - 1, 0), min(cy + 2, gy)):
-                        base = (kz * gy + ky) * gx
-                        for p in range(starts[base + max(cx - 1, 0)], starts[base + min(cx + 1, gx - 1) + 1]):
-                            r2 = (x[p, 0] - xx) ** 2 + (x[p, 1] - y) ** 2 + (x[p, 2] - z) ** 2
-                            # strict (d < 0 anywhere is a wall, where _seen has a threshold): a thin wall
-                            # cut between its nodes reads a few hundredths of a spacing deep, and a node
-                            # needs only one particle it sees clearly
-                            if r2 < r2max and not _enters(x[p, 0], x[p, 1], x[p, 2], xx, y, z, 0.0, dist, origin,
-                                                          inv_h_sdf):
-                                seen = True
-                                break
-                        if seen:
-                            break
-                    if seen:
-                        break
-                if not seen:
-                    phi[k, j, i] = 0.0
+    cx, cy, cz = cell_coords(px, py, pz, lo[0], lo[1], lo[2], inv_cell, gx, gy, gz)
+    r2max = radius * radius
+    for kz in range(max(cz - 1, 0), min(cz + 2, gz)):
+        for ky in range(max(cy - 1, 0), min(cy + 2, gy)):
+            base = (kz * gy + ky) * gx
+            for p in range(starts[base + max(cx - 1, 0)], starts[base + min(cx + 1, gx - 1) + 1]):
+                r2 = (x[p, 0] - px) ** 2 + (x[p, 1] - py) ** 2 + (x[p, 2] - pz) ** 2
+                if r2 < r2max and not _enters(x[p, 0], x[p, 1], x[p, 2], px, py, pz, 0.0, dist, origin, inv_h_sdf):
+                    return True
+    return False
 
 
 @nb.njit(cache=True, parallel=True)
-def cut_by_walls(phi, grid_lo, h, iso, radius, dist, origin, inv_h_sdf):
+def cut_by_walls(phi, grid_lo, h, iso, radius, x, starts, lo, inv_cell, dims, dist, origin, inv_h_sdf):
     """Intersect the fluid with the wall-free region: Phi' = iso + min(Phi - iso, d / R).
 
     The iso-surface of Phi' is the boundary of {Phi >= iso} and {d >= 0} (a CSG intersection of two
     fields with the same slope scale, 1/R), so where the fluid (with its mirror images) touches a wall
-    the surface lies on d = 0 of the SDF. Nodes without fluid (Phi = 0) are outside anyway: skipped."""
+    the surface lies on d = 0 of the SDF. Nodes without fluid (Phi = 0) are outside anyway: skipped.
+
+    Before that, a node in open space near a wall (0 < d < R, Phi >= iso / 2) that no particle sees through
+    open space is dry (Phi = 0): water there is what kernels (the particles' own, or a floor's mirror images
+    beside a thin divider) reached through a wall thinner than their support; the pour's glass at 1.25 cm and
+    a 0.6 l0 divider standing on a floor drew water on their dry sides. ``x`` the particles sorted by the cell
+    grid (``starts``, ``lo``, ``inv_cell``, ``dims``) of cells >= R."""
     nz, ny, nx = phi.shape
     for k in nb.prange(nz):
         z = grid_lo[2] + k * h
@@ -341,7 +321,12 @@ def cut_by_walls(phi, grid_lo, h, iso, radius, dist, origin, inv_h_sdf):
                 p = phi[k, j, i]
                 if p == 0.0:
                     continue
-                d = _sdf_distance(dist, origin, inv_h_sdf, grid_lo[0] + i * h, y, z)
+                xx = grid_lo[0] + i * h
+                d = _sdf_distance(dist, origin, inv_h_sdf, xx, y, z)
+                if (0.0 < d < radius and p >= 0.5 * iso
+                        and not _seen_by_any(xx, y, z, radius, x, starts, lo, inv_cell, dims, dist, origin, inv_h_sdf)):
+                    phi[k, j, i] = 0.0
+                    continue
                 wall = d / radius
                 if wall < p - iso:
                     phi[k, j, i] = iso + wall

@@ -52,8 +52,8 @@ from stages.common.meshes import signed_volume, vertex_normals
 from stages.common.sdf import SDFGrid, load_bodies, posed_field
 
 from .anisotropic import anisotropic_kernels, scatter_anisotropic
-from .implicit import (add_seen_images, cell_grid, cut_by_walls, ghost_particles, hide_unseen, order_and_chunks,
-                       particle_volumes, scatter_clipped, scatter_implicit)
+from .implicit import (add_seen_images, cell_grid, cut_by_walls, ghost_particles, order_and_chunks, particle_volumes,
+                       scatter_clipped, scatter_implicit)
 
 SLABS_PER_CHUNK = 4  # z slabs per parallel task: many tasks for balance, each particle in ~ 2R / (4 h) of them
 _kept = threading.local()  # per thread: the grid buffer kept across frames (grid_buffer)
@@ -241,9 +241,8 @@ def extract(x: np.ndarray, vol: np.ndarray, l0: float, params: MarchingCubesPara
         pts = np.ascontiguousarray(x_real, np.float64)
         grid = cell_grid(pts, R)
         ordered = pts[grid.sort(pts)]
-        hide_unseen(phi, grid_lo, h, 0.5 * params.iso, R, ordered, grid.starts, grid.lo, 1.0 / grid.cell, grid.dims,
-                    sdf.dist, sdf.origin, 1.0 / sdf.spacing)
-        cut_by_walls(phi, grid_lo, h, params.iso, R, sdf.dist, sdf.origin, 1.0 / sdf.spacing)
+        cut_by_walls(phi, grid_lo, h, params.iso, R, ordered, grid.starts, grid.lo, 1.0 / grid.cell, grid.dims,
+                     sdf.dist, sdf.origin, 1.0 / sdf.spacing)
     t1 = time.perf_counter()
 
     vtk_threads(nb.get_num_threads())
