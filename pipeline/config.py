@@ -8,6 +8,7 @@ points, so no config value can import or run arbitrary code).
 """
 from __future__ import annotations
 
+import datetime
 import difflib
 import os
 import re
@@ -345,7 +346,11 @@ def _first_error(err: ValidationError, prefix: tuple, lines: _Lines, model: Any 
     got = e.get("input")
     suffix = ""
     if e["type"] not in ("extra_forbidden", "missing") and not isinstance(got, (dict, list)) and got is not None:
-        suffix = f" (got {got!r})"
+        suffix = f" (got {got.isoformat() if isinstance(got, datetime.date) else repr(got)})"
+        if e["type"] == "string_type" and isinstance(got, (bool, int, float, datetime.date)):
+            kind = ("a boolean" if isinstance(got, bool) else "a date" if isinstance(got, datetime.date)
+                    else "a number")
+            hint = f" (YAML reads it as {kind}: put it in quotes to mean the text)"
     return ConfigError(f"{lines.where(loc)}: {_dotted(loc) or 'top level'}: {msg}{suffix}{hint}")
 
 
