@@ -259,8 +259,8 @@ def test_the_colour_bar_names_its_unit():
     from stages.render.pyvista_render import color_bar
 
     params = PyvistaRender.Params(show="particles", resolution=(1280, 720))
-    assert [color_bar(params, mpu, 1.0)["title"] for mpu in (1.0, 0.01, 0.001, 0.3048)] == [
-        "speed (m/s)", "speed (cm/s)", "speed (mm/s)", "speed (0.3048 m/s)"]
+    assert [color_bar(params, mpu, 1.0)["title"] for mpu in (1.0, 0.01, 0.001, 0.0254, 0.3048, 0.5)] == [
+        "speed (m/s)", "speed (cm/s)", "speed (mm/s)", "speed (in/s)", "speed (ft/s)", "speed (x 0.5 m/s)"]
     assert color_bar(PyvistaRender.Params(show="particles", color_by="pressure", resolution=(640, 360)), 0.01,
                      9056.0)["title"] == "pressure (Pa)"
 

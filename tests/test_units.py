@@ -93,6 +93,17 @@ def test_a_box_far_from_the_origin_gets_the_same_lattice():
         np.testing.assert_allclose(far - [offset, 0, 0], near, atol=1e-8)
 
 
+def test_a_box_typed_in_feet_to_six_digits_keeps_every_layer():
+    """The metre scene's box (8 x 10 x 8 spacings of 2 cm) converted to feet and typed to 6-7 digits, as a
+    person converting it would: 7.999994 spacings long; it lost a layer (490 particles instead of 640)."""
+    from stages.simulate.emitters import lattice
+
+    metres = lattice([-0.2, -0.1, 0.0], [-0.04, 0.1, 0.16], 0.02)
+    feet = lattice([-0.656168, -0.328084, 0.0], [-0.131234, 0.328084, 0.524934], 0.0656168)
+    assert len(metres) == len(feet) == 640
+    np.testing.assert_allclose(feet * 0.3048, metres, atol=1e-5 * 0.02)
+
+
 @pytest.mark.parametrize("flip", [False, True])
 def test_an_open_or_inside_out_mesh_emitter_fills_to_its_rim(tmp_path, caplog, flip):
     """Mesh emitters fill by the generalized winding number: an open box (no lid) fills up to its rim

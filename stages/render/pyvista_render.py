@@ -91,10 +91,11 @@ def near_faces(vertices: np.ndarray, faces: np.ndarray, eye: np.ndarray, centre:
 
 
 def length_unit(meters_per_unit: float) -> str:
-    """The scene's length unit as a label says it: m, cm, mm, km, else the metres it holds."""
-    names = {1.0: "m", 0.01: "cm", 0.001: "mm", 1000.0: "km"}
-    return next((n for v, n in names.items() if math.isclose(meters_per_unit, v, rel_tol=1e-9)),
-                f"{meters_per_unit:g} m")
+    """The scene's length unit as a label says it: m, cm, mm, km, in, ft, yd, else "x <metres it holds> m"
+    (a speed in those units times that is m/s)."""
+    names = {1.0: "m", 0.01: "cm", 0.001: "mm", 1000.0: "km", 0.0254: "in", 0.3048: "ft", 0.9144: "yd"}
+    return next((n for v, n in names.items() if math.isclose(meters_per_unit, v, rel_tol=1e-6)),
+                f"x {meters_per_unit:g} m")
 
 
 def color_bar(params: RenderParams, meters_per_unit: float, top: float) -> dict:

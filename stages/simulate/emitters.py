@@ -12,6 +12,10 @@ from pipeline.scene import BoxEmitter, MeshEmitter, SphereEmitter, is_usd
 from pipeline.stage import StageError
 
 
+# a size within this many spacings of a whole number of them counts as that number
+LATTICE_SLACK = 1e-4
+
+
 def lattice(lo, hi, l0: float) -> np.ndarray:
     """Cell-centred cubic lattice filling [lo, hi), centred in it: where the box is not a whole number of
     spacings the spare part of a spacing is split between the two faces (a lattice anchored at lo left it all
@@ -19,9 +23,10 @@ def lattice(lo, hi, l0: float) -> np.ndarray:
     mirror image in 0.3 s)."""
     lo = np.asarray(lo, float)
     hi = np.asarray(hi, float)
-    # the tolerance grows with the coordinates: (hi - lo) of a box 1e7 m off the origin is off by ~1e-9 m, which
-    # dropped a whole lattice row there (7 columns of a 0.2 m box at 2.5 cm instead of 8)
-    slack = 1e-9 + 16 * np.finfo(float).eps * np.maximum(np.abs(lo), np.abs(hi)) / l0
+    # sizes typed to 6-7 digits after a unit conversion are a whole number of spacings to 1e-6 of it (a box of
+    # 8 spacings in feet read 7.999994 and lost a layer, 23 % of the water); the tolerance also grows with the
+    # coordinates: (hi - lo) of a box 1e7 m off the origin is off by ~1e-9 m, which dropped a whole row there
+    slack = LATTICE_SLACK + 16 * np.finfo(float).eps * np.maximum(np.abs(lo), np.abs(hi)) / l0
     n = np.floor((hi - lo) / l0 + slack).astype(int)
     if np.any(n <= 0):
         return np.zeros((0, 3))
@@ -99,7 +104,7 @@ def emit(emitters, l0: float, resolve: Callable[[str], Path], meters_per_unit: f
             pts = lattice(c - r - 0.5 * l0, c + r + 0.5 * l0, l0)  # centred on c: symmetric about it
             # points on the sphere (a radius of whole spacings) are in, in any units: by rounding, the metre
             # scene kept 3 of 6 such points and the cm and mm scenes all 6 (254 against 257 particles)
-            pts = pts[np.linalg.norm(pts - c, axis=1) <= r + 1e-6 * l0]
+            pts = pts[np.linalg.norm(pts - c, axis=1) <= r + LATTICE_SLACK * l0]
         elif isinstance(em, MeshEmitter):
             pts = _mesh_points(em, l0, resolve, meters_per_unit, up_axis, log)
         else:  # pragma: no cover - the scene model admits only these
