@@ -46,6 +46,18 @@ def boundary_edge_count(f: np.ndarray) -> int:
     return int((counts == 1).sum())
 
 
+def winding_number(v: np.ndarray, f: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """The generalized winding number of mesh (v, f) at ``points`` (libigl's fast approximation), computed
+    about the mesh's box centre: in world coordinates a box 1e5 m off the origin read w = 0.5 one centimetre
+    inside its face (igl's expansions lose the digits there), which emptied a mesh emitter's outer layers."""
+    import igl
+
+    v = np.asarray(v, np.float64).reshape(-1, 3)
+    centre = 0.5 * (v.min(axis=0) + v.max(axis=0)) if len(v) else np.zeros(3)
+    return igl.fast_winding_number(np.ascontiguousarray(v - centre), np.ascontiguousarray(f, np.int64),
+                                   np.ascontiguousarray(np.asarray(points, np.float64).reshape(-1, 3) - centre))
+
+
 @nb.njit(cache=True, inline="always")
 def _triangle_normal(v, a, b, c):
     """(b - a) x (c - a) of the triangle (a, b, c) of ``v``: its normal, twice its area long."""

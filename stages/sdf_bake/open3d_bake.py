@@ -49,6 +49,7 @@ from pydantic import Field, field_validator
 
 from pipeline.stage import Artifact, Context, Params, Stage, StageError
 from stages.common.formats import WallMesh
+from stages.common.meshes import winding_number
 from stages.common.sdf import BODIES_DIR, BODIES_FILE, DEFAULT_SHELL_THICKNESS, SDFGrid, min_shell_thickness
 from stages.common.sizes import sdf_estimate
 from stages.mesh_import.builtin import builtin_corners
@@ -102,7 +103,10 @@ class WallField:
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, fluid: str, watertight: bool, sign_rays: int,
                  shell: float = 0.0):
-        self.scene = _raycasting_scene(vertices, faces)
+        # open3d works in float32: about the mesh's box centre, not in world coordinates (8 mm steps 1e5 m out)
+        used = np.asarray(vertices, np.float64)[np.unique(faces)]
+        self.centre = 0.5 * (used.min(axis=0) + used.max(axis=0)) if len(used) else np.zeros(3)
+        self.scene = _raycasting_scene(vertices - self.centre, faces)
         self.shell = shell  # > 0: the wall is the surface thickened to this (|d| - shell / 2)
         self.fluid_sign = 1.0 if fluid == "outside" else -1.0  # sign of d outside the mesh
         self.rays = 1 if watertight else sign_rays
@@ -111,7 +115,7 @@ class WallField:
     def distance(self, pts: np.ndarray) -> np.ndarray:
         import open3d as o3d
         t0 = time.perf_counter()
-        d = self.scene.compute_distance(o3d.core.Tensor(np.ascontiguousarray(pts, np.float32))).numpy()
+        d = self.scene.compute_distance(o3d.core.Tensor(np.ascontiguousarray(pts - self.centre, np.float32))).numpy()
         self.seconds["distance"] += time.perf_counter() - t0
         return d
 
@@ -125,7 +129,7 @@ class WallField:
         dirs = np.random.default_rng(12345).normal(size=(k, 3))
         dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
         inside = np.zeros(len(pts), np.int32)
-        pts32 = np.ascontiguousarray(pts, np.float32)
+        pts32 = np.ascontiguousarray(pts - self.centre, np.float32)
         for d in dirs:  # one direction at a time keeps the ray buffer at (N, 6)
             rays6 = np.concatenate([pts32, np.broadcast_to(d.astype(np.float32), pts32.shape)], axis=1)
             inside += self.scene.count_intersections(o3d.core.Tensor(rays6)).numpy() % 2
@@ -200,11 +204,8 @@ def _closed_parts(tri: np.ndarray):
 
 def _inside_shell(tri: np.ndarray, part: np.ndarray, d: int, points: np.ndarray) -> np.ndarray:
     """|w| > 1/2 of closed shell ``d`` at ``points``."""
-    import igl
-
     own = tri[part == d].reshape(-1, 3)
-    w = igl.fast_winding_number(own.astype(np.float64), np.arange(len(own), dtype=np.int64).reshape(-1, 3),
-                                np.ascontiguousarray(points, np.float64))
+    w = winding_number(own, np.arange(len(own), dtype=np.int64).reshape(-1, 3), points)
     return np.abs(w) > 0.5
 
 
@@ -283,7 +284,6 @@ def winding_inside(tri: np.ndarray, origin: np.ndarray, h: float, shape: tuple[i
     flipped faces (half of a sphere's) takes w towards 0 everywhere. Evaluated at the ``near`` (band)
     nodes and at one node of each connected region of the others: such a region does not touch the
     wall, so w is the same all over it."""
-    import igl
     from scipy import ndimage
 
     labels, n = ndimage.label(~near)
@@ -297,7 +297,7 @@ def winding_inside(tri: np.ndarray, origin: np.ndarray, h: float, shape: tuple[i
     w = np.zeros(len(idx), np.bool_)
     for part in levels:
         faces = np.arange(3 * len(part), dtype=np.int64).reshape(-1, 3)
-        w ^= np.abs(igl.fast_winding_number(np.ascontiguousarray(part.reshape(-1, 3), np.float64), faces, pts)) > 0.5
+        w ^= np.abs(winding_number(part.reshape(-1, 3), faces, pts)) > 0.5
     region = np.zeros(n + 1, np.bool_)
     region[flat[reps]] = w[len(idx) - len(reps):]
     inside = region[flat]
@@ -307,12 +307,15 @@ def winding_inside(tri: np.ndarray, origin: np.ndarray, h: float, shape: tuple[i
 
 def face_thickness(tri: np.ndarray) -> np.ndarray:
     """Thickness of a closed solid behind each triangle: the first hit of a ray from its centroid along
-    its back side (the solid, by mesh_import's convention that normals face the fluid); inf if none."""
+    its back side (the solid, by mesh_import's convention that normals face the fluid); inf if none.
+    open3d casts in float32, so about the model's box centre, each ray starting 1e-5 of the model's size
+    behind its face (in world coordinates, with an offset of 1e-6 (max |x| + 1), a bunny 1e5 m out started
+    its rays 10 spacings inside itself, and the offset changed with the units)."""
     import open3d as o3d
+    tri = tri - 0.5 * (tri.reshape(-1, 3).min(axis=0) + tri.reshape(-1, 3).max(axis=0))
     n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
-    scale = np.abs(tri).max() + 1.0
-    start = tri.mean(axis=1) - 1e-6 * scale * n
+    start = tri.mean(axis=1) - 1e-5 * np.abs(tri).max() * n
     scene = _raycasting_scene(tri.reshape(-1, 3), np.arange(3 * len(tri), dtype=np.int64).reshape(-1, 3))
     rays = np.concatenate([start, -n], axis=1).astype(np.float32)
     return scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(np.float64)

@@ -74,8 +74,7 @@ def _mesh_points(em: MeshEmitter, l0: float, resolve: Callable[[str], Path], met
     ``sign: winding``): |w| > 1/2 for either orientation, so duplicated or flipped faces and small cracks
     do not matter, and an open container (a bowl, a box without a lid) fills up to its rim, where w falls
     to 1/2. (open3d's three-ray occupancy vote filled an open box in an irregular pattern of layers.)"""
-    import igl
-
+    from stages.common.meshes import winding_number
     from stages.common.placement import apply_placement
 
     path = resolve(em.mesh)
@@ -85,7 +84,7 @@ def _mesh_points(em: MeshEmitter, l0: float, resolve: Callable[[str], Path], met
     if not closed:
         log.warning("fluid emitter mesh %s is not closed: filled where its winding number exceeds 1/2 (an open "
                     "container up to its rim)", path)
-    w = igl.fast_winding_number(np.ascontiguousarray(v), np.ascontiguousarray(faces), np.ascontiguousarray(pts))
+    w = winding_number(v, faces, pts)
     return pts[np.abs(w) > 0.5]
 
 
