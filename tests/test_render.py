@@ -344,6 +344,32 @@ def test_movie_has_every_frame_and_a_contact_sheet(tmp_path):
     assert sheet.shape[1] > 1000 and sheet.std() > 10
 
 
+def test_movie_playback_rate_and_a_truncated_encode(tmp_path, monkeypatch):
+    """movie.fps plays a 600 fps simulation at 30 (slow motion); an encoder that stops early (disk full, a
+    file-size limit, ffmpeg killed: imageio-ffmpeg never checks its exit) is a stage error, not a cached,
+    unplayable movie.mp4."""
+    import imageio.v3 as iio
+    import imageio_ffmpeg
+
+    frames_dir = tmp_path / "frames"
+    frames_dir.mkdir()
+    for f in range(6):
+        iio.imwrite(frames_dir / f"frame_{f:05d}.png", np.full((48, 64, 3), 40 * f, np.uint8))
+    scene = {"scene": {"name": "t", "frames": {"fps": 600, "count": 6}}}
+    out = run_stage(FfmpegMovie, tmp_path / "slow", scene=scene, params={"fps": 30}, inputs={"frames": frames_dir})
+    n, secs = imageio_ffmpeg.count_frames_and_secs(str(out / "movie.mp4"))
+    assert n == 6 and secs == pytest.approx(0.2, abs=0.02)
+    # an ffmpeg that encodes, then loses all but the file's first 48 bytes and exits 0 (as one killed mid-write)
+    real = imageio_ffmpeg.get_ffmpeg_exe()
+    fake = tmp_path / "ffmpeg"
+    fake.write_text(f"#!/bin/sh\n\"{real}\" \"$@\" || exit $?\n"
+                    'case "$*" in *-crf*) for last; do :; done; truncate -s 48 "$last";; esac\n')
+    fake.chmod(0o755)
+    monkeypatch.setenv("IMAGEIO_FFMPEG_EXE", str(fake))
+    with pytest.raises(StageError, match="the encoder did not finish movie.mp4"):
+        run_stage(FfmpegMovie, tmp_path / "cut", scene=scene, inputs={"frames": frames_dir})
+
+
 def test_near_side_of_a_tank_is_the_side_facing_the_camera():
     from stages.render.pyvista_render import near_faces
 
@@ -366,9 +392,10 @@ def test_render_every_second_frame_and_the_movie_keeps_time(tmp_path, inputs):
                                                          "frame_00000.png", "frame_00002.png"]
     out = run_stage(FfmpegMovie, tmp_path / "m", scene=scene, inputs={"frames": frames})
     n, secs = imageio_ffmpeg.count_frames_and_secs(str(out / "movie.mp4"))
-    assert n == 2 and secs == pytest.approx(0.4, abs=0.05)
-    # 7 frames rendered every 3rd: frames 0, 3, 6 each stay 3 frames on screen, so frame 6 (t = 0.6 s) shows at
-    # 0.6 s (the rate was fps x 3 / 7: 1.29 x fast); from frame 1 (--frames 1:7) the same spacing
+    assert n == 4 and secs == pytest.approx(0.4, abs=0.05)  # the scene's fps, each drawn frame held twice
+    # 7 frames rendered every 3rd: frames 0, 3, 6 each stay on screen until the next, so frame 6 (t = 0.6 s) shows at
+    # 0.6 s and the movie is the shot's 7 frames at its fps (it was 3 frames at fps / 3: 0.9 s for a 0.7 s shot;
+    # before that fps x 3 / 7: 1.29 x fast); from frame 1 (--frames 1:7) it starts at the first drawn frame, 3
     for selection in (range(7), range(1, 7)):
         sevens = tmp_path / f"seven_{selection[0]}"
         sevens.mkdir()
@@ -380,8 +407,8 @@ def test_render_every_second_frame_and_the_movie_keeps_time(tmp_path, inputs):
         out = run_stage(FfmpegMovie, tmp_path / f"m7_{selection[0]}", scene={"scene": {"name": "t", "frames": {
             "fps": 10, "count": 7}}}, inputs={"frames": sevens}, frames=tuple(selection))
         n, secs = imageio_ffmpeg.count_frames_and_secs(str(out / "movie.mp4"))
-        shown = [0, 3, 6] if selection[0] == 0 else [3, 6]
-        assert n == len(shown) and secs == pytest.approx(len(shown) * 0.3, abs=0.02), (n, secs)
+        slots = 7 if selection[0] == 0 else 4
+        assert n == slots and secs == pytest.approx(slots * 0.1, abs=0.02), (n, secs)
     # a selection holding no rendered frame (--frames 1:3 with every 3) says why, not only "no rendered frames"
     with pytest.raises(StageError, match=r"render skipped all 2 selected frames \(1\.\.2; render\.every"):
         run_stage(FfmpegMovie, tmp_path / "m7_none", scene={"scene": {"name": "t", "frames": {"fps": 10, "count": 7}}},

@@ -19,6 +19,8 @@ class MovieParams(Params):
     preset: Literal["ultrafast", "superfast", "veryfast", "faster", "fast", "medium", "slow", "slower",
                     "veryslow"] = Field("veryfast", description="x264 speed preset (slower = smaller at the same "
                                                                 "quality)")
+    fps: float | None = Field(None, gt=0, le=240, description="playback rate, frames per second (default: the "
+                              "scene's fps; a 600 fps simulation plays in slow motion at 30)")
     sheet_frames: int = Field(9, ge=1, le=64, description="frames on the contact sheet, evenly spaced")
     sheet_columns: int = Field(3, ge=1, le=8, description="columns of the contact sheet")
     sheet_width: int = Field(1800, ge=200, description="contact sheet width, pixels")
@@ -26,6 +28,23 @@ class MovieParams(Params):
 
 def frame_png(folder: Path, frame: int) -> Path:
     return Path(folder) / f"frame_{frame:05d}.png"
+
+
+def check_movie(movie: Path, frames: int) -> None:
+    """The encoder's output holds every frame sent: imageio-ffmpeg does not check ffmpeg's exit, so a full disk
+    ("Error writing trailer"), a file-size limit or a killed ffmpeg left a truncated, unplayable movie.mp4 that
+    the cache then served as finished."""
+    import imageio_ffmpeg
+
+    try:
+        n, _ = imageio_ffmpeg.count_frames_and_secs(str(movie))
+    except Exception as e:  # ffmpeg cannot read it: no moov atom, truncated
+        reason = str(e).strip().splitlines()[-1] if str(e).strip() else type(e).__name__
+        raise StageError(f"movie.ffmpeg: the encoder did not finish {movie.name} (disk full or ffmpeg stopped?): "
+                         f"{reason}") from None
+    if n != frames:
+        raise StageError(f"movie.ffmpeg: {movie.name} holds {n} of the {frames} frames sent (disk full or ffmpeg "
+                         "stopped?)")
 
 
 def evenly_spaced(items: list[int], count: int) -> list[int]:
@@ -38,13 +57,13 @@ def evenly_spaced(items: list[int], count: int) -> list[int]:
 class FfmpegMovie(Stage):
     kind = "movie"
     name = "ffmpeg"
-    version = "3"
+    version = "4"
     Params = MovieParams
     inputs = ("frames",)
     outputs = ("movie",)
     reads = ("scene.frames.fps", "frames")
     default = True
-    description = "movie.mp4 at the scene's fps and contact_sheet.png from the rendered frames"
+    description = "movie.mp4 at the scene's fps (or fps: a playback rate), skipped frames held, and contact_sheet.png"
 
     def run(self, ctx: Context, inputs: Mapping[str, Artifact], params: MovieParams) -> None:
         import imageio.v3 as iio
@@ -62,32 +81,39 @@ class FfmpegMovie(Stage):
             raise StageError(f"movie.ffmpeg: no rendered frames: render skipped all {len(every)} selected frames "
                              f"({every[0]}..{every[-1]}; render.every: n draws frames 0, n, 2n, ...): select frames "
                              "holding one (--frames) or lower render.every")
-        paths = [frame_png(inputs["frames"].frame(f), f) for f in frames]
-        # frames the render stage skipped (render.every: n) keep the simulated time: each rendered frame stays on
-        # screen until the next one, n frames later (fps * rendered / selected ran 1.29 x fast for 7 frames, n = 3)
-        step = min(np.diff(frames)) if len(frames) > 1 else len(every)
-        fps = float(ctx.scene["scene"].frames.fps) / float(step)
-        first = iio.imread(paths[0])[..., :3]
+        # the movie runs at the playback rate (default the scene's fps) through every frame from the first
+        # rendered one to the last selected one; where render skipped frames (render.every: n, or a --frames
+        # selection with gaps) the last rendered frame stays on screen, so the movie keeps the shot's time and
+        # frame rate (a rate of fps / n made 7 frames every 2 play 0.27 s instead of 0.23, at 15 fps)
+        slots = [max(f for f in frames if f <= k) for k in range(frames[0], every[-1] + 1)]
+        fps = float(params.fps or ctx.scene["scene"].frames.fps)
+        paths = {f: frame_png(inputs["frames"].frame(f), f) for f in frames}
+        first = iio.imread(paths[frames[0]])[..., :3]
         h, w = first.shape[:2]
         # yuv420p needs even sizes: pad by one pixel rather than rescale
         H, W = h + h % 2, w + w % 2
+        movie = Path(ctx.out_dir) / "movie.mp4"
         writer = imageio_ffmpeg.write_frames(
-            str(Path(ctx.out_dir) / "movie.mp4"), (W, H), fps=fps,
+            str(movie), (W, H), fps=fps,
             codec="libx264", pix_fmt_out="yuv420p", macro_block_size=1, quality=None,
             output_params=["-crf", str(params.crf), "-preset", params.preset, "-movflags", "+faststart"])
         writer.send(None)
-        progress = ctx.progress("encoding movie", len(paths))
+        progress = ctx.progress("encoding movie", len(slots))
+        shown, img = None, None
         try:
-            for p in paths:
-                img = iio.imread(p)[..., :3]
-                if img.shape[:2] != (h, w):
-                    raise StageError(f"movie.ffmpeg: {p} is {img.shape[1]}x{img.shape[0]}, expected {w}x{h}")
-                if (H, W) != (h, w):
-                    img = np.pad(img, ((0, H - h), (0, W - w), (0, 0)), mode="edge")
-                writer.send(np.ascontiguousarray(img, np.uint8))
+            for f in slots:
+                if f != shown:
+                    img = iio.imread(paths[f])[..., :3]
+                    if img.shape[:2] != (h, w):
+                        raise StageError(f"movie.ffmpeg: {paths[f]} is {img.shape[1]}x{img.shape[0]}, expected {w}x{h}")
+                    if (H, W) != (h, w):
+                        img = np.pad(img, ((0, H - h), (0, W - w), (0, 0)), mode="edge")
+                    img, shown = np.ascontiguousarray(img, np.uint8), f
+                writer.send(img)
                 progress.advance()
         finally:
             writer.close()
+        check_movie(movie, len(slots))
         self._contact_sheet(ctx, inputs, params, frames)
 
     @staticmethod
