@@ -3,8 +3,10 @@ from __future__ import annotations
 
 import logging
 import os
+import signal
 import shutil
 import sys
+import threading
 from pathlib import Path
 
 import click
@@ -30,6 +32,14 @@ def _setup_logging(verbose: int, quiet: bool) -> None:
                         handlers=[RichHandler(console=Console(stderr=True), show_path=False, rich_tracebacks=False, markup=False)], force=True)
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (a batch scheduler's time limit or preemption, docker stop): stopped like Ctrl-C, exit 143."""
+
+
+def _terminated(signum, frame):
+    raise Terminated()
+
+
 def _guard(fn):
     """Map every error to one line and an exit code: 2 for user mistakes, 1 for failures (the library
     saves tracebacks under the cache's logs/), 130 for Ctrl-C."""
@@ -37,13 +47,16 @@ def _guard(fn):
     def wrapper(*args, **kwargs):
         try:
             check_env()  # PIPELINE_LOCK_TIMEOUT=abc: one line naming it, not a traceback
+            if threading.current_thread() is threading.main_thread():
+                signal.signal(signal.SIGTERM, _terminated)
             return fn(*args, **kwargs)
         except PipelineError as e:
             click.echo(f"error: {_one_line(e)}", err=True)
             sys.exit(e.exit_code)
-        except KeyboardInterrupt:
-            click.echo("interrupted; the cache holds only finished entries (unfinished ones are swept by the next run)",
-                       err=True)
+        except KeyboardInterrupt as e:
+            term = isinstance(e, Terminated)
+            click.echo(f"{'terminated (SIGTERM)' if term else 'interrupted'}; the cache holds only finished entries "
+                       "(unfinished ones are swept by the next run)", err=True)
             # a stage may still run in a thread (a simulation): exit now instead of waiting for it, after
             # multiprocessing's own exit clean-up (the stopped pool's semaphores, no warnings)
             try:
@@ -54,7 +67,7 @@ def _guard(fn):
                 pass
             sys.stderr.flush()
             sys.stdout.flush()
-            os._exit(130)
+            os._exit(143 if term else 130)
         except click.exceptions.Exit:
             raise
         except BrokenPipeError:  # `pipeline stages | head`: the reader left; nothing to say to it

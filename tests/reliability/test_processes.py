@@ -9,6 +9,8 @@ import subprocess
 import time
 from pathlib import Path
 
+import pytest
+
 from pipeline.cache import Cache
 from rel_helpers import assert_consistent, cli_cmd, cli_env, run_cli, write_config
 
@@ -75,7 +77,8 @@ def test_lock_wait_names_the_holder_and_gives_up(tmp_path):
     assert_consistent(cache)
 
 
-def _interrupt_when(tmp_path: Path, marker: str, *sets: str, extra: tuple[str, ...] = ()) -> tuple[subprocess.Popen, float, str]:
+def _interrupt_when(tmp_path: Path, marker: str, *sets: str, extra: tuple[str, ...] = (),
+                    sig: int = signal.SIGINT) -> tuple[subprocess.Popen, float, str]:
     cfg = write_config(tmp_path, count=4)
     args = ["run", str(cfg), "--cache", str(tmp_path / "c"), "--workers", "2", "-q", *extra]
     for s in sets:
@@ -88,7 +91,7 @@ def _interrupt_when(tmp_path: Path, marker: str, *sets: str, extra: tuple[str, .
         time.sleep(0.05)
     time.sleep(0.3)
     t0 = time.monotonic()
-    os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C in a terminal does: the whole foreground group
+    os.killpg(proc.pid, sig)  # what Ctrl-C in a terminal does (SIGINT): the whole foreground group
     _, err = proc.communicate(timeout=30)
     seconds = time.monotonic() - t0
     left = _group(proc.pid)
@@ -167,6 +170,19 @@ def test_ctrl_c_during_a_long_whole_run_stage_stops_quickly(tmp_path):
     proc, seconds, err = _interrupt_when(tmp_path, "ran_simulate.log", "simulate.sleep=60")
     assert proc.returncode == 130, err
     assert seconds < 5, f"took {seconds:.1f} s to stop"
+    _resume_is_consistent(tmp_path)
+
+
+@pytest.mark.parametrize("marker, sleep", [("ran_simulate.log", "simulate.sleep=60"), ("ran_render.log", "render.sleep=30")])
+def test_sigterm_stops_like_ctrl_c(tmp_path, marker, sleep):
+    """A batch scheduler's time limit or preemption (SLURM, docker stop, Kubernetes) sends SIGTERM to the
+    group: it ended with 143 and nothing said (with workers, the resource tracker's leaked-semaphore noise).
+    Now one line, exit 143, and the next run resumes."""
+    proc, seconds, err = _interrupt_when(tmp_path, marker, sleep, sig=signal.SIGTERM)
+    assert proc.returncode == 143, err
+    assert seconds < 5, f"took {seconds:.1f} s to stop"
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("terminated (SIGTERM)"), err
     _resume_is_consistent(tmp_path)
 
 
