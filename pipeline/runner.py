@@ -141,7 +141,7 @@ def run_frame_job(job: FrameJob) -> tuple[int, str, float, float, bool]:
     except BaseException as exc:  # noqa: BLE001 - re-raised with the frame, picklable
         user = isinstance(exc, StageError) or (isinstance(exc, PipelineError) and exc.exit_code == 2)
         plain = user or isinstance(exc, PipelineError)  # our own one-line errors need no type name
-        raise FrameError(job.frame, f"{type(exc).__name__}: {exc}" if not plain else str(exc),
+        raise FrameError(job.frame, brief(exc) if not plain else str(exc),
                          "".join(traceback.format_exception(exc)), user) from None
 
 
@@ -224,6 +224,27 @@ class _Progress:
         return Progress(update)
 
 
+# what a failed write says, wherever a library buries it (USD's ErrorException repeats "File too large" 36 times
+# in 8.7 KB of C++ context)
+_IO_CAUSES = ("No space left on device", "File too large", "Disk quota exceeded", "Read-only file system",
+              "Permission denied")
+
+
+def brief(exc: BaseException, limit: int = 300) -> str:
+    """``Type: message`` for a one-line report: a full disk or a file-size limit named as such, other
+    messages cut to their first line and ``limit`` characters (the whole text goes to the saved log)."""
+    text = str(exc)
+    cause = next((c for c in _IO_CAUSES if c in text), None)
+    if cause is not None and not isinstance(exc, OSError):
+        return f"{type(exc).__name__}: a write failed: {cause}"
+    first = text.strip().splitlines()[0] if text.strip() else ""
+    if len(first) > limit:
+        first = first[:limit].rstrip() + " ..."
+    elif first != text.strip():
+        first += " ..."
+    return f"{type(exc).__name__}: {first}" if first else type(exc).__name__
+
+
 def write_log(cache: Cache, name: str, text: str) -> str:
     """Save a traceback under the cache's logs/; returns where, or why it could not be saved."""
     log_file = cache.root / "logs" / f"{name}.log"
@@ -258,7 +279,7 @@ def _fail(node: Node, key: str, config: Config, exc: BaseException, cache: Cache
         exc_text = ("a worker process died (killed, out of memory or a native crash; faulthandler output in the run log; "
                     "a script calling pipeline.run with workers needs the if __name__ == \"__main__\": guard)")
     else:
-        exc_text = f"{type(exc).__name__}: {exc}"
+        exc_text = brief(exc)
     saved = write_log(cache, f"{node.kind}-{key[:12]}", "".join(traceback.format_exception(exc)))
     return StageFailed(f"stage {node.label} failed (key {key[:12]}, config {config.path.name}): "
                        f"{exc_text} ({saved})", user_error=False)

@@ -173,3 +173,35 @@ def test_real_small_filesystem_runs_out_of_space(tmp_path, monkeypatch):
         subprocess.run(["umount", "-l", str(disk)], capture_output=True)
     assert failed >= 5, f"only {failed} sizes ran out of space"
     print(f"tmpfs: {failed} fill-up points tried and survived")
+
+
+def test_a_usd_write_over_the_file_size_limit_is_one_short_line(tmp_path):
+    """USD reports a failed write as an ErrorException of 8.7 KB (\"File too large\" 36 times in C++ context):
+    the run's one line said all of it. The line now names the cause, and the saved log keeps the rest."""
+    script = tmp_path / "write.py"
+    script.write_text(
+        "import resource, sys\n"
+        "import numpy as np\n"
+        "from pxr import Usd, UsdGeom, Vt\n"
+        "resource.setrlimit(resource.RLIMIT_FSIZE, (200_000, 200_000))\n"
+        "stage = Usd.Stage.CreateNew(sys.argv[1])\n"
+        "pts = UsdGeom.Points.Define(stage, '/P')\n"
+        "for t in range(20):\n"
+        "    pts.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(np.random.rand(20000, 3).astype(np.float32)), t)\n"
+        "try:\n"
+        "    stage.GetRootLayer().Save()\n"
+        "except Exception as e:\n"
+        "    sys.stdout.write(type(e).__name__ + '\\n' + str(e))\n")
+    import sys as _sys
+    out = subprocess.run([_sys.executable, str(script), str(tmp_path / "big.usdc")], capture_output=True, text=True)
+    name, _, text = out.stdout.partition("\n")
+    assert "File too large" in text and len(text) > 1000, out  # the library's own report: long
+
+    from pipeline.runner import brief
+
+    exc = type(name, (Exception,), {})(text)
+    line = brief(exc)
+    assert line == f"{name}: a write failed: File too large", line
+    long = RuntimeError("x" * 5000 + "\nsecond line")
+    assert len(brief(long)) < 330 and brief(long).endswith(" ...")
+    assert brief(OSError(28, "No space left on device")) == "OSError: [Errno 28] No space left on device"
