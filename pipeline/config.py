@@ -374,8 +374,24 @@ def _stage_params(kind: str, raw: Any, registry: Registry, lines: _Lines) -> Sta
     try:
         params = cls.Params.model_validate(raw)
     except ValidationError as e:
-        raise _first_error(e, path, lines, cls.Params) from None
+        err = _first_error(e, path, lines, cls.Params)
+        first = next((x for x in e.errors() if x["type"] == "extra_forbidden"), e.errors()[0])  # as _first_error
+        owners = [name for name in registry.implementations(kind) if name != cls.name
+                  and first["type"] == "extra_forbidden" and len(first["loc"]) == 1
+                  and _owns(registry, kind, name, first["loc"][0])]
+        if owners:  # `--set simulate.use=mps` on a config holding sph's parameters: say whose they are
+            head = str(err).split(" (did you mean")[0]
+            raise ConfigError(f"{head} for {kind}: {{use: {cls.name}}} (a parameter of {' and '.join(owners)}; to "
+                              f"switch, replace the whole section: --set \"{kind}={{use: {cls.name}}}\")") from None
+        raise err from None
     return StageChoice(kind=kind, cls=cls, params=params)
+
+
+def _owns(registry: Registry, kind: str, name: str, key: str) -> bool:
+    try:
+        return key in registry.get(kind, name).Params.model_fields
+    except RegistryError:  # an implementation that does not load is not a candidate
+        return False
 
 
 def load_config(path: str | Path, registry: Registry, overrides: list[str] | tuple[str, ...] = ()) -> Config:
