@@ -263,8 +263,9 @@ def apply_override(data: dict, assignment: str, lines: _Lines) -> None:
         raise
     except ConfigError:
         value = text
-    if isinstance(value, str) and "#" in text and value != text.strip():
-        value = text.strip()  # "shot #3": a shell argument, not YAML with a comment
+    if "#" in text and (value is None or isinstance(value, str) and value != text.strip()
+                        and text.strip().startswith(value)):
+        value = text.strip()  # "shot #3", "#ffffff": a shell argument, not YAML with a comment ("'#fff'" stays #fff)
     node: Any = data
     path: tuple = ()
     for i, part in enumerate(parts):

@@ -100,3 +100,20 @@ def test_what_users_type_is_read_as_they_meant(tmp_path):
     data = {"scene": {"name": "x"}}
     apply_override(data, "scene.name=shot #3", _Lines("t.yaml"))  # a shell argument: no YAML comment in it
     assert data["scene"]["name"] == "shot #3"
+
+
+def test_a_hex_colour_given_with_set_and_labels_that_stay_readable():
+    """`--set render.background=#ffffff` was read as a YAML comment (no value) and the quoted form kept its
+    quotes (an invalid colour, found at the first frame after the simulation); labels were white on any
+    background, invisible on white."""
+    from pipeline.config import _Lines, apply_override
+    from stages.render.pyvista_render import RenderParams, text_colour
+
+    for text in ("#ffffff", '"#ffffff"', "'#ffffff'"):
+        data = {"stages": {}}
+        apply_override(data, f"render.background={text}", _Lines("t.yaml"))
+        assert data["stages"]["render"]["background"] == "#ffffff", text
+    assert text_colour(RenderParams(background="white")) == "black"
+    assert text_colour(RenderParams()) == "white"  # the default dark grey
+    with pytest.raises(ValueError, match="is not a colour"):
+        RenderParams(background="notacolour")

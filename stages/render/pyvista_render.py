@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Annotated, Literal, Mapping
 
 import numpy as np
-from pydantic import Field, model_validator
+from pydantic import field_validator, Field, model_validator
 
 from pipeline.stage import Artifact, Context, Params, Stage, StageError
 from stages.common.camera import camera_files, shot_camera
@@ -64,13 +64,25 @@ class RenderParams(Params):
         "so colours mean the same in every frame")
     point_size: float = Field(6.0, gt=0, description="particle sphere size on screen, pixels (show: particles)")
     every: int = Field(1, ge=1, description="render every n-th frame; the others are marked skipped and the "
-                       "movie plays the rendered ones at fps / n")
+                       "movie holds each rendered frame until the next")
     background: str = Field("#20242c", description="background colour (name or #rrggbb)")
     wall_opacity: float = Field(1.0, ge=0, le=1, description="opacity of the walls (a container's far side)")
     near_wall_opacity: float = Field(0.12, ge=0, le=1, description="opacity of a container's near side, "
                                      "between the camera and the fluid (0 hides it)")
     label: bool = Field(True, description="write the simulated time into the lower left corner")
     water_opacity: float = Field(0.85, ge=0, le=1, description="opacity of the fluid surface")
+
+    @field_validator("background")
+    @classmethod
+    def _a_colour(cls, v: str) -> str:
+        """Checked when the config loads (a bad colour failed at the first frame, after the simulation)."""
+        from pyvista.plotting.colors import Color
+        try:
+            Color(v)
+        except ValueError:
+            hint = " (in YAML, quote it: '#20242c'; # starts a comment)" if v.startswith("#") else ""
+            raise ValueError(f"{v!r} is not a colour: a name (white, black, ...) or #rrggbb{hint}") from None
+        return v
 
     @model_validator(mode="after")
     def _ordered_range(self) -> "RenderParams":
@@ -98,6 +110,13 @@ def length_unit(meters_per_unit: float) -> str:
                 f"x {meters_per_unit:g} m")
 
 
+def text_colour(params: RenderParams) -> str:
+    """White labels on a dark background, black on a light one (white text vanished on white)."""
+    from pyvista.plotting.colors import Color
+    r, g, b = Color(params.background).float_rgb
+    return "black" if 0.2126 * r + 0.7152 * g + 0.0722 * b > 0.5 else "white"
+
+
 def color_bar(params: RenderParams, meters_per_unit: float, top: float) -> dict:
     """The particle colour bar (pyvista scalar_bar_args): titled with its unit (speeds are in scene units per
     second), 3 significant digits, fonts sized from the image's smaller side, and placed so its labels stay
@@ -110,7 +129,7 @@ def color_bar(params: RenderParams, meters_per_unit: float, top: float) -> dict:
     bar_px = max(8, round(0.03 * min(w, h)))
     labels_px = 7 * 0.6 * font  # 3 significant digits ('0.757', '9060', '1.2e+06') are at most 7 characters
     right = max(bar_px + labels_px, 0.5 * (bar_px + 0.6 * font * len(title))) + 0.02 * w  # the title is centred
-    return {"title": title, "color": "white", "vertical": True, "fmt": fmt, "n_labels": 5,
+    return {"title": title, "color": text_colour(params), "vertical": True, "fmt": fmt, "n_labels": 5,
             "title_font_size": font, "label_font_size": font, "unconstrained_font_size": True,
             "position_x": max(0.0, 1.0 - right / w), "width": bar_px / w, "position_y": 0.08, "height": 0.66,
             "render": False}
@@ -360,7 +379,8 @@ class View:
                                              ctx.scene["scene"].units.meters_per_unit)
             if params.label:
                 plotter.add_text(time_label(frame, fps), position="lower_left",
-                                 font_size=max(9, round(params.resolution[1] / 40)), color="white", render=False)
+                                 font_size=max(9, round(params.resolution[1] / 40)), color=text_colour(params),
+                                 render=False)
             self.frame_actors = [name for name in plotter.renderer.actors if name not in before]
             plotter.camera_position = [tuple(eye), tuple(centre), tuple(up)]
             plotter.camera.view_angle = view_angle
