@@ -78,8 +78,12 @@ def write_cm_y_up_set(path) -> None:
 STUDIO = (0.001, "Z")  # this variant takes its tank from the centimetre Y-up set and exports back into it
 
 
-def run_pipeline(root, mpu: float, up: str) -> dict:
+def run_pipeline(root, mpu: float, up: str, offset=None) -> dict:
     sc = scene(mpu, up)
+    if offset is not None:  # the scene moved away from the world's origin (metres, Z up)
+        sc["walls"][0]["center"] = list(map(float, offset))
+        box = sc["fluid"]["emitters"][0]["box"]
+        box["min"], box["max"] = (np.add(box["min"], offset).tolist(), np.add(box["max"], offset).tolist())
     d = {k: root / k for k in ("walls", "sdf", "particles", "raw", "surface", "frames", "usd")}
     if (mpu, up) == STUDIO:
         write_cm_y_up_set(root / "set.usda")
@@ -94,7 +98,7 @@ def run_pipeline(root, mpu: float, up: str) -> dict:
     run_stage(PyvistaRender, d["frames"], scene=sc, frames=(LAST,),
               params={"resolution": list(RESOLUTION), "label": False},
               inputs={"walls": d["walls"], "surface": d["surface"], "particles": d["particles"]})
-    if (mpu, up) == STUDIO:
+    if (mpu, up) == STUDIO or offset is not None:
         run_stage(UsdExport, d["usd"], scene=sc, frames=(0, LAST), config_dir=root,
                   inputs={"walls": d["walls"], "particles": d["particles"], "surface": d["surface"]})
     return d
@@ -238,3 +242,66 @@ def test_a_centimetre_y_up_studio_set_comes_back_in_centimetres_y_up(runs):
     np.testing.assert_allclose(x, z_to_y(a.x) * 100, atol=1e-3 * L0 * 100)  # cm
     np.testing.assert_allclose(v, z_to_y(a.v) * 100, atol=50e-3 * L0 * 100)  # cm/s
     np.testing.assert_allclose(np.array(points.GetWidthsAttr().Get(LAST)), L0 * 100, rtol=1e-6)  # diameters, cm
+
+
+FAR = np.array([1e5, 2e5, 50.0])  # a survey or CAD scene's coordinates, metres
+
+
+@pytest.fixture(scope="module")
+def far(tmp_path_factory):
+    return run_pipeline(tmp_path_factory.mktemp("far"), 1.0, "Z", FAR)
+
+
+def test_a_scene_far_from_the_origin_comes_out_as_at_the_origin(runs, far):
+    """1e5 m out, float32's step is 8 mm (0.8 l0 here): the particle frames, the surfaces and USD's point3f
+    stored there quantised the particles by up to 0.4 l0, bent the surface (-12 % volume), put snapped vertices
+    0.16 l0 outside the walls and stacked half the USD's particles on each other. Positions are now kept in
+    float64 where float32 would lose 1e-4 l0, and USD points are written about a local origin under a
+    double-precision translate: everything agrees with the scene at the origin, moved."""
+    from stages.common.formats import position_dtype
+
+    ref = runs[(1.0, "Z")]
+    for f in (0, LAST):
+        a, b = load_particle_frame(ref["particles"], f), load_particle_frame(far["particles"], f)
+        assert b.x.dtype == np.float64 and a.x.dtype == np.float32  # only where float32 would lose digits
+        np.testing.assert_array_equal(a.id, b.id)
+        np.testing.assert_allclose(b.x - FAR, a.x, atol=1e-3 * L0)
+        for stage in ("raw", "surface"):
+            sa, sb = load_surface(ref[stage], f), load_surface(far[stage], f)
+            assert len(sb.vertices) == len(sa.vertices) and len(sa.faces) > 500
+            vb = sb.vertices.astype(np.float64) - FAR
+            np.testing.assert_allclose(vb, sa.vertices, atol=1e-3 * L0)
+            assert signed_volume(vb, sb.faces) == pytest.approx(signed_volume(sa.vertices.astype(np.float64), sa.faces),
+                                                                 rel=1e-3)
+    walls = WallMesh.load(far["walls"])
+    raw, snapped = load_surface(far["raw"], LAST), load_surface(far["surface"], LAST)
+    used = np.unique(snapped.faces)
+    gap = lambda v: np.linalg.norm(closest_points_on(walls, v[used]) - v[used], axis=1) / L0  # noqa: E731
+    contact = gap(raw.vertices.astype(np.float64)) < 0.25
+    assert contact.sum() > 100 and gap(snapped.vertices.astype(np.float64))[contact].max() < 1e-4
+
+    # USD: every point where the npz has it, in world space (points + the prim's translate)
+    stage = Usd.Stage.Open(str(far["usd"] / "scene.usda"))
+    cache = UsdGeom.XformCache(Usd.TimeCode(LAST))
+
+    def world(path):
+        prim = stage.GetPrimAtPath(path)
+        m = np.array(cache.GetLocalToWorldTransform(prim), np.float64)
+        pts = np.array(UsdGeom.PointBased(prim).GetPointsAttr().Get(Usd.TimeCode(LAST)), np.float64)
+        return pts @ m[:3, :3] + m[3, :3]
+
+    np.testing.assert_allclose(world("/World/Fluid/Surface"), snapped.vertices, atol=1e-3 * L0)
+    np.testing.assert_allclose(world("/World/Particles"), load_particle_frame(far["particles"], LAST).x,
+                               atol=1e-3 * L0)
+    tank = world(next(str(p.GetPath()) for p in stage.Traverse() if str(p.GetPath()).startswith("/World/Walls/")
+                      and p.IsA(UsdGeom.Mesh)))
+    np.testing.assert_allclose(tank.min(axis=0), FAR - [0.05, 0.04, 0.0], atol=1e-3 * L0)
+    assert position_dtype(tank, L0) is np.float64  # (the check above is not float32's luck)
+
+    # the picture: the same frame as at the origin (the surface was faceted there, 5-6 % of the pixels off)
+    import imageio.v3 as iio
+
+    pa = iio.imread(ref["frames"] / f"frame_{LAST:05d}.png").astype(np.float64)
+    pb = iio.imread(far["frames"] / f"frame_{LAST:05d}.png").astype(np.float64)
+    diff = np.abs(pa - pb).max(axis=-1)
+    assert (diff > 40).mean() < 0.005 and diff.mean() < 1.0, ((diff > 40).mean(), diff.mean())

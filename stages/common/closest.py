@@ -29,7 +29,10 @@ class ClosestPoints:
         self.tri = np.ascontiguousarray(np.asarray(vertices, np.float64)[np.asarray(faces)], np.float64).reshape(-1, 3, 3)
         n = np.cross(self.tri[:, 1] - self.tri[:, 0], self.tri[:, 2] - self.tri[:, 0])
         length = np.linalg.norm(n, axis=1)
-        scale = np.abs(self.tri).max(initial=0.0) + 1.0
+        # the mesh's own size, not its coordinates (with |x| + 1 a tank 2e5 m out had every triangle "degenerate"
+        # and no normals: snapped surfaces there relaxed and collapsed 4x as much)
+        scale = float(np.ptp(self.tri.reshape(-1, 3), axis=0).max()) if len(self.tri) else 1.0
+        scale = scale if scale > 0 else 1.0
         self.degenerate = length <= 1e-12 * scale * scale
         self.normals = n / np.where(self.degenerate, 1.0, length)[:, None]
         self.normals[self.degenerate] = 0.0

@@ -29,7 +29,8 @@ from pydantic import Field, field_validator, model_validator
 
 from pipeline.stage import Artifact, Context, Params, Stage, StageError
 from stages.common.camera import camera_files, shot_camera, usd_camera_moves
-from stages.common.formats import ParticleMeta, WallMesh, load_particle_frame, load_surface
+from stages.common.formats import ParticleMeta, WallMesh, load_particle_frame, load_surface, local_origin
+from stages.common.usd_points import local_frame
 
 from . import usd_layers as ul
 from .surface_velocity import surface_velocities
@@ -211,15 +212,22 @@ class UsdExport(Stage):
         sublayers: list[str] = []
         progress = ctx.progress("writing USD layers", len(frames) * (params.surface + params.particles) + 2)
 
+        # far from the origin, point3f cannot hold the points: written relative to the walls' centre (formats.
+        # local_origin; their prims translated back in double precision), else as they are
+        origin = None
+        if len(walls.vertices) and inputs["particles"].path is not None:
+            box = ul.apply(to_target, walls.vertices)
+            scale = ParticleMeta.load(inputs["particles"].path).spacing * ul.uniform_scale(to_target)
+            origin = local_origin(box.min(axis=0), box.max(axis=0), scale)
         if params.surface:
             self._write_surface(out / "fluid_surface.usdc", inputs["surface"], frames, to_target, metrics, progress,
-                                inputs["particles"] if params.surface_velocities else None)
+                                inputs["particles"] if params.surface_velocities else None, origin)
             sublayers.append("./fluid_surface.usdc")
         if params.particles:
             whole = frames == list(range(count))
             sublayers.append(self._write_particles(out, inputs["particles"], frames, whole, to_target, metrics,
-                                                   progress))
-        if self._write_walls(out / "walls.usdc", walls, set(usd_walls), to_target, metrics, frames):
+                                                   progress, origin))
+        if self._write_walls(out / "walls.usdc", walls, set(usd_walls), to_target, metrics, frames, origin):
             sublayers.append("./walls.usdc")
         references: list[tuple[str, np.ndarray, list[str | None], object]] = []
         offsets: dict[str, object] = {}  # sublayer -> its layer offset
@@ -309,7 +317,7 @@ class UsdExport(Stage):
     # -- layers ----------------------------------------------------------------------------------------
     @staticmethod
     def _write_surface(path: Path, surface: Artifact, frames: list[int], m: np.ndarray, metrics: dict, progress,
-                       particles: Artifact | None = None) -> None:
+                       particles: Artifact | None = None, origin: np.ndarray | None = None) -> None:
         """The surface layer; with ``particles``, each vertex's velocity as the particles' near it (within 2 l0,
         weighted (1 - r^2 / 4 l0^2)^3 over the 8 nearest; the nearest one's beyond), in units per second."""
         from pxr import UsdGeom
@@ -319,6 +327,7 @@ class UsdExport(Stage):
         material = ul.water_material(stage, "/World/Fluid/Looks/Water")
         UsdGeom.Xform.Define(stage, "/World/Fluid")
         mesh = ul.define_mesh(stage, "/World/Fluid/Surface")
+        shift = local_frame(mesh, origin)
         flip = np.linalg.det(m[:3, :3]) < 0  # a mirroring placement reverses the winding
         for f in frames:
             folder = surface.frame(f)
@@ -330,15 +339,15 @@ class UsdExport(Stage):
             velocities = None
             if particles is not None and particles.path is not None:
                 velocities = ul.apply_linear(m, surface_velocities(s.vertices, particles.path, f))
-            ul.set_mesh(mesh, ul.apply(m, s.vertices), faces, ul.apply_normals(m, s.normals) if len(s.normals) else s.normals, f,
-                        velocities)
+            ul.set_mesh(mesh, ul.apply(m, s.vertices) - shift, faces,
+                        ul.apply_normals(m, s.normals) if len(s.normals) else s.normals, f, velocities)
             progress.advance()
         ul.bind(mesh.GetPrim(), material)
         stage.GetRootLayer().Save()
 
     @staticmethod
     def _write_particles(out: Path, particles: Artifact, frames: list[int], whole: bool, m: np.ndarray,
-                         metrics: dict, progress) -> str:
+                         metrics: dict, progress, origin: np.ndarray | None = None) -> str:
         folder = particles.path
         if folder is None:
             raise StageError("export.usd: the 'particles' artifact must be a whole-run folder")
@@ -366,13 +375,13 @@ class UsdExport(Stage):
                           "rho": p.rho, "p": p.p}
                 progress.advance()
 
-        ul.write_points(stage, "/World/Particles", samples())
+        ul.write_points(stage, "/World/Particles", samples(), origin)
         stage.GetRootLayer().Save()
         return "./particles.usdc"
 
     @staticmethod
     def _write_walls(path: Path, walls: WallMesh, skip: set[int], m: np.ndarray, metrics: dict,
-                     frames: list[int]) -> bool:
+                     frames: list[int], origin: np.ndarray | None = None) -> bool:
         """The walls not from a USD asset; a moving wall as its rest mesh under a transform time-sampled
         at every exported frame (code f: the pose at f / fps). A wall from an animated USD asset carries
         its own animation in the asset (its time codes scaled to ours by their timeCodesPerSecond)."""
@@ -394,7 +403,8 @@ class UsdExport(Stage):
             local = inverse.reshape(-1, 3)
             if np.linalg.det(m[:3, :3]) < 0:
                 local = local[:, ::-1]
-            ul.set_mesh(mesh, ul.apply(m, walls.vertices[idx]), local, None)
+            shift = local_frame(mesh, origin) if i not in motions else np.zeros(3)  # a moving wall: its own ops
+            ul.set_mesh(mesh, ul.apply(m, walls.vertices[idx]) - shift, local, None)
             if i in motions:  # the rest pose above, moved by the wall's motion seen in the written frame
                 ul.animate_rigidly(mesh, [(f, m @ motions[i].matrix(f / metrics["fps"]) @ to_source) for f in frames],
                                    ul.apply(m, np.asarray(motions[i].pivot, float)[None])[0])

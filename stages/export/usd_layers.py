@@ -224,15 +224,20 @@ def animate_camera(camera: UsdGeom.Camera, poses: Iterable[tuple[float, np.ndarr
         camera.GetFocalLengthAttr().Set(vertical / (2 * math.tan(math.radians(view_angle) / 2)), Usd.TimeCode(code))
 
 
-def write_points(stage: Usd.Stage, path: str, frames: Iterable[tuple[int, dict]]) -> UsdGeom.Points:
+def write_points(stage: Usd.Stage, path: str, frames: Iterable[tuple[int, dict]],
+                 origin: np.ndarray | None = None) -> UsdGeom.Points:
     """Time-sampled points: positions, velocities (units/s), widths (diameters), ids, density and
-    pressure primvars, extent per sample. ``frames`` yields (time code, {x, v, width, id, rho, p})."""
+    pressure primvars, extent per sample. ``frames`` yields (time code, {x, v, width, id, rho, p}).
+    ``origin``: the points relative to it, under a double-precision translate (usd_points.local_frame)."""
+    from stages.common.usd_points import local_frame
+
     points = UsdGeom.Points.Define(stage, path)
+    shift = local_frame(points, origin)
     pv = UsdGeom.PrimvarsAPI(points)
     rho = pv.CreatePrimvar("density", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex)
     pressure = pv.CreatePrimvar("pressure", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex)
     for t, f in frames:
-        x = np.asarray(f["x"], np.float32)
+        x = np.asarray(np.asarray(f["x"], np.float64) - shift, np.float32)
         points.GetPointsAttr().Set(vec3f(x), t)
         points.GetVelocitiesAttr().Set(vec3f(f["v"]), t)
         points.GetWidthsAttr().Set(Vt.FloatArray.FromNumpy(np.full(len(x), f["width"], np.float32)), t)

@@ -311,16 +311,23 @@ def write_walls_usd(path: Path, wm: WallMesh, meters_per_unit: float, up_axis: s
     """One UsdGeom.Mesh per wall under /Walls, with the stage metrics authored."""
     from pxr import Gf, Sdf, Usd, UsdGeom, Vt
 
+    from stages.common.formats import local_origin
+    from stages.common.usd_points import local_frame
+
     stage = Usd.Stage.CreateNew(str(path))
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z if up_axis == "Z" else UsdGeom.Tokens.y)
     UsdGeom.SetStageMetersPerUnit(stage, meters_per_unit)
     root = UsdGeom.Xform.Define(stage, "/Walls")
     stage.SetDefaultPrim(root.GetPrim())
+    shift = np.zeros(3)
+    if len(wm.vertices):  # far from the origin: the points relative to the walls' centre (point3f is float32)
+        lo, hi = wm.vertices.min(axis=0), wm.vertices.max(axis=0)
+        shift = local_frame(root, local_origin(lo, hi, 1e-3 * float((hi - lo).max())))
     for i, w in enumerate(wm.walls):
         sel = wm.wall_id == i
         f = wm.faces[sel]
         used, local = np.unique(f, return_inverse=True)
-        pts = wm.vertices[used]
+        pts = wm.vertices[used] - shift
         mesh = UsdGeom.Mesh.Define(stage, Sdf.Path("/Walls").AppendChild(w["name"]))
         mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(pts.astype(np.float32)))
         mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(f), 3, np.int32)))

@@ -23,7 +23,7 @@ import numpy as np
 
 from pipeline.errors import PipelineError
 from pipeline.stage import Artifact, Context, StageError
-from stages.common.formats import ParticleFrame, ParticleMeta
+from stages.common.formats import ParticleFrame, ParticleMeta, local_origin
 from stages.common.motion import reach, top_wall_speed, wall_speed
 from stages.common.sdf import SDFGrid, body_walls, load_bodies, posed_field
 from stages.common.usd_points import write_points_layer
@@ -643,7 +643,7 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
             except BlowUp as e:
                 raise SimulationDiverged(_blow_up_line(e, 0, solver, solver_name, ckpt_dir) + " while settling") from e
         f0 = to_scene_units(solver.frame(), setup.meters_per_unit)
-        write_frame(ctx.out_dir, 0, f0, ckpt_dir)
+        write_frame(ctx.out_dir, 0, f0, ckpt_dir, setup.spacing / setup.meters_per_unit)
         _frame_stats(stats, f0, solver)
         progress.advance()
     if start + 1 < count:
@@ -663,7 +663,7 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
                             box_text(*domain_box), "" if scene.domain is not None else
                             " (the walls' box and a margin: scene.domain gives the fluid more room)")
         fr = to_scene_units(solver.frame(), setup.meters_per_unit)
-        write_frame(ctx.out_dir, f, fr, ckpt_dir)
+        write_frame(ctx.out_dir, f, fr, ckpt_dir, setup.spacing / setup.meters_per_unit)
         _frame_stats(stats, fr, solver)
         if ckpt_dir is not None and (f % checkpoint_every == 0) and f < count - 1:
             stats["wall_seconds"] += time.perf_counter() - t0
@@ -700,7 +700,8 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
                         solver=solver_name, stats=stats)
     meta.save(ctx.out_dir)
     write_points_layer(ctx.out_dir / "particles.usdc", iter_frames(ctx.out_dir, count), spacing=setup.spacing / mpu,
-                       up_axis=scene.units.up_axis, meters_per_unit=setup.meters_per_unit, fps=fps, count=count)
+                       up_axis=scene.units.up_axis, meters_per_unit=setup.meters_per_unit, fps=fps, count=count,
+                       origin=local_origin(setup.sdf.origin / mpu, setup.sdf.upper / mpu, setup.spacing / mpu))
     return stats
 
 

@@ -17,8 +17,9 @@ from stages.common.formats import FRAMES_DIR, ParticleFrame, frame_path, load_pa
 _CKPT = re.compile(r"^state_(\d{5})\.npz$")
 
 
-def write_frame(out_dir: Path, frame: int, f: ParticleFrame, checkpoint_dir: Path | None) -> None:
-    path = save_particle_frame(out_dir, frame, f)
+def write_frame(out_dir: Path, frame: int, f: ParticleFrame, checkpoint_dir: Path | None,
+                spacing: float | None = None) -> None:
+    path = save_particle_frame(out_dir, frame, f, spacing)
     if checkpoint_dir is not None:
         dst = frame_path(checkpoint_dir, frame)
         dst.parent.mkdir(parents=True, exist_ok=True)

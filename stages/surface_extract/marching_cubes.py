@@ -47,7 +47,7 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from pipeline.stage import Artifact, Context, Params, Stage
-from stages.common.formats import ParticleMeta, SurfaceMesh, load_particle_frame, save_surface
+from stages.common.formats import ParticleMeta, SurfaceMesh, load_particle_frame, position_dtype, save_surface
 from stages.common.meshes import signed_volume, vertex_normals
 from stages.common.sdf import SDFGrid, load_bodies, posed_field
 
@@ -246,7 +246,11 @@ def extract(x: np.ndarray, vol: np.ndarray, l0: float, params: MarchingCubesPara
     t1 = time.perf_counter()
 
     vtk_threads(nb.get_num_threads())
-    img = pv.ImageData(dimensions=tuple(int(s) for s in shape), spacing=(h, h, h), origin=tuple(grid_lo))
+    # VTK places the vertices in float32: far from the origin it contours about the grid's corner and the
+    # corner is added back in float64 (in place, 1e5 m out, the surface bent by a quarter spacing, -12 % volume)
+    far = position_dtype(np.stack([grid_lo, grid_lo + h * (np.asarray(shape) - 1)]), h) is np.float64
+    img = pv.ImageData(dimensions=tuple(int(s) for s in shape), spacing=(h, h, h),
+                       origin=(0.0, 0.0, 0.0) if far else tuple(grid_lo))
     img.point_data["phi"] = phi.reshape(-1)  # (z, y, x) C order = VTK's x-fastest point order, no copy
     surf = img.contour([params.iso], scalars="phi", method="flying_edges", compute_normals=False,
                        compute_scalars=False)
@@ -261,13 +265,15 @@ def extract(x: np.ndarray, vol: np.ndarray, l0: float, params: MarchingCubesPara
         surf = surf.smooth_taubin(n_iter=params.smoothing_iterations, pass_band=0.1, normalize_coordinates=True)
         surf.points = keep_piece_volumes(raw, np.asarray(surf.points), faces)
     verts = np.asarray(surf.points)  # float32 from VTK, kept: no float64 copy of millions of vertices
+    if far:
+        verts = verts.astype(np.float64) + grid_lo
     if signed_volume(verts, faces) < 0:  # orient outwards (Phi falls off outside the fluid)
         faces = np.ascontiguousarray(faces[:, ::-1])
     normals = vertex_normals(verts, faces)
     t3 = time.perf_counter()
     if timings is not None:
         timings.update({"volumes": t_vol - t0, "phi": t1 - t_vol, "contour": t2 - t1, "finish": t3 - t2})
-    return SurfaceMesh(verts.astype(np.float32, copy=False), faces, normals.astype(np.float32, copy=False))
+    return SurfaceMesh(verts.astype(position_dtype(verts, l0), copy=False), faces, normals.astype(np.float32, copy=False))
 
 
 class MarchingCubes(Stage):
@@ -297,4 +303,4 @@ class MarchingCubes(Stage):
         ctx.log.debug("frame %d: %d particles -> %d triangles (volumes %.3f s, phi %.3f s, contour %.3f s, "
                       "finish %.3f s)", frame, len(pf.x), len(mesh.faces), timings["volumes"], timings["phi"],
                       timings["contour"], timings["finish"])
-        save_surface(ctx.out_dir, frame, mesh)
+        save_surface(ctx.out_dir, frame, mesh, meta.spacing)

@@ -41,7 +41,7 @@ from pydantic import Field
 
 from pipeline.stage import Artifact, Context, Params, Stage
 from stages.common.closest import ClosestPoints
-from stages.common.formats import ParticleMeta, SurfaceMesh, WallMesh, load_surface, save_surface
+from stages.common.formats import ParticleMeta, SurfaceMesh, WallMesh, load_surface, position_dtype, save_surface
 from stages.common.meshes import face_normals, vertex_normals
 from stages.common.motion import RigidMotion
 from stages.common.sdf import SDFGrid, load_bodies, sdf_sample
@@ -145,9 +145,10 @@ class WallProjector:
     normal points that way."""
 
     def __init__(self, walls: WallMesh, shells: np.ndarray | None = None, reach: float | None = None):
+        extent = float(np.ptp(walls.vertices, axis=0).max()) if len(walls.vertices) else 1.0
+        self.extent = extent if extent > 0 else 1.0
         if reach is None:
-            extent = np.ptp(walls.vertices, axis=0).max() if len(walls.vertices) else 1.0
-            reach = extent / 32.0
+            reach = self.extent / 32.0
         self.closest = ClosestPoints(walls.vertices, walls.faces, reach)
         half = 0.5 * np.asarray(walls.shell_thickness() if shells is None else shells, np.float64)
         self.offset = half[walls.wall_id] if len(half) and half.any() else None  # per face
@@ -160,7 +161,7 @@ class WallProjector:
             away = np.asarray(points, np.float64)[idx] - near[idx]
             length = np.linalg.norm(away, axis=1)
             side = np.where(np.einsum("ij,ij->i", away, normals[idx]) < 0, -1.0, 1.0)
-            tiny = length < 1e-9 * (1.0 + np.abs(near[idx]).max(initial=0.0))  # on the mesh: the face's own side
+            tiny = length < 1e-9 * self.extent  # on the mesh: the face's own side
             direction = np.where(tiny[:, None], side[:, None] * normals[idx], away / np.where(tiny, 1.0, length)[:, None])
             near[idx] += off[idx, None] * direction
             normals[idx] = direction
@@ -178,12 +179,16 @@ def closest_points_on(walls: WallMesh, points: np.ndarray, shells: np.ndarray | 
     return WallProjector(walls, shells)(points)[0]
 
 
-def flipped_faces(n_ref: np.ndarray, v: np.ndarray, faces: np.ndarray, alive: np.ndarray | None = None) -> np.ndarray:
+def flipped_faces(n_ref: np.ndarray, v: np.ndarray, faces: np.ndarray, alive: np.ndarray | None = None,
+                  origin: np.ndarray | None = None) -> np.ndarray:
     """Triangles (of the ``alive`` ones, default all) whose normal turned by more than 90 degrees from
-    ``n_ref``, at the stored positions (float32: a sliver can flip in the rounding)."""
+    ``n_ref``, at the stored positions (float32: a sliver can flip in the rounding; ``origin``: rounded
+    about it, for a surface stored as float64 far from the world's origin, where float32 in place would
+    call half of it flipped)."""
     out = np.empty(len(faces), np.bool_)
     _flipped(np.ascontiguousarray(v, np.float64), np.ascontiguousarray(faces), np.ascontiguousarray(n_ref, np.float64),
-             np.ones(len(faces), np.bool_) if alive is None else np.ascontiguousarray(alive), out)
+             np.ones(len(faces), np.bool_) if alive is None else np.ascontiguousarray(alive), out,
+             np.zeros(3) if origin is None else np.asarray(origin, np.float64))
     return out
 
 
@@ -195,15 +200,17 @@ class Folds:
     listed around it at the start and around every vertex merged into it since (``head``, ``nxt``,
     ``tail``: linked member lists), as a collapse renames the dropped vertex in its triangles."""
 
-    def __init__(self, n_ref: np.ndarray, v: np.ndarray, faces: np.ndarray, alive: np.ndarray):
+    def __init__(self, n_ref: np.ndarray, v: np.ndarray, faces: np.ndarray, alive: np.ndarray,
+                 origin: np.ndarray | None = None):
         assert v.dtype == np.float64 and v.flags.c_contiguous and faces.flags.c_contiguous and alive.flags.c_contiguous
         self.n_ref, self.v, self.faces, self.alive = np.ascontiguousarray(n_ref, np.float64), v, faces, alive
+        self.o = np.zeros(3) if origin is None else np.asarray(origin, np.float64)  # flipped_faces's origin
         self.start, self.adj = _vertex_triangles(faces, len(v))
         self.head = np.arange(len(v))
         self.tail = np.arange(len(v))
         self.nxt = np.full(len(v), -1, np.int64)
         self.seen = np.zeros(len(faces), np.bool_)  # scratch of _around, left all False
-        self.flip = flipped_faces(self.n_ref, v, faces, alive)
+        self.flip = flipped_faces(self.n_ref, v, faces, alive, self.o)
 
     def flipped(self) -> np.ndarray:
         """The flipped triangles' indices."""
@@ -216,7 +223,7 @@ class Folds:
 
     def moved(self, vertices: np.ndarray) -> None:
         """``vertices`` moved: their triangles' ``flip`` anew."""
-        _update_flips(self.v, self.faces, self.n_ref, self.around(vertices), self.flip)
+        _update_flips(self.v, self.faces, self.n_ref, self.around(vertices), self.flip, self.o)
 
     def ring_means(self, vertices: np.ndarray) -> np.ndarray:
         """Mean of the one-ring neighbours of each of ``vertices`` (N, 3). Each edge is counted once per
@@ -288,41 +295,42 @@ def collapse_flipped(folds: Folds, raw: np.ndarray, on_wall: np.ndarray, passes:
     pairs."""
     merged = np.empty((len(folds.faces) // 2 + 1, 2), np.int64)
     n = _collapse(folds.n_ref, np.ascontiguousarray(raw, np.float64), folds.v, folds.faces, np.ascontiguousarray(on_wall),
-                  folds.alive, folds.flip, folds.start, folds.adj, folds.head, folds.nxt, folds.tail, passes, merged)
+                  folds.alive, folds.flip, folds.start, folds.adj, folds.head, folds.nxt, folds.tail, passes, merged,
+                  folds.o)
     return [(int(a), int(b)) for a, b in merged[:n]]
 
 
 @nb.njit(cache=True)
-def _turn(v, faces, t, n_ref, drop, keep):
+def _turn(v, faces, t, n_ref, drop, keep, o):
     """n_ref[t] . (normal of triangle t at ``v`` rounded to float32, as the surface stores it; with
     vertex ``drop`` renamed ``keep``, -1: none), unnormalised: negative when the triangle flipped against
     its reference normal, zero when it is degenerate."""
     a = keep if faces[t, 0] == drop else faces[t, 0]
     b = keep if faces[t, 1] == drop else faces[t, 1]
     c = keep if faces[t, 2] == drop else faces[t, 2]
-    ax, ay, az = np.float64(np.float32(v[a, 0])), np.float64(np.float32(v[a, 1])), np.float64(np.float32(v[a, 2]))
-    ux = np.float64(np.float32(v[b, 0])) - ax
-    uy = np.float64(np.float32(v[b, 1])) - ay
-    uz = np.float64(np.float32(v[b, 2])) - az
-    wx = np.float64(np.float32(v[c, 0])) - ax
-    wy = np.float64(np.float32(v[c, 1])) - ay
-    wz = np.float64(np.float32(v[c, 2])) - az
+    ax, ay, az = np.float64(np.float32(v[a, 0] - o[0])), np.float64(np.float32(v[a, 1] - o[1])), np.float64(np.float32(v[a, 2] - o[2]))
+    ux = np.float64(np.float32(v[b, 0] - o[0])) - ax
+    uy = np.float64(np.float32(v[b, 1] - o[1])) - ay
+    uz = np.float64(np.float32(v[b, 2] - o[2])) - az
+    wx = np.float64(np.float32(v[c, 0] - o[0])) - ax
+    wy = np.float64(np.float32(v[c, 1] - o[1])) - ay
+    wz = np.float64(np.float32(v[c, 2] - o[2])) - az
     return (n_ref[t, 0] * (uy * wz - uz * wy) + n_ref[t, 1] * (uz * wx - ux * wz)
             + n_ref[t, 2] * (ux * wy - uy * wx))
 
 
 @nb.njit(cache=True)
-def _flipped(v, faces, n_ref, alive, out):
+def _flipped(v, faces, n_ref, alive, out, o):
     """out[t]: triangle t is alive and flipped against n_ref[t] at ``v`` rounded to float32 (stored)."""
     for t in range(faces.shape[0]):
-        out[t] = alive[t] and _turn(v, faces, t, n_ref, np.int64(-1), np.int64(-1)) < 0.0
+        out[t] = alive[t] and _turn(v, faces, t, n_ref, np.int64(-1), np.int64(-1), o) < 0.0
 
 
 @nb.njit(cache=True)
-def _update_flips(v, faces, n_ref, tris, flip):
+def _update_flips(v, faces, n_ref, tris, flip, o):
     """flip[t] anew for the (alive) triangles ``tris``."""
     for t in tris:
-        flip[t] = _turn(v, faces, t, n_ref, np.int64(-1), np.int64(-1)) < 0.0
+        flip[t] = _turn(v, faces, t, n_ref, np.int64(-1), np.int64(-1), o) < 0.0
 
 
 @nb.njit(cache=True)
@@ -419,14 +427,14 @@ def _ring_means(v, faces, vertices, head, nxt, start, adj, alive, seen, out):
 
 @nb.njit(cache=True)
 def _try_collapse(keep, drop, n_ref, raw, after, faces, alive, flip, head, nxt, tail, start, adj, seen_k, seen_d,
-                  vmark_k, vmark_d, fk, fd, stamp):
+                  vmark_k, vmark_d, fk, fd, stamp, o):
     """Collapse the edge (keep, drop) into ``keep`` if the link condition holds, fewer triangles
     around it are flipped or degenerate at ``after`` (as stored) afterwards and none of the renamed
     triangles is at ``raw`` (see collapse_flipped). ``stamp``: a value the vertex marks do not hold
     yet; the triangle marks ``seen_k``/``seen_d`` are all False and are left so."""
     nk = _faces_of(keep, head, nxt, start, adj, alive, seen_k, fk, np.int64(0))
     nd = _faces_of(drop, head, nxt, start, adj, alive, seen_d, fd, np.int64(0))
-    ok = _collapse_ok(keep, drop, n_ref, raw, after, faces, seen_k, seen_d, vmark_k, vmark_d, fk, fd, nk, nd, stamp)
+    ok = _collapse_ok(keep, drop, n_ref, raw, after, faces, seen_k, seen_d, vmark_k, vmark_d, fk, fd, nk, nd, stamp, o)
     if ok:
         for i in range(nd):
             t = fd[i]
@@ -437,7 +445,7 @@ def _try_collapse(keep, drop, n_ref, raw, after, faces, alive, flip, head, nxt, 
                 for k in range(3):
                     if faces[t, k] == drop:
                         faces[t, k] = keep
-                flip[t] = _turn(after, faces, t, n_ref, np.int64(-1), np.int64(-1)) < 0.0
+                flip[t] = _turn(after, faces, t, n_ref, np.int64(-1), np.int64(-1), o) < 0.0
         nxt[tail[keep]] = head[drop]  # drop's members (and their triangles) are keep's now
         tail[keep] = tail[drop]
         head[drop] = -1
@@ -449,7 +457,7 @@ def _try_collapse(keep, drop, n_ref, raw, after, faces, alive, flip, head, nxt, 
 
 
 @nb.njit(cache=True)
-def _collapse_ok(keep, drop, n_ref, raw, after, faces, seen_k, seen_d, vmark_k, vmark_d, fk, fd, nk, nd, stamp):
+def _collapse_ok(keep, drop, n_ref, raw, after, faces, seen_k, seen_d, vmark_k, vmark_d, fk, fd, nk, nd, stamp, o):
     """_try_collapse's conditions, with the triangles around keep (fk[:nk], marked in seen_k) and
     around drop (fd[:nd], seen_d)."""
     n_shared = 0
@@ -495,7 +503,7 @@ def _collapse_ok(keep, drop, n_ref, raw, after, faces, seen_k, seen_d, vmark_k, 
     bad_after = 0
     for i in range(nk):
         t = fk[i]
-        bad = _turn(after, faces, t, n_ref, np.int64(-1), np.int64(-1)) <= 0.0
+        bad = _turn(after, faces, t, n_ref, np.int64(-1), np.int64(-1), o) <= 0.0
         bad_before += bad
         if not seen_d[t]:
             bad_after += bad
@@ -503,19 +511,19 @@ def _collapse_ok(keep, drop, n_ref, raw, after, faces, seen_k, seen_d, vmark_k, 
         t = fd[i]
         if seen_k[t]:
             continue
-        bad_before += _turn(after, faces, t, n_ref, np.int64(-1), np.int64(-1)) <= 0.0
-        bad_after += _turn(after, faces, t, n_ref, drop, keep) <= 0.0
+        bad_before += _turn(after, faces, t, n_ref, np.int64(-1), np.int64(-1), o) <= 0.0
+        bad_after += _turn(after, faces, t, n_ref, drop, keep, o) <= 0.0
     if bad_after >= bad_before:
         return False
     for i in range(nd):
         t = fd[i]
-        if not seen_k[t] and _turn(raw, faces, t, n_ref, drop, keep) <= 0.0:
+        if not seen_k[t] and _turn(raw, faces, t, n_ref, drop, keep, o) <= 0.0:
             return False  # the fallback (undo_flips) moves vertices back towards the raw surface
     return True
 
 
 @nb.njit(cache=True)
-def _collapse(n_ref, raw, after, faces, on_wall, alive, flip, start, adj, head, nxt, tail, passes, merged):
+def _collapse(n_ref, raw, after, faces, on_wall, alive, flip, start, adj, head, nxt, tail, passes, merged, o):
     """collapse_flipped's loop; the (kept, dropped) pairs go to ``merged``; returns how many."""
     nv = after.shape[0]
     nf = faces.shape[0]
@@ -538,7 +546,7 @@ def _collapse(n_ref, raw, after, faces, on_wall, alive, flip, start, adj, head, 
                 todo[n_todo] = t
                 n_todo += 1
         for t in todo[:n_todo]:
-            if not alive[t] or not _turn(after, faces, t, n_ref, np.int64(-1), np.int64(-1)) <= 0.0:
+            if not alive[t] or not _turn(after, faces, t, n_ref, np.int64(-1), np.int64(-1), o) <= 0.0:
                 continue
             for e in range(3):  # squared edge lengths, shortest first (stable)
                 p = np.int64(faces[t, e])
@@ -563,7 +571,7 @@ def _collapse(n_ref, raw, after, faces, on_wall, alive, flip, start, adj, head, 
                     if on_wall[keep]:
                         stamp += 1
                         if _try_collapse(keep, drop, n_ref, raw, after, faces, alive, flip, head, nxt, tail, start, adj,
-                                         seen_k, seen_d, vmark_k, vmark_d, fk, fd, stamp):
+                                         seen_k, seen_d, vmark_k, vmark_d, fk, fd, stamp, o):
                             merged[n, 0] = keep
                             merged[n, 1] = drop
                             n += 1
@@ -617,6 +625,9 @@ def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapPa
     if len(mesh.vertices) == 0:
         return mesh, counts
     v = mesh.vertices.astype(np.float64)
+    # stored as float32 (near the origin: flips judged at that rounding) or float64 about the surface's centre
+    stored = position_dtype(v, l0)
+    origin = None if stored is np.float32 else 0.5 * (v.min(axis=0) + v.max(axis=0))
     out = np.empty_like(v)
     moved = np.zeros(len(v), np.bool_)
     snap_to_walls(v, mesh.normals.astype(np.float64), sdf, bodies, t, params.band * l0, params.only_contact,
@@ -639,7 +650,7 @@ def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapPa
         idx = idx[ok]
         out[idx] = near[ok]
         on_wall[idx] = True
-    folds = Folds(n_ref, out, f, alive)
+    folds = Folds(n_ref, out, f, alive, origin)
     if exact:
         for grow in range(3 if params.relax_rounds or params.collapse else 1):
             if grow:
@@ -666,7 +677,7 @@ def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapPa
         # what is still flipped has every vertex back on the raw surface but a merged edge: undo
         # those collapses and let undo_flips finish (over triangles listed anew)
         merged = revert_collapses(mesh.faces, f, alive, merged, np.unique(f[folds.flipped()]))
-        folds = Folds(n_ref, out, f, alive)
+        folds = Folds(n_ref, out, f, alive, origin)
     counts["collapsed"] = len(merged)
     counts["kept_faces"] = kept = np.flatnonzero(alive)
     f = f.take(kept, axis=0)
@@ -679,7 +690,7 @@ def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapPa
             into[drop] = into[into[drop]]
         out[drop] = out[into[drop]]
         normals[drop] = normals[into[drop]]
-    return SurfaceMesh(out.astype(np.float32), f, normals.astype(np.float32)), counts
+    return SurfaceMesh(out.astype(stored), f, normals.astype(np.float32)), counts
 
 
 # Per process (a worker runs many frames of one shot): the inputs every frame shares, loaded once. Cache
@@ -735,4 +746,4 @@ class DistanceSnap(Stage):
         snapped, report = snap_mesh(mesh, sdf, meta.spacing, params, walls, bodies, frame / meta.fps, project)
         ctx.log.debug("frame %d: %d vertices snapped, %d relaxed, %d edges collapsed, %d damped", frame,
                       report["snapped"], report["relaxed"], report["collapsed"], report["damped"])
-        save_surface(ctx.out_dir, frame, snapped)
+        save_surface(ctx.out_dir, frame, snapped, meta.spacing)
