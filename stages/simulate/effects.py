@@ -65,9 +65,10 @@ def tension_constant(gamma: float, rho0: float, h: float) -> float:
     So k = gamma / (TENSION_MODEL_FACTOR x the cohesion's Kirkwood-Buff gamma per k), the factor measured
     by the model's own l=2 oscillation of a water drop in zero gravity against Rayleigh's
     omega^2 = 8 gamma / (rho R^3) (weakly compressible SPH, support 2 l0; both terms scale as
-    k rho0^2 h^2, so the ratio does not depend on the resolution; script in the commit message of the fix
-    and tests/test_surface_tension_physics.py). Measured T / T_Rayleigh with the factor 6:
-    see README "surface_tension" (R / l0 = 6.25 and 9.4, R = 4-10 mm, water and mercury)."""
+    k rho0^2 h^2 in the continuum, so the ratio should not depend on the resolution; the measurement is
+    tests/test_surface_tension_physics.py's). Measured T / T_Rayleigh with the factor 6 (old: 0.35-0.42):
+    a 15 %-stretched ball 0.95 at R / l0 = 6.25 and 0.84 at 9.4; a 2:1 block 1.07 and 0.90 (R = 6.25 mm),
+    1.00 at R = 4 mm. Finer particles pull somewhat harder, so this is measured at R / l0 ~ 6-9 only."""
     return gamma / (TENSION_MODEL_FACTOR * cohesion_kirkwood_buff(rho0, h))
 
 
