@@ -523,3 +523,46 @@ def test_a_render_resolution_of_another_aspect_than_the_shot_camera_is_said(tmp_
     with caplog.at_level(logging.WARNING):
         run_stage(PyvistaRender, tmp_path / "q", scene=SCENE, inputs=inputs, frames=(0,), params={"resolution": [320, 180]})
     assert "shot camera's aspect" not in caplog.text
+
+
+def test_the_colour_range_is_the_shots_percentile_and_what_is_above_it_shows(tmp_path):
+    """The colour bar's top was the largest per-frame 99.5th percentile while the docs said "the largest value":
+    one frame's start-up spike set the range of the whole shot, and particles above it looked like the top
+    colour. The top is now the 99.5th percentile of every frame's values together, particles above it are drawn
+    pink with an "above" swatch on the bar; point sizes scale with the resolution."""
+    import imageio.v3 as iio
+
+    from stages.render.pyvista_render import ABOVE_RGB, point_pixels, run_max
+
+    parts = tmp_path / "p"
+    parts.mkdir()
+    ParticleMeta(spacing=0.05, mass=0.125, density=1000.0, support=0.1, fps=10, frame_count=4, up_axis="Z",
+                 meters_per_unit=1.0, solver="synthetic").save(parts)
+    rng = np.random.default_rng(3)
+    for f in range(4):
+        n = 400
+        x = SPHERE_CENTRE + rng.uniform(-0.25, 0.25, (n, 3))
+        p = rng.uniform(0, 1000, n)
+        if f == 0:
+            p[:20] = 5000.0  # a start-up spike: 5 % of one frame
+        save_particle_frame(parts, f, ParticleFrame(x, np.zeros((n, 3)), np.full(n, 1000.0), p, np.arange(n)))
+    top = run_max(parts, "pressure")
+    assert 990 < top < 1000  # the shot's 99.5th percentile: the spike is 1.25 % of all values, not the range
+    walls = tmp_path / "w"
+    walls.mkdir()
+    out = run_stage(PyvistaRender, tmp_path / "f", scene=SCENE, frames=(0,),
+                    inputs={"walls": make_walls(walls), "particles": parts},
+                    params={"resolution": [960, 540], "show": "particles", "color_by": "pressure", "label": False})
+    def pink(folder):
+        img = iio.imread(folder / "frame_00000.png")[..., :3].astype(int)
+        r, g, b = img[..., 0], img[..., 1], img[..., 2]  # shaded spheres: pink's hue, not its exact value
+        return int(((r > 120) & (b > 0.5 * r) & (g < 0.6 * r)).sum())
+
+    whole = run_stage(PyvistaRender, tmp_path / "g", scene=SCENE, frames=(0,),
+                      inputs={"walls": walls, "particles": parts},
+                      params={"resolution": [960, 540], "show": "particles", "color_by": "pressure", "label": False,
+                              "color_range": [0.0, 6000.0]})
+    assert pink(out) > pink(whole) + 30, (pink(out), pink(whole))  # the spike's particles and the bar's swatch
+    assert ABOVE_RGB[0] > ABOVE_RGB[1]
+    assert point_pixels(PyvistaRender.Params(resolution=(3840, 2160))) == 3 * point_pixels(PyvistaRender.Params(
+        resolution=(1280, 720)))
