@@ -284,6 +284,39 @@ def test_the_automatic_camera_fits_the_walls_in_a_portrait_frame():
         assert np.all(np.abs(rel @ right) / depth < aspect * tan_v), aspect
 
 
+def test_the_automatic_camera_frames_fluid_standing_above_the_walls(tmp_path):
+    """A column of water standing on a floor plate reached far above the walls' box, which alone set the
+    automatic camera: the column's top was cut off in every frame. The camera now frames the fluid's start
+    too (frame 0 of the particle run, half a spacing around it)."""
+    from pipeline.scene import Camera, Units
+    from stages.common.camera import fluid_bounds, shot_camera
+
+    parts = tmp_path / "p"
+    parts.mkdir()
+    ParticleMeta(spacing=0.02, mass=0.008, density=1000.0, support=0.04, fps=10, frame_count=1, up_axis="Z",
+                 meters_per_unit=1.0, solver="synthetic").save(parts)
+    g = np.stack(np.meshgrid(np.arange(-0.09, 0.1, 0.02), np.arange(-0.09, 0.1, 0.02), np.arange(0.01, 0.6, 0.02),
+                             indexing="ij"), axis=-1).reshape(-1, 3)
+    save_particle_frame(parts, 0, ParticleFrame(g, np.zeros_like(g), np.full(len(g), 1000.0), np.zeros(len(g)),
+                                                np.arange(len(g))))
+    plate = trimesh.creation.box(extents=(0.6, 0.6, 0.04))
+    plate.apply_translation((0, 0, -0.02))
+    walls = WallMesh(plate.vertices, plate.faces.astype(np.int32), np.zeros(len(plate.faces), np.int32),
+                     [{"name": "plate", "fluid": "outside"}])
+    fluid = fluid_bounds(parts)
+    assert np.allclose(fluid[1], [0.1, 0.1, 0.6])
+    for box in (fluid, None):
+        eye, centre, up, angle = shot_camera(walls, Units(up_axis="Z"), Camera(), lambda p: tmp_path / p, "render",
+                                             aspect=16 / 9, fluid=box)
+        forward = (centre - eye) / np.linalg.norm(centre - eye)
+        right = np.cross(forward, up)
+        right /= np.linalg.norm(right)
+        true_up = np.cross(right, forward)
+        top = np.array([0.0, 0.0, 0.6]) - eye
+        inside = abs(top @ true_up) / (top @ forward) < math.tan(math.radians(angle / 2))
+        assert inside == (box is not None)  # without the fluid's box the column's top is out of the frame
+
+
 @pytest.mark.parametrize("up_axis", ["Z", "Y"])
 def test_a_plan_view_without_an_up_gets_one_across_the_view(tmp_path, inputs, up_axis):
     """Looking straight down the scene's up axis with no camera.up, the default up (the up axis) lies along the

@@ -3,6 +3,8 @@ the USD camera prim show the same view: a UsdGeom.Camera from a file, or automat
 walls, with position / focal_point / up from the config taking precedence."""
 from __future__ import annotations
 
+import functools
+
 import math
 from pathlib import Path
 from typing import Callable
@@ -112,11 +114,29 @@ def camera_files(ctx) -> list[Path]:
     return usd_dependencies(ctx.resolve(cam.usd)) if cam.usd is not None else []
 
 
+@functools.lru_cache(maxsize=8)
+def fluid_bounds(particles: Path | None) -> tuple[np.ndarray, np.ndarray] | None:
+    """The box of the fluid at the shot's start (frame 0 of a particle run, half a spacing around the
+    particles), for the automatic camera; None without one."""
+    from stages.common.formats import ParticleMeta, load_particle_frame
+
+    if particles is None:
+        return None
+    try:
+        meta, x = ParticleMeta.load(particles), load_particle_frame(particles, 0).x
+    except (FileNotFoundError, OSError):
+        return None
+    if len(x) == 0:
+        return None
+    return x.min(axis=0) - 0.5 * meta.spacing, x.max(axis=0) + 0.5 * meta.spacing
+
+
 def shot_camera(walls: WallMesh, units, cam, resolve: Callable[[str], Path], who: str, seconds: float = 0.0,
-                aspect: float = 16 / 9):
+                aspect: float = 16 / 9, fluid: tuple[np.ndarray, np.ndarray] | None = None):
     """(eye, focal point, up, vertical view angle) in scene units for the scene's ``cam``
     (pipeline.scene.Camera) at ``seconds`` into the shot (a USD camera may be animated), for an image
-    ``aspect`` wide per unit of height; ``who`` names the stage in errors."""
+    ``aspect`` wide per unit of height; ``who`` names the stage in errors. The automatic camera frames the
+    walls and ``fluid`` (fluid_bounds: a column standing above a floor plate was cut off at the frame's top)."""
     view_angle = cam.view_angle
     if cam.usd is not None:
         eye, centre, up, view_angle = usd_camera(resolve(cam.usd), cam.prim, units.up_axis, units.meters_per_unit, who,
@@ -124,6 +144,10 @@ def shot_camera(walls: WallMesh, units, cam, resolve: Callable[[str], Path], who
     else:
         if len(walls.vertices):
             lo, hi = walls.vertices.min(axis=0), walls.vertices.max(axis=0)
+            if fluid is not None:
+                lo, hi = np.minimum(lo, fluid[0]), np.maximum(hi, fluid[1])
+        elif fluid is not None:
+            lo, hi = np.asarray(fluid[0], float), np.asarray(fluid[1], float)
         else:
             lo, hi = np.full(3, -1.0 / units.meters_per_unit), np.full(3, 1.0 / units.meters_per_unit)  # +-1 m
         eye, centre, up = auto_camera(lo, hi, units.up_axis, view_angle, aspect)

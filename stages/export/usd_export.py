@@ -28,7 +28,7 @@ import numpy as np
 from pydantic import Field, field_validator, model_validator
 
 from pipeline.stage import Artifact, Context, Params, Stage, StageError
-from stages.common.camera import camera_files, shot_camera, usd_camera_moves
+from stages.common.camera import camera_files, fluid_bounds, shot_camera, usd_camera_moves
 from stages.common.formats import ParticleMeta, WallMesh, load_particle_frame, load_surface, local_origin
 from stages.common.usd_points import local_frame
 
@@ -269,7 +269,7 @@ class UsdExport(Stage):
 
         def pose(seconds: float):  # the shot's camera at a time, in the layer's frame
             eye, target, up, view_angle = shot_camera(walls, scene.units, cam, ctx.resolve, "export.usd", seconds,
-                                                      aspect)
+                                                      aspect, fluid_bounds(inputs["particles"].path))
             return (ul.apply(to_target, eye[None])[0], ul.apply(to_target, target[None])[0],
                     ul.apply_linear(to_target, up[None])[0], view_angle)
 

@@ -27,7 +27,7 @@ import numpy as np
 from pydantic import field_validator, Field, model_validator
 
 from pipeline.stage import Artifact, Context, Params, Stage, StageError
-from stages.common.camera import camera_files, shot_camera
+from stages.common.camera import camera_files, fluid_bounds, shot_camera
 from stages.common.formats import (WALLS_FILE, WALLS_INFO, ParticleMeta, SurfaceMesh, WallMesh, load_particle_frame,
                                    load_surface, skipped_frame_marker, surface_file)
 
@@ -266,7 +266,8 @@ class PyvistaRender(Stage):
         walls = load_walls(Path(inputs["walls"].path))
         eye, centre, up, view_angle = shot_camera(walls, scene.units, ctx.scene["camera"], ctx.resolve,
                                                   "render.pyvista", frame / scene.frames.fps,
-                                                  params.resolution[0] / params.resolution[1])
+                                                  params.resolution[0] / params.resolution[1],
+                                                  fluid_bounds(inputs["particles"].path))
         # everything the plotter and its static walls depend on
         key = (tuple(params.resolution), params.background, params.wall_opacity, params.near_wall_opacity,
                walls_identity(Path(inputs["walls"].path)), tuple(eye), tuple(centre), tuple(up), view_angle)
