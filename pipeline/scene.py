@@ -386,6 +386,14 @@ class Gravity(Model):
 
     g: float = Field(9.81, ge=0, description="magnitude, m/s^2, pointing against the up axis")
 
+    @field_validator("g", mode="before")
+    @classmethod
+    def _a_size(cls, v):
+        if isinstance(v, (list, tuple)):  # SPlisHSPlasH and Houdini take a vector
+            raise ValueError("gravity points against scene.units.up_axis: give its size in m/s^2 (9.81), not a "
+                             "vector")
+        return v
+
 
 class Viscosity(Model):
     """Fluid-fluid viscosity (PHYSICS.md eq. 7, 9) and the resting wall's no-slip term (eq. 13-15)."""

@@ -193,3 +193,23 @@ def test_a_tank_turned_against_the_lattice_keeps_its_water():
         kept[deg] = len(x)
     assert kept[0.0] == 8 * 10 * 10
     assert 0.87 < kept[45.0] / kept[0.0] <= 1.0, kept  # was 0.80
+
+
+def test_an_impossible_viscosity_is_refused_before_the_run_and_981_g_is_questioned(tmp_path, caplog):
+    """mu = 1e9 Pa s needs steps of 1e-11 s: the run stopped at its first step as a blow-up (exit 1, a blow-up
+    checkpoint left behind); the viscous limit is known before the run, as the friction rate's is. g = 981 in a
+    centimetre scene (Earth's gravity in cm/s^2) ran at 100 g without a word."""
+    from pipeline.stage import StageError
+
+    sdf = _sdf(tmp_path)
+    scene = {**SCENE, "fluid": {"spacing": L0, "emitters": [{"box": {"min": [0.1, 0.06, 0.1], "max": [0.16, 0.12, 0.16]}}]},
+             "effects": {"gravity": {}, "viscosity": {"mu": 1e9}}}
+    with pytest.raises(StageError, match=r"effects.viscosity.mu \(1e\+09 Pa s\) needs time steps of .* below this "
+                                         r"scene's floor"):
+        run_stage(SPHSimulate, tmp_path / "out", scene=scene, params={"threads": 1}, inputs={"sdf": sdf})
+    assert not (tmp_path / "out" / "frames").exists() or not any((tmp_path / "out" / "frames").iterdir())
+    scene["effects"] = {"gravity": {"g": 981.0}}
+    scene["scene"] = {**scene["scene"], "frames": {"fps": 30, "count": 2}}
+    with caplog.at_level(logging.WARNING):
+        run_stage(SPHSimulate, tmp_path / "g", scene=scene, params={"threads": 1}, inputs={"sdf": sdf})
+    assert "effects.gravity.g is 981 m/s^2, 100 x Earth's: gravity is given in m/s^2 in every unit" in caplog.text

@@ -622,6 +622,17 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
         ctx.log.warning("the effects (wind, attractor) allow speeds up to %.3g m/s, %.0f x what falling and the "
                         "emitters give (%.3g m/s): the time steps shrink as much and the run takes that much longer; "
                         "check their strength", solver.guard.v_bound, solver.guard.v_bound / own, own)
+    mu = float(setup.effects.viscosity.mu) if setup.effects.viscosity is not None else 0.0
+    viscous_dt = 0.125 * getattr(solver, "h", 2.0 * setup.spacing) ** 2 / (mu / setup.density) if mu > 0 else math.inf
+    if viscous_dt < solver.guard.dt_floor:
+        # the viscous step limit (timestep.stable_dt) is known now: said before the run, not as a blow-up after it
+        raise StageError(f"simulate.{solver_name}: effects.viscosity.mu ({mu:g} Pa s) needs time steps of "
+                         f"{viscous_dt:.3g} s, below this scene's floor of "
+                         f"{solver.guard.dt_floor:.3g} s (a blow-up): lower it (water 0.001, honey about 10)")
+    g = float(setup.effects.gravity.g) if setup.effects.gravity is not None else 0.0
+    if g > 50.0:  # 981 in a centimetre scene: gravity is in m/s^2 in every unit
+        ctx.log.warning("effects.gravity.g is %g m/s^2, %.0f x Earth's: gravity is given in m/s^2 in every unit "
+                        "(981 is Earth's in cm/s^2)", g, g / 9.81)
     if effects is not None and effects.dt_limit < solver.guard.dt_floor:
         # the run would stop at its first step with "the time step fell below the floor": say which setting
         raise StageError(f"simulate.{solver_name}: {effects.dt_limit_by} needs time steps of {effects.dt_limit:.3g} s, "
