@@ -128,6 +128,11 @@ def check_out_dir(out_dir: Path, names: Iterable[str], files: Iterable[str] = ("
         if foreign:
             raise OutputRefused(f"{target / foreign[0]}: a file the pipeline did not publish is inside output {name!r}; "
                                 f"move it away (nothing was changed)")
+        if target.is_dir() and (not os.access(target, os.W_OK) or not target.stat().st_mode & 0o200):
+            # a folder someone locked (chmod a-w: an approved movie) is theirs to unlock, not ours to replace (it was
+            # swapped anyway, and its old files, undeletable, stayed behind as a hidden folder)
+            raise OutputRefused(f"{target}: output {name!r} is read-only (locked?); make it writable to let the run "
+                                f"replace it, or choose another --out (nothing was changed)")
 
 
 def sweep_out_dir(out_dir: Path) -> None:

@@ -102,6 +102,27 @@ def test_published_folders_are_replaced_others_kept_and_user_additions_protected
     assert "render 32" in (out / "frames" / "frame_00000.txt").read_text()
 
 
+def test_a_published_folder_someone_locked_is_refused_not_replaced(tmp_path, toy_registry):
+    """chmod a-w on an approved frames/ folder: the next run with other settings swapped it anyway (exit 0), and
+    its old files, undeletable, stayed behind in a hidden .pipeline-tmp.old-frames folder for good. The run is
+    now refused in one line before anything runs; unlocked, it replaces the folder as usual."""
+    cfg = write_config(tmp_path, count=3)
+    out = tmp_path / "studio"
+    assert _run(cfg, "--out", out, "--cache", tmp_path / "c").exit_code == 0
+    before = (out / "frames" / "frame_00000.txt").read_text()
+    (out / "frames").chmod(0o555)
+    try:
+        err = _one_line_exit(_run(cfg, "--out", out, "--cache", tmp_path / "c", "--set", "render.width=16"), 2)
+        assert "output 'frames' is read-only" in err and "nothing was changed" in err
+        assert (out / "frames" / "frame_00000.txt").read_text() == before
+        assert not [p for p in out.iterdir() if p.name.startswith(".pipeline-tmp")]
+    finally:
+        (out / "frames").chmod(0o755)
+    assert _run(cfg, "--out", out, "--cache", tmp_path / "c", "--set", "render.width=16").exit_code == 0
+    assert "render 16" in (out / "frames" / "frame_00000.txt").read_text()
+    assert_consistent(tmp_path / "c", out)
+
+
 def test_a_published_file_edited_in_place_changes_nothing_else(tmp_path, toy_registry):
     """Two output folders published from one cache entry, then a frame overwritten in place in one of them
     (as an editor saving over it does): the cache entry and the other folder keep the run's frame (published as
