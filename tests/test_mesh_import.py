@@ -364,3 +364,25 @@ def test_usd_walls_take_sampled_points_and_leave_out_guides_and_doubled_proxies(
     assert "animated points" in caplog.text
     with pytest.raises(StageError, match=r"left out: /World/Helpers/GuidePlate \(purpose guide\)"):
         read_usd_wall(tmp_path / "set.usda", SimpleNamespace(prims=["/World/Helpers"], include_invisible=False), 1.0, "Z")
+
+
+def test_a_copied_project_publishes_its_own_relative_sources(tmp_path):
+    """walls.json and the exported walls' customData named the resolved, absolute path of each file: a copied or
+    moved project reused the cache entry (same key) and published the first project's paths (a file that may be
+    gone). The source is now the file as the config names it, so both projects' walls.json are byte-identical."""
+    import shutil
+
+    made = []
+    for name in ("proj", "proj2"):
+        root = tmp_path / name
+        (root / "assets").mkdir(parents=True)
+        trimesh.creation.box(extents=(0.1, 0.1, 0.1)).export(root / "assets" / "obstacle.obj")
+        scene = {"scene": {"name": "t"}, "walls": [{"builtin": "box_tank", "size": [1, 1, 1]},
+                                                   {"file": "assets/obstacle.obj"}]}
+        out = run_stage(TrimeshImport, root / "walls", scene=scene, config_dir=root)
+        made.append((out / "walls.json").read_bytes())
+        info = json.loads(made[-1])
+        assert [w["source"] for w in (info if isinstance(info, list) else info["walls"])] == [
+            "builtin:box_tank", "assets/obstacle.obj"]
+    assert made[0] == made[1]
+    shutil.rmtree(tmp_path / "proj")

@@ -19,7 +19,8 @@ surface_extract / wall_snap -> per-frame artifact folders, each with
 mesh_import -> ``walls`` artifact folder:
     walls.npz                 vertices (V,3) f64 world space, scene units; faces (F,3) i32;
                               wall_id (F,) i32 (index into walls.json)
-    walls.json                [{"name", "fluid": "inside"|"outside"|"both", "source", "report": {...},
+    walls.json                [{"name", "fluid": "inside"|"outside"|"both", "source" (the file as the config
+                              names it, relative to its folder; "builtin:<kind>"), "report": {...},
                               "shell": thickness (scene units; only for a shell, whose fluid is "both"),
                               "motion": {"times": (K,) s, "translate": (K, 3) scene units, "quat": (K, 4)
                               w x y z, "pivot": (3,) scene units} (only for a moving wall: RigidMotion.to_json,

@@ -210,7 +210,10 @@ class TrimeshImport(Stage):
             if not report["watertight"] and shell is None:
                 ctx.log.warning("%s: not watertight (%d boundary edges, %d non-manifold); the SDF sign uses ray voting",
                                 where, report["boundary_edges"], report["non_manifold_edges"])
-            info.append({"name": _wall_name(i, label), "fluid": fluid, "source": source, "report": report})
+            # the file as the config names it (relative to its folder), not the resolved path: a copied or moved
+            # project reuses this cache entry (same key) and must not publish the first project's absolute paths
+            named = source if isinstance(w, BuiltinWall) else str(w.usd if isinstance(w, UsdWall) else w.file)
+            info.append({"name": _wall_name(i, label), "fluid": fluid, "source": named, "report": report})
             if fluid == "both":
                 info[-1]["shell"] = shell
             if asset_to_scene is not None:
