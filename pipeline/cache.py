@@ -247,7 +247,25 @@ class Cache:
         """Held, shared, by every run for its whole length: ``clean`` takes it alone, so it never removes
         an entry a running shot made and is about to read (a clean during a run broke the run)."""
         with self._runs_lock() as fh:
-            fcntl.flock(fh, fcntl.LOCK_SH)  # a clean holds it alone only while it removes entries
+            # a clean holds it alone only while it removes entries: wait for it as for a key's lock (said, and
+            # given up after lock_timeout; a run started during a long clean on a network disk looked hung)
+            t0 = time.monotonic()
+            told = False
+            while True:
+                try:
+                    fcntl.flock(fh, fcntl.LOCK_SH | fcntl.LOCK_NB)
+                    break
+                except BlockingIOError:
+                    pass
+                waited = time.monotonic() - t0
+                if waited >= self.lock_timeout:
+                    raise LockTimeout(f"cache {self.root}: gave up after {waited:.0f} s waiting for `pipeline clean`, "
+                                      "which holds the cache alone (--lock-timeout)")
+                if not told:
+                    log.warning("cache %s: waiting for `pipeline clean`, which holds it alone (gives up after %.0f s)",
+                                self.root, self.lock_timeout)
+                    told = True
+                time.sleep(min(0.2, max(0.0, self.lock_timeout - waited)))
             yield
 
     @contextmanager

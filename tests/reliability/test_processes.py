@@ -77,6 +77,29 @@ def test_lock_wait_names_the_holder_and_gives_up(tmp_path):
     assert_consistent(cache)
 
 
+def test_a_run_during_a_clean_says_it_waits_and_gives_up_after_the_lock_timeout(tmp_path):
+    """`pipeline clean` holds the cache alone while it removes entries; a run started meanwhile waited in silence,
+    whatever --lock-timeout said (a long clean on a network disk looked like a hung run). It now says what it
+    waits for and gives up after the timeout: exit 1, one line."""
+    import fcntl
+
+    cfg = write_config(tmp_path, count=2)
+    cache = tmp_path / "c"
+    (cache / "locks").mkdir(parents=True)
+    with open(cache / "locks" / "runs.lock", "a+") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)  # as clean takes it
+        t0 = time.monotonic()
+        r = run_cli("run", str(cfg), "--cache", str(cache), "--lock-timeout", "1", "-q")
+        waited = time.monotonic() - t0
+    assert r.returncode == 1, r.stderr
+    assert "waiting for `pipeline clean`" in r.stderr
+    err = r.stderr.strip().splitlines()[-1]
+    assert err.startswith("error: ") and "gave up after 1 s waiting for `pipeline clean`" in err, err
+    assert waited < 30
+    r = run_cli("run", str(cfg), "--cache", str(cache), "-q")  # the clean done: the run goes ahead
+    assert r.returncode == 0, r.stderr
+
+
 def _interrupt_when(tmp_path: Path, marker: str, *sets: str, extra: tuple[str, ...] = (),
                     sig: int = signal.SIGINT) -> tuple[subprocess.Popen, float, str]:
     cfg = write_config(tmp_path, count=4)
