@@ -269,7 +269,7 @@ class UsdExport(Stage):
 
         def pose(seconds: float):  # the shot's camera at a time, in the layer's frame
             eye, target, up, view_angle = shot_camera(walls, scene.units, cam, ctx.resolve, "export.usd", seconds,
-                                                      aspect, fluid_bounds(inputs["particles"].path))
+                                                      aspect, fluid_bounds(getattr(inputs.get("particles"), "path", None)))
             return (ul.apply(to_target, eye[None])[0], ul.apply(to_target, target[None])[0],
                     ul.apply_linear(to_target, up[None])[0], view_angle)
 

@@ -267,7 +267,7 @@ class PyvistaRender(Stage):
         eye, centre, up, view_angle = shot_camera(walls, scene.units, ctx.scene["camera"], ctx.resolve,
                                                   "render.pyvista", frame / scene.frames.fps,
                                                   params.resolution[0] / params.resolution[1],
-                                                  fluid_bounds(inputs["particles"].path))
+                                                  fluid_bounds(getattr(inputs.get("particles"), "path", None)))
         # everything the plotter and its static walls depend on
         key = (tuple(params.resolution), params.background, params.wall_opacity, params.near_wall_opacity,
                walls_identity(Path(inputs["walls"].path)), tuple(eye), tuple(centre), tuple(up), view_angle)

@@ -392,7 +392,8 @@ def grid_box(wm: WallMesh, domain, l0: float, p: BakeParams) -> tuple[np.ndarray
     the static walls' bounds and every moving wall's swept bounds, padded by band + margin."""
     if domain is not None:
         pad = p.margin * l0
-        return np.asarray(domain.min, np.float64) - pad, np.asarray(domain.max, np.float64) + pad
+        return (_on_body_nodes(wm, np.asarray(domain.min, np.float64) - pad, l0, p) if wm is not None else
+                np.asarray(domain.min, np.float64) - pad), np.asarray(domain.max, np.float64) + pad
     moving = wm.motions()
     still = ~np.isin(wm.wall_id, [i for i, _ in moving])
     boxes = []
@@ -407,7 +408,21 @@ def grid_box(wm: WallMesh, domain, l0: float, p: BakeParams) -> tuple[np.ndarray
     if not boxes:
         raise StageError("sdf_bake: no walls and no scene.domain: nothing to bound the grid")
     pad = (p.band + p.margin) * l0
-    return np.min([b[0] for b in boxes], axis=0) - pad, np.max([b[1] for b in boxes], axis=0) + pad
+    return _on_body_nodes(wm, np.min([b[0] for b in boxes], axis=0) - pad, l0, p), \
+        np.max([b[1] for b in boxes], axis=0) + pad
+
+
+def _on_body_nodes(wm: WallMesh, lo: np.ndarray, l0: float, p: BakeParams) -> np.ndarray:
+    """``lo`` moved down onto the first moving wall's grid nodes (less than a cell): at its rest pose that
+    wall's field is then resampled node for node onto the static grid, exactly. Off its nodes, trilinear
+    resampling rounded a turning tank's concave corners at t = 0 below l0 / 2: 24 of 640 particles of a
+    dam break were dropped from its bottom edges, and their columns started without hydrostatic compression."""
+    boxes = body_boxes(wm, l0, p)
+    if not boxes:
+        return lo
+    h = p.cell * l0
+    body_lo = boxes[0][0]
+    return body_lo + np.floor((lo - body_lo) / h + 1e-9) * h
 
 
 def split_moving(wm: WallMesh) -> tuple[WallMesh, list[tuple[int, WallMesh]]]:

@@ -204,7 +204,9 @@ def test_sigterm_stops_like_ctrl_c(tmp_path, marker, sleep):
     proc, seconds, err = _interrupt_when(tmp_path, marker, sleep, sig=signal.SIGTERM)
     assert proc.returncode == 143, err
     assert seconds < 5, f"took {seconds:.1f} s to stop"
-    lines = err.strip().splitlines()
+    # (multiprocessing's resource tracker, its own process, may warn of the stopped pool's semaphore: Python's
+    # noise, as after Ctrl-C)
+    lines = [ln for ln in err.strip().splitlines() if "resource_tracker" not in ln and "warnings.warn" not in ln]
     assert len(lines) == 1 and lines[0].startswith("terminated (SIGTERM)"), err
     _resume_is_consistent(tmp_path)
 
