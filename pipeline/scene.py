@@ -83,8 +83,8 @@ class Scene(Model):
     @classmethod
     def _plain_folder_name(cls, v: str) -> str:
         if not re.fullmatch(r"[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}", v):
-            raise ValueError("not a plain folder name (it names the output folder): 1-64 letters, digits, "
-                             "_ . -, not starting with '.'")
+            raise ValueError("not a plain folder name (it names the output folder): 1-64 ASCII letters "
+                             "(a-z, A-Z), digits, _ . -, not starting with '.'")
         return v
 
 

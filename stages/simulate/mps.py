@@ -312,7 +312,8 @@ def check_effects(effects) -> None:
     """StageError naming the scene's effects that MPS does not implement."""
     other = [e for e in effects.enabled() if e not in SUPPORTED_EFFECTS]
     if other:
-        raise StageError(f"simulate.mps: effects {', '.join(other)} are not supported by MPS (it supports "
+        raise StageError(f"simulate.mps: {'effects' if len(other) > 1 else 'effect'} {', '.join(other)} "
+                         f"{'are' if len(other) > 1 else 'is'} not supported by MPS (it supports "
                          f"{', '.join(SUPPORTED_EFFECTS)}); remove them from 'effects' or use simulate: {{use: sph}}")
 
 
