@@ -404,6 +404,24 @@ class Cache:
             raise
 
 
+def running(cache: "Cache", key: str) -> str | None:
+    """Who holds ``key``'s lock now (a run computing it: "pid N on host since T"), or None (`pipeline status`
+    during a run called the entry being computed "missing, never run")."""
+    path = cache.root / "locks" / f"{key}.lock"
+    if not path.is_file():
+        return None
+    try:
+        with open(path, "a+") as fh:
+            try:
+                fcntl.flock(fh, fcntl.LOCK_SH | fcntl.LOCK_NB)
+            except BlockingIOError:
+                return _holder(path)
+            fcntl.flock(fh, fcntl.LOCK_UN)
+    except OSError:
+        return None
+    return None
+
+
 def _holder(lock_file: Path) -> str:
     try:
         info = json.loads(lock_file.read_text())

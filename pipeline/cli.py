@@ -205,7 +205,7 @@ def status(config, overrides, cache_dir, frames):
 
     rows = config_status(config, overrides=tuple(overrides), cache_dir=cache_dir, frames=runner.parse_frames(frames))
     table = Table("stage", "implementation", "key", "state", "reason", "last (s)")
-    colour = {"cached": "green", "stale": "yellow", "missing": "red", "partial": "yellow"}
+    colour = {"cached": "green", "stale": "yellow", "missing": "red", "partial": "yellow", "running": "cyan"}
     for r in rows:
         table.add_row(r.kind, r.implementation, r.key[:12], f"[{colour[r.state]}]{r.state}[/]", r.reason,
                       "" if r.seconds is None else f"{r.seconds:.2f}")

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from .cache import Cache
+from .cache import Cache, running
 from .config import load_config
 from .errors import ConfigError
 from .graph import Graph, build_graph
@@ -21,7 +21,7 @@ class StageStatus:
     kind: str
     implementation: str
     key: str
-    state: str  # cached / stale / missing / partial
+    state: str  # cached / stale / missing / partial / running
     reason: str
     seconds: float | None
 
@@ -102,6 +102,9 @@ def status(config_path: str | Path, *, registry: Registry | None = None, overrid
             rows.append(StageStatus(kind, node.cls.name, key, "stale",
                                     _diff(prev.get("components", {}), p.components[kind], graph) + extends,
                                     prev.get("seconds")))
+        elif running(cache, key) is not None:
+            rows.append(StageStatus(kind, node.cls.name, key, "running", f"being computed by {running(cache, key)}",
+                                    None))
         else:
             rows.append(StageStatus(kind, node.cls.name, key, "missing", "never run with these inputs" + extends, None))
     return rows

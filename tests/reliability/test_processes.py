@@ -100,6 +100,27 @@ def test_a_run_during_a_clean_says_it_waits_and_gives_up_after_the_lock_timeout(
     assert r.returncode == 0, r.stderr
 
 
+def test_status_during_a_run_says_which_stage_is_being_computed(tmp_path):
+    """`pipeline status` while a run computes the simulation called it "missing: never run with these inputs";
+    it now says it is being computed, and by whom."""
+    cfg = write_config(tmp_path, count=2)
+    cache = tmp_path / "c"
+    proc = _start("run", str(cfg), "--cache", str(cache), "-q", "--set", "simulate.sleep=60")
+    try:
+        deadline = time.monotonic() + 60
+        while _lines(tmp_path / "ran_simulate.log") == 0:
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        r = run_cli("status", str(cfg), "--cache", str(cache), "--set", "simulate.sleep=60")
+        assert r.returncode == 0, r.stderr
+        row = next(line for line in r.stdout.splitlines() if "simulate" in line)
+        assert "running" in row and f"pid {proc.pid}" in r.stdout, r.stdout
+    finally:
+        os.killpg(proc.pid, signal.SIGINT)
+        proc.communicate(timeout=30)
+
+
 def _interrupt_when(tmp_path: Path, marker: str, *sets: str, extra: tuple[str, ...] = (),
                     sig: int = signal.SIGINT) -> tuple[subprocess.Popen, float, str]:
     cfg = write_config(tmp_path, count=4)
