@@ -249,23 +249,7 @@ class Cache:
         with self._runs_lock() as fh:
             # a clean holds it alone only while it removes entries: wait for it as for a key's lock (said, and
             # given up after lock_timeout; a run started during a long clean on a network disk looked hung)
-            t0 = time.monotonic()
-            told = False
-            while True:
-                try:
-                    fcntl.flock(fh, fcntl.LOCK_SH | fcntl.LOCK_NB)
-                    break
-                except BlockingIOError:
-                    pass
-                waited = time.monotonic() - t0
-                if waited >= self.lock_timeout:
-                    raise LockTimeout(f"cache {self.root}: gave up after {waited:.0f} s waiting for `pipeline clean`, "
-                                      "which holds the cache alone (--lock-timeout)")
-                if not told:
-                    log.warning("cache %s: waiting for `pipeline clean`, which holds it alone (gives up after %.0f s)",
-                                self.root, self.lock_timeout)
-                    told = True
-                time.sleep(min(0.2, max(0.0, self.lock_timeout - waited)))
+            self._wait(fh, fcntl.LOCK_SH, f"cache {self.root}", lambda: "`pipeline clean`, which holds the cache alone")
             yield
 
     @contextmanager
@@ -278,6 +262,25 @@ class Cache:
                 raise CacheBusy(f"{what}: a run is using the cache {self.root}; try again when it has ended "
                                 "(nothing was removed)") from None
             yield
+
+    def _wait(self, fh, mode: int, what: str, holder) -> None:
+        """flock ``fh`` in ``mode``; while another holds it, say once what waits for whom (``holder()``) and give
+        up with LockTimeout after ``lock_timeout`` seconds."""
+        t0 = time.monotonic()
+        told = False
+        while True:
+            try:
+                fcntl.flock(fh, mode | fcntl.LOCK_NB)
+                return
+            except BlockingIOError:
+                pass
+            waited = time.monotonic() - t0
+            if waited >= self.lock_timeout:
+                raise LockTimeout(f"{what}: gave up after {waited:.0f} s waiting for {holder()} (--lock-timeout)")
+            if not told:
+                log.warning("%s: waiting for %s (gives up after %.0f s)", what, holder(), self.lock_timeout)
+                told = True
+            time.sleep(min(0.2, max(0.0, self.lock_timeout - waited)))
 
     def _runs_lock(self):
         """The file runs share and clean takes alone (open for flock)."""
@@ -293,23 +296,7 @@ class Cache:
         lock_dir.mkdir(parents=True, exist_ok=True)
         path = lock_dir / f"{key}.lock"
         with open(path, "a+") as fh:
-            t0 = time.monotonic()
-            told = False
-            while True:
-                try:
-                    fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                    break
-                except BlockingIOError:
-                    pass
-                waited = time.monotonic() - t0
-                if waited >= self.lock_timeout:
-                    raise LockTimeout(f"{what or 'key ' + key[:12]}: gave up after {waited:.0f} s waiting for the "
-                                      f"cache lock held by {_holder(path)} (--lock-timeout)")
-                if not told:
-                    log.warning("%s: waiting for the cache lock held by %s (gives up after %.0f s)",
-                                what or "key " + key[:12], _holder(path), self.lock_timeout)
-                    told = True
-                time.sleep(min(0.2, max(0.0, self.lock_timeout - waited)))
+            self._wait(fh, fcntl.LOCK_EX, what or "key " + key[:12], lambda: f"the cache lock held by {_holder(path)}")
             try:
                 fh.seek(0)
                 fh.truncate()
