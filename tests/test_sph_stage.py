@@ -213,3 +213,16 @@ def test_an_impossible_viscosity_is_refused_before_the_run_and_981_g_is_question
     with caplog.at_level(logging.WARNING):
         run_stage(SPHSimulate, tmp_path / "g", scene=scene, params={"threads": 1}, inputs={"sdf": sdf})
     assert "effects.gravity.g is 981 m/s^2, 100 x Earth's: gravity is given in m/s^2 in every unit" in caplog.text
+
+
+def test_a_box_emitter_that_holds_much_less_than_its_volume_says_so(caplog):
+    """A 1.5-spacing slot holds one column of particles: 0.67 of the box's water went missing without a word."""
+    from pipeline.scene import BoxEmitter
+    from stages.simulate.emitters import emit
+
+    with caplog.at_level(logging.WARNING):
+        x, _ = emit([BoxEmitter(box={"min": [-0.015, -0.1, 0.0], "max": [0.015, 0.1, 0.16]}),
+                     BoxEmitter(box={"min": [0.1, 0.0, 0.0], "max": [0.3, 0.2, 0.2]})], 0.02, lambda p: p)
+    assert len(x) == 80 + 1000
+    assert "fluid.emitters.0: the box holds 1 x 10 x 8 particles, 0.67 of its volume" in caplog.text
+    assert "fluid.emitters.1" not in caplog.text  # whole spacings: nothing to say

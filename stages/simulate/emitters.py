@@ -94,9 +94,17 @@ def emit(emitters, l0: float, resolve: Callable[[str], Path], meters_per_unit: f
     (``meters_per_unit``, ``up_axis``: the scene's, for mesh files in other units and USD files)."""
     log = log or logging.getLogger(__name__)
     xs, vs = [], []
-    for em in emitters:
+    for k, em in enumerate(emitters):
         if isinstance(em, BoxEmitter):
             pts = lattice(em.box.min, em.box.max, l0)
+            size = np.subtract(em.box.max, em.box.min)
+            held = len(pts) * l0 ** 3 / max(float(np.prod(size)), 1e-300)
+            if len(pts) and held < 0.9:  # a 1.5-spacing slot holds one column: 0.67 of its water, silently
+                log.warning("fluid.emitters.%d: the box holds %s particles, %.2f of its volume: its sides are not "
+                            "whole numbers of the spacing %g (a lattice fills whole spacings); size it in whole "
+                            "spacings or use a finer spacing", k, " x ".join(str(int(n)) for n in
+                                                                            np.floor(size / l0 + LATTICE_SLACK)),
+                            held, l0)
         elif isinstance(em, SphereEmitter):
             c = np.asarray(em.sphere.center, float)
             r = em.sphere.radius
