@@ -164,10 +164,11 @@ def drop_inside_walls(x: np.ndarray, v: np.ndarray, sdf, l0: float, log: logging
     dropped = int(len(x) - keep.sum())
     near_wall, outside = int((in_grid & ~clear).sum()), int((~in_grid).sum())
     if near_wall:
-        log.warning("dropped %d of %d emitted particles (%.1f %% of the water) inside or within %.2g l0 of a wall%s",
+        log.warning("dropped %d of %d emitted particles (%.1f %% of what the emitters filled) inside or within %.2g l0 "
+                    "of a wall%s",
                     near_wall, len(x), 100.0 * near_wall / len(x), min_distance,
-                    "" if near_wall < 0.05 * len(x) else ": walls not aligned with the axes lose up to half a "
-                    "spacing of water along them (a finer spacing loses less)")
+                    "" if int((in_grid & ~clear & (d > 0)).sum()) < 0.05 * len(x) else ": walls not aligned with "
+                    "the axes lose up to half a spacing of water along them (a finer spacing loses less)")
     if outside:
         log.warning("dropped %d of %d emitted particles outside the simulation domain, %s (scene.domain sets it; "
                     "without it, the walls' box and a margin)", outside, len(x), box_text(sdf.origin, sdf.upper))
