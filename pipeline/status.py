@@ -102,9 +102,8 @@ def status(config_path: str | Path, *, registry: Registry | None = None, overrid
             rows.append(StageStatus(kind, node.cls.name, key, "stale",
                                     _diff(prev.get("components", {}), p.components[kind], graph) + extends,
                                     prev.get("seconds")))
-        elif running(cache, key) is not None:
-            rows.append(StageStatus(kind, node.cls.name, key, "running", f"being computed by {running(cache, key)}",
-                                    None))
+        elif (holder := running(cache, key)) is not None:
+            rows.append(StageStatus(kind, node.cls.name, key, "running", f"being computed by {holder}", None))
         else:
             rows.append(StageStatus(kind, node.cls.name, key, "missing", "never run with these inputs" + extends, None))
     return rows

@@ -49,6 +49,17 @@ def write_toy_plugin(root: Path) -> Path:
 
 
 @pytest.fixture
+def one_numba_thread():
+    """numba on one thread for the test: a few hundred to two thousand MPS particles, where the CG's thread
+    barriers cost more than a second thread gives."""
+    import numba as nb
+    before = nb.get_num_threads()
+    nb.set_num_threads(1)
+    yield
+    nb.set_num_threads(before)
+
+
+@pytest.fixture
 def toy_plugin(tmp_path_factory, monkeypatch):
     root = write_toy_plugin(tmp_path_factory.mktemp("plugin"))
     monkeypatch.syspath_prepend(str(root))

@@ -25,14 +25,7 @@ G = 9.81
 MU = 0.001  # water
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """A few hundred to two thousand particles: one thread avoids the CG's thread barriers (test_mps.py)."""
-    import numba as nb
-    before = nb.get_num_threads()
-    nb.set_num_threads(1)
-    yield
-    nb.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_numba_thread")  # (conftest.py)
 
 
 class Turned:

@@ -27,15 +27,7 @@ CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 G = 9.81
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """These cases have a few hundred particles: one thread avoids the per-kernel thread barriers (the
-    CG launches three parallel regions per iteration), which cost most on a busy shared machine."""
-    import numba as nb
-    before = nb.get_num_threads()
-    nb.set_num_threads(1)
-    yield
-    nb.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_numba_thread")  # (conftest.py)
 
 
 def test_lattice_constants_match_physics_md():

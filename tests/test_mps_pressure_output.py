@@ -18,13 +18,7 @@ G = 9.81
 RHO = 1000.0
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    import numba as nb
-    before = nb.get_num_threads()
-    nb.set_num_threads(1)
-    yield
-    nb.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_numba_thread")  # (conftest.py)
 
 
 def _frame_pressure_ratios(fps: float, *, l0=0.01, W=0.06, H=0.12, T=0.6, average_from=0.3):

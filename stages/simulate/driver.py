@@ -752,27 +752,25 @@ class EnergyBudget:
         driven = (setup.inflows or setup.sinks or setup.bodies or e.wind is not None or e.attractor is not None
                   or e.surface_tension is not None or e.wall_adhesion is not None)
         self.g = np.asarray(setup.gravity, np.float64)
-        self.base = None
-        self.start = None
-        self.said = bool(driven) or len(solver.x) == 0
-        if not self.said:
-            self.base = float(np.min(-(solver.x @ self.g))) if self.g.any() else 0.0
-            self.start = self.energy(solver)
+        self.start = None  # the start's energy; None: nothing to watch (driven, empty, at rest on the floor, said)
+        if not driven and len(solver.x):
+            self.base = float(np.min(-(solver.x @ self.g)))
+            self.start = self.energy(solver) or None
 
     def energy(self, solver: "SolverBase") -> float:
         """Per unit mass (J/kg, summed over particles): 1/2 v^2 + g h, h above the lowest start point."""
         return float(0.5 * np.einsum("ij,ij->", solver.v, solver.v) + np.sum(-(solver.x @ self.g) - self.base))
 
     def check(self, solver: "SolverBase", frame: int, log) -> None:
-        if self.said or self.start is None or self.start <= 0.0:
+        if self.start is None:
             return
         now = self.energy(solver)
         if now > (1.0 + self.RISE) * self.start:
-            self.said = True
+            rise, self.start = now / self.start - 1.0, None  # said once
             log.warning("frame %d: the fluid's energy (kinetic + gravitational) is %.0f %% above the start's, with "
                         "nothing in the scene to give it: energy the method made (a passage narrower than about 3 "
                         "spacings, a time step too long?); check the frames, or try a finer spacing or another "
-                        "solver", frame, 100.0 * (now / self.start - 1.0))
+                        "solver", frame, 100.0 * rise)
 
 
 def _blow_up_line(e: BlowUp, frame: int, solver: Solver, solver_name: str, ckpt_dir: Path | None) -> str:

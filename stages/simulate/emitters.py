@@ -16,6 +16,17 @@ from pipeline.stage import StageError
 LATTICE_SLACK = 1e-4
 
 
+def lattice_counts(lo, hi, l0: float) -> np.ndarray:
+    """Lattice points per axis in the box [lo, hi): its size in whole spacings."""
+    lo = np.asarray(lo, float)
+    hi = np.asarray(hi, float)
+    # sizes typed to 6-7 digits after a unit conversion are a whole number of spacings to 1e-6 of it (a box of
+    # 8 spacings in feet read 7.999994 and lost a layer, 23 % of the water); the tolerance also grows with the
+    # coordinates: (hi - lo) of a box 1e7 m off the origin is off by ~1e-9 m, which dropped a whole row there
+    slack = LATTICE_SLACK + 16 * np.finfo(float).eps * np.maximum(np.abs(lo), np.abs(hi)) / l0
+    return np.floor((hi - lo) / l0 + slack).astype(int)
+
+
 def lattice(lo, hi, l0: float) -> np.ndarray:
     """Cell-centred cubic lattice filling [lo, hi), centred in it: where the box is not a whole number of
     spacings the spare part of a spacing is split between the two faces (a lattice anchored at lo left it all
@@ -23,11 +34,7 @@ def lattice(lo, hi, l0: float) -> np.ndarray:
     mirror image in 0.3 s)."""
     lo = np.asarray(lo, float)
     hi = np.asarray(hi, float)
-    # sizes typed to 6-7 digits after a unit conversion are a whole number of spacings to 1e-6 of it (a box of
-    # 8 spacings in feet read 7.999994 and lost a layer, 23 % of the water); the tolerance also grows with the
-    # coordinates: (hi - lo) of a box 1e7 m off the origin is off by ~1e-9 m, which dropped a whole row there
-    slack = LATTICE_SLACK + 16 * np.finfo(float).eps * np.maximum(np.abs(lo), np.abs(hi)) / l0
-    n = np.floor((hi - lo) / l0 + slack).astype(int)
+    n = lattice_counts(lo, hi, l0)
     if np.any(n <= 0):
         return np.zeros((0, 3))
     start = lo + 0.5 * np.maximum(hi - lo - n * l0, 0.0)
@@ -102,9 +109,8 @@ def emit(emitters, l0: float, resolve: Callable[[str], Path], meters_per_unit: f
             if len(pts) and held < 0.9:  # a 1.5-spacing slot holds one column: 0.67 of its water, silently
                 log.warning("fluid.emitters.%d: the box holds %s particles, %.2f of its volume: its sides are not "
                             "whole numbers of the spacing %g (a lattice fills whole spacings); size it in whole "
-                            "spacings or use a finer spacing", k, " x ".join(str(int(n)) for n in
-                                                                            np.floor(size / l0 + LATTICE_SLACK)),
-                            held, l0)
+                            "spacings or use a finer spacing", k,
+                            " x ".join(map(str, lattice_counts(em.box.min, em.box.max, l0))), held, l0)
         elif isinstance(em, SphereEmitter):
             c = np.asarray(em.sphere.center, float)
             r = em.sphere.radius
