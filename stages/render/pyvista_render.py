@@ -258,8 +258,8 @@ class PyvistaRender(Stage):
         if params.resolution and abs(params.resolution[0] / params.resolution[1] / (shot[0] / shot[1]) - 1) > 0.01:
             _warn_once(ctx.log, f"render.resolution {params.resolution[0]}x{params.resolution[1]} is not the shot "
                        f"camera's aspect ({shot[0]}x{shot[1]}{'' if ctx.scene['camera'].resolution else ', the default'}"
-                       "): the frames are framed for it, the exported USD camera is not; set camera.resolution to "
-                       "it so both agree")
+                       "): the frames are framed for it, a USD export's camera (if one is written) is not; set "
+                       "camera.resolution to it so both agree")
         size = params.resolution or shot
         params = params.model_copy(update={"resolution": tuple(size)})
         scene = ctx.scene["scene"]
