@@ -161,8 +161,10 @@ def run(configs, overrides, cache_dir, frames, out_dir, only, from_, until, forc
             extra = f"  {s.frames_ran}/{s.frames_total} frames computed" if s.frames_total else ""
             click.echo(f"  {s.kind:<16} {s.implementation:<15} {s.key[:12]}  {s.status:<7} {s.seconds:8.2f} s{extra}")
         for name, path in report.outputs.items():
+            # top-level files named, every file counted (usd/ keeps its assets/ and layer folders below)
             files = sorted(p.name for p in Path(path).iterdir() if p.is_file())
-            shown = ", ".join(files[:3]) + (f" ... ({len(files)} files)" if len(files) > 3 else "")
+            total = sum(1 for p in Path(path).rglob("*") if p.is_file())
+            shown = ", ".join(files[:3]) + (f" ... ({total} files)" if total > min(len(files), 3) else "")
             click.echo(f"  -> {name}: {path}/  [{shown}]")
         click.echo(f"done in {report.seconds:.2f} s; report: {Path(report.out) / 'run.json'}")
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
-from pxr import Gf, Usd, UsdGeom
+from pxr import Gf, Usd, UsdGeom, UsdShade
 
 from pipeline.testing import run_stage
 from stages.common.formats import (ParticleFrame, ParticleMeta, SurfaceMesh, WallMesh, save_particle_frame,
@@ -335,6 +335,70 @@ def test_asset_rooted_at_world_moves_none_of_our_prims(tmp_path, fluid_units, de
     assert len(found) == 1
     got = world_points_in_scene_metres(stage, found[0].GetPath(), UsdGeom.Mesh(found[0]).GetPointsAttr().Get())
     np.testing.assert_allclose([got.min(0), got.max(0)], [pillar.min(0), pillar.max(0)], atol=1e-6)
+
+
+@pytest.mark.parametrize("default_prim", [True, False], ids=["default_prim", "no_default_prim"])
+def test_the_fx_layer_sublayered_beside_a_world_rooted_set_lines_up(tmp_path, default_prim):
+    """export.fluid_layer_path is the layer a shot sublayers beside the set. Its water was under /World: beside a
+    set whose /World is translated, the two merged and the water moved with the set's root (3 cm high in a
+    user's bowl set). Sublayered with the set (either order), and opened alone, the water is where it was
+    simulated; with a set not rooted at /World the layer keeps /World."""
+    from stages.mesh_import import trimesh_import
+
+    write_world_rooted_asset(tmp_path / "pillar_cm.usda", default_prim)
+    inputs = folders(tmp_path)
+    sc = scene(walls=[{"builtin": "box_tank", "size": [0.3, 0.2, 0.3]}, {"usd": "pillar_cm.usda", "fluid": "outside"}])
+    run_stage(trimesh_import.TrimeshImport, inputs["walls"], scene=sc, config_dir=tmp_path)
+    surf = surfaces(inputs["surface"], (-0.07, 0.0, 0.08))
+    particles(inputs["particles"], (-0.07, 0.0, 0.08))
+    out = run_stage(UsdExport, tmp_path / "usd", scene=sc, inputs=inputs, config_dir=tmp_path,
+                    params={"fluid_layer_path": "fx/water.usdc"})
+    layer = Usd.Stage.Open(str(out / "fx" / "water.usdc"))
+    assert layer.GetDefaultPrim().GetPath() == "/FX" and not layer.GetPrimAtPath("/World")
+    bound = UsdShade.MaterialBindingAPI(layer.GetPrimAtPath("/FX/Fluid/Surface")).ComputeBoundMaterial()[0]
+    assert bound.GetPath() == "/FX/Fluid/Looks/Water"  # the binding followed the copy
+    for order in (["./fx/water.usdc", "./assets/pillar_cm.usda"], ["./assets/pillar_cm.usda", "./fx/water.usdc"],
+                  ["./fx/water.usdc"]):
+        shot = Usd.Stage.CreateNew(str(out / f"shot_{len(order)}_{order[0][2:4]}.usda"))
+        UsdGeom.SetStageUpAxis(shot, UsdGeom.Tokens.y)
+        UsdGeom.SetStageMetersPerUnit(shot, 0.01)
+        shot.GetRootLayer().subLayerPaths = order
+        mesh = UsdGeom.Mesh(shot.GetPrimAtPath("/FX/Fluid/Surface"))
+        for f in (0, FRAMES - 1):
+            got = world_points_in_scene_metres(shot, mesh.GetPath(), mesh.GetPointsAttr().Get(f), f)
+            np.testing.assert_allclose(got, surf[f].vertices, atol=1e-6)
+    # a set without a /World of its own: the layer is fluid_surface.usdc's, under /World
+    other = tmp_path / "other"
+    other.mkdir()
+    inputs2 = folders(other)
+    tank_walls(inputs2["walls"])
+    surfaces(inputs2["surface"], (-0.5, 0.0, 0.4))
+    particles(inputs2["particles"], (-0.5, 0.0, 0.4))
+    out2 = run_stage(UsdExport, other / "usd", scene=scene(), inputs=inputs2, params={"fluid_layer_path": "fx.usdc"})
+    assert Usd.Stage.Open(str(out2 / "fx.usdc")).GetPrimAtPath("/World/Fluid/Surface").IsA(UsdGeom.Mesh)
+
+
+@pytest.mark.parametrize("name", ["scene.usda", "particles.usdc", "Walls.usdc", "fluid_surface.usdc",
+                                  "assets/set.usda"])
+def test_a_fluid_layer_path_the_export_writes_is_refused_with_the_config(name):
+    """Refused only after every stage had run (the whole simulation lost); the names are known up front."""
+    with pytest.raises(Exception, match="is a file the export itself writes"):
+        UsdExport.Params(fluid_layer_path=name)
+
+
+def test_a_usdz_export_leaves_the_published_layers_with_their_write_times(tmp_path):
+    """The usdz's fixed zip times were stamped on the layers themselves (2000-01-01): a live session's reload,
+    which goes by modification time, never saw a re-export and kept the old water."""
+    import time
+
+    inputs = folders(tmp_path)
+    tank_walls(inputs["walls"])
+    surfaces(inputs["surface"], (-0.5, 0.0, 0.4))
+    particles(inputs["particles"], (-0.5, 0.0, 0.4))
+    before = time.time() - 5
+    out = run_stage(UsdExport, tmp_path / "usd", scene=scene(), inputs=inputs, params={"usdz": True})
+    for f in out.rglob("*"):
+        assert f.stat().st_mtime > before, f
 
 
 def animated(stage):

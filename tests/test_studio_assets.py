@@ -327,6 +327,27 @@ def test_a_sublayer_in_other_units_is_read_as_usd_reads_it_and_warned_about(tmp_
     assert not any("other units" in r.getMessage() for r in caplog.records)
 
 
+def test_a_mesh_without_a_subdivision_scheme_is_said_to_be_usds_fallback_cage(tmp_path, caplog):
+    """No subdivisionScheme authored is USD's fallback, catmullClark: Karma or RenderMan draws the limit surface,
+    up to a third of a spacing off the cage the water met (a user's bowl), and nothing said so. One authored
+    none stays silent."""
+    import logging
+
+    from pxr import UsdGeom
+
+    stage = _new_stage(tmp_path / "plain.usda")
+    _define_cube(stage, "/World/Plain", h=1.0)
+    flat = _define_cube(stage, "/World/Flat", h=0.5)
+    flat.AddTranslateOp().Set((3.0, 0.0, 0.0))
+    flat.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    stage.GetRootLayer().Save()
+    with caplog.at_level(logging.INFO):
+        mesh = _import(tmp_path, [{"usd": "plain.usda"}])
+    assert mesh.walls[0]["report"]["subdivision"] == {
+        "/World/Plain": "catmullClark cage as-is (no subdivisionScheme authored: USD's fallback)"}
+    assert "/World/Plain catmullClark subdivision cage(s), taken as-is" in caplog.text
+
+
 def test_a_subdivision_cage_is_recorded_as_is_or_refined_to_its_limit_surface(tmp_path, caplog):
     """A catmullClark cage (the usd-wg teapot's kind) is the wall as authored unless the wall asks for
     ``subdivide``; either way the walls report says which. Refined, a cube cage (+-1) approaches

@@ -7,7 +7,7 @@ import pytest
 
 from pipeline.testing import run_stage
 from stages.common.formats import SurfaceMesh, WallMesh, load_surface
-from stages.common.meshes import boundary_edge_count, face_normals
+from stages.common.meshes import boundary_edge_count, face_normals, signed_volume, tidy, vertex_normals
 from stages.common.sdf import SDFGrid, box_interior_sdf, grid_from_function
 from stages.simulate.emitters import lattice
 from stages.surface_extract.marching_cubes import MarchingCubes
@@ -58,6 +58,58 @@ def assert_on_the_walls(raw: SurfaceMesh, snapped: SurfaceMesh, report: dict, wa
     assert np.allclose(v0[far], v1[far])
 
 
+def assert_tidy(mesh: SurfaceMesh) -> None:
+    """No unreferenced vertex, no triangle of zero area, no zero normal (what wall_snap published)."""
+    used = np.zeros(len(mesh.vertices), np.bool_)
+    used[mesh.faces.ravel()] = True
+    assert used.all()
+    v = mesh.vertices.astype(np.float64)
+    p = v[mesh.faces]
+    longest = np.max([np.linalg.norm(p[:, k] - p[:, (k + 1) % 3], axis=1) for k in range(3)], axis=0)
+    height = np.linalg.norm(face_normals(v, mesh.faces), axis=1) / longest
+    assert (height > 1e-5 * longest).all()
+    assert (np.linalg.norm(mesh.normals, axis=1) > 0.99).all()
+
+
+def test_tidy_takes_out_slivers_pillows_and_stray_vertices_and_keeps_the_surface():
+    """wall_snap left, where vertices landed on one wall edge or corner, triangles of zero area (50 with
+    collinear corners, 6 with coincident ones in a 6,050-face frame by a moving box's edge), a vertex whose only
+    triangles were those (normal (0, 0, 0): black in a render) and up to 90 unreferenced vertices a frame
+    (stray points in Houdini). tidy takes them out and keeps the surface: closed, the same volume, oriented."""
+    import trimesh
+
+    ball = trimesh.creation.icosphere(subdivisions=2)
+    v, f = ball.vertices.copy(), ball.faces.copy()
+    # a T-junction closed by a sliver: face 0 (a, b, c) split at the midpoint m of a -> b, the crack closed by
+    # the zero-area (a, b, m)
+    a, b, c = f[0]
+    m = len(v)
+    v = np.vstack([v, 0.5 * (v[a] + v[b])])
+    f[0] = (a, m, c)
+    f = np.vstack([f, [m, b, c], [a, b, m]])
+    # a zero-length edge: face 10's corner x duplicated as x2, the two flat triangles (x, y, x2), (x, x2, z)
+    x, y, z = f[10]
+    x2 = len(v)
+    v = np.vstack([v, v[x]])
+    f[10] = (x2, y, z)
+    f = np.vstack([f, [x, y, x2], [x, x2, z]])
+    # a flat pillow hanging off vertex 5, and two stray vertices
+    p1, p2 = len(v), len(v) + 1
+    v = np.vstack([v, v[5] + [0.01, 0, 0], v[5] + [0, 0.01, 0], [9, 9, 9], [8, 8, 8]])
+    f = np.vstack([f, [5, p1, p2], [5, p2, p1]])
+    assert boundary_edge_count(f) == 0
+    v2, f2 = tidy(v.astype(np.float32), f.astype(np.int32))
+    assert v2.dtype == np.float32 and f2.dtype == np.int32
+    assert_tidy(SurfaceMesh(v2, f2, vertex_normals(v2, f2).astype(np.float32)))
+    assert boundary_edge_count(f2) == 0
+    assert len(v2) == len(ball.vertices) + 1  # m stays (the split keeps it); x2, the pillow and the strays go
+    assert signed_volume(v2, f2) == pytest.approx(signed_volume(ball.vertices, ball.faces), rel=1e-6)
+    assert signed_volume(v2, f2) > 0
+    # a clean mesh is returned as it is
+    v3, f3 = tidy(ball.vertices, ball.faces)
+    assert np.array_equal(v3, ball.vertices) and np.array_equal(f3, ball.faces)
+
+
 def test_box_in_tank_snaps_flat_onto_the_walls(tmp_path):
     x = lattice([0, 0, 0], [0.2, 0.2, 0.1], L0)  # fills the tank's floor, half its height
     (tmp_path / "p").mkdir()
@@ -92,7 +144,11 @@ def test_box_in_tank_snaps_flat_onto_the_walls(tmp_path):
     snapped = load_surface(snap_dir, 0)
     walls = WallMesh.load(walls_dir)
     same, report = snap_mesh(raw, SDFGrid.load(tmp_path / "sdf"), L0, DistanceSnapParams(), walls)
-    assert np.array_equal(same.vertices, snapped.vertices) and np.array_equal(same.faces, snapped.faces)
+    # the stage publishes it tidied: the collapses' unreferenced vertices and any sliver taken out
+    v, f = tidy(same.vertices, same.faces)
+    assert np.array_equal(v, snapped.vertices) and np.array_equal(f, snapped.faces)
+    assert_tidy(snapped)
+    snapped = same  # (vertex for vertex with the raw surface)
     assert_on_the_walls(raw, snapped, report, walls, band, exact, 1e-3 * L0)
     assert np.abs(exact(snapped.vertices.astype(np.float64))[band]).max() < 1e-3 * L0
     # the floor is flat: every band vertex nearer the floor than the side walls at z = 0

@@ -39,6 +39,98 @@ def vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
     return out
 
 
+def tidy(v: np.ndarray, f: np.ndarray, passes: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """The same surface without zero-area triangles or unreferenced vertices (what wall_snap leaves where
+    vertices land on one wall edge or corner: a zero normal renders black, tangents fail, a stray point
+    shows in Houdini). A triangle whose height is below 1e-5 of its longest edge: a zero-length edge is
+    collapsed; otherwise the corner on the long edge splits the triangle across that edge in two (the
+    edge flip that takes the sliver out: the surface is unchanged, the mesh stays closed and oriented)."""
+    v64 = np.asarray(v, np.float64)
+    f = np.asarray(f, np.int64).copy()
+    for _ in range(passes):
+        if len(f) == 0:
+            break
+        p = v64[f]
+        e = np.stack([p[:, 2] - p[:, 1], p[:, 0] - p[:, 2], p[:, 1] - p[:, 0]], axis=1)  # edge opposite corner k
+        length = np.linalg.norm(e, axis=2)
+        longest = length.max(axis=1)
+        height = np.linalg.norm(np.cross(e[:, 0], e[:, 1]), axis=1) / np.maximum(longest, 1e-300)
+        bad = np.flatnonzero(height <= 1e-5 * longest)
+        if len(bad) == 0:
+            break
+        # a zero-length edge: its two ends become one (the triangles on that edge drop out below)
+        short = length[bad].min(axis=1) <= 1e-5 * longest[bad]
+        into = np.arange(len(v64))
+        for t in bad[short]:
+            k = int(np.argmin(length[t]))
+            a, b = f[t, (k + 1) % 3], f[t, (k + 2) % 3]
+            while into[a] != a:
+                a = into[a]
+            while into[b] != b:
+                b = into[b]
+            if a != b:
+                into[max(a, b)] = min(a, b)
+        for _ in range(len(v64)):
+            nxt = into[into]
+            if (nxt == into).all():
+                break
+            into = nxt
+        f = into[f]
+        # a sliver (m, q, p), m on its edge q -> p: the triangle across it, (p, q, d), becomes (p, m, d) + (m, q, d)
+        nv = len(v64)
+        keys = f[:, [0, 1, 2]] * nv + f[:, [1, 2, 0]]  # directed edge k: corner k -> corner k + 1
+        order = np.argsort(keys, axis=None)
+        flat = keys.ravel()[order]
+        touched = np.zeros(len(f), np.bool_)
+        extra = []
+        for t in bad[~short]:
+            if touched[t] or len(set(f[t].tolist())) < 3:
+                continue
+            k = int(np.argmax(length[t]))  # the corner opposite the long edge
+            m, q, pp = f[t, k], f[t, (k + 1) % 3], f[t, (k + 2) % 3]  # the long edge q -> pp, m on it
+            i = np.searchsorted(flat, pp * nv + q)  # the triangle across holds pp -> q
+            if i >= len(flat) or flat[i] != pp * nv + q:
+                continue  # an open edge: nothing across to split
+            u = int(order[i] // 3)
+            if touched[u] or u == t:
+                continue
+            j = int(order[i] % 3)  # the edge starts at corner j of u: (pp, q, d)
+            d = f[u, (j + 2) % 3]
+            f[u] = (pp, m, d)
+            extra.append((m, q, d))
+            touched[[t, u]] = True
+            f[t] = (m, m, m)  # gone
+        if extra:
+            f = np.concatenate([f, np.array(extra, np.int64)])
+        f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])]
+    f = _without_cancelling_pairs(f)
+    used = np.zeros(len(v64), np.bool_)
+    used[f.ravel()] = True
+    new = np.cumsum(used) - 1
+    return np.asarray(v)[used], new[f].astype(np.int32)
+
+
+def _without_cancelling_pairs(f: np.ndarray) -> np.ndarray:
+    """Without triangles on the same three vertices in opposite orientations: a flat pillow of no volume
+    (left where a sliver's split met its twin), whose corner vertex got a zero normal. Each pair's edges are
+    its own twins, so the rest stays closed."""
+    if len(f) < 2:
+        return f
+    s = np.sort(f, axis=1)
+    order = np.lexsort((s[:, 2], s[:, 1], s[:, 0]))
+    same = np.flatnonzero((s[order][1:] == s[order][:-1]).all(axis=1))
+    drop = np.zeros(len(f), np.bool_)
+    for i in same:
+        a, b = order[i], order[i + 1]
+        if drop[a] or drop[b]:
+            continue
+        # opposite orientations: b's corners are a's read backwards from some start
+        ra = f[a][::-1]
+        if any((np.roll(ra, k) == f[b]).all() for k in range(3)):
+            drop[[a, b]] = True
+    return f[~drop]
+
+
 def boundary_edge_count(f: np.ndarray) -> int:
     """Edges used by one triangle only (0 for a closed mesh)."""
     e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)

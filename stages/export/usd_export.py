@@ -46,7 +46,14 @@ def _inside_path(v: str | None) -> str | None:
         raise ValueError("expected a relative path inside the usd output folder, e.g. layers/fluid.usdc")
     if p.suffix.lower() not in (".usd", ".usda", ".usdc"):
         raise ValueError("expected a .usd, .usda or .usdc file name")
+    # the export's own files (known before anything runs: refused after the whole simulation, it cost the shot)
+    if p.as_posix().lower() in OWN_FILES or p.parts[0].lower() == "assets":
+        raise ValueError(f"{p.as_posix()} is a file the export itself writes ({', '.join(sorted(OWN_FILES))}, "
+                         "assets/...); choose another name, e.g. layers/fluid.usdc")
     return p.as_posix()
+
+
+OWN_FILES = ("scene.usda", "fluid_surface.usdc", "particles.usdc", "walls.usdc")
 
 
 class UsdParams(Params):
@@ -98,6 +105,28 @@ def _has_own_prims(asset: Path) -> bool:
 
     stage = Usd.Stage.Open(str(asset), Usd.Stage.LoadNone)  # held: a prim of a dropped stage is invalid
     return stage.GetPrimAtPath(ROOT).IsValid()
+
+
+def write_fx_layer(source: Path, target: Path, assets: list[Path]) -> None:
+    """The fluid layer alone, for a shot's FX sublayer. Its prims are under ROOT, unless an asset in its frame
+    has a ROOT prim of its own: sublayered beside that set, the two /World merged and the set's root transform
+    (and kind, visibility) landed on the water (3 cm high in a set whose /World is translated). The copy is
+    then rooted at /FX (or /FX_k, a name no asset has), its material binding remapped with it."""
+    from pxr import Sdf, Usd
+
+    src = Sdf.Layer.FindOrOpen(str(source))
+    if not any(_has_own_prims(a) for a in assets):
+        src.Export(str(target))
+        return
+    stages = [Usd.Stage.Open(str(a), Usd.Stage.LoadNone) for a in assets]  # held: their prims die with them
+    taken = {p.GetName() for stage in stages for p in stage.GetPseudoRoot().GetChildren()}
+    name = next(n for n in ("FX", *(f"FX_{k}" for k in range(1, len(taken) + 2))) if n not in taken)
+    layer = Sdf.Layer.CreateNew(str(target))
+    layer.TransferContent(src)
+    Sdf.CopySpec(src, ROOT, layer, f"/{name}")  # relationship and connection targets follow the copy
+    del layer.rootPrims[ROOT.lstrip("/")]
+    layer.defaultPrim = name
+    layer.Save()
 
 
 def _shot_offset(asset: Path, fps: float):
@@ -299,7 +328,7 @@ class UsdExport(Stage):
                 raise StageError(f"export.usd: fluid_layer_path {params.fluid_layer_path} is a file the export "
                                  f"itself writes; choose another name")
             target.parent.mkdir(parents=True, exist_ok=True)
-            Sdf.Layer.FindOrOpen(str(out / "fluid_surface.usdc")).Export(str(target))
+            write_fx_layer(out / "fluid_surface.usdc", target, list(assets) if mode == "asset" else [])
             ctx.log.info("fluid layer written to usd/%s", params.fluid_layer_path)  # where it is published
         if params.usdz:
             # the zip entries carry their files' times: fixed (SOURCE_DATE_EPOCH, else 2000-01-01), the same
@@ -308,10 +337,15 @@ class UsdExport(Stage):
                 stamp = max(float(os.environ.get("SOURCE_DATE_EPOCH", "")), 315532800.0)  # zip times start in 1980
             except ValueError:
                 stamp = 946684800.0
-            for f in out.rglob("*"):
-                if f.is_file():
-                    os.utime(f, (stamp, stamp))
-            if not UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(str(out / "scene.usda")), str(out / "scene.usdz")):
+            # only while packaging: a published layer stamped 2000 never looked changed to a live session's
+            # reload (usdview, Houdini and Omniverse go by modification time), which kept showing the old water
+            files = [f for f in out.rglob("*") if f.is_file()]
+            for f in files:
+                os.utime(f, (stamp, stamp))
+            packed = UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(str(out / "scene.usda")), str(out / "scene.usdz"))
+            for f in files:
+                os.utime(f)  # now: they were written by this run
+            if not packed:
                 raise StageError(f"export.usd: could not package {out / 'scene.usdz'}")
 
     # -- layers ----------------------------------------------------------------------------------------

@@ -103,8 +103,11 @@ def _shape_triangles(prim, t, where: str, log, subdivide: int = 0,
             pts, tris = _subdivided(pts, counts, idx, holes, scheme, subdivide, where, prim, log)
         else:
             tris = _triangulate(counts, idx, holes, where, pts)
-        if record is not None and scheme in ("catmullClark", "loop") and (authored or subdivide):
-            record[str(prim.GetPath())] = f"{scheme} cage " + (f"refined {subdivide} levels" if subdivide else "as-is")
+        if record is not None and scheme in ("catmullClark", "loop"):
+            # unauthored is USD's fallback, catmullClark: a renderer that subdivides (Karma, RenderMan) draws
+            # the limit surface, up to a third of a spacing off the cage the water met; said as for an authored one
+            record[str(prim.GetPath())] = f"{scheme} cage " + (f"refined {subdivide} levels" if subdivide else "as-is") \
+                + ("" if authored else " (no subdivisionScheme authored: USD's fallback)")
     else:
         attrs = {n: prim.GetAttribute(n) for n in _SHAPE_ATTRS if prim.GetAttribute(n)}
         animated = ", ".join(n for n, a in attrs.items() if a.GetNumTimeSamples() > 1)
@@ -434,7 +437,7 @@ def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str,
         faces.append(tris + offset)
         offset += len(p)
         used.append(name)
-    as_is = [p for p, what in cages.items() if what.endswith("as-is")]
+    as_is = [p for p, what in cages.items() if "as-is" in what]
     if as_is and log is not None:
         log.info("%s: %s %s subdivision cage(s), taken as-is (the wall's subdivide: N refines them as a "
                  "renderer does)", path, ", ".join(as_is[:3]) + (", ..." if len(as_is) > 3 else ""),

@@ -42,7 +42,7 @@ from pydantic import Field
 from pipeline.stage import Artifact, Context, Params, Stage
 from stages.common.closest import ClosestPoints
 from stages.common.formats import ParticleMeta, SurfaceMesh, WallMesh, load_surface, position_dtype, save_surface
-from stages.common.meshes import face_normals, vertex_normals
+from stages.common.meshes import face_normals, tidy, vertex_normals
 from stages.common.motion import RigidMotion
 from stages.common.sdf import SDFGrid, load_bodies, sdf_sample
 
@@ -746,4 +746,6 @@ class DistanceSnap(Stage):
         snapped, report = snap_mesh(mesh, sdf, meta.spacing, params, walls, bodies, frame / meta.fps, project)
         ctx.log.debug("frame %d: %d vertices snapped, %d relaxed, %d edges collapsed, %d damped", frame,
                       report["snapped"], report["relaxed"], report["collapsed"], report["damped"])
-        save_surface(ctx.out_dir, frame, snapped, meta.spacing)
+        # published without the collapses' unreferenced vertices and the slivers of vertices landed on one wall edge
+        v, f = tidy(snapped.vertices, snapped.faces)
+        save_surface(ctx.out_dir, frame, SurfaceMesh(v, f, vertex_normals(v, f).astype(np.float32)), meta.spacing)
