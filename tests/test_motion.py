@@ -327,7 +327,7 @@ def _patch(motion, t, offset):
 @pytest.mark.parametrize("exact", [False, True])
 def test_wall_snap_snaps_onto_the_moved_face(tmp_path, exact):
     from pipeline.testing import run_stage
-    from stages.common.formats import ParticleMeta, load_surface, save_surface
+    from stages.common.formats import ParticleFrame, ParticleMeta, load_surface, save_particle_frame, save_surface
     from stages.wall_snap.distance import DistanceSnap
 
     _, bodies, sdf_dir, walls_dir = _bake(tmp_path, [FLOOR, PADDLE], "snap")
@@ -340,6 +340,12 @@ def test_wall_snap_snaps_onto_the_moved_face(tmp_path, exact):
                  meters_per_unit=1.0, solver="sph").save(particles)
     patch = _patch(motion, t, 0.4 * L0)
     save_surface(raw, frame, patch)
+    # the water the patch bounds: its first layer half a spacing off the paddle's moved face
+    y, z = np.meshgrid(np.arange(-0.1, 0.1 + 1e-9, L0), np.arange(0.08, 0.22 + 1e-9, L0), indexing="ij")
+    layer = np.stack([np.full(y.size, 0.025 + 0.5 * L0), y.ravel(), z.ravel()], axis=1)
+    x = motion.to_world(layer, t)
+    save_particle_frame(particles, frame, ParticleFrame(x, np.zeros_like(x), np.full(len(x), 1000.0),
+                                                        np.zeros(len(x)), np.arange(len(x))))
     out = run_stage(DistanceSnap, tmp_path / f"snapped{exact}", scene={"scene": {"name": "t"}}, frames=(frame,),
                     params={"exact": exact}, inputs={"raw_surface": raw, "sdf": sdf_dir, "particles": particles,
                                                      "walls": walls_dir})

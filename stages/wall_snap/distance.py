@@ -41,7 +41,8 @@ from pydantic import Field
 
 from pipeline.stage import Artifact, Context, Params, Stage
 from stages.common.closest import ClosestPoints
-from stages.common.formats import ParticleMeta, SurfaceMesh, WallMesh, load_surface, position_dtype, save_surface
+from stages.common.formats import (ParticleMeta, SurfaceMesh, WallMesh, load_particle_frame, load_surface, position_dtype,
+                                   save_surface)
 from stages.common.meshes import face_normals, tidy, vertex_normals
 from stages.common.motion import RigidMotion
 from stages.common.sdf import SDFGrid, load_bodies, sdf_sample
@@ -85,7 +86,13 @@ def snap(v, normals, dist, origin, inv_h, band, only_contact, on_wall, tol, iter
         out[p, 1] = y
         out[p, 2] = z
         d0, nx, ny, nz = sdf_sample(dist, ox, oy, oz, inv_h, x, y, z)
-        ok = d0 < band and (nx != 0.0 or ny != 0.0 or nz != 0.0)
+        flat = nx == 0.0 and ny == 0.0 and nz == 0.0
+        if flat:
+            # inside a wall whose field has no slope (a wall about a cell thick, its nodes on its faces): no
+            # step to take here, the exact finish places it (moved, where it is)
+            moved[p] = d0 < 0.0
+            continue
+        ok = d0 < band
         if ok and only_contact and d0 > on_wall:
             # the surface normal points out of the fluid; in the contact region it points into the wall
             ok = normals[p, 0] * nx + normals[p, 1] * ny + normals[p, 2] * nz < 0.0
@@ -107,6 +114,53 @@ def snap(v, normals, dist, origin, inv_h, band, only_contact, on_wall, tol, iter
         out[p, 0] = x - t * nx
         out[p, 1] = y - t * ny
         out[p, 2] = z - t * nz
+
+
+WET_PROBE = 0.75  # l0: past the far face of a wall a grid cell or two thick (the thin walls the field flattens)
+TOUCH = 0.8  # l0: a particle this near a wall touches it (its first layer rests 0.5 l0 off, the second 1.5 l0)
+
+
+def touching(water, points: np.ndarray, normals: np.ndarray, l0: float) -> np.ndarray:
+    """Whether water touches each wall point (``normals`` into the fluid): a particle of the frame (``water``, a
+    KD-tree) within TOUCH l0 in front of it and within an l0 of the point half a spacing out."""
+    if not len(points):
+        return np.zeros(0, np.bool_)
+    k = min(8, water.n)
+    dist, idx = water.query(points + 0.5 * l0 * normals, k=k, distance_upper_bound=l0)
+    dist, idx = dist.reshape(len(points), k), idx.reshape(len(points), k)
+    found = np.isfinite(dist)
+    p = water.data[np.where(found, idx, 0)]
+    ahead = np.einsum("ikj,ij->ik", p - points[:, None, :], normals)
+    return (found & (ahead > -0.1 * l0) & (ahead < TOUCH * l0)).any(axis=1)
+
+
+def keep_contacts(near: np.ndarray, normal: np.ndarray, ok: np.ndarray, raw: np.ndarray, raw_normals: np.ndarray,
+                  project: "WallProjector", water, l0: float, reach: float) -> np.ndarray:
+    """Keep on the walls only the vertices whose water touches them there, on the face it touches (in place on
+    ``near``, ``normal``, ``ok``; returned: the vertices to leave where they were extracted).
+
+    - A wall about a grid cell thick (a glass at 0.5-0.6 l0, a bowl's shell) has a flat or shallow field inside:
+      the raw surface ends in it, and the closest face of a vertex past the wall's middle is the dry one (the
+      pour's glass drew its water down its outside, 29 % too much of it; the bowl's shell grew spikes on its
+      underside). Such a vertex is placed from a point WET_PROBE l0 back into its water (against its surface
+      normal, which points out of the water), where the face found is the wet one.
+    - A drop hanging over a floor faces it within the band: its underside was pulled down onto the floor (a
+      particle 1.4 l0 up became a spike to the floor, +72 % of its volume). No particle touches the floor under
+      it, so it stays as extracted."""
+    lost = np.zeros(len(near), np.bool_)
+    if water is None:
+        return lost
+    cand = np.flatnonzero(ok)
+    dry = cand[~touching(water, near[cand], normal[cand], l0)]
+    if not len(dry):
+        return lost
+    near2, normal2 = project(raw[dry] - WET_PROBE * l0 * raw_normals[dry])
+    found = touching(water, near2, normal2, l0) & (np.linalg.norm(near2 - raw[dry], axis=1) < reach)
+    near[dry[found]] = near2[found]
+    normal[dry[found]] = normal2[found]
+    ok[dry[~found]] = False
+    lost[dry[~found]] = True
+    return lost
 
 
 def snap_to_walls(v: np.ndarray, normals: np.ndarray, sdf: SDFGrid, bodies: list[tuple[SDFGrid, RigidMotion]],
@@ -611,7 +665,8 @@ def revert_collapses(raw_faces: np.ndarray, faces: np.ndarray, alive: np.ndarray
 
 def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapParams,
               walls: WallMesh | None = None, bodies: list[tuple[SDFGrid, RigidMotion]] = (),
-              t: float = 0.0, project: WallProjector | None = None) -> tuple[SurfaceMesh, dict]:
+              t: float = 0.0, project: WallProjector | None = None,
+              particles: np.ndarray | None = None) -> tuple[SurfaceMesh, dict]:
     """The mesh with its near-wall vertices on the walls; and a report: counts (snapped by the contact
     test, grown at folded contact lines, relaxation moves summed over the passes, collapsed edges,
     damped) and ``kept_faces``, the indices of the input's triangles that the output keeps
@@ -619,7 +674,9 @@ def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapPa
 
     Vertices keep their indices: a vertex merged away by a collapse stays in the array, unreferenced,
     at the position of the vertex it was merged into. ``project``: the walls' projector at ``t`` if
-    the caller keeps one (default: built from ``walls``)."""
+    the caller keeps one (default: built from ``walls``); ``particles``: the frame's positions, which tell
+    a thin wall's wet face from its dry one and a contact from a drop hanging near a wall (keep_contacts;
+    without them the exact finish takes the nearer face of any vertex in the band)."""
     counts = {"snapped": 0, "grown": 0, "relaxed": 0, "collapsed": 0, "damped": 0,
               "kept_faces": np.arange(len(mesh.faces))}
     if len(mesh.vertices) == 0:
@@ -642,11 +699,21 @@ def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapPa
     if exact:
         if project is None:
             project = wall_projector(walls, sdf, t)
+        water = None
+        if particles is not None and len(particles):
+            from scipy.spatial import cKDTree
+
+            water = cKDTree(np.asarray(particles, np.float64))
         idx = np.flatnonzero(moved)
         landed = out.take(idx, axis=0)  # (take: several times faster than [] on rows)
-        near, _ = project(landed)
+        near, normal = project(landed)
         # only where the SDF step landed on this wall (not on a far one through a thin gap)
         ok = np.linalg.norm(near - landed, axis=1) < 1.5 * sdf.spacing
+        if params.only_contact:
+            lost = keep_contacts(near, normal, ok, v.take(idx, axis=0),
+                                 mesh.normals.take(idx, axis=0).astype(np.float64), project, water, l0,
+                                 (params.band + WET_PROBE) * l0)
+            out[idx[lost]] = v[idx[lost]]  # no water touches a wall there: as extracted
         idx = idx[ok]
         out[idx] = near[ok]
         on_wall[idx] = True
@@ -743,7 +810,8 @@ class DistanceSnap(Stage):
             walls = wall_mesh(walls_dir, walls_stamps)
             t = frame / meta.fps if walls.motions() else None  # static walls: one projector for every frame
             project = projector(walls_dir, walls_stamps, sdf_dir, sdf_stamps, t)
-        snapped, report = snap_mesh(mesh, sdf, meta.spacing, params, walls, bodies, frame / meta.fps, project)
+        water = load_particle_frame(inputs["particles"].frame(frame), frame).x if walls is not None else None
+        snapped, report = snap_mesh(mesh, sdf, meta.spacing, params, walls, bodies, frame / meta.fps, project, water)
         ctx.log.debug("frame %d: %d vertices snapped, %d relaxed, %d edges collapsed, %d damped", frame,
                       report["snapped"], report["relaxed"], report["collapsed"], report["damped"])
         # published without the collapses' unreferenced vertices and the slivers of vertices landed on one wall edge
