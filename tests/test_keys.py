@@ -383,3 +383,33 @@ def test_a_missing_input_file_names_the_config_line(toy_config):
                                           rf"file not found: .*gone.txt$"):
         pipeline.run(toy_config, registry=Registry.from_entry_points())
     assert not (toy_config.parent / ".pipeline").exists()
+
+
+def test_a_file_replaced_by_a_same_size_same_mtime_copy_is_hashed_again(toy_config, monkeypatch):
+    """The process-wide hash memo was keyed on (path, size, mtime): a wall replaced in place by another of the
+    same size and mtime (cp -p, shutil.copy2, rsync -a) kept its old hash in a notebook calling pipeline.run
+    twice, and the second run was served the first wall's results. ctime and the inode are in the memo's key now."""
+    import os
+    import shutil
+    import time
+
+    folder = toy_config.parent
+    toy_config.write_text(toy_config.read_text().replace("fluid:\n", "walls:\n  - file: wall.obj\nfluid:\n"))
+    a, b = folder / "a.obj", folder / "b.obj"
+    a.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    b.write_text("v 0 0 0\nv 2 0 0\nv 0 2 0\nf 1 2 3\n")  # same size, other content
+    for f in (a, b):
+        os.utime(f, ns=(1_700_000_000_000_000_000,) * 2)
+    for every_hash_memoised in (False, True):  # as it is; then recent files too, so the memo's key alone decides
+        if every_hash_memoised:
+            monkeypatch.setattr(keys_module, "_RACY_NS", 0, raising=False)
+        keys_module._FILE_HASHES.clear()
+        shutil.copy2(a, folder / "wall.obj")
+        first = keys(toy_config)["mesh_import"]
+        time.sleep(0.05)  # past the filesystem clock's tick, so the copy's ctime moves
+        shutil.copy2(b, folder / "wall.obj")
+        st = (folder / "wall.obj").stat()
+        assert (st.st_size, st.st_mtime_ns) == (a.stat().st_size, a.stat().st_mtime_ns)
+        assert keys(toy_config)["mesh_import"] != first
+        shutil.copy2(a, folder / "wall.obj")
+        assert keys(toy_config)["mesh_import"] == first
