@@ -18,6 +18,7 @@ that read left out: a run with a larger value continues from the cached entry of
 """
 from __future__ import annotations
 
+import errno
 import hashlib
 import importlib.util
 import json
@@ -130,12 +131,21 @@ def _files(config: Config, node: Node, values: dict[str, Any], frames: tuple[int
     found += [("external file", ("stages", node.kind), Path(f)) for f in extra]
     files: dict[str, str] = {}
     for where, field, path in found:
-        name = _file_name(path, config.dir)
-        if name not in files:
-            if not path.is_file():
-                raise StageFailed(f"{config.where(*field)}: stage {node.label}: {where}: input file not found: {path}",
-                                  user_error=True)
-            files[name] = _file_hash(path)
+        here = f"{config.where(*field)}: stage {node.label}: {where}"
+        try:
+            # stat first: a symlink loop, a name too long or a NUL byte is the config's mistake (resolve() raised
+            # RuntimeError, stat OSError/ValueError: exit 1 with no config line)
+            if not stat.S_ISREG(os.stat(path).st_mode):
+                raise FileNotFoundError(errno.ENOENT, "not a file", str(path))
+            name = _file_name(path, config.dir)
+            if name not in files:
+                files[name] = _file_hash(path)
+        except (FileNotFoundError, NotADirectoryError):
+            raise StageFailed(f"{here}: input file not found: {path}", user_error=True) from None
+        except OSError as exc:  # ELOOP, ENAMETOOLONG, EACCES, EIO
+            raise StageFailed(f"{here}: cannot read input file {path}: {exc.strerror or exc}", user_error=True) from None
+        except (ValueError, RuntimeError) as exc:  # an embedded NUL (a plugin's external_files), a loop in resolve()
+            raise StageFailed(f"{here}: cannot read input file {path!r}: {exc}", user_error=True) from None
     return files
 
 

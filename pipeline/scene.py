@@ -29,6 +29,8 @@ class InputFileMarker:
 def _normal_path(path: str | None) -> str | None:
     """One spelling per file ('./a//b.obj' is 'a/b.obj'): the path is part of the key, and another spelling of
     the same file re-ran everything from the stage that reads it."""
+    if path and "\0" in path:  # the OS refuses it: a ValueError deep in the plan, exit 1 with no config line
+        raise ValueError("a file name cannot hold a NUL character (\\0)")
     return posixpath.normpath(path) if path else path
 
 

@@ -413,3 +413,33 @@ def test_a_file_replaced_by_a_same_size_same_mtime_copy_is_hashed_again(toy_conf
         assert keys(toy_config)["mesh_import"] != first
         shutil.copy2(a, folder / "wall.obj")
         assert keys(toy_config)["mesh_import"] == first
+
+
+@pytest.mark.parametrize("case", ["symlink loop", "name too long"])
+@pytest.mark.parametrize("command", ["run", "status", "clean"])
+def test_an_input_path_the_os_refuses_names_the_config_line(case, command, toy_config):
+    """A symlink loop (resolve() raised RuntimeError) or a 300-character file name (OSError from stat): exit 1
+    with a traceback or a bare OSError in run, status and clean; now exit 2, one line naming the config line and
+    field, as a missing file is, and nothing written."""
+    from click.testing import CliRunner
+
+    from pipeline.cli import main
+
+    folder = toy_config.parent
+    if case == "symlink loop":
+        (folder / "a").mkdir()
+        (folder / "a" / "loop2.obj").symlink_to("loop1")
+        (folder / "a" / "loop1").symlink_to("loop2.obj")
+        name, cause = "a/loop2.obj", "Too many levels of symbolic links"
+    else:
+        name, cause = "x" * 300 + ".obj", "File name too long"
+    toy_config.write_text(toy_config.read_text().replace("fluid:\n", f"walls:\n  - builtin: box_tank\n  - file: {name}\nfluid:\n"))
+    line = toy_config.read_text().splitlines().index(f"  - file: {name}") + 1
+    before = sorted(p.name for p in folder.iterdir())
+    r = CliRunner().invoke(main, [command, str(toy_config)])
+    assert r.exit_code == 2, r.output
+    err = r.stderr.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in r.output, err
+    assert err.startswith(f"error: {toy_config}:{line}: stage mesh_import.toy: walls.1.file: cannot read input file"), err
+    assert err.endswith(cause), err
+    assert sorted(p.name for p in folder.iterdir()) == before
