@@ -584,6 +584,12 @@ def select(graph: Graph, only: str | None = None, from_: str | None = None, unti
         raise ConfigError("--only cannot be combined with --from/--until")
     if only:
         graph = graph.only(only)
+    if from_ and until and from_ in graph.nodes and until in graph.nodes and from_ != until \
+            and from_ not in graph.upstream(until):
+        # the until-graph no longer holds from_: it was called "not a stage this config runs", though it is
+        where = "comes after" if from_ in graph.downstream(until) else "is not upstream of"
+        raise ConfigError(f"--from {from_} {where} --until {until}: nothing would run (--from names the first "
+                          "stage to run, --until the last)")
     if until:
         graph = graph.until(until)
     if from_:
@@ -654,8 +660,10 @@ def run(config_path: str | Path, *, registry: Registry | None = None, overrides:
                           f"particles, which {', '.join(graph.outputs)} need")
     check_stages(config, graph)
     for f in force:
-        if f != "all" and f not in graph.nodes:
-            raise ConfigError(f"--force {f}: not a stage this run includes ({', '.join(graph.order())})")
+        # graph.nodes also holds the stages --only/--from read from the cache: forcing one was ignored without a word
+        if f != "all" and f not in graph.runnable:
+            runs = [k for k in graph.order() if k in graph.runnable]
+            raise ConfigError(f"--force {f}: not a stage this run includes ({', '.join(runs)})")
     cache = Cache(Path(cache_dir) if cache_dir else default_cache_dir(config), lock_timeout=lock_timeout)
     out = Path(os.path.abspath(out_dir)) if out_dir else default_out_dir(config)
     real_out, real_cache = Path(os.path.realpath(out)), Path(os.path.realpath(cache.root))

@@ -292,3 +292,23 @@ def test_clean_with_set_drops_that_variants_entries(toy_config, tmp_path):
     assert r.exit_code == 2 and "--set simulate.steps" in r.stderr, r.output
     assert "Entries made under other --set overrides or earlier versions of the config stay" in " ".join(
         CliRunner().invoke(main, ["clean", "--help"]).output.split())
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--force", "simulate", "--only", "render"], "--force simulate: not a stage this run includes (render)"),
+    (["--force", "simulate", "--from", "render"], "--force simulate: not a stage this run includes (render)"),
+    (["--force", "render", "--until", "simulate"], "--force render: not a stage this run includes (mesh_import, "
+                                                   "sdf_bake, simulate)"),
+    (["--from", "render", "--until", "simulate"], "--from render comes after --until simulate: nothing would run"),
+])
+def test_partial_run_options_that_contradict_are_refused(args, message, toy_config, tmp_path):
+    """--force of a stage --only/--from reads from the cache was ignored without a word (all cached, exit 0),
+    and --from after --until said "--from render: not a stage this config runs", though it is."""
+    from conftest import ran
+
+    cache = ["--cache", str(tmp_path / "c"), "--out", str(tmp_path / "o")]
+    assert CliRunner().invoke(main, ["run", str(toy_config), "-q", *cache]).exit_code == 0
+    result = CliRunner().invoke(main, ["run", str(toy_config), "-q", *cache, *args])
+    _one_line_exit_2(result)
+    assert message in result.stderr, result.stderr
+    assert ran(toy_config, "simulate") == 1
