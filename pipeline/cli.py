@@ -13,7 +13,7 @@ import click
 
 from . import runner
 from .cache import check_env
-from .status import clean as clean_config, status as config_status
+from .status import clean_cache, status as config_status
 from .errors import PipelineError
 from .registry import Registry
 from .stage import STAGE_KINDS
@@ -273,7 +273,10 @@ def clean(config, overrides, cache_dir, stage):
     other --set overrides or earlier versions of the config stay (the cache does not record which config
     made an entry: entries are shared by every config that gives a stage the same inputs); give the same
     --set to drop a variant's, or remove the cache folder to drop everything."""
-    n = clean_config(config, stage=stage, cache_dir=cache_dir, overrides=tuple(overrides))
+    n, missing = clean_cache(config, stage=stage, cache_dir=cache_dir, overrides=tuple(overrides))
+    if missing is not None:  # exit 0 as `status` of a missing cache: nothing is cached, so nothing to remove
+        click.echo(f"no cache at {missing}; nothing removed")
+        return
     click.echo(f"removed {n} cache entr{'y' if n == 1 else 'ies'}")
 
 

@@ -312,3 +312,14 @@ def test_partial_run_options_that_contradict_are_refused(args, message, toy_conf
     _one_line_exit_2(result)
     assert message in result.stderr, result.stderr
     assert ran(toy_config, "simulate") == 1
+
+
+def test_clean_of_a_cache_that_is_not_there_says_so_and_makes_nothing(toy_config, tmp_path):
+    """It made the folder (with locks/runs.lock) and said "removed 0 cache entries"; exit 0 as status of a
+    missing cache."""
+    result = CliRunner().invoke(main, ["clean", str(toy_config), "--cache", str(tmp_path / "nonexistent")])
+    assert result.exit_code == 0, result.output
+    assert result.output.strip() == f"no cache at {tmp_path / 'nonexistent'}; nothing removed"
+    assert not (tmp_path / "nonexistent").exists()
+    assert CliRunner().invoke(main, ["status", str(toy_config), "--cache", str(tmp_path / "nonexistent")]).exit_code == 0
+    assert not (tmp_path / "nonexistent").exists()
