@@ -82,7 +82,7 @@ def plan(config: Config, graph: Graph, cache: Cache, frames: tuple[int, ...] | N
     count = config.scene.scene.frames.count
     if frames is None:
         frames = tuple(range(count))
-    frames = tuple(frames)
+    frames = tuple(sorted(set(frames)))  # one selection, one key, whatever order or repeats a caller gave
     bad = [f for f in frames if not 0 <= f < count]
     if bad:
         raise ConfigError(f"--frames: frame {bad[0]} is outside the scene's frames 0..{count - 1}")

@@ -598,7 +598,8 @@ def select(graph: Graph, only: str | None = None, from_: str | None = None, unti
 
 
 def parse_frames(text: str | None) -> tuple[int, ...] | None:
-    """``"0:10"`` (end exclusive), ``"5"``, or ``"0,3,7"``."""
+    """``"0:10"`` (end exclusive), ``"5"``, or ``"0,3,7"``; sorted, each frame once ("0,0,3" was three frames in
+    run.json and status, and keyed the movie apart from "0,3")."""
     if text is None:
         return None
     try:
@@ -606,7 +607,7 @@ def parse_frames(text: str | None) -> tuple[int, ...] | None:
             a, _, b = text.partition(":")
             frames = tuple(range(int(a or 0), int(b)))
         else:
-            frames = tuple(int(t) for t in text.split(","))
+            frames = tuple(sorted({int(t) for t in text.split(",")}))
     except ValueError:
         raise ConfigError(f"--frames {text}: expected START:END, N or N,M,...") from None
     if not frames:  # 5:2 or 1:1: nothing to compute, and a movie of no frames would fail only at the end

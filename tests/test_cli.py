@@ -323,3 +323,23 @@ def test_clean_of_a_cache_that_is_not_there_says_so_and_makes_nothing(toy_config
     assert not (tmp_path / "nonexistent").exists()
     assert CliRunner().invoke(main, ["status", str(toy_config), "--cache", str(tmp_path / "nonexistent")]).exit_code == 0
     assert not (tmp_path / "nonexistent").exists()
+
+
+def test_frames_are_each_counted_once_and_given_once(toy_config, tmp_path):
+    """--frames 0,0,3 kept the repeat (status counted 2 frames for "0,0", run.json recorded [0, 0, 3] and the movie
+    was keyed apart from 0,3); a second --frames silently replaced the first."""
+    import json
+
+    from pipeline.runner import parse_frames
+
+    assert parse_frames("3,0,0") == (0, 3) and parse_frames("0:3") == (0, 1, 2)
+    cache = ["--cache", str(tmp_path / "c"), "--out", str(tmp_path / "o")]
+    result = CliRunner().invoke(main, ["run", str(toy_config), "-q", *cache, "--frames", "0,0,3"])
+    assert result.exit_code == 0, result.output
+    assert json.loads((tmp_path / "o" / "run.json").read_text())["frames"] == [0, 3]
+    result = CliRunner().invoke(main, ["status", str(toy_config), *cache[:2], "--frames", "0,0"])
+    assert result.exit_code == 0 and "1 frames" in result.output, result.output
+    for command in (["run", "-q", *cache], ["status", *cache[:2]]):
+        result = CliRunner().invoke(main, [command[0], str(toy_config), *command[1:], "--frames", "0:2", "--frames", "3"])
+        _one_line_exit_2(result)
+        assert "--frames given 2 times (0:2, 3)" in result.stderr, result.stderr
