@@ -97,6 +97,15 @@ class Placement(Model):
     translate: Vec3 = Field((0.0, 0.0, 0.0), description="translation in scene units, applied last")
     fit: Domain | None = Field(None, description="uniformly scale and move the model to fit this box")
 
+    @field_validator("scale")
+    @classmethod
+    def _non_zero(cls, v: float | Vec3) -> float | Vec3:
+        # a zero flattens the model to nothing, found only in mesh_import ("empty mesh after removing degenerate
+        # faces"); a negative scale is a mirror
+        if any(c == 0 for c in (v if isinstance(v, tuple) else (v,))):
+            raise ValueError("must be non-zero (a negative scale mirrors the model)")
+        return v
+
 
 class Keyframe(Model):
     time: float = Field(description="seconds")
