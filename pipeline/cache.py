@@ -138,6 +138,11 @@ def owner_tag() -> str:
     return f"{_HOST}-{os.getpid()}-{_STARTED}"
 
 
+# what new_tmp, commit, remove and write_state name their temporary folders and files in <cache>/tmp/:
+# ``[damaged-|removed-|state-]<key>.<host>-<pid>-<start>.<random hex>``
+_TMP_NAME = re.compile(r"[\w-]+\.[A-Za-z0-9-]+-\d+-\d+\.[0-9a-f]+")
+
+
 def parse_owner_tag(name: str) -> tuple[str, int, int] | None:
     """(host, pid, start) from a name ``<anything>.<host>-<pid>-<start>.<random>``, or None."""
     parts = name.split(".")
@@ -336,19 +341,22 @@ class Cache:
         shutil.rmtree(tmp, ignore_errors=True)
 
     def sweep_tmp(self) -> int:
-        """Remove temporary folders whose writer is provably dead (killed runs); see owner_is_dead."""
+        """Remove temporary folders whose writer is provably dead (killed runs); see owner_is_dead. Only names
+        the cache gives its own temporaries: a --cache pointed at a user's folder lost every item of its tmp/
+        older than 7 days, whatever it was."""
         removed = 0
         tmp_root = self.root / "tmp"
         if not tmp_root.is_dir():
             return 0
         for d in tmp_root.iterdir():
+            owner = parse_owner_tag(d.name) if _TMP_NAME.fullmatch(d.name) else None
+            if owner is None:
+                continue
             try:
                 mtime = d.lstat().st_mtime
             except OSError:
                 continue
-            owner = parse_owner_tag(d.name)
-            dead = owner_is_dead(*owner, mtime=mtime) if owner else time.time() - mtime > tmp_max_age()
-            if not dead:
+            if not owner_is_dead(*owner, mtime=mtime):
                 continue
             if d.is_dir() and not d.is_symlink():
                 shutil.rmtree(d, ignore_errors=True)

@@ -13,7 +13,7 @@ import click
 
 from . import runner
 from .cache import check_env
-from .status import clean as clean_config, status as config_status
+from .status import clean_cache, status as config_status
 from .errors import PipelineError
 from .registry import Registry
 from .stage import STAGE_KINDS
@@ -47,6 +47,7 @@ def _guard(fn):
     def wrapper(*args, **kwargs):
         try:
             check_env()  # PIPELINE_LOCK_TIMEOUT=abc: one line naming it, not a traceback
+            _check_options(kwargs)
             if threading.current_thread() is threading.main_thread():
                 signal.signal(signal.SIGTERM, _terminated)
             return fn(*args, **kwargs)
@@ -95,12 +96,44 @@ def main() -> None:
     """Polygon/USD walls -> SDF -> SPH/MPS fluid -> surface -> wall snap -> frames, movie, OpenUSD."""
 
 
+class FolderPath(click.Path):
+    """A folder option's path; an empty or blank value (``--cache "$CACHE"`` with the variable unset) stays the
+    text it is, for _guard to refuse: click made it Path(""), the current folder, so a run cached (and swept)
+    or published into wherever it was started."""
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, str) and not value.strip():
+            return value
+        return super().convert(value, param, ctx)
+
+
+FOLDER_OPTIONS = {"cache_dir": "--cache", "out_dir": "--out"}
+
+
+def _check_options(kwargs: dict) -> None:
+    """Refuse a blank folder option and a repeated --frames (one line, exit 2); ``kwargs["frames"]`` becomes its
+    one value (or None)."""
+    for name, flag in FOLDER_OPTIONS.items():
+        value = kwargs.get(name)
+        if isinstance(value, str) and not value.strip():
+            raise PipelineError(f"{flag} {value!r}: an empty path (an unset shell variable?); give a folder, or leave "
+                                "the option out for the default")
+    if "frames" in kwargs:
+        given = kwargs["frames"] or ()
+        if len(given) > 1:
+            raise PipelineError(f"--frames given {len(given)} times ({', '.join(given)}): give one selection "
+                                "(N,M,... lists several frames)")
+        kwargs["frames"] = given[0] if given else None
+
+
 config_arg = click.argument("config", type=click.Path(path_type=Path))
 set_opt = click.option("--set", "overrides", multiple=True, metavar="PATH=VALUE",
                        help="Override a config value, e.g. --set simulate.cfl=0.3 (repeatable).")
-cache_opt = click.option("--cache", "cache_dir", type=click.Path(path_type=Path),
+cache_opt = click.option("--cache", "cache_dir", type=FolderPath(path_type=Path),
                          help="Cache folder (default: .pipeline/ beside the config).")
-frames_opt = click.option("--frames", help="Frames for per-frame stages: START:END (end exclusive), N or N,M.")
+# multiple=True only to see a repeated --frames (click keeps the last, silently dropping the others); _guard
+# refuses a repeat and passes the one value on
+frames_opt = click.option("--frames", multiple=True, help="Frames for per-frame stages: START:END (end exclusive), N or N,M.")
 
 
 @main.command()
@@ -108,7 +141,7 @@ frames_opt = click.option("--frames", help="Frames for per-frame stages: START:E
 @set_opt
 @cache_opt
 @frames_opt
-@click.option("--out", "out_dir", type=click.Path(path_type=Path), help="Output folder (default: out/<scene>/ beside the config).")
+@click.option("--out", "out_dir", type=FolderPath(path_type=Path), help="Output folder (default: out/<scene>/ beside the config).")
 @click.option("--only", type=KINDS, help="Run only this stage; its inputs must be cached.")
 @click.option("--from", "from_", type=KINDS, help="Run this stage and the stages downstream of it; upstream from cache. Outputs not made from "
                    "it (export for --from render) are not made, and need not be cached.")
@@ -273,14 +306,17 @@ def clean(config, overrides, cache_dir, stage):
     other --set overrides or earlier versions of the config stay (the cache does not record which config
     made an entry: entries are shared by every config that gives a stage the same inputs); give the same
     --set to drop a variant's, or remove the cache folder to drop everything."""
-    n = clean_config(config, stage=stage, cache_dir=cache_dir, overrides=tuple(overrides))
+    n, missing = clean_cache(config, stage=stage, cache_dir=cache_dir, overrides=tuple(overrides))
+    if missing is not None:  # exit 0 as `status` of a missing cache: nothing is cached, so nothing to remove
+        click.echo(f"no cache at {missing}; nothing removed")
+        return
     click.echo(f"removed {n} cache entr{'y' if n == 1 else 'ies'}")
 
 
 @main.command()
 @click.argument("study", type=click.Path(path_type=Path))
 @cache_opt
-@click.option("--out", "out_dir", type=click.Path(path_type=Path), help="Report folder (default: out/<study>/ beside it).")
+@click.option("--out", "out_dir", type=FolderPath(path_type=Path), help="Report folder (default: out/<study>/ beside it).")
 @click.option("--workers", type=click.IntRange(1, 256), default=1, show_default=True,
               help="Variants run in parallel processes (with --executor dask and no --scheduler: the "
                    "LocalCluster's worker processes).")

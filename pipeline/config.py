@@ -225,7 +225,10 @@ def safe_yaml(text: str, file: str) -> tuple[Any, yaml.Node | None]:
     except yaml.MarkedYAMLError as e:
         mark = e.problem_mark or e.context_mark
         line = f":{mark.line + 1}" if mark is not None else ""
-        raise ConfigError(f"{file}{line}: not valid YAML: {e.problem or e.context}") from None
+        problem, hint = e.problem or e.context, ""
+        if problem and "'\\t'" in problem and mark is not None:  # a tab is invisible in the line: say where it is and what it is
+            hint = f" (a tab, at column {mark.column + 1}: YAML allows only spaces here)"
+        raise ConfigError(f"{file}{line}: not valid YAML: {problem}{hint}") from None
     except yaml.YAMLError as e:
         raise ConfigError(f"{file}: not valid YAML: {str(e).splitlines()[0]}") from None
     finally:

@@ -18,12 +18,15 @@ that read left out: a run with a larger value continues from the cached entry of
 """
 from __future__ import annotations
 
+import errno
 import hashlib
 import importlib.util
 import json
 import os
 import re
+import stat
 import sys
+import time
 import traceback
 from dataclasses import dataclass
 from pathlib import Path
@@ -79,7 +82,7 @@ def plan(config: Config, graph: Graph, cache: Cache, frames: tuple[int, ...] | N
     count = config.scene.scene.frames.count
     if frames is None:
         frames = tuple(range(count))
-    frames = tuple(frames)
+    frames = tuple(sorted(set(frames)))  # one selection, one key, whatever order or repeats a caller gave
     bad = [f for f in frames if not 0 <= f < count]
     if bad:
         raise ConfigError(f"--frames: frame {bad[0]} is outside the scene's frames 0..{count - 1}")
@@ -128,12 +131,21 @@ def _files(config: Config, node: Node, values: dict[str, Any], frames: tuple[int
     found += [("external file", ("stages", node.kind), Path(f)) for f in extra]
     files: dict[str, str] = {}
     for where, field, path in found:
-        name = _file_name(path, config.dir)
-        if name not in files:
-            if not path.is_file():
-                raise StageFailed(f"{config.where(*field)}: stage {node.label}: {where}: input file not found: {path}",
-                                  user_error=True)
-            files[name] = _file_hash(path)
+        here = f"{config.where(*field)}: stage {node.label}: {where}"
+        try:
+            # stat first: a symlink loop, a name too long or a NUL byte is the config's mistake (resolve() raised
+            # RuntimeError, stat OSError/ValueError: exit 1 with no config line)
+            if not stat.S_ISREG(os.stat(path).st_mode):
+                raise FileNotFoundError(errno.ENOENT, "not a file", str(path))
+            name = _file_name(path, config.dir)
+            if name not in files:
+                files[name] = _file_hash(path)
+        except (FileNotFoundError, NotADirectoryError):
+            raise StageFailed(f"{here}: input file not found: {path}", user_error=True) from None
+        except OSError as exc:  # ELOOP, ENAMETOOLONG, EACCES, EIO
+            raise StageFailed(f"{here}: cannot read input file {path}: {exc.strerror or exc}", user_error=True) from None
+        except (ValueError, RuntimeError) as exc:  # an embedded NUL (a plugin's external_files), a loop in resolve()
+            raise StageFailed(f"{here}: cannot read input file {path!r}: {exc}", user_error=True) from None
     return files
 
 
@@ -152,7 +164,14 @@ def _file_name(path: Path, config_dir: Path) -> str:
         return str(Path(path).resolve())
 
 
-_FILE_HASHES: dict[tuple[str, int, int], str] = {}
+# (resolved path, device, inode, size, mtime_ns, ctime_ns) -> sha256. Size and mtime alone let a file replaced by
+# one of the same size and mtime (cp -p, shutil.copy2, rsync -a) keep its old hash in a long-lived process (a
+# notebook calling pipeline.run twice was served the stale result); a write or utime always moves ctime, a
+# replacement by rename the inode.
+_FILE_HASHES: dict[tuple, str] = {}
+# a file changed within this many ns of being hashed is not memoised: a second write within the filesystem's
+# clock tick (a few ms) would leave ctime as it was ("racy git")
+_RACY_NS = 2_000_000_000
 
 
 def check_inputs_unchanged(config_dir: str | Path, files: dict[str, str]) -> None:
@@ -166,16 +185,23 @@ def check_inputs_unchanged(config_dir: str | Path, files: dict[str, str]) -> Non
                            "was kept: run again")
 
 
+def _file_sig(path: Path | str) -> tuple:
+    st = os.stat(path)
+    return (str(Path(path).resolve()), st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
+
+
 def _file_hash(path: Path) -> str:
-    st = path.stat()
-    sig = (str(path.resolve()), st.st_size, st.st_mtime_ns)
-    if sig not in _FILE_HASHES:
-        _FILE_HASHES[sig] = file_sha256(path)
-    return _FILE_HASHES[sig]
+    sig = _file_sig(path)
+    sha = _FILE_HASHES.get(sig)
+    if sha is None:
+        sha = file_sha256(path)
+        if time.time_ns() - sig[-1] > _RACY_NS:
+            _FILE_HASHES[sig] = sha
+    return sha
 
 
 # -- code hashes -----------------------------------------------------------------------------------
-_SOURCES: dict[str, tuple[tuple[int, int], str, tuple[str, ...]]] = {}  # file -> (stat, sha, imports)
+_SOURCES: dict[str, tuple[tuple[int, ...], str, tuple[str, ...]]] = {}  # file -> (stat, sha, imports)
 # import statements, also inside functions; a regex rather than ast: parsing every module on each run
 # costs seconds, and a false match in a docstring only adds a module to the hash
 _FROM_IMPORT = re.compile(r"^[ \t]*from[ \t]+(\.*)([\w.]*)[ \t]+import[ \t]+(\([^)]*\)|[^\n#;]*)", re.M)
@@ -192,8 +218,8 @@ def code_hashes(cls: type[Stage]) -> dict[str, str]:
     A package installed in site-packages counts by its version (``{top: "version X"}``), not its sources: an
     upgrade of numba or trimesh re-keys what was made with it. A stage whose module has no source file
     (a class defined in a notebook cell or ``python -c``) cannot be hashed: it gets a key no later run
-    shares, so it is recomputed on every run (and said once). Parsed sources are reused while a file's size
-    and mtime are unchanged."""
+    shares, so it is recomputed on every run (and said once). Parsed sources are reused while a file's inode,
+    size, mtime and ctime are unchanged."""
     roots = {"pipeline", "stages", cls.__module__.split(".")[0]}
     out: dict[str, str] = {}
     todo = [cls.__module__]
@@ -308,7 +334,7 @@ def _module_file(name: str) -> str | None:
 
 def _source(file: str, name: str) -> tuple[str, tuple[str, ...]]:
     st = os.stat(file)
-    sig = (st.st_size, st.st_mtime_ns)
+    sig = (st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)  # as _file_sig: a same-size, same-mtime copy is new
     hit = _SOURCES.get(file)
     if hit is not None and hit[0] == sig:
         return hit[1], hit[2]

@@ -584,6 +584,12 @@ def select(graph: Graph, only: str | None = None, from_: str | None = None, unti
         raise ConfigError("--only cannot be combined with --from/--until")
     if only:
         graph = graph.only(only)
+    if from_ and until and from_ in graph.nodes and until in graph.nodes and from_ != until \
+            and from_ not in graph.upstream(until):
+        # the until-graph no longer holds from_: it was called "not a stage this config runs", though it is
+        where = "comes after" if from_ in graph.downstream(until) else "is not upstream of"
+        raise ConfigError(f"--from {from_} {where} --until {until}: nothing would run (--from names the first "
+                          "stage to run, --until the last)")
     if until:
         graph = graph.until(until)
     if from_:
@@ -592,7 +598,8 @@ def select(graph: Graph, only: str | None = None, from_: str | None = None, unti
 
 
 def parse_frames(text: str | None) -> tuple[int, ...] | None:
-    """``"0:10"`` (end exclusive), ``"5"``, or ``"0,3,7"``."""
+    """``"0:10"`` (end exclusive), ``"5"``, or ``"0,3,7"``; sorted, each frame once ("0,0,3" was three frames in
+    run.json and status, and keyed the movie apart from "0,3")."""
     if text is None:
         return None
     try:
@@ -600,7 +607,7 @@ def parse_frames(text: str | None) -> tuple[int, ...] | None:
             a, _, b = text.partition(":")
             frames = tuple(range(int(a or 0), int(b)))
         else:
-            frames = tuple(int(t) for t in text.split(","))
+            frames = tuple(sorted({int(t) for t in text.split(",")}))
     except ValueError:
         raise ConfigError(f"--frames {text}: expected START:END, N or N,M,...") from None
     if not frames:  # 5:2 or 1:1: nothing to compute, and a movie of no frames would fail only at the end
@@ -654,8 +661,10 @@ def run(config_path: str | Path, *, registry: Registry | None = None, overrides:
                           f"particles, which {', '.join(graph.outputs)} need")
     check_stages(config, graph)
     for f in force:
-        if f != "all" and f not in graph.nodes:
-            raise ConfigError(f"--force {f}: not a stage this run includes ({', '.join(graph.order())})")
+        # graph.nodes also holds the stages --only/--from read from the cache: forcing one was ignored without a word
+        if f != "all" and f not in graph.runnable:
+            runs = [k for k in graph.order() if k in graph.runnable]
+            raise ConfigError(f"--force {f}: not a stage this run includes ({', '.join(runs)})")
     cache = Cache(Path(cache_dir) if cache_dir else default_cache_dir(config), lock_timeout=lock_timeout)
     out = Path(os.path.abspath(out_dir)) if out_dir else default_out_dir(config)
     real_out, real_cache = Path(os.path.realpath(out)), Path(os.path.realpath(cache.root))

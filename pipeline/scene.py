@@ -29,6 +29,8 @@ class InputFileMarker:
 def _normal_path(path: str | None) -> str | None:
     """One spelling per file ('./a//b.obj' is 'a/b.obj'): the path is part of the key, and another spelling of
     the same file re-ran everything from the stage that reads it."""
+    if path and "\0" in path:  # the OS refuses it: a ValueError deep in the plan, exit 1 with no config line
+        raise ValueError("a file name cannot hold a NUL character (\\0)")
     return posixpath.normpath(path) if path else path
 
 
@@ -94,6 +96,15 @@ class Placement(Model):
     rotate: Vec3 = Field((0.0, 0.0, 0.0), description="rotation in degrees about X, then Y, then Z")
     translate: Vec3 = Field((0.0, 0.0, 0.0), description="translation in scene units, applied last")
     fit: Domain | None = Field(None, description="uniformly scale and move the model to fit this box")
+
+    @field_validator("scale")
+    @classmethod
+    def _non_zero(cls, v: float | Vec3) -> float | Vec3:
+        # a zero flattens the model to nothing, found only in mesh_import ("empty mesh after removing degenerate
+        # faces"); a negative scale is a mirror
+        if any(c == 0 for c in (v if isinstance(v, tuple) else (v,))):
+            raise ValueError("must be non-zero (a negative scale mirrors the model)")
+        return v
 
 
 class Keyframe(Model):

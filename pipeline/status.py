@@ -115,19 +115,27 @@ def clean(config_path: str | Path, *, registry: Registry | None = None, stage: s
     with), or only one stage's; returns how many. With ``overrides`` (parsed as run's --set), only the
     entries of the config with them applied. Entries made under other overrides stay: entries are
     content-addressed (shared by every config that gives a stage the same inputs) and do not record which
-    config or overrides made them."""
+    config or overrides made them. A cache folder that does not exist is left so (0 removed)."""
+    return clean_cache(config_path, registry=registry, stage=stage, cache_dir=cache_dir, overrides=overrides)[0]
+
+
+def clean_cache(config_path: str | Path, *, registry: Registry | None = None, stage: str | None = None,
+                cache_dir: str | Path | None = None, overrides: tuple[str, ...] = ()) -> tuple[int, Path | None]:
+    """``clean``, and the cache folder when there is none there (for `pipeline clean` to say so), else None."""
     registry = registry or Registry.from_entry_points()
     config = load_config(config_path, registry, overrides)
     graph = build_graph(config)
     if stage is not None and stage not in graph.nodes:
         raise ConfigError(f"--stage {stage}: not a stage of this config ({', '.join(graph.order())})")
     cache = Cache(Path(cache_dir) if cache_dir else default_cache_dir(config))
-    p = plan(config, graph, cache, tuple(range(config.scene.scene.frames.count)))
+    p = plan(config, graph, cache, tuple(range(config.scene.scene.frames.count)))  # a bad input file: still said
+    if not cache.root.is_dir():  # a mistyped --cache was made (with locks/runs.lock) to report 0 removed
+        return 0, cache.root
     # the last run's keys (the state is per config file, whatever overrides that run had): not with overrides,
     # which name one variant
     last = cache.read_state(config.path) if not overrides else {}
     with cache.alone("clean"):
-        return _remove(cache, graph, p, last, stage)
+        return _remove(cache, graph, p, last, stage), None
 
 
 def _remove(cache: Cache, graph, p, last: dict, stage: str | None) -> int:

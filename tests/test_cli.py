@@ -292,3 +292,54 @@ def test_clean_with_set_drops_that_variants_entries(toy_config, tmp_path):
     assert r.exit_code == 2 and "--set simulate.steps" in r.stderr, r.output
     assert "Entries made under other --set overrides or earlier versions of the config stay" in " ".join(
         CliRunner().invoke(main, ["clean", "--help"]).output.split())
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--force", "simulate", "--only", "render"], "--force simulate: not a stage this run includes (render)"),
+    (["--force", "simulate", "--from", "render"], "--force simulate: not a stage this run includes (render)"),
+    (["--force", "render", "--until", "simulate"], "--force render: not a stage this run includes (mesh_import, "
+                                                   "sdf_bake, simulate)"),
+    (["--from", "render", "--until", "simulate"], "--from render comes after --until simulate: nothing would run"),
+])
+def test_partial_run_options_that_contradict_are_refused(args, message, toy_config, tmp_path):
+    """--force of a stage --only/--from reads from the cache was ignored without a word (all cached, exit 0),
+    and --from after --until said "--from render: not a stage this config runs", though it is."""
+    from conftest import ran
+
+    cache = ["--cache", str(tmp_path / "c"), "--out", str(tmp_path / "o")]
+    assert CliRunner().invoke(main, ["run", str(toy_config), "-q", *cache]).exit_code == 0
+    result = CliRunner().invoke(main, ["run", str(toy_config), "-q", *cache, *args])
+    _one_line_exit_2(result)
+    assert message in result.stderr, result.stderr
+    assert ran(toy_config, "simulate") == 1
+
+
+def test_clean_of_a_cache_that_is_not_there_says_so_and_makes_nothing(toy_config, tmp_path):
+    """It made the folder (with locks/runs.lock) and said "removed 0 cache entries"; exit 0 as status of a
+    missing cache."""
+    result = CliRunner().invoke(main, ["clean", str(toy_config), "--cache", str(tmp_path / "nonexistent")])
+    assert result.exit_code == 0, result.output
+    assert result.output.strip() == f"no cache at {tmp_path / 'nonexistent'}; nothing removed"
+    assert not (tmp_path / "nonexistent").exists()
+    assert CliRunner().invoke(main, ["status", str(toy_config), "--cache", str(tmp_path / "nonexistent")]).exit_code == 0
+    assert not (tmp_path / "nonexistent").exists()
+
+
+def test_frames_are_each_counted_once_and_given_once(toy_config, tmp_path):
+    """--frames 0,0,3 kept the repeat (status counted 2 frames for "0,0", run.json recorded [0, 0, 3] and the movie
+    was keyed apart from 0,3); a second --frames silently replaced the first."""
+    import json
+
+    from pipeline.runner import parse_frames
+
+    assert parse_frames("3,0,0") == (0, 3) and parse_frames("0:3") == (0, 1, 2)
+    cache = ["--cache", str(tmp_path / "c"), "--out", str(tmp_path / "o")]
+    result = CliRunner().invoke(main, ["run", str(toy_config), "-q", *cache, "--frames", "0,0,3"])
+    assert result.exit_code == 0, result.output
+    assert json.loads((tmp_path / "o" / "run.json").read_text())["frames"] == [0, 3]
+    result = CliRunner().invoke(main, ["status", str(toy_config), *cache[:2], "--frames", "0,0"])
+    assert result.exit_code == 0 and "1 frames" in result.output, result.output
+    for command in (["run", "-q", *cache], ["status", *cache[:2]]):
+        result = CliRunner().invoke(main, [command[0], str(toy_config), *command[1:], "--frames", "0:2", "--frames", "3"])
+        _one_line_exit_2(result)
+        assert "--frames given 2 times (0:2, 3)" in result.stderr, result.stderr

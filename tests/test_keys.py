@@ -383,3 +383,63 @@ def test_a_missing_input_file_names_the_config_line(toy_config):
                                           rf"file not found: .*gone.txt$"):
         pipeline.run(toy_config, registry=Registry.from_entry_points())
     assert not (toy_config.parent / ".pipeline").exists()
+
+
+def test_a_file_replaced_by_a_same_size_same_mtime_copy_is_hashed_again(toy_config, monkeypatch):
+    """The process-wide hash memo was keyed on (path, size, mtime): a wall replaced in place by another of the
+    same size and mtime (cp -p, shutil.copy2, rsync -a) kept its old hash in a notebook calling pipeline.run
+    twice, and the second run was served the first wall's results. ctime and the inode are in the memo's key now."""
+    import os
+    import shutil
+    import time
+
+    folder = toy_config.parent
+    toy_config.write_text(toy_config.read_text().replace("fluid:\n", "walls:\n  - file: wall.obj\nfluid:\n"))
+    a, b = folder / "a.obj", folder / "b.obj"
+    a.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    b.write_text("v 0 0 0\nv 2 0 0\nv 0 2 0\nf 1 2 3\n")  # same size, other content
+    for f in (a, b):
+        os.utime(f, ns=(1_700_000_000_000_000_000,) * 2)
+    for every_hash_memoised in (False, True):  # as it is; then recent files too, so the memo's key alone decides
+        if every_hash_memoised:
+            monkeypatch.setattr(keys_module, "_RACY_NS", 0, raising=False)
+        keys_module._FILE_HASHES.clear()
+        shutil.copy2(a, folder / "wall.obj")
+        first = keys(toy_config)["mesh_import"]
+        time.sleep(0.05)  # past the filesystem clock's tick, so the copy's ctime moves
+        shutil.copy2(b, folder / "wall.obj")
+        st = (folder / "wall.obj").stat()
+        assert (st.st_size, st.st_mtime_ns) == (a.stat().st_size, a.stat().st_mtime_ns)
+        assert keys(toy_config)["mesh_import"] != first
+        shutil.copy2(a, folder / "wall.obj")
+        assert keys(toy_config)["mesh_import"] == first
+
+
+@pytest.mark.parametrize("case", ["symlink loop", "name too long"])
+@pytest.mark.parametrize("command", ["run", "status", "clean"])
+def test_an_input_path_the_os_refuses_names_the_config_line(case, command, toy_config):
+    """A symlink loop (resolve() raised RuntimeError) or a 300-character file name (OSError from stat): exit 1
+    with a traceback or a bare OSError in run, status and clean; now exit 2, one line naming the config line and
+    field, as a missing file is, and nothing written."""
+    from click.testing import CliRunner
+
+    from pipeline.cli import main
+
+    folder = toy_config.parent
+    if case == "symlink loop":
+        (folder / "a").mkdir()
+        (folder / "a" / "loop2.obj").symlink_to("loop1")
+        (folder / "a" / "loop1").symlink_to("loop2.obj")
+        name, cause = "a/loop2.obj", "Too many levels of symbolic links"
+    else:
+        name, cause = "x" * 300 + ".obj", "File name too long"
+    toy_config.write_text(toy_config.read_text().replace("fluid:\n", f"walls:\n  - builtin: box_tank\n  - file: {name}\nfluid:\n"))
+    line = toy_config.read_text().splitlines().index(f"  - file: {name}") + 1
+    before = sorted(p.name for p in folder.iterdir())
+    r = CliRunner().invoke(main, [command, str(toy_config)])
+    assert r.exit_code == 2, r.output
+    err = r.stderr.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in r.output, err
+    assert err.startswith(f"error: {toy_config}:{line}: stage mesh_import.toy: walls.1.file: cannot read input file"), err
+    assert err.endswith(cause), err
+    assert sorted(p.name for p in folder.iterdir()) == before

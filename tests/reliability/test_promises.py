@@ -472,3 +472,39 @@ def test_dotfiles_of_an_artifact_are_not_published(tmp_path, toy_registry):
     out = tmp_path / "o"
     publish(Graph(nodes={}, outputs=("frames",)), {"frames": Artifact(name="frames", key="k", path=art)}, out, (0, 1))
     assert sorted(p.name for p in (out / "frames").iterdir()) == ["frame_00000.png"]
+
+
+@pytest.mark.parametrize("command, flag, value", [
+    (command, flag, value) for command in (["run", "-q"], ["status"], ["clean"], ["study"])
+    for flag, value in (("--cache", ""), ("--cache", "  "), ("--out", "")) if flag == "--cache" or command[0] in ("run", "study")])
+def test_an_empty_cache_or_output_folder_is_refused(command, flag, value, tmp_path, monkeypatch, toy_registry):
+    """--cache "$CACHE" with the variable unset made the current folder the cache (its tmp/ swept, locks/,
+    logs/ and entries written among the user's files), --out "" published into it."""
+    cfg = write_config(tmp_path / "cfg")
+    here = tmp_path / "here"
+    here.mkdir()
+    (here / "notes.txt").write_text("mine")
+    monkeypatch.chdir(here)
+    before = _snapshot(tmp_path)
+    err = _one_line_exit(CliRunner().invoke(main, [command[0], str(cfg), *command[1:], flag, value]), 2)
+    assert err.startswith(f"error: {flag} '") and "an empty path (an unset shell variable?)" in err, err
+    assert _snapshot(tmp_path) == before
+
+
+def test_the_sweep_removes_only_its_own_temporary_names(tmp_path):
+    """--cache pointed at a user's folder: the sweep removed every item of its tmp/ older than 7 days, whatever
+    its name (a user's tmp/old_report.txt). It removes only the names the cache gives its temporaries."""
+    cache = Cache(tmp_path / "c")
+    tmp = cache.root / "tmp"
+    tmp.mkdir(parents=True)
+    host = owner_tag().rsplit("-", 2)[0]
+    old = time.time() - TMP_MAX_AGE - 60
+    mine = [tmp / "old_report.txt", tmp / "photos", tmp / "a.b.c", tmp / "k.notes-1-2.txt"]
+    ours = [tmp / f"{'0' * 64}.{host}-999999-{int(old)}.0123abcd",
+            tmp / f"removed-{'1' * 64}.otherhost-1-{int(old)}.89abcdef",
+            tmp / f"state-{'2' * 16}.otherhost-1-{int(old)}.aaaa0000"]
+    for p in mine + ours:
+        p.mkdir() if p.name == "photos" or p in ours[:2] else p.write_text("x")
+        os.utime(p, (old, old))
+    assert cache.sweep_tmp() == len(ours)
+    assert sorted(tmp.iterdir()) == sorted(mine)
