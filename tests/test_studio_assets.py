@@ -126,6 +126,47 @@ def test_obj_relative_index_out_of_range_names_the_file(tmp_path):
         _import(tmp_path, [{"file": "bad.obj"}])
 
 
+def _streamed_cube_obj(triangles=False):
+    """The cube as streaming exporters write it: each face's own vertices, then the face by relative
+    indices (``f -4 -3 -2 -1``), repeated."""
+    p = _cube_points(0.1)
+    quads = np.array(CUBE_INDICES).reshape(-1, 4)
+    faces = quads[:, [0, 1, 2, 0, 2, 3]].reshape(-1, 3) if triangles else quads
+    out = []
+    for q in faces:
+        out += [f"v {p[i][0]:g} {p[i][1]:g} {p[i][2]:g}" for i in q]
+        out.append("f " + " ".join(str(k - len(q)) for k in range(len(q))))
+    return "\n".join(out) + "\n"
+
+
+@pytest.mark.parametrize("triangles", [False, True])
+def test_plain_relative_indices_count_back_from_the_vertices_read_so_far(tmp_path, triangles):
+    """``f -4 -3 -2 -1`` after each quad's vertices (no slashes): trimesh counted back from the file's last
+    vertex, every face landed on the last quad and the tank vanished without a word; each face is its own
+    quad now and the cube is closed, as the plain-index file."""
+    (tmp_path / "plain.obj").write_text(_cube_obj(lambda i: str(i + 1)))
+    (tmp_path / "streamed.obj").write_text(_streamed_cube_obj(triangles))
+    plain = _import(tmp_path, [{"file": "plain.obj", "fluid": "inside"}])
+    wm = _import(tmp_path, [{"file": "streamed.obj", "fluid": "inside"}])
+    report = wm.walls[0]["report"]
+    assert report["watertight"] and report["faces"] == 12 and report["vertices"] == 8
+    corners = lambda m: sorted(sorted(map(tuple, m.vertices[t])) for t in m.faces)  # noqa: E731 - the triangles' corners
+    assert corners(wm) == corners(plain)
+
+
+@pytest.mark.parametrize("face", ["f 0 4 3 2", "f 0 3 2"])
+def test_obj_index_0_is_refused_naming_its_line(tmp_path, face):
+    """Index 0 is no OBJ index (they start at 1): trimesh took it for the last vertex (a triangle file) or the
+    message said only "out of range"; now one line names the file and the line."""
+    lines = _cube_obj(lambda i: str(i + 1)).splitlines()
+    n = next(k for k, line in enumerate(lines) if line.startswith("f "))
+    lines[n] = face
+    (tmp_path / "zero.obj").write_text("\n".join(lines) + "\n")
+    with pytest.raises(StageError, match=rf"zero\.obj: line {n + 1}: face index 0 is not valid in OBJ "
+                                         r"\(indices start at 1\)$"):
+        _import(tmp_path, [{"file": "zero.obj"}])
+
+
 def _instancer_and_meshes(tmp_path, animated=False):
     """A Y-up centimetre stage with a PointInstancer (under a moved Xform; its cube prototype has its own
     offset) of two instances, one turned and scaled; and the same two cubes as plain meshes placed by
