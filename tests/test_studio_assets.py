@@ -532,3 +532,31 @@ def test_a_usd_emitter_without_units_is_warned_about_as_a_wall_is(tmp_path, capl
                     logging.getLogger("t"))
     assert len(x) == 1000  # a 20 cm cube at 2 cm, as USD's centimetre fallback reads it
     assert "states no metersPerUnit and no upAxis" in caplog.text
+
+
+def test_visibility_keyed_only_in_time_samples_is_read_at_the_shots_start_as_the_geometry(tmp_path, caplog):
+    """A shot from code 1001 hides a plate with ``visibility.timeSamples = {1001: invisible}`` only: read at
+    the default time (no value: visible) it was a wall while its points came from the first sample; a lid
+    invisible at code 0 and visible from 100 was a wall too. Both are left out now, as they are at the shot's
+    start, and the animated one is warned about once, naming the prim."""
+    import logging
+
+    from pxr import UsdGeom
+
+    stage = _new_stage(tmp_path / "keyed.usda")
+    stage.SetStartTimeCode(1001)
+    stage.SetEndTimeCode(1100)
+    _define_cube(stage, "/World/Tank", h=0.2)
+    plate = _define_cube(stage, "/World/Plate", h=0.05)
+    plate.CreateVisibilityAttr().Set(UsdGeom.Tokens.invisible, 1001)
+    lid = _define_cube(stage, "/World/Lid", h=0.1)
+    lid.CreateVisibilityAttr().Set(UsdGeom.Tokens.invisible, 0)
+    lid.GetVisibilityAttr().Set(UsdGeom.Tokens.inherited, 1100)
+    stage.GetRootLayer().Save()
+    with caplog.at_level(logging.WARNING):
+        wm = _import(tmp_path, [{"usd": "keyed.usda", "fluid": "inside"}])
+    assert wm.walls[0]["report"]["prims"] == ["/World/Tank"]
+    warned = [r.getMessage() for r in caplog.records if "visibility is animated" in r.getMessage()]
+    assert len(warned) == 1 and "keyed.usda:/World/Lid: " in warned[0], caplog.text
+    wm = _import(tmp_path, [{"usd": "keyed.usda", "fluid": "inside", "include_invisible": True}])
+    assert len(wm.walls[0]["report"]["prims"]) == 3

@@ -313,7 +313,7 @@ def _instances(stage, instancer, path: Path, hidden_too: bool) -> list[tuple]:
 
 def _hidden_below(prim, root) -> bool:
     """A prototype's mesh made invisible within the prototype (the prototype's ancestors do not count: a
-    scope hiding prototypes does not hide the instances)."""
+    scope hiding prototypes does not hide the instances), at the earliest time as every wall."""
     from pxr import Usd, UsdGeom
 
     p = prim
@@ -323,6 +323,18 @@ def _hidden_below(prim, root) -> bool:
         if p == root:
             return False
         p = p.GetParent()
+
+
+def _animated_visibility(prim) -> list:
+    """The prim and ancestors whose visibility changes between its time samples."""
+    out = []
+    p = prim
+    while p and p.IsValid() and not p.IsPseudoRoot():
+        attr = p.GetAttribute("visibility")
+        if attr and attr.GetNumTimeSamples() > 1 and len({attr.Get(c) for c in attr.GetTimeSamples()}) > 1:
+            out.append(p)
+        p = p.GetParent()
+    return out
 
 
 def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str,
@@ -394,18 +406,30 @@ def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str,
                       and any(p.GetPath().HasPrefix(r) for r in roots)})
     left_out.update({p: f"prototype of {owner[p].GetPath()}" for p in shapes if p in owner})
     items = [(p, None) for p in shapes]
+    # visibility is read when the geometry is, at the earliest time (a shot's start): at the default time a prim
+    # keyed invisible only in time samples (from 1001) was a wall; walls do not appear or vanish in a shot
+    first = Usd.TimeCode.EarliestTime()  # the default value, or the earliest sample of a prim with samples only
+    warned: set = set()
+
+    def invisible(prim) -> bool:
+        for p in _animated_visibility(prim):
+            if p not in warned and log is not None:
+                attr = p.GetAttribute("visibility")
+                log.warning("%s:%s: visibility is animated (%s); the wall takes it at its first sample, %s, for "
+                            "the whole shot (walls do not appear or vanish)", path, p.GetPath(),
+                            ", ".join(f"{c:g}: {attr.Get(c)}" for c in attr.GetTimeSamples()[:4]), attr.Get(first))
+            warned.add(p)
+        return UsdGeom.Imageable(prim).ComputeVisibility(first) == UsdGeom.Tokens.invisible
+
     for pi in (p for p in chosen if p.IsA(UsdGeom.PointInstancer) and p not in owner):
-        if wall.include_invisible or UsdGeom.Imageable(pi).ComputeVisibility() != UsdGeom.Tokens.invisible:
+        if wall.include_invisible or not invisible(pi):
             items += [(m, (pi, name, xf)) for m, name, xf in _instances(stage, pi, path, wall.include_invisible)]
     if any(purposes[p] == UsdGeom.Tokens.render for p in shapes):
         left_out.update({p: "purpose proxy beside render meshes" for p in shapes if purposes[p] == UsdGeom.Tokens.proxy})
-    first = Usd.TimeCode.EarliestTime()  # the default value, or the earliest sample of a prim with samples only
     for prim, instance in items:
-        img = UsdGeom.Imageable(prim)
         if instance is None and prim in left_out:
             continue
-        if (instance is None and not wall.include_invisible
-                and img.ComputeVisibility(Usd.TimeCode.Default()) == UsdGeom.Tokens.invisible):
+        if instance is None and not wall.include_invisible and invisible(prim):
             left_out[prim] = "invisible"
             continue
         name = str(prim.GetPath()) if instance is None else instance[1]
