@@ -560,3 +560,30 @@ def test_visibility_keyed_only_in_time_samples_is_read_at_the_shots_start_as_the
     assert len(warned) == 1 and "keyed.usda:/World/Lid: " in warned[0], caplog.text
     wm = _import(tmp_path, [{"usd": "keyed.usda", "fluid": "inside", "include_invisible": True}])
     assert len(wm.walls[0]["report"]["prims"]) == 3
+
+
+@pytest.mark.parametrize("arc", ["reference", "payload"])
+def test_a_reference_or_payload_to_a_missing_file_is_one_line_naming_layer_asset_and_prim(tmp_path, capfd, arc):
+    """A set whose tank references a file moved away: USD composed on without it, printed C++ warnings and the
+    tank was no wall (exit 0). Refused now in one line naming the layer, the asset and the prim, with nothing
+    of USD's on stderr; a wall selecting only prims the missing file does not touch still imports."""
+    from pxr import UsdGeom
+
+    rock = _new_stage(tmp_path / "rock.usda")
+    rock.SetDefaultPrim(UsdGeom.Xform.Define(rock, "/Rock").GetPrim())
+    _define_cube(rock, "/Rock/Geo")
+    rock.GetRootLayer().Save()
+    stage = _new_stage(tmp_path / "set.usda")
+    for name, asset in (("Tank", "./gone/tank.usda"), ("Rock", "./rock.usda")):
+        prim = UsdGeom.Xform.Define(stage, f"/World/{name}").GetPrim()
+        (prim.GetReferences().AddReference if arc == "reference" or name == "Rock" else prim.GetPayloads().AddPayload)(asset)
+    stage.GetRootLayer().Save()
+    capfd.readouterr()
+    with pytest.raises(StageError) as e:
+        _import(tmp_path, [{"usd": "set.usda"}])
+    assert "\n" not in str(e.value)
+    assert f"set.usda: layer {tmp_path / 'set.usda'}: the {arc} of </World/Tank>, {tmp_path / 'gone' / 'tank.usda'}, " \
+        "cannot be opened" in str(e.value), str(e.value)
+    assert "Could not open" not in capfd.readouterr().err
+    wm = _import(tmp_path, [{"usd": "set.usda", "prims": ["/World/Rock"]}])
+    assert wm.walls[0]["report"]["prims"] == ["/World/Rock/Geo"]

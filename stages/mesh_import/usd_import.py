@@ -34,12 +34,15 @@ def usd_dependencies(path: Path) -> list[Path]:
 
     if not path.is_file():
         return [path]
+    quiet = UsdUtils.CoalescingDiagnosticDelegate()  # a missing reference: read_usd_wall says it in one line
     try:
         layers, assets, _unresolved = UsdUtils.ComputeAllDependencies(str(path))
     except Exception as e:  # a damaged layer: say so now rather than when hashing
         from stages.common.usd_stage import usd_error
 
         raise StageError(f"{path}: cannot open as USD ({usd_error(e)})") from None
+    finally:
+        del quiet
     files = {Path(layer.realPath) for layer in layers if layer.realPath}
     files |= {Path(a) for a in assets}
     files.add(path)
@@ -351,11 +354,20 @@ def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str,
     same object twice). ``log`` hears what was left out and why."""
     from pxr import Usd, UsdGeom
 
-    from stages.common.usd_stage import open_stage, stage_units
+    from stages.common.usd_stage import open_stage, stage_units, unresolved_assets
 
     if not path.is_file():
         raise StageError(f"{path}: USD file not found")
-    stage = open_stage(path)
+    diagnostics: list[str] = []
+    stage = open_stage(path, diagnostics=diagnostics)
+    # a reference or payload whose file is missing: USD composes on without its prims (a wall gone, exit 0)
+    missing = [what for prim, what in unresolved_assets(stage) if not prim or _selects(wall.prims, prim)]
+    if missing:
+        more = f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""
+        raise StageError(f"{path}: {missing[0]}{more}")
+    if diagnostics and log is not None:  # kept off stderr while composing; said here, in the log
+        for text in diagnostics[:3]:
+            log.warning("%s: USD: %s", path, text[:300])
     unstated = [key for key in ("metersPerUnit", "upAxis") if not stage.HasAuthoredMetadata(key)]
     if unstated and log is not None:
         # USD's fallbacks are centimetres and Y up: a file written in metres without them comes in 100 x small
@@ -474,6 +486,19 @@ def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str,
     units = np.eye(4)
     units[:3, :3] = to_scene
     return np.concatenate(verts), np.concatenate(faces), used, units, animation, cages
+
+
+def _selects(patterns: list[str], prim: str) -> bool:
+    """Whether the wall's prim patterns select ``prim`` or a prim under or above it (the prims an arc to it
+    would have brought)."""
+    for pattern in patterns:
+        if any(ch in pattern for ch in "*?["):
+            if fnmatch.fnmatchcase(prim, pattern) or fnmatch.fnmatchcase(prim + "/_", pattern):
+                return True
+        elif (prim == pattern.rstrip("/") or prim.startswith(pattern.rstrip("/") + "/")
+              or pattern.startswith(prim.rstrip("/") + "/")):
+            return True
+    return False
 
 
 def _same_motion(a: tuple | None, b: tuple | None) -> bool:
