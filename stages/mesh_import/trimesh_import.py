@@ -105,8 +105,16 @@ def read_mesh_file(path: Path) -> tuple[np.ndarray, np.ndarray]:
             except ValueError as e:
                 raise StageError(f"{path}: cannot read as OBJ ({str(e)[:160]})") from None
             return polygons[0], triangulate(*polygons)[0]
+    source, kwargs = str(path), {}
+    if suffix in (".gltf", ".glb"):
+        from .gltf import prepare
+
+        rewritten = prepare(path)  # fans as triangles; Draco, points and lines refused in one line
+        if rewritten is not None:
+            source = rewritten[0]
+            kwargs = {"file_type": rewritten[1], "resolver": trimesh.resolvers.FilePathResolver(str(path))}
     try:
-        loaded = trimesh.load(str(path), force="mesh", process=False, maintain_order=True)
+        loaded = trimesh.load(source, force="mesh", process=False, maintain_order=True, **kwargs)
     except Exception as e:
         if isinstance(e, IndexError) or "range" in str(e):
             raise StageError(f"{path}: face index out of range ({str(e)[:120]})") from None
@@ -171,7 +179,7 @@ class TrimeshImport(Stage):
 
     kind = "mesh_import"
     name = "trimesh"
-    version = "6"
+    version = "7"
     Params = ImportParams
     outputs = ("walls",)
     reads = ("scene.units", "walls", "fluid.spacing")  # fluid.spacing: a shell's default thickness

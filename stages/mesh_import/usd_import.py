@@ -512,6 +512,6 @@ class UsdImport(TrimeshImport):
     """Wall meshes from OpenUSD stages (and built-ins / mesh files, as ``trimesh`` does)."""
 
     name = "usd"
-    version = "4"
+    version = "5"
     default = False
     description = "walls from OpenUSD UsdGeom.Mesh prims and shapes (world transforms, units, up axis)"
