@@ -332,3 +332,19 @@ def test_thin_parts_and_winding_numbers_do_not_depend_on_place_or_units(scale, o
     probe = np.array([[0.0, 0.09, 0.0], [0.0, 0.11, 0.0]])  # 1 cm inside a face, 1 cm outside
     w = winding_number(box.vertices * scale + offset, box.faces, probe * scale + offset)
     np.testing.assert_allclose(w, [1.0, 0.0], atol=1e-3)
+
+
+def test_a_model_in_millimetres_in_a_metre_scene_is_said_beside_the_memory_refusal(tmp_path, monkeypatch):
+    """A 400 x 400 x 300 mm tank in a metre scene asked for 1 PB and said only "make fluid.spacing or the
+    scene smaller": the refusal now gives the walls' size in spacings and the wall's meters_per_unit; a metre
+    tank refused for memory is not told about units."""
+    monkeypatch.setattr("pipeline.memory.available_memory", lambda: 1 << 20)
+    trimesh.creation.box(bounds=[[0, 0, 0], [400, 400, 300]]).export(tmp_path / "tank_mm.obj")
+    with pytest.raises(StageError, match=r"would need about .* of memory .*; the walls: 400 x 400 x 300 scene units, "
+                                         r"8,000 spacings across: if the model is in other units than the scene's, "
+                                         r"set meters_per_unit on its walls\[\] entry \(.*0\.001 for millimetres"):
+        _bake(tmp_path, [{"file": "tank_mm.obj", "fluid": "inside"}])
+    trimesh.creation.box(bounds=[[0, 0, 0], [40, 40, 30]]).export(tmp_path / "tank_m.obj")
+    with pytest.raises(StageError, match=r"would need about") as e:
+        _bake(tmp_path, [{"file": "tank_m.obj", "fluid": "inside"}])
+    assert "meters_per_unit" not in str(e.value)

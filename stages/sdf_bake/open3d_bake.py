@@ -52,6 +52,7 @@ from stages.common.formats import WallMesh
 from stages.common.meshes import winding_number
 from stages.common.sdf import BODIES_DIR, BODIES_FILE, DEFAULT_SHELL_THICKNESS, SDFGrid, min_shell_thickness
 from stages.common.sizes import sdf_estimate
+from stages.common.wall_hints import spacing_hint, write_wall_boxes
 from stages.mesh_import.builtin import builtin_corners
 
 from .mesh_distance import band_distance, inside_votes
@@ -583,8 +584,12 @@ class Open3dBake(Stage):
         wm = WallMesh.load(inputs["walls"].path)
         lo, hi = grid_box(wm, ctx.scene["scene"].domain, l0, params)
         shapes, size = grids_estimate(wm, ctx.scene["scene"].domain, l0, params)
-        ctx.check_memory(size["memory_bytes"], f"{int(size['sdf_nodes']):,} SDF nodes, grid "
-                         + " + ".join("x".join(map(str, shape)) for shape in shapes))
+        try:
+            ctx.check_memory(size["memory_bytes"], f"{int(size['sdf_nodes']):,} SDF nodes, grid "
+                             + " + ".join("x".join(map(str, shape)) for shape in shapes))
+        except StageError as e:  # a model in millimetres in a metre scene: say so beside "make the scene smaller"
+            hint = spacing_hint(wm.vertices.min(axis=0), wm.vertices.max(axis=0), l0) if len(wm.vertices) else ""
+            raise StageError(f"{e}{hint}") from None
         shells = wall_thicknesses(wm, l0, params, ctx.log)
         # a moving wall is baked apart, in its own frame (bodies/); sdf.npz holds the static walls only
         # (+band everywhere when every wall moves)
@@ -593,6 +598,7 @@ class Open3dBake(Stage):
         grid, stats = bake(static, lo, hi, params.cell * l0, params.band * l0, params.exact_reach, params.sign_rays,
                            shells, params.sign, params.min_thickness_l0() * l0)
         grid.save(ctx.out_dir)
+        write_wall_boxes(ctx.out_dir, wm.walls, wm.vertices, wm.wall_id, wm.faces)  # simulate's advice
         ctx.log.info("sdf %s nodes, %d exact + %d propagated band nodes, %d tied signs, %d faces of thin parts "
                      "thickened, %.2f s", "x".join(map(str, stats["shape"])), stats["exact_nodes"],
                      stats["propagated_nodes"], stats["sign_ties"], stats["thin_faces"], stats["seconds"])
