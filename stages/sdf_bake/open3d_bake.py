@@ -274,7 +274,7 @@ def interpenetrating_parts(tri: np.ndarray, probes_per_part: int = 64) -> int:
 
 
 def winding_inside(tri: np.ndarray, origin: np.ndarray, h: float, shape: tuple[int, int, int],
-                   near: np.ndarray) -> np.ndarray:
+                   near: np.ndarray, closed: bool = True, band: float = 0.0) -> np.ndarray:
     """Inside/outside of the triangles ``tri`` (T, 3, 3) at every node by the generalized winding number
     (Jacobson et al. 2013; Barill et al. 2018's fast approximation, libigl): |w| > 1/2 is inside, for
     either orientation, so interpenetrating parts make a union. A closed shell nested in another
@@ -283,15 +283,26 @@ def winding_inside(tri: np.ndarray, origin: np.ndarray, h: float, shape: tuple[i
     as parity does, whichever way the inner shell is wound. Holes, flipped or duplicated faces move w
     by the solid angle they subtend: small defects matter only near them, but a large share of
     flipped faces (half of a sphere's) takes w towards 0 everywhere. Evaluated at the ``near`` (band)
-    nodes and at one node of each connected region of the others: such a region does not touch the
-    wall, so w is the same all over it."""
+    nodes and, for a ``closed`` mesh, at one node of each connected region of the others: such a region
+    does not touch the wall, so w is the same all over it. An open mesh's w is not: a tank missing a side
+    has its inside and outside in one region, joined through the opening, where w goes from 1 to 0 (the
+    tank's middle took the outside's sign: solid). Its far nodes take w at the nearest node of a coarse
+    lattice (every band / 4 / h nodes: each far node's lattice node is on its side of the wall, within
+    0.22 band of it)."""
     from scipy import ndimage
 
-    labels, n = ndimage.label(~near)
-    flat = labels.reshape(-1)
-    _, first = np.unique(flat, return_index=True)
-    reps = first[flat[first] > 0]  # one node per far region (label 0: the band)
-    idx = np.concatenate([np.flatnonzero(near.reshape(-1)), reps])
+    near_idx = np.flatnonzero(near.reshape(-1))
+    if closed:
+        labels, n = ndimage.label(~near)
+        flat = labels.reshape(-1)
+        _, first = np.unique(flat, return_index=True)
+        far = first[flat[first] > 0]  # one node per far region (label 0: the band)
+    else:
+        step = max(1, int(0.25 * band / h))
+        coarse = tuple(len(range(0, m, step)) for m in shape)
+        far = np.ravel_multi_index(np.meshgrid(*(np.arange(0, m, step) for m in shape), indexing="ij"),
+                                   shape).reshape(-1)
+    idx = np.concatenate([near_idx, far])
     pts = origin + h * np.stack(np.unravel_index(idx, shape), axis=1).astype(np.float64)
     depth = shell_depths(tri)
     levels = [tri] if depth is None else [tri[depth == k] for k in np.unique(depth)]
@@ -299,10 +310,14 @@ def winding_inside(tri: np.ndarray, origin: np.ndarray, h: float, shape: tuple[i
     for part in levels:
         faces = np.arange(3 * len(part), dtype=np.int64).reshape(-1, 3)
         w ^= np.abs(winding_number(part.reshape(-1, 3), faces, pts)) > 0.5
-    region = np.zeros(n + 1, np.bool_)
-    region[flat[reps]] = w[len(idx) - len(reps):]
-    inside = region[flat]
-    inside[idx[:len(idx) - len(reps)]] = w[:len(idx) - len(reps)]
+    if closed:
+        region = np.zeros(n + 1, np.bool_)
+        region[flat[far]] = w[len(near_idx):]
+        inside = region[flat]
+    else:  # each node the nearest lattice node's
+        near_lattice = [np.minimum(np.rint(np.arange(m) / step).astype(np.int64), c - 1) for m, c in zip(shape, coarse)]
+        inside = w[len(near_idx):].reshape(coarse)[np.ix_(*near_lattice)].reshape(-1)
+    inside[near_idx] = w[:len(near_idx)]
     return inside.reshape(shape)
 
 
@@ -341,7 +356,7 @@ def bake_wall(tri: np.ndarray, fluid: str, origin: np.ndarray, h: float, shape: 
     t1 = time.perf_counter()
     tie = np.zeros(0, np.int64)
     if sign == "winding":
-        inside = winding_inside(tri, origin, h, shape, dist < band)
+        inside = winding_inside(tri, origin, h, shape, dist < band, watertight, band)
     else:
         votes = inside_votes(tri, origin, h, shape)
         inside = votes >= 4
@@ -552,7 +567,7 @@ class Open3dBake(Stage):
 
     kind = "sdf_bake"
     name = "open3d"
-    version = "4"
+    version = "5"
     Params = BakeParams
     inputs = ("walls",)
     outputs = ("sdf",)
