@@ -458,3 +458,8 @@ def test_gltf_points_lines_and_draco_are_refused_in_one_line(tmp_path):
     with pytest.raises(StageError, match=r"draco\.gltf: Draco-compressed glTF is not supported: re-export without "
                                          r"Draco compression$"):
         _import(tmp_path, [{"file": "draco.gltf"}])
+    # Draco only used, but with no uncompressed data to fall back on (the accessor has no bufferView)
+    del header["extensionsRequired"], header["accessors"][0]["bufferView"]
+    (tmp_path / "draco_used.gltf").write_text(json.dumps(header))
+    with pytest.raises(StageError, match=r"draco_used\.gltf: Draco-compressed glTF is not supported"):
+        _import(tmp_path, [{"file": "draco_used.gltf"}])

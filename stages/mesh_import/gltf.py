@@ -75,7 +75,14 @@ def prepare(path: Path) -> tuple[io.BytesIO, str] | None:
     if read is None:
         return None
     header, binary = read
-    if "KHR_draco_mesh_compression" in (header.get("extensionsRequired") or []):
+    accessors = header.get("accessors") or []
+    draco = "KHR_draco_mesh_compression" in (header.get("extensionsRequired") or []) or any(
+        # optional Draco without an uncompressed fallback (accessors with no bufferView): trimesh reads zeros
+        "KHR_draco_mesh_compression" in (prim.get("extensions") or {})
+        and any(not isinstance(a, int) or a >= len(accessors) or "bufferView" not in accessors[a]
+                for a in (prim.get("attributes") or {}).values())
+        for mesh in header.get("meshes") or [] for prim in mesh.get("primitives") or [])
+    if draco:
         raise StageError(f"{path}: Draco-compressed glTF is not supported: re-export without Draco compression")
     fans = []
     for m, mesh in enumerate(header.get("meshes") or []):
