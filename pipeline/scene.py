@@ -210,15 +210,18 @@ MESH_SUFFIXES = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
 USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
 
 
-def _format_check(suffixes: tuple[str, ...], what: str):
+def _format_check(suffixes: tuple[str, ...], what: str, other_key: tuple[str, tuple[str, ...], str] | None = None):
     """A validator of a model file's extension: one line naming the formats read, and for the DCC formats
     studios also use (FBX, Alembic, Blender, Maya) the way in (the file was found unreadable only when the
-    import ran, with a USD library error for an .abc)."""
+    import ran, with a USD library error for an .abc); ``other_key`` (key, its suffixes, what): the key that
+    takes this file instead (a wall's ``file: x.usda`` wants ``usd: x.usda``)."""
     def check(path: str) -> str:
         suffix = posixpath.splitext(path)[1].lower()
         if suffix not in suffixes:
             other = (f"; {suffix} is read by neither: export it from the DCC as USD, OBJ or glTF"
                      if suffix in (".fbx", ".abc", ".blend", ".ma", ".mb", ".max", ".c4d", ".3ds", ".dae") else "")
+            if other_key is not None and suffix in other_key[1]:
+                other = f"; for {other_key[2]} use `{other_key[0]}: {path}`"
             raise ValueError(f"expected {what} ({', '.join(suffixes)}){other}")
         return path
     return check
@@ -231,7 +234,7 @@ class FileWall(MeshWall):
     up_axis: Literal["Y", "Z"] | None = Field(None, description="the file's up axis if not the scene's (GLB/GLTF: Y, "
                                               "as the format specifies; an OBJ from a Y-up package: Y)")
 
-    _mesh = field_validator("file")(_format_check(MESH_SUFFIXES, "a mesh file"))
+    _mesh = field_validator("file")(_format_check(MESH_SUFFIXES, "a mesh file", ("usd", USD_SUFFIXES, "USD")))
 
 
 class UsdWall(MeshWall):
@@ -242,7 +245,7 @@ class UsdWall(MeshWall):
                            "catmullClark, USD's fallback, or loop) this many levels, to the smooth surface a "
                            "renderer draws; 0: the cage as-is (recorded in the walls report)")
 
-    _usd = field_validator("usd")(_format_check(USD_SUFFIXES, "a USD file"))
+    _usd = field_validator("usd")(_format_check(USD_SUFFIXES, "a USD file", ("file", MESH_SUFFIXES, "a mesh file")))
 
 
 def _kind_by_key(*keys: str):

@@ -386,3 +386,80 @@ def test_a_copied_project_publishes_its_own_relative_sources(tmp_path):
             "builtin:box_tank", "assets/obstacle.obj"]
     assert made[0] == made[1]
     shutil.rmtree(tmp_path / "proj")
+
+
+_CUBE_QUADS = [[0, 3, 2, 1], [4, 5, 6, 7], [0, 1, 5, 4], [1, 2, 6, 5], [2, 3, 7, 6], [3, 0, 4, 7]]
+
+
+def _gltf(path, prims, glb=False, extra=None):
+    """A glTF of the 0.2 m cube (glTF's Y up) whose primitives are ``(mode, indices)`` over its 8 corners;
+    written as .gltf with the buffer inline, or as a .glb."""
+    import base64
+    import struct
+
+    pts = np.array([(x, y, z) for y in (0, 0.2) for x, z in ((0, 0), (0.2, 0), (0.2, 0.2), (0, 0.2))], "<f4")
+    blob, views, accessors, primitives = pts.tobytes(), [{"buffer": 0, "byteOffset": 0, "byteLength": 96}], \
+        [{"bufferView": 0, "componentType": 5126, "count": 8, "type": "VEC3",
+          "min": pts.min(axis=0).tolist(), "max": pts.max(axis=0).tolist()}], []
+    for mode, idx in prims:
+        data = np.asarray(idx, "<u2").tobytes()
+        views.append({"buffer": 0, "byteOffset": len(blob), "byteLength": len(data)})
+        accessors.append({"bufferView": len(views) - 1, "componentType": 5123, "count": len(idx), "type": "SCALAR"})
+        primitives.append({"attributes": {"POSITION": 0}, "indices": len(accessors) - 1, "mode": mode})
+        blob += data + b"\0" * (-len(data) % 4)
+    header = {"asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0]}], "nodes": [{"mesh": 0}],
+              "meshes": [{"name": "tank", "primitives": primitives}], "accessors": accessors, "bufferViews": views,
+              "buffers": [{"byteLength": len(blob)}], **(extra or {})}
+    if not glb:
+        header["buffers"][0]["uri"] = "data:application/octet-stream;base64," + base64.b64encode(blob).decode()
+        path.write_text(json.dumps(header))
+        return
+    text = json.dumps(header).encode()
+    text += b" " * (-len(text) % 4)
+    body = struct.pack("<II", len(text), 0x4E4F534A) + text + struct.pack("<II", len(blob), 0x004E4942) + blob
+    path.write_bytes(b"glTF" + struct.pack("<II", 2, 12 + len(body)) + body)
+
+
+@pytest.mark.parametrize("glb", [False, True])
+def test_gltf_triangle_fans_and_strips_are_walls_as_triangles_are(tmp_path, glb):
+    """TRIANGLE_FAN primitives (mode 6) were skipped without a word: a cube of five fans and a strip lost the
+    five faces (a tank without its floor, exit 0), and a cube of fans only was "not a valid GLTF". Each fan
+    now gives its triangles, and the cube is the TRIANGLES cube, closed."""
+    ext = "glb" if glb else "gltf"
+    tris = [[q[0], q[1], q[2], q[0], q[2], q[3]] for q in _CUBE_QUADS]
+    _gltf(tmp_path / f"tri.{ext}", [(4, sum(tris, []))], glb)
+    _gltf(tmp_path / f"fan.{ext}", [(6, q) for q in _CUBE_QUADS], glb)
+    # a quad as a strip: (0, 1, 3, 2) makes triangles (0, 1, 3) and (3, 1, 2) with the winding kept
+    _gltf(tmp_path / f"mixed.{ext}", [(6, q) for q in _CUBE_QUADS[:5]] + [(5, [_CUBE_QUADS[5][i] for i in (0, 1, 3, 2)])], glb)
+    ref = _import(tmp_path, [{"file": f"tri.{ext}", "fluid": "inside"}])
+    for name in ("fan", "mixed"):
+        wm = _import(tmp_path, [{"file": f"{name}.{ext}", "fluid": "inside"}])
+        report = wm.walls[0]["report"]
+        assert report["faces"] == 12 and report["watertight"], (name, report)
+        assert _signed_volume(wm.vertices, wm.faces) == pytest.approx(_signed_volume(ref.vertices, ref.faces))
+        np.testing.assert_allclose(wm.vertices.min(axis=0), ref.vertices.min(axis=0))
+        np.testing.assert_allclose(wm.vertices.max(axis=0), ref.vertices.max(axis=0))
+
+
+def test_gltf_points_lines_and_draco_are_refused_in_one_line(tmp_path):
+    """A LINES primitive beside the faces was dropped and a Draco-compressed file read as zeros ("empty mesh
+    after removing degenerate faces"): each is one line now, naming the mesh and primitive, or saying to
+    re-export without Draco."""
+    tris = sum([[q[0], q[1], q[2], q[0], q[2], q[3]] for q in _CUBE_QUADS], [])
+    _gltf(tmp_path / "lines.gltf", [(4, tris), (1, [0, 1, 1, 2])])
+    with pytest.raises(StageError, match=r"lines\.gltf: mesh 0 \(tank\) primitive 1 is LINES \(mode 1\), not triangles"):
+        _import(tmp_path, [{"file": "lines.gltf"}])
+    _gltf(tmp_path / "draco.gltf", [(4, tris)], extra={"extensionsUsed": ["KHR_draco_mesh_compression"],
+                                                        "extensionsRequired": ["KHR_draco_mesh_compression"]})
+    header = json.loads((tmp_path / "draco.gltf").read_text())
+    header["meshes"][0]["primitives"][0]["extensions"] = {
+        "KHR_draco_mesh_compression": {"bufferView": 1, "attributes": {"POSITION": 0}}}
+    (tmp_path / "draco.gltf").write_text(json.dumps(header))
+    with pytest.raises(StageError, match=r"draco\.gltf: Draco-compressed glTF is not supported: re-export without "
+                                         r"Draco compression$"):
+        _import(tmp_path, [{"file": "draco.gltf"}])
+    # Draco only used, but with no uncompressed data to fall back on (the accessor has no bufferView)
+    del header["extensionsRequired"], header["accessors"][0]["bufferView"]
+    (tmp_path / "draco_used.gltf").write_text(json.dumps(header))
+    with pytest.raises(StageError, match=r"draco_used\.gltf: Draco-compressed glTF is not supported"):
+        _import(tmp_path, [{"file": "draco_used.gltf"}])

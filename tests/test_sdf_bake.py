@@ -332,3 +332,36 @@ def test_thin_parts_and_winding_numbers_do_not_depend_on_place_or_units(scale, o
     probe = np.array([[0.0, 0.09, 0.0], [0.0, 0.11, 0.0]])  # 1 cm inside a face, 1 cm outside
     w = winding_number(box.vertices * scale + offset, box.faces, probe * scale + offset)
     np.testing.assert_allclose(w, [1.0, 0.0], atol=1e-3)
+
+
+def test_a_model_in_millimetres_in_a_metre_scene_is_said_beside_the_memory_refusal(tmp_path, monkeypatch):
+    """A 400 x 400 x 300 mm tank in a metre scene asked for 1 PB and said only "make fluid.spacing or the
+    scene smaller": the refusal now gives the walls' size in spacings and the wall's meters_per_unit; a metre
+    tank refused for memory is not told about units."""
+    monkeypatch.setattr("pipeline.memory.available_memory", lambda: 1 << 20)
+    trimesh.creation.box(bounds=[[0, 0, 0], [400, 400, 300]]).export(tmp_path / "tank_mm.obj")
+    with pytest.raises(StageError, match=r"would need about .* of memory .*; the walls: 400 x 400 x 300 scene units, "
+                                         r"8,000 spacings across: if the model is in other units than the scene's, "
+                                         r"set meters_per_unit on its walls\[\] entry \(.*0\.001 for millimetres"):
+        _bake(tmp_path, [{"file": "tank_mm.obj", "fluid": "inside"}])
+    trimesh.creation.box(bounds=[[0, 0, 0], [40, 40, 30]]).export(tmp_path / "tank_m.obj")
+    with pytest.raises(StageError, match=r"would need about") as e:
+        _bake(tmp_path, [{"file": "tank_m.obj", "fluid": "inside"}])
+    assert "meters_per_unit" not in str(e.value)
+
+
+def test_winding_sign_of_a_container_with_one_side_missing_keeps_its_middle_fluid(tmp_path):
+    """A 1 m tank (fluid: inside) missing its +x side, baked with sign: winding: the far nodes took one sign per
+    connected region, and the tank's middle is joined to the outside through the opening, so the middle beyond
+    the band was solid (-band). Far nodes take the winding number near them now: fluid in the tank's middle and
+    in the opening, solid below the floor and beside the tank, as parity says."""
+    box = trimesh.creation.box(bounds=[[-0.5, -0.5, 0], [0.5, 0.5, 1]])
+    keep = ~np.isclose(box.triangles_center[:, 0], 0.5)
+    trimesh.Trimesh(box.vertices, box.faces[keep]).export(tmp_path / "open.obj")
+    probes = np.array([[0, 0, 0.5], [-0.2, 0.1, 0.5], [0.45, 0, 0.5], [0, 0, -0.25], [-0.75, 0, 0.5]])
+    signs = {}
+    for sign in ("parity", "winding"):
+        g, _ = _bake(tmp_path, [{"file": "open.obj", "fluid": "inside"}], sign=sign)
+        signs[sign] = np.sign(g.sample(probes)[0])
+    np.testing.assert_array_equal(signs["winding"], [1, 1, 1, -1, -1])
+    np.testing.assert_array_equal(signs["winding"], signs["parity"])

@@ -145,6 +145,49 @@ def test_no_particles_says_why(tmp_path, case):
         run_stage(SPHSimulate, tmp_path / "out", scene=scene, params={"threads": 1}, inputs={"sdf": sdf})
 
 
+@pytest.mark.parametrize("fluid", ["inside", "outside"])
+def test_no_particles_in_walls_names_the_wall_whose_solid_holds_them(tmp_path, fluid):
+    """The advice "a closed wall mesh is a solid ... unless its walls[] entry says fluid: inside" was given to a
+    wall that said fluid: inside. The wall is named now with what fits: a container with the emitters outside
+    its box, or a solid around them; emitters 1000 times the walls' size are said to need the units checked."""
+    from pipeline.stage import StageError
+    from stages.common.sdf import grid_from_function
+    from stages.common.wall_hints import write_wall_boxes
+
+    sdf = tmp_path / "sdf"
+    sdf.mkdir()
+    lo, hi = np.array([0, 0, 0.0]), np.array([0.3, 0.2, 0.4])
+    inner = box_interior_sdf(lo, hi)
+    field = inner if fluid == "inside" else (lambda p: -inner(p))
+    grid_from_function(field, lo - 0.1, hi + 0.1, L0 / 2).save(sdf)
+    corners = np.array([[(lo, hi)[(k >> i) & 1][i] for i in range(3)] for k in range(8)])
+    write_wall_boxes(sdf, [{"name": "wall0_tank", "source": "models/tank.obj", "fluid": fluid}], corners,
+                     np.zeros(3, np.int32), np.array([[0, 1, 2], [3, 4, 5], [5, 6, 7]]))
+    box = {"min": [0.05, 0.05, -0.09], "max": [0.25, 0.15, -0.01]} if fluid == "inside" else \
+        {"min": [0.1, 0.05, 0.1], "max": [0.2, 0.15, 0.3]}
+    scene = {**SCENE, "fluid": {"spacing": L0, "emitters": [{"box": box}]}}
+    with pytest.raises(StageError) as e:
+        run_stage(SPHSimulate, tmp_path / "out", scene=scene, params={"threads": 1}, inputs={"sdf": sdf})
+    text = str(e.value)
+    assert "a closed wall mesh is a solid" not in text and "meters_per_unit" not in text, text
+    if fluid == "inside":
+        assert "wall 0 (tank.obj, fluid: inside) is a container and the emitters lie outside its box " \
+            "(x 0..0.3, y 0..0.2, z 0..0.4): move them into it" in text, text
+    else:
+        assert "wall 0 (tank.obj, fluid: outside) is a solid around the emitters: set fluid: inside" in text, text
+
+
+def test_no_particles_from_emitters_far_larger_than_the_walls_suggests_the_units():
+    from stages.common.wall_hints import no_fluid_hint
+
+    boxes = [{"index": 1, "source": "tank.obj", "fluid": "inside", "min": [0, 0, 0], "max": [0.3, 0.2, 0.4]}]
+    text = no_fluid_hint(boxes, np.array([[-100.0, -100, 0], [100, 100, 200]]))
+    assert "wall 1 (tank.obj, fluid: inside) is a container" in text
+    assert text.endswith("the walls: 0.3 x 0.2 x 0.4 scene units, 1/500 of the emitters' 200 x 200 x 200: if the model "
+                         "is in other units than the scene's, set meters_per_unit on its walls[] entry (the metres in "
+                         "one of its units: 0.001 for millimetres, 0.01 for centimetres, 1 for metres)"), text
+
+
 def test_fluid_thrown_out_of_the_domain_is_counted_and_said_with_the_box(tmp_path, caplog):
     sdf = tmp_path / "floor"  # a floor alone: the domain is the grid's box
     sdf.mkdir()

@@ -126,6 +126,47 @@ def test_obj_relative_index_out_of_range_names_the_file(tmp_path):
         _import(tmp_path, [{"file": "bad.obj"}])
 
 
+def _streamed_cube_obj(triangles=False):
+    """The cube as streaming exporters write it: each face's own vertices, then the face by relative
+    indices (``f -4 -3 -2 -1``), repeated."""
+    p = _cube_points(0.1)
+    quads = np.array(CUBE_INDICES).reshape(-1, 4)
+    faces = quads[:, [0, 1, 2, 0, 2, 3]].reshape(-1, 3) if triangles else quads
+    out = []
+    for q in faces:
+        out += [f"v {p[i][0]:g} {p[i][1]:g} {p[i][2]:g}" for i in q]
+        out.append("f " + " ".join(str(k - len(q)) for k in range(len(q))))
+    return "\n".join(out) + "\n"
+
+
+@pytest.mark.parametrize("triangles", [False, True])
+def test_plain_relative_indices_count_back_from_the_vertices_read_so_far(tmp_path, triangles):
+    """``f -4 -3 -2 -1`` after each quad's vertices (no slashes): trimesh counted back from the file's last
+    vertex, every face landed on the last quad and the tank vanished without a word; each face is its own
+    quad now and the cube is closed, as the plain-index file."""
+    (tmp_path / "plain.obj").write_text(_cube_obj(lambda i: str(i + 1)))
+    (tmp_path / "streamed.obj").write_text(_streamed_cube_obj(triangles))
+    plain = _import(tmp_path, [{"file": "plain.obj", "fluid": "inside"}])
+    wm = _import(tmp_path, [{"file": "streamed.obj", "fluid": "inside"}])
+    report = wm.walls[0]["report"]
+    assert report["watertight"] and report["faces"] == 12 and report["vertices"] == 8
+    corners = lambda m: sorted(sorted(map(tuple, m.vertices[t])) for t in m.faces)  # noqa: E731 - the triangles' corners
+    assert corners(wm) == corners(plain)
+
+
+@pytest.mark.parametrize("face", ["f 0 4 3 2", "f 0 3 2"])
+def test_obj_index_0_is_refused_naming_its_line(tmp_path, face):
+    """Index 0 is no OBJ index (they start at 1): trimesh took it for the last vertex (a triangle file) or the
+    message said only "out of range"; now one line names the file and the line."""
+    lines = _cube_obj(lambda i: str(i + 1)).splitlines()
+    n = next(k for k, line in enumerate(lines) if line.startswith("f "))
+    lines[n] = face
+    (tmp_path / "zero.obj").write_text("\n".join(lines) + "\n")
+    with pytest.raises(StageError, match=rf"zero\.obj: line {n + 1}: face index 0 is not valid in OBJ "
+                                         r"\(indices start at 1\)$"):
+        _import(tmp_path, [{"file": "zero.obj"}])
+
+
 def _instancer_and_meshes(tmp_path, animated=False):
     """A Y-up centimetre stage with a PointInstancer (under a moved Xform; its cube prototype has its own
     offset) of two instances, one turned and scaled; and the same two cubes as plain meshes placed by
@@ -491,3 +532,58 @@ def test_a_usd_emitter_without_units_is_warned_about_as_a_wall_is(tmp_path, capl
                     logging.getLogger("t"))
     assert len(x) == 1000  # a 20 cm cube at 2 cm, as USD's centimetre fallback reads it
     assert "states no metersPerUnit and no upAxis" in caplog.text
+
+
+def test_visibility_keyed_only_in_time_samples_is_read_at_the_shots_start_as_the_geometry(tmp_path, caplog):
+    """A shot from code 1001 hides a plate with ``visibility.timeSamples = {1001: invisible}`` only: read at
+    the default time (no value: visible) it was a wall while its points came from the first sample; a lid
+    invisible at code 0 and visible from 100 was a wall too. Both are left out now, as they are at the shot's
+    start, and the animated one is warned about once, naming the prim."""
+    import logging
+
+    from pxr import UsdGeom
+
+    stage = _new_stage(tmp_path / "keyed.usda")
+    stage.SetStartTimeCode(1001)
+    stage.SetEndTimeCode(1100)
+    _define_cube(stage, "/World/Tank", h=0.2)
+    plate = _define_cube(stage, "/World/Plate", h=0.05)
+    plate.CreateVisibilityAttr().Set(UsdGeom.Tokens.invisible, 1001)
+    lid = _define_cube(stage, "/World/Lid", h=0.1)
+    lid.CreateVisibilityAttr().Set(UsdGeom.Tokens.invisible, 0)
+    lid.GetVisibilityAttr().Set(UsdGeom.Tokens.inherited, 1100)
+    stage.GetRootLayer().Save()
+    with caplog.at_level(logging.WARNING):
+        wm = _import(tmp_path, [{"usd": "keyed.usda", "fluid": "inside"}])
+    assert wm.walls[0]["report"]["prims"] == ["/World/Tank"]
+    warned = [r.getMessage() for r in caplog.records if "visibility is animated" in r.getMessage()]
+    assert len(warned) == 1 and "keyed.usda:/World/Lid: " in warned[0], caplog.text
+    wm = _import(tmp_path, [{"usd": "keyed.usda", "fluid": "inside", "include_invisible": True}])
+    assert len(wm.walls[0]["report"]["prims"]) == 3
+
+
+@pytest.mark.parametrize("arc", ["reference", "payload"])
+def test_a_reference_or_payload_to_a_missing_file_is_one_line_naming_layer_asset_and_prim(tmp_path, capfd, arc):
+    """A set whose tank references a file moved away: USD composed on without it, printed C++ warnings and the
+    tank was no wall (exit 0). Refused now in one line naming the layer, the asset and the prim, with nothing
+    of USD's on stderr; a wall selecting only prims the missing file does not touch still imports."""
+    from pxr import UsdGeom
+
+    rock = _new_stage(tmp_path / "rock.usda")
+    rock.SetDefaultPrim(UsdGeom.Xform.Define(rock, "/Rock").GetPrim())
+    _define_cube(rock, "/Rock/Geo")
+    rock.GetRootLayer().Save()
+    stage = _new_stage(tmp_path / "set.usda")
+    for name, asset in (("Tank", "./gone/tank.usda"), ("Rock", "./rock.usda")):
+        prim = UsdGeom.Xform.Define(stage, f"/World/{name}").GetPrim()
+        (prim.GetReferences().AddReference if arc == "reference" or name == "Rock" else prim.GetPayloads().AddPayload)(asset)
+    stage.GetRootLayer().Save()
+    capfd.readouterr()
+    with pytest.raises(StageError) as e:
+        _import(tmp_path, [{"usd": "set.usda"}])
+    assert "\n" not in str(e.value)
+    assert f"set.usda: layer {tmp_path / 'set.usda'}: the {arc} of </World/Tank>, {tmp_path / 'gone' / 'tank.usda'}, " \
+        "cannot be opened" in str(e.value), str(e.value)
+    assert "Could not open" not in capfd.readouterr().err
+    wm = _import(tmp_path, [{"usd": "set.usda", "prims": ["/World/Rock"]}])
+    assert wm.walls[0]["report"]["prims"] == ["/World/Rock/Geo"]

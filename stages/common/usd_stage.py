@@ -18,17 +18,51 @@ def usd_error(e: Exception) -> str:
     return " ".join(str(e).split())[:300] or type(e).__name__
 
 
-def open_stage(path: Path, who: str = "") -> Usd.Stage:
-    """The USD stage at ``path``, or a StageError naming the file and the parser's first complaint."""
+def open_stage(path: Path, who: str = "", diagnostics: list[str] | None = None) -> Usd.Stage:
+    """The USD stage at ``path``, or a StageError naming the file and the parser's first complaint. With
+    ``diagnostics``, USD's warnings while composing go there (one line each) instead of to stderr."""
     from pipeline.stage import StageError
+    from pxr import UsdUtils
 
+    # while a delegate exists Tf prints nothing: the caller says what matters in one line
+    delegate = UsdUtils.CoalescingDiagnosticDelegate() if diagnostics is not None else None
     try:
         stage = Usd.Stage.Open(str(path))
     except Exception as e:  # pxr raises Tf.ErrorException with stacked C++ messages
         raise StageError(f"{who}{path}: cannot open as USD ({usd_error(e)})") from None
+    finally:
+        if delegate is not None:
+            diagnostics += [re.sub(r" \(instantiating stage on stage .*\)$", "", " ".join(d.commentary.split()))
+                            for d in delegate.TakeUncoalescedDiagnostics()]
+            del delegate
     if stage is None:
         raise StageError(f"{who}{path}: cannot open as USD")
     return stage
+
+
+_ARC = re.compile(r"@([^@]*)@ for (reference|payload) introduced by @([^@]*)@<([^>]*)>")
+_SUBLAYER = re.compile(r"sublayer @([^@]*)@ of layer @([^@]*)@")
+
+
+def unresolved_assets(stage: Usd.Stage) -> list[tuple[str, str]]:
+    """(prim path, '' for a sublayer; one line: the layer, the arc and the asset) of every reference, payload or
+    sublayer the stage could not open: USD composes on without it and only warns (a wall left out)."""
+    from pxr import Pcp
+
+    out = []
+    for e in stage.GetCompositionErrors():
+        if not isinstance(e, (Pcp.ErrorInvalidAssetPath, Pcp.ErrorInvalidSublayerPath)):
+            continue
+        text = " ".join(str(e).split())
+        m, sub = _ARC.search(text), _SUBLAYER.search(text)
+        if m:
+            asset, arc, layer, prim = m.groups()
+            out.append((prim, f"layer {layer}: the {arc} of <{prim}>, {asset}, cannot be opened (missing file?)"))
+        elif sub:
+            out.append(("", f"layer {sub.group(2)}: sublayer {sub.group(1)} cannot be opened (missing file?)"))
+        else:
+            out.append((str(getattr(e.rootSite, "path", "") or ""), text[:300]))
+    return out
 
 
 def stage_units(stage: Usd.Stage, where: str) -> tuple[float, str]:

@@ -185,18 +185,24 @@ def _ear_clip(xy, starts, counts):
 _OBJ_NGON = re.compile(rb"^[ \t]*f[ \t]+\S+[ \t]+\S+[ \t]+\S+[ \t]+\S", re.M)  # a face of 4 or more vertices
 
 
+class ObjIndexError(ValueError):
+    """A face index the OBJ file cannot mean (0, or past the vertices read so far): the message names the
+    line and is said as it is."""
+
+
 def obj_polygons(data: bytes, triangles_too: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """(vertices, counts, indices) of the faces of an OBJ file's bytes, every object and group alike; None
     when every face is a triangle (unless ``triangles_too``). Only ``v`` and ``f`` lines count, tokens split at
     any white space, ``#`` starting a comment anywhere; a face vertex ``a``, ``a/t``, ``a//n`` or ``a/t/n`` is
-    vertex ``a``, counted from 1, or from the last vertex so far when negative. Raises ValueError on an
-    index out of range."""
+    vertex ``a``, counted from 1, or when negative back from the last vertex read so far (the OBJ spec:
+    streaming exporters repeat ``f -4 -3 -2 -1`` after each quad's vertices). Raises ObjIndexError on an
+    index 0 or out of range, naming the line."""
     if not triangles_too and _OBJ_NGON.search(data) is None:
         return None
     verts: list[list[bytes]] = []
     counts: list[int] = []
     indices: list[int] = []
-    for line in data.splitlines():
+    for number, line in enumerate(data.splitlines(), 1):
         tok = line.split(b"#", 1)[0].split()
         if not tok:
             continue
@@ -205,10 +211,12 @@ def obj_polygons(data: bytes, triangles_too: bool = False) -> tuple[np.ndarray, 
         elif tok[0] == b"f" and len(tok) > 3:
             n_v = len(verts)
             face = [int(t.split(b"/", 1)[0]) for t in tok[1:]]
+            if 0 in face:
+                raise ObjIndexError(f"line {number}: face index 0 is not valid in OBJ (indices start at 1)")
             face = [i - 1 if i > 0 else n_v + i for i in face]
             if min(face) < 0 or max(face) >= n_v:
-                raise ValueError(f"face index out of range in {line.decode('utf-8', 'replace')[:80]!r} "
-                                 f"(only {n_v} vertices defined before it)")
+                raise ObjIndexError(f"line {number}: face index out of range in "
+                                    f"{line.decode('utf-8', 'replace').strip()[:80]!r} (only {n_v} vertices defined before it)")
             counts.append(len(face))
             indices += face
     return np.array(verts, np.float64).reshape(-1, 3), np.array(counts, np.int64), np.array(indices, np.int64)

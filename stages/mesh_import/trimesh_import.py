@@ -28,15 +28,18 @@ from stages.common.placement import apply_placement, placement_matrix, up_axis_m
 
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
 USD_FILE = "walls.usdc"
-# OBJ that trimesh misreads (valid OBJ all the same): a relative (negative) index with /vt or /vn (IndexError),
-# tabs or indented lines (no faces read), a comment after a face (ValueError). Read by polygons.obj_polygons.
-_OBJ_NEGATIVE_SLASHED = re.compile(rb"[ \t]-\d+/")
+# OBJ that trimesh misreads (valid OBJ all the same): a relative (negative) index, which trimesh resolves against
+# the file's last vertex rather than the last one read so far (plain ``f -4 -3 -2 -1`` after each quad put every
+# face on the last quad; with /vt or /vn an IndexError), tabs or indented lines (no faces read), a comment after a
+# face (ValueError); and index 0, which is no OBJ index (trimesh took the last vertex). Read by
+# polygons.obj_polygons, which names the line of a bad index.
+_OBJ_RELATIVE_OR_ZERO = re.compile(rb"(?m)^f[ \t](?:[^\n]*?[ \t])?(?:-\d|0+(?![\d.]))")
 _OBJ_TRAILING_COMMENT = re.compile(rb"(?:^|\n)[vf][ \t][^#\n]*#")
 
 
 def _obj_trimesh_misreads(data: bytes) -> bool:
     # plain byte tests first: one regex of all four cost 80 ms on a 1.7 MB OBJ, these 12 ms
-    return (b"\t" in data or data[:1] == b" " or b"\n " in data or _OBJ_NEGATIVE_SLASHED.search(data) is not None
+    return (b"\t" in data or data[:1] == b" " or b"\n " in data or _OBJ_RELATIVE_OR_ZERO.search(data) is not None
             or _OBJ_TRAILING_COMMENT.search(data) is not None)
 
 
@@ -94,14 +97,24 @@ def read_mesh_file(path: Path) -> tuple[np.ndarray, np.ndarray]:
     if suffix == ".obj":
         data = path.read_bytes()
         if _obj_trimesh_misreads(data):
-            from .polygons import obj_polygons, triangulate
+            from .polygons import ObjIndexError, obj_polygons, triangulate
             try:
                 polygons = obj_polygons(data, triangles_too=True)
+            except ObjIndexError as e:
+                raise StageError(f"{path}: {e}") from None
             except ValueError as e:
                 raise StageError(f"{path}: cannot read as OBJ ({str(e)[:160]})") from None
             return polygons[0], triangulate(*polygons)[0]
+    source, kwargs = str(path), {}
+    if suffix in (".gltf", ".glb"):
+        from .gltf import prepare
+
+        rewritten = prepare(path)  # fans as triangles; Draco, points and lines refused in one line
+        if rewritten is not None:
+            source = rewritten[0]
+            kwargs = {"file_type": rewritten[1], "resolver": trimesh.resolvers.FilePathResolver(str(path))}
     try:
-        loaded = trimesh.load(str(path), force="mesh", process=False, maintain_order=True)
+        loaded = trimesh.load(source, force="mesh", process=False, maintain_order=True, **kwargs)
     except Exception as e:
         if isinstance(e, IndexError) or "range" in str(e):
             raise StageError(f"{path}: face index out of range ({str(e)[:120]})") from None
@@ -114,12 +127,14 @@ def read_mesh_file(path: Path) -> tuple[np.ndarray, np.ndarray]:
         # trimesh fans every polygon from its first vertex: across the notch of a concave one (a phantom
         # wall). Re-triangulate from the file's polygons when some fan is wrong; else keep trimesh's
         # triangles as they were (same geometry and face order for existing scenes).
-        from .polygons import fan, obj_polygons, ply_polygons, triangulate
+        from .polygons import ObjIndexError, fan, obj_polygons, ply_polygons, triangulate
 
         polygons = None
         if suffix == ".obj":
             try:
                 polygons = obj_polygons(path.read_bytes())
+            except ObjIndexError as e:
+                raise StageError(f"{path}: {e}") from None
             except ValueError as e:
                 raise StageError(f"{path}: cannot read as OBJ ({str(e)[:160]})") from None
         else:
@@ -137,17 +152,17 @@ def read_mesh_file(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 def _check_obj_indices(path: Path, n_vertices: int, n_faces: int) -> None:
     """trimesh silently drops OBJ faces whose index is out of range; find them ourselves."""
-    n_v, max_ref = 0, 0
+    n_v = 0
     with open(path, "rb") as fh:
-        for line in fh:
+        for number, line in enumerate(fh, 1):
             if line.startswith(b"v "):
                 n_v += 1
             elif line.startswith(b"f "):
                 for tok in line.split()[1:]:
                     i = int(tok.split(b"/")[0])
                     if i > n_v if i > 0 else -i > n_v:
-                        raise StageError(f"{path}: face index {i} out of range (only {n_v} vertices defined before it)")
-                    max_ref = max(max_ref, i)
+                        raise StageError(f"{path}: line {number}: face index {i} out of range "
+                                         f"(only {n_v} vertices defined before it)")
 
 
 def _wall_name(i: int, label: str) -> str:
@@ -164,7 +179,7 @@ class TrimeshImport(Stage):
 
     kind = "mesh_import"
     name = "trimesh"
-    version = "6"
+    version = "7"
     Params = ImportParams
     outputs = ("walls",)
     reads = ("scene.units", "walls", "fluid.spacing")  # fluid.spacing: a shell's default thickness

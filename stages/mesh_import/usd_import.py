@@ -34,12 +34,15 @@ def usd_dependencies(path: Path) -> list[Path]:
 
     if not path.is_file():
         return [path]
+    quiet = UsdUtils.CoalescingDiagnosticDelegate()  # a missing reference: read_usd_wall says it in one line
     try:
         layers, assets, _unresolved = UsdUtils.ComputeAllDependencies(str(path))
     except Exception as e:  # a damaged layer: say so now rather than when hashing
         from stages.common.usd_stage import usd_error
 
         raise StageError(f"{path}: cannot open as USD ({usd_error(e)})") from None
+    finally:
+        del quiet
     files = {Path(layer.realPath) for layer in layers if layer.realPath}
     files |= {Path(a) for a in assets}
     files.add(path)
@@ -313,7 +316,7 @@ def _instances(stage, instancer, path: Path, hidden_too: bool) -> list[tuple]:
 
 def _hidden_below(prim, root) -> bool:
     """A prototype's mesh made invisible within the prototype (the prototype's ancestors do not count: a
-    scope hiding prototypes does not hide the instances)."""
+    scope hiding prototypes does not hide the instances), at the earliest time as every wall."""
     from pxr import Usd, UsdGeom
 
     p = prim
@@ -323,6 +326,18 @@ def _hidden_below(prim, root) -> bool:
         if p == root:
             return False
         p = p.GetParent()
+
+
+def _animated_visibility(prim) -> list:
+    """The prim and ancestors whose visibility changes between its time samples."""
+    out = []
+    p = prim
+    while p and p.IsValid() and not p.IsPseudoRoot():
+        attr = p.GetAttribute("visibility")
+        if attr and attr.GetNumTimeSamples() > 1 and len({attr.Get(c) for c in attr.GetTimeSamples()}) > 1:
+            out.append(p)
+        p = p.GetParent()
+    return out
 
 
 def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str,
@@ -339,11 +354,20 @@ def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str,
     same object twice). ``log`` hears what was left out and why."""
     from pxr import Usd, UsdGeom
 
-    from stages.common.usd_stage import open_stage, stage_units
+    from stages.common.usd_stage import open_stage, stage_units, unresolved_assets
 
     if not path.is_file():
         raise StageError(f"{path}: USD file not found")
-    stage = open_stage(path)
+    diagnostics: list[str] = []
+    stage = open_stage(path, diagnostics=diagnostics)
+    # a reference or payload whose file is missing: USD composes on without its prims (a wall gone, exit 0)
+    missing = [what for prim, what in unresolved_assets(stage) if not prim or _selects(wall.prims, prim)]
+    if missing:
+        more = f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""
+        raise StageError(f"{path}: {missing[0]}{more}")
+    if diagnostics and log is not None:  # kept off stderr while composing; said here, in the log
+        for text in diagnostics[:3]:
+            log.warning("%s: USD: %s", path, text[:300])
     unstated = [key for key in ("metersPerUnit", "upAxis") if not stage.HasAuthoredMetadata(key)]
     if unstated and log is not None:
         # USD's fallbacks are centimetres and Y up: a file written in metres without them comes in 100 x small
@@ -394,18 +418,30 @@ def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str,
                       and any(p.GetPath().HasPrefix(r) for r in roots)})
     left_out.update({p: f"prototype of {owner[p].GetPath()}" for p in shapes if p in owner})
     items = [(p, None) for p in shapes]
+    # visibility is read when the geometry is, at the earliest time (a shot's start): at the default time a prim
+    # keyed invisible only in time samples (from 1001) was a wall; walls do not appear or vanish in a shot
+    first = Usd.TimeCode.EarliestTime()  # the default value, or the earliest sample of a prim with samples only
+    warned: set = set()
+
+    def invisible(prim) -> bool:
+        for p in _animated_visibility(prim):
+            if p not in warned and log is not None:
+                attr = p.GetAttribute("visibility")
+                log.warning("%s:%s: visibility is animated (%s); the wall takes it at its first sample, %s, for "
+                            "the whole shot (walls do not appear or vanish)", path, p.GetPath(),
+                            ", ".join(f"{c:g}: {attr.Get(c)}" for c in attr.GetTimeSamples()[:4]), attr.Get(first))
+            warned.add(p)
+        return UsdGeom.Imageable(prim).ComputeVisibility(first) == UsdGeom.Tokens.invisible
+
     for pi in (p for p in chosen if p.IsA(UsdGeom.PointInstancer) and p not in owner):
-        if wall.include_invisible or UsdGeom.Imageable(pi).ComputeVisibility() != UsdGeom.Tokens.invisible:
+        if wall.include_invisible or not invisible(pi):
             items += [(m, (pi, name, xf)) for m, name, xf in _instances(stage, pi, path, wall.include_invisible)]
     if any(purposes[p] == UsdGeom.Tokens.render for p in shapes):
         left_out.update({p: "purpose proxy beside render meshes" for p in shapes if purposes[p] == UsdGeom.Tokens.proxy})
-    first = Usd.TimeCode.EarliestTime()  # the default value, or the earliest sample of a prim with samples only
     for prim, instance in items:
-        img = UsdGeom.Imageable(prim)
         if instance is None and prim in left_out:
             continue
-        if (instance is None and not wall.include_invisible
-                and img.ComputeVisibility(Usd.TimeCode.Default()) == UsdGeom.Tokens.invisible):
+        if instance is None and not wall.include_invisible and invisible(prim):
             left_out[prim] = "invisible"
             continue
         name = str(prim.GetPath()) if instance is None else instance[1]
@@ -452,6 +488,19 @@ def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str,
     return np.concatenate(verts), np.concatenate(faces), used, units, animation, cages
 
 
+def _selects(patterns: list[str], prim: str) -> bool:
+    """Whether the wall's prim patterns select ``prim`` or a prim under or above it (the prims an arc to it
+    would have brought)."""
+    for pattern in patterns:
+        if any(ch in pattern for ch in "*?["):
+            if fnmatch.fnmatchcase(prim, pattern) or fnmatch.fnmatchcase(prim + "/_", pattern):
+                return True
+        elif (prim == pattern.rstrip("/") or prim.startswith(pattern.rstrip("/") + "/")
+              or pattern.startswith(prim.rstrip("/") + "/")):
+            return True
+    return False
+
+
 def _same_motion(a: tuple | None, b: tuple | None) -> bool:
     if a is None or b is None:
         return a is None and b is None
@@ -463,6 +512,6 @@ class UsdImport(TrimeshImport):
     """Wall meshes from OpenUSD stages (and built-ins / mesh files, as ``trimesh`` does)."""
 
     name = "usd"
-    version = "4"
+    version = "5"
     default = False
     description = "walls from OpenUSD UsdGeom.Mesh prims and shapes (world transforms, units, up axis)"

@@ -52,6 +52,7 @@ from stages.common.formats import WallMesh
 from stages.common.meshes import winding_number
 from stages.common.sdf import BODIES_DIR, BODIES_FILE, DEFAULT_SHELL_THICKNESS, SDFGrid, min_shell_thickness
 from stages.common.sizes import sdf_estimate
+from stages.common.wall_hints import spacing_hint, write_wall_boxes
 from stages.mesh_import.builtin import builtin_corners
 
 from .mesh_distance import band_distance, inside_votes
@@ -273,7 +274,7 @@ def interpenetrating_parts(tri: np.ndarray, probes_per_part: int = 64) -> int:
 
 
 def winding_inside(tri: np.ndarray, origin: np.ndarray, h: float, shape: tuple[int, int, int],
-                   near: np.ndarray) -> np.ndarray:
+                   near: np.ndarray, closed: bool = True, band: float = 0.0) -> np.ndarray:
     """Inside/outside of the triangles ``tri`` (T, 3, 3) at every node by the generalized winding number
     (Jacobson et al. 2013; Barill et al. 2018's fast approximation, libigl): |w| > 1/2 is inside, for
     either orientation, so interpenetrating parts make a union. A closed shell nested in another
@@ -282,15 +283,26 @@ def winding_inside(tri: np.ndarray, origin: np.ndarray, h: float, shape: tuple[i
     as parity does, whichever way the inner shell is wound. Holes, flipped or duplicated faces move w
     by the solid angle they subtend: small defects matter only near them, but a large share of
     flipped faces (half of a sphere's) takes w towards 0 everywhere. Evaluated at the ``near`` (band)
-    nodes and at one node of each connected region of the others: such a region does not touch the
-    wall, so w is the same all over it."""
+    nodes and, for a ``closed`` mesh, at one node of each connected region of the others: such a region
+    does not touch the wall, so w is the same all over it. An open mesh's w is not: a tank missing a side
+    has its inside and outside in one region, joined through the opening, where w goes from 1 to 0 (the
+    tank's middle took the outside's sign: solid). Its far nodes take w at the nearest node of a coarse
+    lattice (every band / 2 / h nodes, 1/64 of the nodes by default: each far node's lattice node is within
+    0.43 band of it, on its side of the wall and over half the band off it)."""
     from scipy import ndimage
 
-    labels, n = ndimage.label(~near)
-    flat = labels.reshape(-1)
-    _, first = np.unique(flat, return_index=True)
-    reps = first[flat[first] > 0]  # one node per far region (label 0: the band)
-    idx = np.concatenate([np.flatnonzero(near.reshape(-1)), reps])
+    near_idx = np.flatnonzero(near.reshape(-1))
+    if closed:
+        labels, n = ndimage.label(~near)
+        flat = labels.reshape(-1)
+        _, first = np.unique(flat, return_index=True)
+        far = first[flat[first] > 0]  # one node per far region (label 0: the band)
+    else:
+        step = max(1, int(0.5 * band / h))
+        coarse = tuple(len(range(0, m, step)) for m in shape)
+        far = np.ravel_multi_index(np.meshgrid(*(np.arange(0, m, step) for m in shape), indexing="ij"),
+                                   shape).reshape(-1)
+    idx = np.concatenate([near_idx, far])
     pts = origin + h * np.stack(np.unravel_index(idx, shape), axis=1).astype(np.float64)
     depth = shell_depths(tri)
     levels = [tri] if depth is None else [tri[depth == k] for k in np.unique(depth)]
@@ -298,10 +310,14 @@ def winding_inside(tri: np.ndarray, origin: np.ndarray, h: float, shape: tuple[i
     for part in levels:
         faces = np.arange(3 * len(part), dtype=np.int64).reshape(-1, 3)
         w ^= np.abs(winding_number(part.reshape(-1, 3), faces, pts)) > 0.5
-    region = np.zeros(n + 1, np.bool_)
-    region[flat[reps]] = w[len(idx) - len(reps):]
-    inside = region[flat]
-    inside[idx[:len(idx) - len(reps)]] = w[:len(idx) - len(reps)]
+    if closed:
+        region = np.zeros(n + 1, np.bool_)
+        region[flat[far]] = w[len(near_idx):]
+        inside = region[flat]
+    else:  # each node the nearest lattice node's
+        near_lattice = [np.minimum(np.rint(np.arange(m) / step).astype(np.int64), c - 1) for m, c in zip(shape, coarse)]
+        inside = w[len(near_idx):].reshape(coarse)[np.ix_(*near_lattice)].reshape(-1)
+    inside[near_idx] = w[:len(near_idx)]
     return inside.reshape(shape)
 
 
@@ -340,7 +356,7 @@ def bake_wall(tri: np.ndarray, fluid: str, origin: np.ndarray, h: float, shape: 
     t1 = time.perf_counter()
     tie = np.zeros(0, np.int64)
     if sign == "winding":
-        inside = winding_inside(tri, origin, h, shape, dist < band)
+        inside = winding_inside(tri, origin, h, shape, dist < band, watertight, band)
     else:
         votes = inside_votes(tri, origin, h, shape)
         inside = votes >= 4
@@ -551,7 +567,7 @@ class Open3dBake(Stage):
 
     kind = "sdf_bake"
     name = "open3d"
-    version = "4"
+    version = "5"
     Params = BakeParams
     inputs = ("walls",)
     outputs = ("sdf",)
@@ -583,8 +599,12 @@ class Open3dBake(Stage):
         wm = WallMesh.load(inputs["walls"].path)
         lo, hi = grid_box(wm, ctx.scene["scene"].domain, l0, params)
         shapes, size = grids_estimate(wm, ctx.scene["scene"].domain, l0, params)
-        ctx.check_memory(size["memory_bytes"], f"{int(size['sdf_nodes']):,} SDF nodes, grid "
-                         + " + ".join("x".join(map(str, shape)) for shape in shapes))
+        try:
+            ctx.check_memory(size["memory_bytes"], f"{int(size['sdf_nodes']):,} SDF nodes, grid "
+                             + " + ".join("x".join(map(str, shape)) for shape in shapes))
+        except StageError as e:  # a model in millimetres in a metre scene: say so beside "make the scene smaller"
+            hint = spacing_hint(wm.vertices.min(axis=0), wm.vertices.max(axis=0), l0) if len(wm.vertices) else ""
+            raise StageError(f"{e}{hint}") from None
         shells = wall_thicknesses(wm, l0, params, ctx.log)
         # a moving wall is baked apart, in its own frame (bodies/); sdf.npz holds the static walls only
         # (+band everywhere when every wall moves)
@@ -593,6 +613,7 @@ class Open3dBake(Stage):
         grid, stats = bake(static, lo, hi, params.cell * l0, params.band * l0, params.exact_reach, params.sign_rays,
                            shells, params.sign, params.min_thickness_l0() * l0)
         grid.save(ctx.out_dir)
+        write_wall_boxes(ctx.out_dir, wm.walls, wm.vertices, wm.wall_id, wm.faces)  # simulate's advice
         ctx.log.info("sdf %s nodes, %d exact + %d propagated band nodes, %d tied signs, %d faces of thin parts "
                      "thickened, %.2f s", "x".join(map(str, stats["shape"])), stats["exact_nodes"],
                      stats["propagated_nodes"], stats["sign_ties"], stats["thin_faces"], stats["seconds"])

@@ -27,6 +27,7 @@ from stages.common.formats import ParticleFrame, ParticleMeta, local_origin
 from stages.common.motion import reach, top_wall_speed, wall_speed
 from stages.common.sdf import SDFGrid, body_walls, load_bodies, posed_field
 from stages.common.usd_points import write_points_layer
+from stages.common.wall_hints import no_fluid_hint, read_wall_boxes, units_hint
 
 from .effects import WATER_GAMMA
 from .emitters import box_text, drop_inside_walls, drop_overlaps, emit
@@ -486,7 +487,7 @@ def prepare(ctx: Context, inputs: Mapping[str, Artifact], who: str, moving_walls
     x, v = emit(fluid.emitters, l0, ctx.resolve, mpu, ctx.log, scene.units.up_axis)
     x, v, _ = drop_overlaps(x, v, l0, ctx.log)
     # the moving walls where they stand at t = 0 count like the static ones
-    emitted = len(x)
+    emitted, x_emitted = len(x), x
     counts: dict = {}
     x, v, dropped = drop_inside_walls(x, v, posed_field(sdf, bodies, 0.0), l0, ctx.log, counts=counts)
     if len(x) == 0 and not fluid.inflow:
@@ -494,12 +495,13 @@ def prepare(ctx: Context, inputs: Mapping[str, Artifact], who: str, moving_walls
             why = f"every emitter is smaller than fluid.spacing ({l0:g}) or empty"
         elif counts["outside"] == emitted:
             why = (f"all {emitted} lie outside the simulation domain, {box_text(sdf.origin, sdf.upper)} (the walls' "
-                   "box, or scene.domain)")
+                   "box, or scene.domain)") + units_hint(sdf.origin, sdf.upper, x_emitted.min(axis=0),
+                                                         x_emitted.max(axis=0), "the domain")
         else:
+            # the walls whose solid holds the emitters, and their size against the emitters' (units)
             why = (f"{counts['in_wall']} of {emitted} lie inside a wall or within l0 / 2 of one"
                    + (f" and {counts['outside']} outside the domain" if counts["outside"] else "")
-                   + "; a closed wall mesh is a solid with the fluid outside unless its walls[] entry says "
-                     "fluid: inside")
+                   + no_fluid_hint(read_wall_boxes(inputs["sdf"].path), x_emitted))
         raise StageError(f"{who}: the emitters produced no particles in the fluid region: {why}")
     if mpu != 1.0:  # scene units -> metres
         x, v, l0 = x * mpu, v * mpu, l0 * mpu
