@@ -243,3 +243,68 @@ def test_no_water_on_the_dry_side_of_a_thin_divider_standing_on_a_floor(tmp_path
     v = load_surface(out, 0).vertices.astype(np.float64)
     past = -((v - c) @ turn)[:, 0] - t / 2  # how far past the divider's far (dry) face
     assert past.max() < 0.01 * L0, f"{(past > 0.01 * L0).sum()} vertices up to {past.max() / L0:.2f} l0 on the dry side"
+
+
+def test_spray_far_apart_is_extracted_piece_by_piece_with_the_same_surface():
+    """The grid was dense over the water's whole box: two drops in opposite corners of a 3 m tank at cell 0.06 l0
+    asked for 49 GB (a MemoryError after the simulation had run). Groups more than 2 R apart are extracted on
+    grids of their own: each piece the surface its particles make alone, vertex for vertex."""
+    from stages.surface_extract.marching_cubes import MarchingCubesParams, extract
+
+    blob = lattice([0.0, 0.0, 0.0], [0.1, 0.1, 0.06], L0)
+    drops = [blob, blob + [3.0, 3.0, 2.0], np.array([[1.5, 0.2, 1.9]])]  # a block, a block far away, a lone drop
+    x = np.concatenate(drops)
+    vol = np.full(len(x), L0 ** 3)
+    params = MarchingCubesParams()
+    asked = []
+    whole = extract(x, vol, L0, params, check_memory=lambda need, details: asked.append((need, details)))
+    assert len(asked) == 3 and max(n for n, _ in asked) < 50e6  # three small grids, not one of 3 m (1.4 GB)
+    alone = [extract(d, np.full(len(d), L0 ** 3), L0, params) for d in drops]
+    assert len(whole.vertices) == sum(len(m.vertices) for m in alone)
+    rows = lambda v: v[np.lexsort(v.T)]  # noqa: E731 - (the pieces come in the order of their cells)
+    np.testing.assert_array_equal(rows(whole.vertices), rows(np.concatenate([m.vertices for m in alone])))
+    assert boundary_edge_count(whole.faces) == 0
+    assert signed_volume(whole.vertices, whole.faces) == pytest.approx(
+        sum(signed_volume(m.vertices, m.faces) for m in alone), rel=1e-9)
+    # the pieces are the surface one grid over everything gives (where it fits): the same volume and area
+    one = extract(x, vol, L0, params, split=False)
+    assert signed_volume(one.vertices, one.faces) == pytest.approx(signed_volume(whole.vertices, whole.faces), rel=2e-3)
+
+
+def test_a_surface_grid_the_machine_cannot_hold_is_refused_with_the_cell_named(tmp_path):
+    """One body of water too large for its grid: the stage refuses in one line naming surface_extract.cell
+    (a MemoryError traceback before)."""
+    from pipeline.stage import StageError
+    from stages.surface_extract.marching_cubes import MarchingCubesParams, extract
+
+    x = lattice([0.0, 0.0, 0.0], [0.2, 0.2, 0.2], L0)
+
+    def tight(need, details):
+        raise StageError(f"would need about {need:.3g} B ({details})")
+
+    with pytest.raises(StageError, match=r"surface grid of \d+x\d+x\d+ nodes over water 9x9x9 l0 across at "
+                                         r"surface_extract.cell 0.5 l0: raise the cell"):
+        extract(x, np.full(len(x), L0 ** 3), L0, MarchingCubesParams(), check_memory=tight)
+
+
+def test_settings_that_lose_the_water_are_said_once(tmp_path, caplog):
+    """At cell 1.5 l0 lone drops and a jet vanished (exit 0, nothing said); the stage says how much of the
+    water's volume the surface holds when changed settings take it far off, once; the defaults say nothing."""
+    import logging
+
+    from stages.surface_extract import marching_cubes
+
+    x = np.concatenate([np.array([[0.0, 0.0, 0.0], [0.3, 0.0, 0.0]]), np.stack([np.full(20, 0.6), np.zeros(20),
+                                                                                 np.arange(20) * L0], axis=1)])
+    (tmp_path / "p").mkdir()
+    src = particles(tmp_path / "p", [x, x])
+    for cell, said in ((0.5, False), (1.5, True)):
+        marching_cubes._SAID.clear()
+        caplog.clear()
+        with caplog.at_level(logging.WARNING):
+            run_stage(MarchingCubes, tmp_path / f"s{cell}", scene=SCENE, inputs={"particles": src}, frames=(0, 1),
+                      params={"cell": cell})
+        lines = [r.getMessage() for r in caplog.records if "of the water's volume" in r.getMessage()]
+        assert len(lines) == (1 if said else 0), lines
+        if said:
+            assert "with cell 1.5" in lines[0] and "encloses 0." in lines[0]
