@@ -223,8 +223,15 @@ class TrimeshImport(Stage):
             asset_to_scene = extra.pop("asset_to_scene", None)
             report.update(extra)
             if not report["watertight"] and shell is None:
-                ctx.log.warning("%s: not watertight (%d boundary edges, %d non-manifold); the SDF sign uses ray voting",
-                                where, report["boundary_edges"], report["non_manifold_edges"])
+                spacing = ctx.scene["fluid"].spacing if ctx.scene.get("fluid") is not None else None
+                wide = spacing and report["largest_hole"] > SMALL_HOLE * spacing
+                # a wide opening the vote closes is a lid without a distance: the field jumps from +band to -band
+                # there, so the solvers' wall terms never see it (a tank missing a side: 279 Pa at it against 960)
+                lid = (f"; its opening, {report['largest_hole'] / spacing:.3g} l0 across, is closed as by a lid the "
+                       f"field has no distance to (the water meets it without wall pressure): model the lid, or leave "
+                       f"fluid: unset to make the wall a shell") if wide else ""
+                ctx.log.warning("%s: not watertight (%d boundary edges, %d non-manifold); the SDF sign uses ray voting%s",
+                                where, report["boundary_edges"], report["non_manifold_edges"], lid)
             # the file as the config names it (relative to its folder), not the resolved path: a copied or moved
             # project reuses this cache entry (same key) and must not publish the first project's absolute paths
             named = source if isinstance(w, BuiltinWall) else str(w.usd if isinstance(w, UsdWall) else w.file)
