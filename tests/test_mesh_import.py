@@ -482,3 +482,23 @@ def test_a_container_missing_a_side_marked_inside_is_said_to_get_a_lid_without_d
         run_stage(TrimeshImport, tmp_path / "out", config_dir=tmp_path,
                   scene={"scene": SCENE, "walls": [{"file": "open_tank.obj", "fluid": "inside"}], "fluid": fluid})
     assert "its opening, 25 l0 across, is closed as by a lid the field has no distance to" in caplog.text, caplog.text
+
+
+@pytest.mark.parametrize("stated, trailing", [(0, 0), (20, 0), (12, 37)], ids=["count_0", "count_20", "trailing"])
+def test_a_binary_stl_whose_header_count_is_off_is_read_from_its_size(tmp_path, caplog, stated, trailing):
+    """Exporters that stream write 0 (or a stale count) in the header, some pad the file: trimesh refused all
+    three as 'not a valid STL file'. The file's whole 50-byte records are read, and the mismatch said."""
+    import logging
+
+    import trimesh
+
+    box = trimesh.creation.box(extents=(0.4, 0.4, 0.3))
+    data = bytearray(trimesh.exchange.stl.export_stl(box))
+    data[80:84] = np.uint32(stated).tobytes()
+    (tmp_path / "tank.stl").write_bytes(bytes(data) + bytes(trailing))
+    with caplog.at_level(logging.WARNING):
+        mesh = _import(tmp_path, [{"file": "tank.stl", "fluid": "inside"}])
+    assert len(mesh.faces) == 12
+    np.testing.assert_allclose(np.ptp(mesh.vertices, axis=0), [0.4, 0.4, 0.3], atol=1e-6)
+    if stated != 12:
+        assert f"header says {stated} triangles and whose size holds 12" in caplog.text

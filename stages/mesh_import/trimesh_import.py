@@ -79,6 +79,32 @@ def to_scene_frame(v: np.ndarray, path: Path, meters_per_unit: float | None, up_
     return v
 
 
+def _stl_with_a_wrong_count(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
+    """A binary STL whose header's triangle count disagrees with its size (0 or a stale count from an exporter
+    that streams, or trailing bytes): read as many whole 50-byte records as the file holds, and say so; None for
+    any other file (trimesh refused these as 'not a valid STL file')."""
+    import logging
+
+    data = path.read_bytes()
+    if len(data) < 84 + 50:
+        return None
+    head = data[:1024].lstrip().lower()
+    if head.startswith(b"solid") and b"facet" in head:
+        return None  # ASCII
+    stated = int(np.frombuffer(data, "<u4", 1, 80)[0])
+    held = (len(data) - 84) // 50
+    if stated == held:
+        return None
+    record = np.dtype([("n", "<f4", 3), ("v", "<f4", (3, 3)), ("attr", "<u2")])
+    tri = np.frombuffer(data, record, held, 84)["v"].astype(np.float64)
+    if not np.isfinite(tri).all():
+        return None
+    logging.getLogger("stage.mesh_import.trimesh").warning(
+        "%s: binary STL whose header says %d triangles and whose size holds %d%s: read %d", path, stated, held,
+        f" and {(len(data) - 84) % 50} bytes more" if (len(data) - 84) % 50 else "", held)
+    return tri.reshape(-1, 3), np.arange(3 * held, dtype=np.int64).reshape(-1, 3)
+
+
 def read_mesh_file(path: Path) -> tuple[np.ndarray, np.ndarray]:
     import trimesh  # imported where used: a cached run or `pipeline status` need not load it (~1 s)
     if not path.is_file():
@@ -86,6 +112,10 @@ def read_mesh_file(path: Path) -> tuple[np.ndarray, np.ndarray]:
     suffix = path.suffix.lower()
     if suffix not in MESH_SUFFIXES:
         raise StageError(f"{path}: unsupported mesh format {suffix or '(none)'!r}; expected one of {', '.join(MESH_SUFFIXES)} or .usd*")
+    if suffix == ".stl":
+        fixed = _stl_with_a_wrong_count(path)
+        if fixed is not None:
+            return fixed
     if suffix == ".off":
         from .polygons import off_polygons, triangulate
         try:
