@@ -93,7 +93,7 @@ def _stl_with_a_wrong_count(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
         return None  # ASCII
     stated = int(np.frombuffer(data, "<u4", 1, 80)[0])
     held = (len(data) - 84) // 50
-    if stated == held:
+    if stated == held and (len(data) - 84) % 50 == 0:
         return None
     record = np.dtype([("n", "<f4", 3), ("v", "<f4", (3, 3)), ("attr", "<u2")])
     tri = np.frombuffer(data, record, held, 84)["v"].astype(np.float64)
