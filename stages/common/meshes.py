@@ -47,17 +47,21 @@ def tidy(v: np.ndarray, f: np.ndarray, passes: int = 4) -> tuple[np.ndarray, np.
     edge flip that takes the sliver out: the surface is unchanged, the mesh stays closed and oriented)."""
     v64 = np.asarray(v, np.float64)
     f = np.asarray(f, np.int64).copy()
+    changed = False
     for _ in range(passes):
         if len(f) == 0:
             break
-        p = v64[f]
-        e = np.stack([p[:, 2] - p[:, 1], p[:, 0] - p[:, 2], p[:, 1] - p[:, 0]], axis=1)  # edge opposite corner k
-        length = np.linalg.norm(e, axis=2)
-        longest = length.max(axis=1)
-        height = np.linalg.norm(np.cross(e[:, 0], e[:, 1]), axis=1) / np.maximum(longest, 1e-300)
-        bad = np.flatnonzero(height <= 1e-5 * longest)
+        flags = np.empty(len(f), np.bool_)
+        _slivers(v64, f, flags)
+        bad = np.flatnonzero(flags)
         if len(bad) == 0:
             break
+        changed = True
+        p = v64[f[bad]]
+        e = np.stack([p[:, 2] - p[:, 1], p[:, 0] - p[:, 2], p[:, 1] - p[:, 0]], axis=1)  # edge opposite corner k
+        length = np.zeros((len(f), 3))
+        length[bad] = np.linalg.norm(e, axis=2)
+        longest = length.max(axis=1)
         # a zero-length edge: its two ends become one (the triangles on that edge drop out below)
         short = length[bad].min(axis=1) <= 1e-5 * longest[bad]
         into = np.arange(len(v64))
@@ -103,11 +107,26 @@ def tidy(v: np.ndarray, f: np.ndarray, passes: int = 4) -> tuple[np.ndarray, np.
         if extra:
             f = np.concatenate([f, np.array(extra, np.int64)])
         f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])]
-    f = _without_cancelling_pairs(f)
+    if changed:
+        f = _without_cancelling_pairs(f)
     used = np.zeros(len(v64), np.bool_)
     used[f.ravel()] = True
     new = np.cumsum(used) - 1
     return np.asarray(v)[used], new[f].astype(np.int32)
+
+
+@nb.njit(cache=True, parallel=True)
+def _slivers(v, f, out):
+    """out[t]: triangle t's height is at most 1e-5 of its longest edge (in float64)."""
+    for t in nb.prange(f.shape[0]):
+        a, b, c = f[t, 0], f[t, 1], f[t, 2]
+        ux, uy, uz = v[b, 0] - v[a, 0], v[b, 1] - v[a, 1], v[b, 2] - v[a, 2]
+        wx, wy, wz = v[c, 0] - v[a, 0], v[c, 1] - v[a, 1], v[c, 2] - v[a, 2]
+        sx, sy, sz = v[c, 0] - v[b, 0], v[c, 1] - v[b, 1], v[c, 2] - v[b, 2]
+        longest = max(ux * ux + uy * uy + uz * uz, wx * wx + wy * wy + wz * wz, sx * sx + sy * sy + sz * sz)
+        cx, cy, cz = uy * wz - uz * wy, uz * wx - ux * wz, ux * wy - uy * wx
+        # height = |u x w| / longest <= 1e-5 longest, squared
+        out[t] = cx * cx + cy * cy + cz * cz <= 1e-10 * longest * longest
 
 
 def _without_cancelling_pairs(f: np.ndarray) -> np.ndarray:
