@@ -241,7 +241,7 @@ def _measure(study: StudyConfig, result: VariantResult, study_dir: Path) -> Vari
         return result
     out, name = Path(result.out), variant_name(result.overrides)
     metrics: dict[str, float | None] = dict(result.metrics)
-    error = None
+    error, mistyped = None, False  # mistyped: the row's error is a file or key the study names wrongly
     for m in study.metrics:
         if m.function is not None:
             try:
@@ -251,14 +251,23 @@ def _measure(study: StudyConfig, result: VariantResult, study_dir: Path) -> Vari
                 error = error or f"metric {m.name} ({m.function}): {type(e).__name__}: {' '.join(str(e).split())}"
                 continue
         else:
-            f = out / m.file
-            if not f.is_file():
-                raise ConfigError(f"metric {m.name}: variant {name} has no {m.file} (its outputs: {', '.join(study.outputs)})")
-            value = _lookup(json.loads(f.read_text()), m.key)
-            if value is None:
-                raise ConfigError(f"metric {m.name}: {m.file} of variant {name} has no key {m.key}")
+            missing = _missing_key(study, m, out, name)
+            if missing:  # the row says it; the other metrics and rows are still reported
+                error, mistyped = error or missing, mistyped or error is None
+                continue
+            value = _lookup(json.loads((out / m.file).read_text()), m.key)
         metrics[m.name] = float(value) if isinstance(value, (int, float)) else None
-    return replace(result, metrics=metrics, error=error)
+    return replace(result, metrics=metrics, error=error, user_error=result.user_error or mistyped)
+
+
+def _missing_key(study: StudyConfig, m, out: Path, name: str) -> str | None:
+    """Why a file metric cannot be read from a variant's outputs, or None."""
+    f = out / m.file
+    if not f.is_file():
+        return f"metric {m.name}: variant {name} has no {m.file} (its outputs: {', '.join(study.outputs)})"
+    if _lookup(json.loads(f.read_text()), m.key) is None:
+        return f"metric {m.name}: {m.file} of variant {name} has no key {m.key}"
+    return None
 
 
 def failed_variant(study: StudyConfig, overrides: dict[str, Any], out: str, error: str,
@@ -305,6 +314,13 @@ def run_study(path: str | Path, *, cache_dir: Path | None = None, out_dir: Path 
                                         if events else None))
             if events:
                 events({"label": label, "state": "failed" if results[-1].error else "done"})
+            if not results[-1].error and sum(not r.error for r in results) == 1:
+                # a metric's file or key misspelt shows on the first variant: said before the others run (it
+                # was found after every variant of an hours-long study had run)
+                for m in study.metrics:
+                    missing = m.function is None and _missing_key(study, m, Path(results[-1].out), label)
+                    if missing:
+                        raise ConfigError(f"{path}: {missing}; the other variants were not run")
     results = [_measure(study, r, path.parent) for r in results]
     write_report(study, results, out_root)
     failed = [r for r in results if r.error]

@@ -132,8 +132,10 @@ def test_study_mistakes_are_found_before_or_named_after(toy_config):
     with pytest.raises(ConfigError, match="time: render is not a stage the outputs"):
         run_study(path)
     path.write_text(STUDY.replace("key: stats.error", "key: stats.eror"))
-    with pytest.raises(ConfigError, match="metric error: particles/stats.json of variant steps-1 has no key stats.eror"):
+    with pytest.raises(ConfigError, match="metric error: particles/stats.json of variant steps-1 has no key stats.eror; "
+                                          "the other variants were not run"):
         run_study(path)
+    assert ran(toy_config, "simulate") == 1  # said on the first variant, not after all three
     path.write_text(STUDY.replace("file: particles/stats.json", "file: particles/nothere.json"))
     with pytest.raises(ConfigError, match="metric error: variant steps-1 has no particles/nothere.json"):
         run_study(path)
