@@ -247,6 +247,70 @@ def test_usd_scaling_animation_and_double_motion_are_errors(tmp_path):
         _import(tmp_path, [{"usd": name, "motion": {"keyframes": KEYS}}])
 
 
+def _mixer_usd(path, matrix: bool):
+    """A blade (a 12 x 10 x 1 cm box) in a metre Z-up stage turning about Z: a rotateZ op keyed +270 degrees a
+    code (24 codes/s), or a matrix op keyed every 90 degrees at codes 0, 2, 5 (sparse keys)."""
+    from pxr import Gf, Usd, UsdGeom
+
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    stage.SetTimeCodesPerSecond(24)
+    blade = UsdGeom.Cube.Define(stage, "/World/Blade")
+    if matrix:
+        op = blade.AddTransformOp()
+        for code, deg in ((0, 0), (2, 90), (5, 180)):
+            m = Gf.Matrix4d().SetRotate(Gf.Rotation(Gf.Vec3d(0, 0, 1), deg))
+            op.Set(Gf.Matrix4d().SetScale(Gf.Vec3d(0.06, 0.05, 0.005)) * m, code)
+    else:
+        op = blade.AddRotateZOp()
+        for code in range(6):
+            op.Set(270.0 * code, code)
+        blade.AddScaleOp().Set(Gf.Vec3f(0.06, 0.05, 0.005))
+    stage.SetStartTimeCode(0)
+    stage.GetRootLayer().Save()
+    return stage
+
+
+def _usd_turn(stage, code):
+    """The blade's world rotation at ``code``, as USD composes it (scale divided out)."""
+    from pxr import Usd, UsdGeom
+
+    m = np.array(UsdGeom.XformCache(Usd.TimeCode(code)).GetLocalToWorldTransform(stage.GetPrimAtPath("/World/Blade"))).T
+    return m[:3, :3] / np.linalg.norm(m[:3, :3], axis=0)
+
+
+def test_a_usd_prop_keyed_past_a_half_turn_a_code_turns_as_usd_interpolates_it(tmp_path):
+    """A mixer keyed +270 degrees a code (rotateZ: USD interpolates the angle) was sampled at whole codes and
+    slerped the short way: it turned backwards (-90 a code) at a third of its speed, with up to 82 particles in
+    the exported blade. It now follows USD's pose at any time, to 1e-9."""
+    stage = _mixer_usd(tmp_path / "mixer.usda", matrix=False)
+    wm, _ = _import(tmp_path, [{"usd": "mixer.usda", "fluid": "outside"}])
+    m = RigidMotion.from_json(wm.walls[0]["motion"])
+    rest = _usd_turn(stage, 0)
+    for code in (0.25, 1 / 3, 0.5, 1.0, 1.7, 2.9, 4.5):
+        np.testing.assert_allclose(m.pose(code / 24)[0], _usd_turn(stage, code) @ rest.T, atol=1e-9)
+
+
+def test_a_usd_prop_moved_by_sparse_matrix_keys_moves_rigidly_between_them(tmp_path, caplog):
+    """USD interpolates an xformOp:transform element by element: between keys 90 degrees apart the blade shrinks
+    (to 0.94), and the wall was refused as 'not rigid (it scales, shears or mirrors)'. It now moves rigidly
+    through its keys, and the warning says why a viewer shows it otherwise."""
+    import logging
+
+    stage = _mixer_usd(tmp_path / "matrix.usda", matrix=True)
+    with caplog.at_level(logging.WARNING):
+        wm, _ = _import(tmp_path, [{"usd": "matrix.usda", "fluid": "outside"}])
+    m = RigidMotion.from_json(wm.walls[0]["motion"])
+    rest = _usd_turn(stage, 0)
+    for code in (0, 2, 5):  # at the keys, USD's pose
+        np.testing.assert_allclose(m.pose(code / 24)[0], _usd_turn(stage, code) @ rest.T, atol=1e-9)
+    half = m.pose(1 / 24)[0]  # between keys: a rotation (45 degrees), not a shrunk matrix
+    np.testing.assert_allclose(half @ half.T, np.eye(3), atol=1e-12)
+    assert np.degrees(np.arccos((np.trace(half) - 1) / 2)) == pytest.approx(45.0, abs=1e-6)
+    assert "moved by a time-sampled xformOp:transform: simulated rigidly between its keys" in caplog.text
+
+
 # -- sdf_bake ---------------------------------------------------------------------------------------
 L0 = 0.05
 

@@ -243,14 +243,57 @@ def _sample_codes(prim, stop=None) -> list[float]:
     return sorted(codes)
 
 
-def _animation(stage, prim, codes: list[float]) -> tuple[np.ndarray, np.ndarray]:
+TURN_STEP = 45.0  # degrees: the most a sampled motion turns between two samples (its slerp takes the short arc)
+
+
+def _animated_ops(prim, stop=None) -> list:
+    """The time-sampled xformOps of ``prim`` and its ancestors (below ``stop``)."""
+    from pxr import UsdGeom
+
+    ops, p = [], prim
+    while p and p.IsValid() and not p.IsPseudoRoot() and p != stop:
+        if p.IsA(UsdGeom.Xformable):
+            ops += [op for op in UsdGeom.Xformable(p).GetOrderedXformOps() if op.GetAttr().GetNumTimeSamples() > 1]
+        p = p.GetParent()
+    return ops
+
+
+def _sample_times(prim, codes: list[float]) -> tuple[list[float], bool]:
+    """The codes to sample an animated prim at, and whether it is moved by a time-sampled matrix op.
+
+    - Every whole code between the samples, and more where a rotate op turns further than TURN_STEP between
+      two of them: USD interpolates a rotate op's angle linearly, so a mixer keyed +270 degrees a code turned
+      the short way (-90) at a third of its speed when sampled at whole codes.
+    - A matrix op (xformOp:transform) is interpolated element by element, which shrinks a turn between its keys
+      (0.94 of the size between two keys 90 degrees apart): such a prim is sampled at its keys only and moves
+      rigidly between them (the authored keys are what the user posed)."""
+    from pxr import UsdGeom
+
+    ops = _animated_ops(prim)
+    matrix = any(op.GetOpType() == UsdGeom.XformOp.TypeTransform for op in ops)
+    lo, hi = codes[0], codes[-1]
+    every = sorted(set(codes) if matrix else set(codes) | {float(c) for c in range(int(np.ceil(lo)), int(np.floor(hi)) + 1)})
+    turns = [op.GetAttr() for op in ops if "rotate" in str(op.GetOpType()).lower()]
+    out = [every[0]]
+    for a, b in zip(every[:-1], every[1:]):
+        swing = max((np.abs(np.subtract(np.atleast_1d(t.Get(b)), np.atleast_1d(t.Get(a)))).max() for t in turns),
+                    default=0.0)
+        n = min(int(np.ceil(swing / TURN_STEP)), 1024)
+        out += [a + (b - a) * k / n for k in range(1, n)] + [b]
+    return out, matrix
+
+
+def _animation(stage, prim, codes: list[float], log=None, where: str = "") -> tuple[np.ndarray, np.ndarray]:
     """(times (K,) s, (K, 4, 4) column-vector matrices M(t) M(t0)^-1 in the stage's world frame) of an
-    animated prim, at its sample codes and every whole code between (so a turn keyed at two codes is
-    followed as USD interpolates it, not cut to the short arc between its ends)."""
+    animated prim, at the codes ``_sample_times`` picks (so a turn keyed at two codes is followed as USD
+    interpolates it, not cut to the short arc between its ends)."""
     from pxr import Usd, UsdGeom
 
-    lo, hi = codes[0], codes[-1]
-    every = sorted(set(codes) | {float(c) for c in range(int(np.ceil(lo)), int(np.floor(hi)) + 1)})
+    every, matrix = _sample_times(prim, codes)
+    if matrix and log is not None:
+        log.warning("%s: moved by a time-sampled xformOp:transform: simulated rigidly between its keys, which USD "
+                    "interpolates element by element (a turn shrinks between keys in a viewer); key it at every "
+                    "frame, or animate translate and rotate ops, for the two to agree", where)
     cache = UsdGeom.XformCache()
     mats = []
     for c in every:
@@ -453,7 +496,7 @@ def read_usd_wall(path: Path, wall: UsdWall, scene_mpu: float, scene_up: str,
         pts, tris = shape
         mover = prim if instance is None else instance[0]  # an instance moves with its instancer
         codes = _sample_codes(mover)
-        moves = _animation(stage, mover, codes) if codes else None
+        moves = _animation(stage, mover, codes, log, where) if codes else None
         if moves is not None and np.allclose(moves[1], np.eye(4), rtol=0, atol=1e-12):
             moves = None  # sampled but standing still (e.g. a single sample): a static wall
         if used and not _same_motion(animation, moves):
