@@ -137,9 +137,15 @@ class Motion(Model):
             step = max(abs(q - p) for p, q in zip(a.rotate, b.rotate))
             turn = _turn_degrees(a.rotate, b.rotate)
             if step >= 180.0 or turn > 179.0:
+                # angles written wrapped (162 then -144): the same angle one turn on, nearer the last key, is what
+                # a user who meant the short way must write; adding a key in between would keep the long way
+                near = [q - 360.0 * round((q - p) / 360.0) for p, q in zip(a.rotate, b.rotate)]
+                wrapped = (f"; for the short way write rotate {[float(f'{x:g}') for x in near]} (angles are not "
+                           "wrapped), for the long way" if max(abs(q - p) for p, q in zip(a.rotate, near)) < 180.0
+                           else "; so")
                 raise ValueError(f"keyframes at {a.time:g} s and {b.time:g} s are {max(step, turn):g} degrees apart: "
-                                 f"the rotation between keys takes the shorter way round ({turn:.0f} degrees), so keep "
-                                 "keys under a half turn apart (add one in between)")
+                                 f"the rotation between keys takes the shorter way round ({turn:.0f} degrees){wrapped} "
+                                 "keep keys under a half turn apart (add one in between)")
         return v
 
 
