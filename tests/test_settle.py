@@ -107,3 +107,23 @@ def test_settling_is_the_same_in_centimetres_and_y_up(mpu, up, tmp_path):
     assert ref[0] == other[0]
     assert abs(ref[1] - other[1]) < 1e-3 * 0.02 and abs(ref[2] - other[2]) < 1e-3 * 0.02, (ref, other)
     assert abs(ref[3] - other[3]) <= 0.02 * ref[3] + 1e-6, (ref, other)
+
+
+def test_settling_water_that_falls_is_said_and_a_resting_tank_is_not(tmp_path, caplog):
+    """fluid.settle on a dam-break column (not at rest): the column slumped while settling and the shot started
+    from the puddle without a word (10 cm high became 5.7 cm). It is said now; a tank at rest says nothing."""
+    import logging
+
+    sdf = _sdf(tmp_path)
+    column = _scene(0.3, fps=10.0, count=1)
+    column["fluid"]["spacing"] = 0.02
+    column["fluid"]["emitters"] = [{"box": {"min": [0, 0, 0], "max": [0.06, 0.2, 0.2]}}]
+    with caplog.at_level(logging.WARNING):
+        run_stage(SPHSimulate, tmp_path / "column", scene=column, params={"threads": 1}, inputs={"sdf": sdf})
+    assert "fluid.settle is for water at rest: while settling" in caplog.text
+    caplog.clear()
+    still = _scene(0.1, fps=10.0, count=1)
+    still["fluid"]["spacing"] = 0.02
+    with caplog.at_level(logging.WARNING):
+        run_stage(SPHSimulate, tmp_path / "still", scene=still, params={"threads": 1}, inputs={"sdf": sdf})
+    assert "fluid.settle is for water at rest" not in caplog.text
