@@ -170,11 +170,20 @@ def drop_inside_walls(x: np.ndarray, v: np.ndarray, sdf, l0: float, log: logging
     dropped = int(len(x) - keep.sum())
     near_wall, outside = int((in_grid & ~clear).sum()), int((~in_grid).sum())
     if near_wall:
-        log.warning("dropped %d of %d emitted particles (%.1f %% of what the emitters filled) inside or within %.2g l0 "
-                    "of a wall%s",
-                    near_wall, len(x), 100.0 * near_wall / len(x), min_distance,
-                    "" if int((in_grid & ~clear & (d > 0)).sum()) < 0.05 * len(x) else ": walls not aligned with "
-                    "the axes lose up to half a spacing of water along them (a finer spacing loses less)")
+        # inside a wall's solid (the emitter reaches into it: an open_box's walls stand inside its size) and only
+        # near one (a wall off the lattice's axes) are different mistakes: the hint about tilted walls was given
+        # for an emitter filling an axis-aligned open_box to its outer size
+        solid, close = int((in_grid & ~clear & (d <= 0)).sum()), int((in_grid & ~clear & (d > 0)).sum())
+        why = []
+        if solid:
+            why.append(f"{solid} inside a wall's solid: the emitter reaches into it (an open_box's walls are "
+                       "mesh_import.open_box_thickness x its smaller horizontal size thick, inside its size)")
+        if close:
+            why.append(f"{close} within {min_distance:.2g} l0 of one" + (
+                ": walls not aligned with the axes lose up to half a spacing of water along them (a finer spacing "
+                "loses less)" if close >= 0.05 * len(x) else ""))
+        log.warning("dropped %d of %d emitted particles (%.1f %% of what the emitters filled) at walls: %s",
+                    near_wall, len(x), 100.0 * near_wall / len(x), "; ".join(why))
     if outside:
         log.warning("dropped %d of %d emitted particles outside the simulation domain, %s (scene.domain sets it; "
                     "without it, the walls' box and a margin)", outside, len(x), box_text(sdf.origin, sdf.upper))
