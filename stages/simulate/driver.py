@@ -585,16 +585,34 @@ def _warn_idle_flows(inflows, sinks, x: np.ndarray, shot_seconds: float, sdf: SD
         if jet.start >= shot_seconds:
             log.warning("inflow %d starts at %.4g s, at or after the shot's last frame (%.4g s): it emits nothing",
                         i, jet.start, shot_seconds)
+        elif min(jet.end, shot_seconds) < jet.layer_time(0):
+            log.warning("inflow %d runs %.3g s, less than the %.3g s its first layer needs (half of l0 / speed "
+                        "after its start): it emits nothing", i, min(jet.end, shot_seconds) - jet.start,
+                        jet.layer_time(0) - jet.start)
         centre, direction = jet.frame_at(jet.start)
         d, _ = sdf.sample(centre + np.outer([1.0, 2.0], direction * l0))
         if (d < 0).any():
             log.warning("inflow %d points into a wall: the wall is within 2 spacings in front of its disc, where "
                         "its jet stops", i)
+        for k, sink in enumerate(sinks):
+            if in_sinks(centre[None], [sink])[0]:
+                log.warning("inflow %d's nozzle is inside sink %d: its water is removed as it enters", i, k)
+    for k, sink in enumerate(sinks):
+        # particles keep half a spacing from walls: a sink with no point that far from one removes nothing (a
+        # drain box under a closed floor said 'sunk: 0' at the end, and nothing before)
+        lo, hi = np.maximum(sink.lo, sdf.origin), np.minimum(sink.hi, sdf.upper)
+        axes = [np.linspace(a, b, max(2, min(24, int(np.ceil((b - a) / (0.25 * l0))) + 1))) for a, b in zip(lo, hi)]
+        probe = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3) if (hi > lo).all() else np.zeros((0, 3))
+        if not len(probe) or sdf.sample(probe)[0].max() < 0.45 * l0:
+            log.warning("sink %d can remove nothing: no point of it is in the fluid region half a spacing from a "
+                        "wall, where particles can be (a drain goes below an opening in the floor, not under a "
+                        "closed one)", k)
     if sinks and len(x):
         held = in_sinks(x, sinks)
         if held.any():
-            log.warning("%d of the %d emitted particles start inside a sink (fluid.sinks) and are removed in the "
-                        "first step", int(held.sum()), len(x))
+            log.warning("%d of the %d emitted particles start inside a sink (fluid.sinks) and are removed %s",
+                        int(held.sum()), len(x), "in the first step" if shot_seconds > 0 else
+                        "when the simulation steps (this one-frame shot holds them at frame 0)")
 
 
 def to_scene_units(fr: ParticleFrame, mpu: float) -> ParticleFrame:
