@@ -219,8 +219,14 @@ def test_bad_inflow_or_sink_is_one_line_exit_2(fluid, field, tmp_path):
 def test_inflow_inside_a_wall_is_a_stage_error(tmp_path):
     sdf = _tank(tmp_path, [0.2, 0.1, 0.3], TANK_L0)
     scene = {**TANK_SCENE, "fluid": {**TANK_SCENE["fluid"], "inflow": [{**TAP, "center": [0.06, 0.05, 0.5]}]}}
-    with pytest.raises(StageError, match=r"fluid.inflow.0: its disc lies inside a wall or outside the domain"):
+    # above the tank's lid, outside the grid: said which of the two, with the domain's box (it said 'inside a wall
+    # or outside the domain'); a disc in the floor is inside a wall
+    with pytest.raises(StageError, match=r"fluid.inflow.0: its disc \(centre \[0.06, 0.05, 0.5\]\) lies outside the "
+                                         r"simulation domain, x -?0.0\d*\.\.0.2\d*, y"):
         run_stage(SPHSimulate, tmp_path / "out", scene=scene, params={"threads": 1}, inputs={"sdf": sdf})
+    scene = {**TANK_SCENE, "fluid": {**TANK_SCENE["fluid"], "inflow": [{**TAP, "center": [0.06, 0.05, -0.005]}]}}
+    with pytest.raises(StageError, match=r"fluid.inflow.0: its disc \(centre .*\) lies inside or within 0.5 l0 of a wall"):
+        run_stage(SPHSimulate, tmp_path / "out2", scene=scene, params={"threads": 1}, inputs={"sdf": sdf})
 
 
 # -- the emission itself ----------------------------------------------------------------------------------

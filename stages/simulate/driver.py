@@ -567,9 +567,12 @@ def _clear_of_walls(jet: Inflow, i: int, sdf: SDFGrid, bodies, domain, l0: float
         d = np.minimum(d, grid.sample(motion.to_rest(p, jet.start))[0])
     lo, hi = (sdf.origin, sdf.upper) if domain is None else (np.maximum(domain[0], sdf.origin),
                                                               np.minimum(domain[1], sdf.upper))
-    jet.keep = (d >= (0.5 - 1e-3) * l0) & np.all((p >= lo) & (p <= hi), axis=1)
+    inside = np.all((p >= lo) & (p <= hi), axis=1)
+    jet.keep = (d >= (0.5 - 1e-3) * l0) & inside
     if not jet.keep.any():
-        raise StageError(f"{who}: fluid.inflow.{i}: its disc lies inside a wall or outside the domain")
+        where = (f"outside the simulation domain, {box_text(lo, hi)} (scene.domain sets it; without it, the walls' "
+                 "box and a margin)") if not inside.any() else "inside or within 0.5 l0 of a wall"
+        raise StageError(f"{who}: fluid.inflow.{i}: its disc (centre {np.round(jet.center, 6).tolist()}) lies {where}")
     if not jet.keep.all():
         log.warning("inflow %d: %d of its %d disc particles are inside or within 0.5 l0 of a wall or outside the "
                     "domain and are not emitted (the jet emits that much less than pi r^2 v)", i,
