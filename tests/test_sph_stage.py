@@ -194,12 +194,13 @@ def test_fluid_thrown_out_of_the_domain_is_counted_and_said_with_the_box(tmp_pat
     grid_from_function(lambda p: p[:, 2], [0, 0, 0], [0.3, 0.2, 0.4], L0 / 2).save(sdf)
     scene = {**SCENE, "fluid": {"spacing": L0, "emitters": [
         {"box": {"min": [0.1, 0.06, 0.2], "max": [0.16, 0.12, 0.26]}, "velocity": [0.0, 0.0, 6.0]}]}}
-    with caplog.at_level(logging.WARNING):
+    with caplog.at_level(logging.INFO):
         out = run_stage(SPHSimulate, tmp_path / "out", scene=scene, params={"threads": 1}, inputs={"sdf": sdf})
     meta = ParticleMeta.load(out)
     assert meta.stats["escaped"] == 27 and len(load_particle_frame(out, 6)) == 0
     assert "left the simulation domain, x -0.01..0.31, y -0.01..0.22, z -0.01..0.41, and were removed (the walls' box" in caplog.text
-    assert "27 of the 27 particles emitted left the simulation domain during the shot" in caplog.text
+    assert "27 of the 27 particles in the shot (27 from the emitters, 0 from inflows) left the simulation domain" in caplog.text
+    assert "water: 27 from the emitters + 0 from inflows - 0 sunk - 27 escaped = 0 at the end" in caplog.text
 
 
 def test_a_tank_turned_against_the_lattice_keeps_its_water():

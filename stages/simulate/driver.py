@@ -719,10 +719,18 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
             save_checkpoint(ckpt_dir, f, {**solver.state(), **_stats_to(stats)})
         progress.advance()
     stats["wall_seconds"] += time.perf_counter() - t0
+    kept = stats["emitted"] - stats["dropped_in_wall"] - stats["dropped_outside_domain"]
+    entered = kept + solver.inflow_particles
     if stats["escaped"]:  # said frame by frame above; once more where the run ends, with the share
-        ctx.log.warning("%d of the %d particles emitted left the simulation domain during the shot and were removed%s",
-                        stats["escaped"], stats["emitted"], "" if scene.domain is not None else
+        # of all that entered the shot: with a jet the emitters' count alone gave 377 'of the 600 emitted' when
+        # every one of them was the jet's
+        ctx.log.warning("%d of the %d particles in the shot (%d from the emitters, %d from inflows) left the "
+                        "simulation domain and were removed%s", stats["escaped"], entered, kept,
+                        solver.inflow_particles, "" if scene.domain is not None else
                         " (set scene.domain to keep fluid thrown out of the walls' box)")
+    if solver.inflows or solver.sinks or stats["escaped"]:  # the water's budget, in the log as in meta.json
+        ctx.log.info("water: %d from the emitters + %d from inflows - %d sunk - %d escaped = %d at the end", kept,
+                     solver.inflow_particles, solver.sunk, stats["escaped"], len(solver.x))
     for i, n in enumerate(solver.inflow_skipped):
         if n:
             ctx.log.warning("inflow %d: %d of its %d layers were skipped (blocked by the fluid at the nozzle)", i, n,
