@@ -72,10 +72,21 @@ def read_record_keys(out_dir: Path) -> dict[str, dict[str, Any]]:
         return {}
 
 
-def _write_record(out_dir: Path, published: dict[str, list[str]], keys: dict[str, dict] | None = None) -> None:
+def read_shot(out_dir: Path) -> dict[str, str] | None:
+    """The shot whose outputs the folder holds (``{"scene": name, "config": path}``), None when not recorded."""
+    try:
+        shot = json.loads((out_dir / RECORD).read_text()).get("shot")
+        return {str(k): str(v) for k, v in shot.items()} if isinstance(shot, dict) and "scene" in shot else None
+    except (OSError, ValueError, AttributeError, TypeError):
+        return None
+
+
+def _write_record(out_dir: Path, published: dict[str, list[str]], keys: dict[str, dict] | None = None,
+                  shot: dict[str, str] | None = None) -> None:
     keys = {n: k for n, k in {**read_record_keys(out_dir), **(keys or {})}.items() if n in published}
-    _atomic_write(out_dir / RECORD, json.dumps({"version": 1, "published": published, "keys": keys}, indent=1,
-                                               sort_keys=True))
+    shot = shot or read_shot(out_dir)
+    _atomic_write(out_dir / RECORD, json.dumps({"version": 1, "published": published, "keys": keys,
+                                                **({"shot": shot} if shot else {})}, indent=1, sort_keys=True))
 
 
 def _atomic_write(path: Path, text: str | bytes) -> None:
@@ -96,10 +107,12 @@ def _files(path: Path) -> list[str]:
 
 
 # -- the promise -------------------------------------------------------------------------------------
-def check_out_dir(out_dir: Path, names: Iterable[str], files: Iterable[str] = ("run.json",)) -> None:
+def check_out_dir(out_dir: Path, names: Iterable[str], files: Iterable[str] = ("run.json",),
+                  shot: dict[str, str] | None = None) -> None:
     """Raise OutputRefused (exit 2) unless every name the run will publish can be written: absent, or
     published by the pipeline and holding only files it published. ``files``: the names published as
-    plain files (the rest are folders)."""
+    plain files (the rest are folders). ``shot`` (``{"scene", "config"}``): the folder must not hold another
+    scene's outputs (a second scene run with the same --out replaced the first's without a word)."""
     files = set(files)
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
@@ -114,6 +127,11 @@ def check_out_dir(out_dir: Path, names: Iterable[str], files: Iterable[str] = ("
     if not out_dir.is_dir():
         return
     record = read_record(out_dir)
+    was = read_shot(out_dir)
+    if shot is not None and was is not None and was["scene"] != shot["scene"] and any(n in record for n in names):
+        raise OutputRefused(f"output folder {out_dir} holds the outputs of scene {was['scene']!r} ({was['config']}); "
+                            f"this run of scene {shot['scene']!r} would replace them: choose another --out, or remove "
+                            f"that folder (nothing was changed)")
     for name in names:
         target = out_dir / name
         if not target.exists() and not target.is_symlink():
@@ -178,14 +196,14 @@ def _clone_or_copy(src: Path, dst: Path) -> None:
 
 
 def publish(graph: Graph, artifacts: dict[str, Artifact], out_dir: Path, frames: tuple[int, ...],
-            keys: dict[str, dict] | None = None) -> dict[str, str]:
+            keys: dict[str, dict] | None = None, shot: dict[str, str] | None = None) -> dict[str, str]:
     """Copy (``_clone_or_copy``) each wanted artifact into ``out_dir/<name>/``, replacing the old folder whole,
     and only if the pipeline published it (``check_out_dir``); a per-frame output of a ``--frames`` run keeps
     the other frames published from the same stage key. ``keys``: what each name is made from (``_made_from``:
     its stage's key, the run's frames), kept in the record for ``drop_stale``."""
     out_dir = Path(out_dir)
     names = [n for n in graph.outputs if artifacts.get(n) is not None]
-    check_out_dir(out_dir, names)
+    check_out_dir(out_dir, names, shot=shot)
     out_dir.mkdir(parents=True, exist_ok=True)
     sweep_out_dir(out_dir)
     record, earlier = read_record(out_dir), read_record_keys(out_dir)
@@ -227,7 +245,7 @@ def publish(graph: Graph, artifacts: dict[str, Artifact], out_dir: Path, frames:
                 shutil.rmtree(trash, ignore_errors=True)
             else:
                 os.replace(staging, target)
-        _write_record(out_dir, {**record, **new}, {n: k for n, k in keys.items() if n in new})
+        _write_record(out_dir, {**record, **new}, {n: k for n, k in keys.items() if n in new}, shot)
     finally:
         for staging in staged.values():
             if staging.exists():

@@ -394,7 +394,8 @@ def _execute(p: Plan, out_dir: Path, force: frozenset[str], executor: Executor |
     try:
         # two runs publishing into one folder (the same config run twice) take turns
         with cache.lock(hash_key({"publish": str(out_dir)}), f"publish into {out_dir}"):
-            report.outputs = publish(graph, artifacts, out_dir, p.frames, _made_from(p, graph, graph.outputs))
+            report.outputs = publish(graph, artifacts, out_dir, p.frames, _made_from(p, graph, graph.outputs),
+                                     shot_of(p.config))
             earlier = {n: k for n, k in read_record_keys(out_dir).items() if n not in report.outputs}
             stale = drop_stale(out_dir, _current_keys(p, earlier)) if earlier else []
             if stale:
@@ -406,6 +407,12 @@ def _execute(p: Plan, out_dir: Path, force: frozenset[str], executor: Executor |
     except OSError as exc:
         raise _outside(f"publish into {out_dir}", exc, cache) from exc
     return report
+
+
+def shot_of(config: Config) -> dict[str, str]:
+    """What the output folder's record names as the shot it holds (the config's file name only: a copied project
+    must publish the same bytes)."""
+    return {"scene": config.scene.scene.name, "config": Path(config.path).name}
 
 
 def _made_from(p: Plan, graph: Graph, names) -> dict[str, dict]:
@@ -672,7 +679,7 @@ def run(config_path: str | Path, *, registry: Registry | None = None, overrides:
         # the cache's entries would be published over (or its sweep would delete published outputs)
         raise ConfigError(f"the output folder {out} and the cache folder {cache.root} overlap; "
                           "choose another --out or --cache (nothing was changed)")
-    check_out_dir(out, [n for n in graph.outputs] + ["run.json"])
+    check_out_dir(out, [n for n in graph.outputs] + ["run.json"], shot=shot_of(config))
     why = unwritable(cache.root)
     if why is not None:  # found before any stage runs, not when the first entry is committed
         raise ConfigError(f"cache folder {cache.root} cannot be written: {why} (choose another with --cache)")

@@ -392,3 +392,24 @@ def test_dask_executor_gives_same_result(toy_config, toy_plugin):
             ex.close()
     assert r2.stage("render").frames_ran == 4
     assert a == {p.name: p.read_text() for p in (Path(r2.out) / "frames").iterdir()}
+
+
+def test_a_second_scene_published_into_the_same_folder_is_refused(toy_config, tmp_path):
+    """Two scenes run one after the other with the same --out: the second replaced the first's outputs, exit 0,
+    without a word (a batch refuses this). The folder's record names the scene it holds; another scene is refused
+    before anything runs and the first's outputs stay; the same scene (an edit, a re-run) still replaces them."""
+    from pipeline.publish import OutputRefused
+
+    out, cache = tmp_path / "out", tmp_path / "cache"
+    pipeline.run(toy_config, cache_dir=cache, out_dir=out)
+    before = sorted(p.name for p in (out / "frames").iterdir())
+    other = toy_config.parent / "other.yaml"
+    other.write_text(toy_config.read_text().replace("name: toy", "name: other"))
+    with pytest.raises(OutputRefused, match=r"holds the outputs of scene 'toy' \(.*toy.yaml\); this run of scene "
+                                            r"'other' would replace them"):
+        pipeline.run(other, cache_dir=cache, out_dir=out)
+    assert sorted(p.name for p in (out / "frames").iterdir()) == before
+    assert ran(other, "simulate") == ran(toy_config, "simulate") == 1  # refused before anything ran
+    toy_config.write_text(toy_config.read_text().replace("count: 4", "count: 3"))
+    pipeline.run(toy_config, cache_dir=cache, out_dir=out)  # the same scene, edited
+    assert len(list((out / "frames").iterdir())) == 3
