@@ -44,19 +44,25 @@ def test_config_runs_at_tiny_size(config, tmp_path):
         assert len(list(Path(report.outputs["frames"]).glob("*.png"))) == 3
 
 
-def test_the_readme_config_reference_runs(tmp_path):
+def test_the_readme_config_reference_runs(tmp_path, caplog):
     """The README's annotated config block, saved beside configs/assets as it says, runs to the simulation
-    (it named files that did not exist and put its jet above its own tank)."""
+    (it named files that did not exist and put its jet above its own tank; then its jet on its own block of
+    water, blocked at once, and its sink inside that block)."""
+    import logging
+
     repo = Path(__file__).resolve().parents[1]
     text = (repo / "README.md").read_text().split("## Config reference", 1)[1]
     block = text.split("```yaml\n", 1)[1].split("```", 1)[0]
     (tmp_path / "assets").symlink_to(repo / "configs" / "assets")
     config = tmp_path / "reference.yaml"
     config.write_text(block)
-    report = pipeline.run(config, registry=Registry.from_entry_points(),
-                          overrides=("scene.frames.count=2", "fluid.spacing=0.05"), until="simulate",
-                          cache_dir=tmp_path / "cache", out_dir=tmp_path / "out")
+    with caplog.at_level(logging.INFO):
+        report = pipeline.run(config, registry=Registry.from_entry_points(),
+                              overrides=("scene.frames.count=2", "fluid.spacing=0.05"), until="simulate",
+                              cache_dir=tmp_path / "cache", out_dir=tmp_path / "out")
     assert [s.status for s in report.stages] == ["ran", "ran", "ran"]
+    for what in ("start inside a sink", "blocked", "layers were skipped", "can remove nothing", "points into a wall"):
+        assert what not in caplog.text, what
 
 
 def test_what_users_type_is_read_as_they_meant(tmp_path):
