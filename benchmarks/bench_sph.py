@@ -56,7 +56,7 @@ REF_SIZES = (20000, 100000)
 SDF_CELL = 0.5  # SDF node spacing in l0, the sdf_bake stage's default
 SURGE_T = 0.3  # s: the second timed window starts here (dam break only, up to SURGE_MAX particles)
 SURGE_MAX = 200000
-PEERS = Path("/work/shared/peers")
+PEERS = Path(__file__).resolve().parents[2] / "shared" / "peers"  # ../shared beside the clone, as CI has it
 GL_PRELOAD = "/lib/x86_64-linux-gnu/libGLdispatch.so.0"
 
 

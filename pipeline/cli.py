@@ -244,7 +244,8 @@ def status(config, overrides, cache_dir, frames):
     for r in rows:
         table.add_row(r.kind, r.implementation, r.key[:12], f"[{colour[r.state]}]{r.state}[/]", r.reason,
                       "" if r.seconds is None else f"{r.seconds:.2f}")
-    Console().print(table)
+    # piped (a CI log, | cat) rich assumed 80 columns and cut 'surface_extract' to 'surface_ext…'
+    Console(width=None if sys.stdout.isatty() else 160).print(table)
 
 
 @main.command()
