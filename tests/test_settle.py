@@ -127,3 +127,19 @@ def test_settling_water_that_falls_is_said_and_a_resting_tank_is_not(tmp_path, c
     with caplog.at_level(logging.WARNING):
         run_stage(SPHSimulate, tmp_path / "still", scene=still, params={"threads": 1}, inputs={"sdf": sdf})
     assert "fluid.settle is for water at rest" not in caplog.text
+
+
+def test_the_plan_counts_the_settling_steps():
+    """The plan's size line said ~800 steps for water_at_rest's 3 frames; settling 1.5 s first took 7,114."""
+    from types import SimpleNamespace
+
+    from pipeline.scene import SceneConfig
+    from stages.common.sizes import simulate_estimate
+
+    steps = {}
+    for settle in (0.0, 1.5):
+        sc = SceneConfig.model_validate({**_scene(settle, fps=2.0, count=3),
+                                         "walls": [{"builtin": "box_tank", "size": list(TANK)}]})
+        ctx = SimpleNamespace(scene={"scene": sc.scene, "fluid": sc.fluid, "effects": sc.effects})
+        steps[settle] = simulate_estimate(ctx, 0.4, 10.0)["steps"]
+    assert steps[1.5] == pytest.approx(2.0 * steps[0.0], rel=1e-9)  # 3 frames at 2 fps (1.5 s), and 1.5 s settling
