@@ -505,6 +505,24 @@ def test_export_animates_a_moving_wall_in_step_with_the_frames(tmp_path):
     assert moved > 20  # the paddle did move (cm)
 
 
+def test_export_samples_a_moving_wall_at_its_keys_between_frames(tmp_path):
+    """A key at 0.3 s in a 25 fps shot falls between frames 7 and 8: sampled at the frames only, USD interpolated
+    across it and cut the corner (0.43 l0 off the path the water saw at the half frame). The key is a sample now."""
+    from pxr import Usd
+
+    paddle = {"builtin": "box_tank", "fluid": "outside", "size": [0.05, 0.2, 0.3], "center": [0, 0.05, 0],
+              "motion": {"keyframes": [{"time": 0.0}, {"time": 0.3, "translate": [0.3, 0, 0], "rotate": [0, 0, 40]},
+                                       {"time": 0.5, "translate": [0.3, 0.2, 0], "rotate": [0, 0, -20]}]}}
+    scene = {"scene": {"name": "t", "units": {"meters_per_unit": 1.0, "up_axis": "Z"}, "frames": {"fps": 25, "count": 14}},
+             "walls": [paddle]}
+    wm, walls_dir = _import(tmp_path, scene["walls"], scene=scene["scene"])
+    motion = RigidMotion.from_json(wm.walls[0]["motion"])
+    out = _export(tmp_path, walls_dir, scene, list(range(14)))
+    stage = Usd.Stage.Open(str(out / "scene.usda"))
+    _, m = _world_points(stage, "/World/Walls/wall0_box_tank", 7.5)
+    assert np.allclose(m, motion.matrix(0.3), atol=1e-9)
+
+
 def test_export_of_an_animated_usd_asset_keeps_its_animation_in_step(tmp_path):
     from pxr import Usd
 

@@ -417,7 +417,7 @@ class UsdExport(Stage):
     def _write_walls(path: Path, walls: WallMesh, skip: set[int], m: np.ndarray, metrics: dict,
                      frames: list[int], origin: np.ndarray | None = None) -> bool:
         """The walls not from a USD asset; a moving wall as its rest mesh under a transform time-sampled
-        at every exported frame (code f: the pose at f / fps). A wall from an animated USD asset carries
+        at every exported frame (code f: the pose at f / fps) and at its keyframes between them. A wall from an animated USD asset carries
         its own animation in the asset (its time codes scaled to ours by their timeCodesPerSecond)."""
         from pxr import UsdGeom
 
@@ -440,7 +440,12 @@ class UsdExport(Stage):
             shift = local_frame(mesh, origin) if i not in motions else np.zeros(3)  # a moving wall: its own ops
             ul.set_mesh(mesh, ul.apply(m, walls.vertices[idx]) - shift, local, None)
             if i in motions:  # the rest pose above, moved by the wall's motion seen in the written frame
-                ul.animate_rigidly(mesh, [(f, m @ motions[i].matrix(f / metrics["fps"]) @ to_source) for f in frames],
+                # at every frame and at the motion's own keys between them: USD interpolates between samples, and
+                # across a key inside a frame it cut the corner (0.43 l0 off the path the water saw at a half frame)
+                fps = metrics["fps"]
+                keys = [float(t) * fps for t in motions[i].times if frames[0] < float(t) * fps < frames[-1]]
+                codes = sorted(set(map(float, frames)) | set(keys))
+                ul.animate_rigidly(mesh, [(c, m @ motions[i].matrix(c / fps) @ to_source) for c in codes],
                                    ul.apply(m, np.asarray(motions[i].pivot, float)[None])[0])
                 # the extent bounds the points as authored (the rest pose): USD applies the transform to it
             source = str(walls.walls[i].get("source", ""))
