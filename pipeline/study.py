@@ -251,23 +251,22 @@ def _measure(study: StudyConfig, result: VariantResult, study_dir: Path) -> Vari
                 error = error or f"metric {m.name} ({m.function}): {type(e).__name__}: {' '.join(str(e).split())}"
                 continue
         else:
-            missing = _missing_key(study, m, out, name)
+            value, missing = _file_metric(study, m, out, name)
             if missing:  # the row says it; the other metrics and rows are still reported
-                error, mistyped = error or missing, mistyped or error is None
+                if error is None:
+                    error, mistyped = missing, True
                 continue
-            value = _lookup(json.loads((out / m.file).read_text()), m.key)
         metrics[m.name] = float(value) if isinstance(value, (int, float)) else None
     return replace(result, metrics=metrics, error=error, user_error=result.user_error or mistyped)
 
 
-def _missing_key(study: StudyConfig, m, out: Path, name: str) -> str | None:
-    """Why a file metric cannot be read from a variant's outputs, or None."""
+def _file_metric(study: StudyConfig, m, out: Path, name: str) -> tuple[Any, str | None]:
+    """A file metric's value in a variant's outputs, and why it cannot be read (None when it can)."""
     f = out / m.file
     if not f.is_file():
-        return f"metric {m.name}: variant {name} has no {m.file} (its outputs: {', '.join(study.outputs)})"
-    if _lookup(json.loads(f.read_text()), m.key) is None:
-        return f"metric {m.name}: {m.file} of variant {name} has no key {m.key}"
-    return None
+        return None, f"metric {m.name}: variant {name} has no {m.file} (its outputs: {', '.join(study.outputs)})"
+    value = _lookup(json.loads(f.read_text()), m.key)
+    return value, (f"metric {m.name}: {m.file} of variant {name} has no key {m.key}" if value is None else None)
 
 
 def failed_variant(study: StudyConfig, overrides: dict[str, Any], out: str, error: str,
@@ -318,7 +317,7 @@ def run_study(path: str | Path, *, cache_dir: Path | None = None, out_dir: Path 
                 # a metric's file or key misspelt shows on the first variant: said before the others run (it
                 # was found after every variant of an hours-long study had run)
                 for m in study.metrics:
-                    missing = m.function is None and _missing_key(study, m, Path(results[-1].out), label)
+                    missing = m.function is None and _file_metric(study, m, Path(results[-1].out), label)[1]
                     if missing:
                         raise ConfigError(f"{path}: {missing}; the other variants were not run")
     results = [_measure(study, r, path.parent) for r in results]

@@ -78,7 +78,7 @@ def no_fluid_hint(boxes: list[dict] | None, points: np.ndarray) -> str:
         inside = np.all((points >= blo) & (points <= bhi), axis=1).mean()
         name = f"wall {b['index']} ({Path(str(b['source'])).name}, fluid: {b['fluid']})"
         if b["fluid"] == "inside" and inside < 0.5:
-            parts.append(f"{name} is a container and the emitters lie outside its box ({_box(blo, bhi)}): "
+            parts.append(f"{name} is a container and the emitters lie outside its box ({box_text(blo, bhi)}): "
                          "move them into it")
         elif b["fluid"] == "outside" and inside >= 0.5:
             parts.append(f"{name} is a solid around the emitters: set fluid: inside on its walls[] entry if it is "
@@ -93,5 +93,6 @@ def no_fluid_hint(boxes: list[dict] | None, points: np.ndarray) -> str:
     return ("; " + "; ".join(parts) if parts else "") + units
 
 
-def _box(lo, hi) -> str:
+def box_text(lo, hi) -> str:
+    """"x -0.2..0.2, y -0.2..0.2, z -0.12..0.52": a box for a message, in the caller's units."""
     return ", ".join(f"{a} {float(l):.4g}..{float(h):.4g}" for a, l, h in zip("xyz", lo, hi))

@@ -417,8 +417,9 @@ class UsdExport(Stage):
     def _write_walls(path: Path, walls: WallMesh, skip: set[int], m: np.ndarray, metrics: dict,
                      frames: list[int], origin: np.ndarray | None = None) -> bool:
         """The walls not from a USD asset; a moving wall as its rest mesh under a transform time-sampled
-        at every exported frame (code f: the pose at f / fps) and at its keyframes between them. A wall from an animated USD asset carries
-        its own animation in the asset (its time codes scaled to ours by their timeCodesPerSecond)."""
+        at every exported frame (code f: the pose at f / fps) and at its keyframes between them. A wall from an
+        animated USD asset carries its own animation in the asset (its time codes scaled to ours by their
+        timeCodesPerSecond)."""
         from pxr import UsdGeom
 
         motions = dict(walls.motions())

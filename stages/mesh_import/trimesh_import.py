@@ -231,6 +231,7 @@ class TrimeshImport(Stage):
         verts, faces, ids, info = [], [], [], []
         offset = 0
         bar = ctx.progress("importing walls", len(walls))
+        spacing = ctx.scene["fluid"].spacing if ctx.scene.get("fluid") is not None else None
         for i, w in enumerate(walls):
             v, f, fluid, source, extra = self._read(ctx, w, params)
             where = source
@@ -253,7 +254,6 @@ class TrimeshImport(Stage):
             asset_to_scene = extra.pop("asset_to_scene", None)
             report.update(extra)
             if not report["watertight"] and shell is None:
-                spacing = ctx.scene["fluid"].spacing if ctx.scene.get("fluid") is not None else None
                 wide = spacing and report["largest_hole"] > SMALL_HOLE * spacing
                 # a wide opening the vote closes is a lid without a distance: the field jumps from +band to -band
                 # there, so the solvers' wall terms never see it (a tank missing a side: 279 Pa at it against 960)

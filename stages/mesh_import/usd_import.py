@@ -228,34 +228,25 @@ def _revolve(profile: np.ndarray, sections: int) -> tuple[np.ndarray, np.ndarray
     return v, np.ascontiguousarray(f)
 
 
-def _sample_codes(prim, stop=None) -> list[float]:
-    """The time codes at which the xformOps of ``prim`` or any ancestor (below ``stop``) are sampled (sorted;
-    empty when its world transform is static)."""
-    from pxr import UsdGeom
-
-    codes: set[float] = set()
-    p = prim
-    while p and p.IsValid() and not p.IsPseudoRoot() and p != stop:
-        if p.IsA(UsdGeom.Xformable):
-            for op in UsdGeom.Xformable(p).GetOrderedXformOps():
-                codes.update(op.GetAttr().GetTimeSamples())
-        p = p.GetParent()
-    return sorted(codes)
-
-
-TURN_STEP = 45.0  # degrees: the most a sampled motion turns between two samples (its slerp takes the short arc)
-
-
-def _animated_ops(prim, stop=None) -> list:
-    """The time-sampled xformOps of ``prim`` and its ancestors (below ``stop``)."""
+def _xform_ops(prim, stop=None) -> list:
+    """The xformOps of ``prim`` and its ancestors (below ``stop``): what moves it in the stage's world."""
     from pxr import UsdGeom
 
     ops, p = [], prim
     while p and p.IsValid() and not p.IsPseudoRoot() and p != stop:
         if p.IsA(UsdGeom.Xformable):
-            ops += [op for op in UsdGeom.Xformable(p).GetOrderedXformOps() if op.GetAttr().GetNumTimeSamples() > 1]
+            ops += UsdGeom.Xformable(p).GetOrderedXformOps()
         p = p.GetParent()
     return ops
+
+
+def _sample_codes(prim, stop=None) -> list[float]:
+    """The time codes at which the xformOps of ``prim`` or any ancestor (below ``stop``) are sampled (sorted;
+    empty when its world transform is static)."""
+    return sorted({c for op in _xform_ops(prim, stop) for c in op.GetAttr().GetTimeSamples()})
+
+
+TURN_STEP = 45.0  # degrees: the most a sampled motion turns between two samples (its slerp takes the short arc)
 
 
 def _sample_times(prim, codes: list[float]) -> tuple[list[float], bool]:
@@ -269,7 +260,7 @@ def _sample_times(prim, codes: list[float]) -> tuple[list[float], bool]:
       rigidly between them (the authored keys are what the user posed)."""
     from pxr import UsdGeom
 
-    ops = _animated_ops(prim)
+    ops = [op for op in _xform_ops(prim) if op.GetAttr().GetNumTimeSamples() > 1]
     matrix = any(op.GetOpType() == UsdGeom.XformOp.TypeTransform for op in ops)
     lo, hi = codes[0], codes[-1]
     every = sorted(set(codes) if matrix else set(codes) | {float(c) for c in range(int(np.ceil(lo)), int(np.floor(hi)) + 1)})

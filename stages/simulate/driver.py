@@ -27,10 +27,10 @@ from stages.common.formats import ParticleFrame, ParticleMeta, local_origin
 from stages.common.motion import reach, top_wall_speed, wall_speed
 from stages.common.sdf import SDFGrid, body_walls, load_bodies, posed_field
 from stages.common.usd_points import write_points_layer
-from stages.common.wall_hints import no_fluid_hint, read_wall_boxes, units_hint
+from stages.common.wall_hints import box_text, no_fluid_hint, read_wall_boxes, units_hint
 
 from .effects import WATER_GAMMA
-from .emitters import box_text, drop_inside_walls, drop_overlaps, emit
+from .emitters import drop_inside_walls, drop_overlaps, emit
 from .inflow import Inflow, Sink, from_config, in_sinks, inflow_blocked
 from .kernels import count_blown
 from .walls.maps import set_pose
@@ -385,11 +385,12 @@ def settle(solver: SolverBase, seconds: float, progress=None, log=None, spacing:
         if len(before.id) and spacing:
             start = before.x[np.argsort(before.id)][np.searchsorted(np.sort(before.id), after.id)]
             moved = np.linalg.norm(after.x - start, axis=1) / spacing
-            if np.mean(moved > 1.0) > 0.01:
+            share = float(np.mean(moved > 1.0))
+            if share > 0.01:
                 log.warning("fluid.settle is for water at rest: while settling %.0f %% of the particles moved more "
                             "than a spacing (up to %.3g l0), so the shot starts from where they fell, not from the "
                             "emitters' shape; set fluid.settle: 0 for water that is meant to move",
-                            100.0 * np.mean(moved > 1.0), moved.max())
+                            100.0 * share, moved.max())
     solver.t, solver.steps = t0, steps0
 
 

@@ -10,6 +10,7 @@ import numpy as np
 
 from pipeline.scene import BoxEmitter, MeshEmitter, SphereEmitter, is_usd
 from pipeline.stage import StageError
+from stages.common.wall_hints import box_text
 
 
 # a size within this many spacings of a whole number of them counts as that number
@@ -227,11 +228,6 @@ def _move_off_walls(x: np.ndarray, near: np.ndarray, keep: np.ndarray, sdf, l0: 
     x[idx[ok]] = y[ok]
     out[idx[ok]] = True
     return out
-
-
-def box_text(lo, hi) -> str:
-    """"x -0.2..0.2, y -0.2..0.2, z -0.12..0.52": a box for a message, in the caller's units."""
-    return ", ".join(f"{a} {float(l):.4g}..{float(h):.4g}" for a, l, h in zip("xyz", lo, hi))
 
 
 def emitter_files(ctx) -> list[Path]:

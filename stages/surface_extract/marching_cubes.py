@@ -237,10 +237,11 @@ def extract(x: np.ndarray, vol: np.ndarray, l0: float, params: MarchingCubesPara
     vol = np.asarray(vol, np.float64)
     pad = R + 2.0 * h  # the surface is within R of a particle; two more cells keep it off the grid's edge
     # (anisotropic kernels reach past R: not split)
-    if split and not params.anisotropic and grid_nodes(x.min(axis=0), x.max(axis=0), pad, h) > SPLIT_NODES:
+    whole = grid_nodes(x.min(axis=0), x.max(axis=0), pad, h) if split and not params.anisotropic else 0
+    if whole > SPLIT_NODES:
         groups = apart(x, 2.0 * R * (1.0 + 1e-6))
         apart_nodes = sum(grid_nodes(x[g].min(axis=0), x[g].max(axis=0), pad, h) for g in groups)
-        if len(groups) > 1 and apart_nodes < 0.5 * grid_nodes(x.min(axis=0), x.max(axis=0), pad, h):
+        if len(groups) > 1 and apart_nodes < 0.5 * whole:
             pieces = []
             for g in groups:
                 part: dict = {}
