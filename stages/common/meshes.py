@@ -56,17 +56,15 @@ def tidy(v: np.ndarray, f: np.ndarray, passes: int = 4) -> tuple[np.ndarray, np.
         bad = np.flatnonzero(flags)
         if len(bad) == 0:
             break
-        changed = True
         p = v64[f[bad]]
         e = np.stack([p[:, 2] - p[:, 1], p[:, 0] - p[:, 2], p[:, 1] - p[:, 0]], axis=1)  # edge opposite corner k
-        length = np.zeros((len(f), 3))
-        length[bad] = np.linalg.norm(e, axis=2)
-        longest = length.max(axis=1)
+        lengths = np.linalg.norm(e, axis=2)  # row k: triangle bad[k]
+        at = dict(zip(bad.tolist(), range(len(bad))))
         # a zero-length edge: its two ends become one (the triangles on that edge drop out below)
-        short = length[bad].min(axis=1) <= 1e-5 * longest[bad]
+        short = lengths.min(axis=1) <= 1e-5 * lengths.max(axis=1)
         into = np.arange(len(v64))
         for t in bad[short]:
-            k = int(np.argmin(length[t]))
+            k = int(np.argmin(lengths[at[t]]))
             a, b = f[t, (k + 1) % 3], f[t, (k + 2) % 3]
             while into[a] != a:
                 a = into[a]
@@ -79,23 +77,29 @@ def tidy(v: np.ndarray, f: np.ndarray, passes: int = 4) -> tuple[np.ndarray, np.
             if (nxt == into).all():
                 break
             into = nxt
+        changed = True
         f = into[f]
-        # a sliver (m, q, p), m on its edge q -> p: the triangle across it, (p, q, d), becomes (p, m, d) + (m, q, d)
+        # a sliver (m, q, p), m on its edge q -> p: the triangle across it, (p, q, d), becomes (p, m, d) + (m, q, d);
+        # the triangle across is looked up among those on a long edge's start vertex only (not a sort of every edge)
         nv = len(v64)
-        keys = f[:, [0, 1, 2]] * nv + f[:, [1, 2, 0]]  # directed edge k: corner k -> corner k + 1
+        split = bad[~short]
+        start = np.zeros(nv, np.bool_)
+        start[f[split, (np.argmax(lengths[~short], axis=1) + 2) % 3]] = True
+        near = np.flatnonzero(_any_corner(start, f))
+        keys = f[near][:, [0, 1, 2]] * nv + f[near][:, [1, 2, 0]]  # directed edge k: corner k -> corner k + 1
         order = np.argsort(keys, axis=None)
         flat = keys.ravel()[order]
         touched = np.zeros(len(f), np.bool_)
         extra = []
-        for t in bad[~short]:
+        for t in split:
             if touched[t] or len(set(f[t].tolist())) < 3:
                 continue
-            k = int(np.argmax(length[t]))  # the corner opposite the long edge
+            k = int(np.argmax(lengths[at[t]]))  # the corner opposite the long edge
             m, q, pp = f[t, k], f[t, (k + 1) % 3], f[t, (k + 2) % 3]  # the long edge q -> pp, m on it
             i = np.searchsorted(flat, pp * nv + q)  # the triangle across holds pp -> q
             if i >= len(flat) or flat[i] != pp * nv + q:
                 continue  # an open edge: nothing across to split
-            u = int(order[i] // 3)
+            u = int(near[order[i] // 3])
             if touched[u] or u == t:
                 continue
             j = int(order[i] % 3)  # the edge starts at corner j of u: (pp, q, d)
@@ -113,6 +117,57 @@ def tidy(v: np.ndarray, f: np.ndarray, passes: int = 4) -> tuple[np.ndarray, np.
     used[f.ravel()] = True
     new = np.cumsum(used) - 1
     return np.asarray(v)[used], new[f].astype(np.int32)
+
+
+@nb.njit(cache=True)
+def _same_corners(f, nv, order):
+    """The triangles in the order of their sorted corners (a stable sort: by the smallest corner, bucketed,
+    then the other two; ``order`` out), and per position whether the next triangle has the same corners."""
+    n = f.shape[0]
+    s = np.empty((n, 3), np.int64)
+    for t in range(n):
+        a, b, c = f[t, 0], f[t, 1], f[t, 2]
+        if a > b:
+            a, b = b, a
+        if b > c:
+            b, c = c, b
+        if a > b:
+            a, b = b, a
+        s[t, 0], s[t, 1], s[t, 2] = a, b, c
+    start = np.zeros(nv + 1, np.int64)
+    for t in range(n):
+        start[s[t, 0] + 1] += 1
+    for k in range(nv):
+        start[k + 1] += start[k]
+    fill = start[:-1].copy()
+    for t in range(n):
+        order[fill[s[t, 0]]] = t
+        fill[s[t, 0]] += 1
+    for k in range(nv):  # each bucket by its other two corners, stably: an insertion sort of the usual few
+        lo, hi = start[k], start[k + 1]
+        if hi - lo > 16:  # a fan's hub
+            idx = order[lo:hi].copy()
+            keys = s[idx, 1] * nv + s[idx, 2]
+            order[lo:hi] = idx[np.argsort(keys, kind="mergesort")]
+            continue
+        for i in range(lo + 1, hi):
+            t = order[i]
+            j = i - 1
+            while j >= lo and (s[order[j], 1] > s[t, 1] or (s[order[j], 1] == s[t, 1] and s[order[j], 2] > s[t, 2])):
+                order[j + 1] = order[j]
+                j -= 1
+            order[j + 1] = t
+    same = np.zeros(max(n - 1, 0), np.bool_)
+    for i in range(n - 1):
+        a, b = order[i], order[i + 1]
+        same[i] = s[a, 0] == s[b, 0] and s[a, 1] == s[b, 1] and s[a, 2] == s[b, 2]
+    return same
+
+
+def _any_corner(flag: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """Per triangle: whether ``flag`` holds at any of its corners (three gathers: (F, 3).any(axis=1) is a slow
+    reduction)."""
+    return flag[f[:, 0]] | flag[f[:, 1]] | flag[f[:, 2]]
 
 
 @nb.njit(cache=True, parallel=True)
@@ -135,9 +190,8 @@ def _without_cancelling_pairs(f: np.ndarray) -> np.ndarray:
     its own twins, so the rest stays closed."""
     if len(f) < 2:
         return f
-    s = np.sort(f, axis=1)
-    order = np.lexsort((s[:, 2], s[:, 1], s[:, 0]))
-    same = np.flatnonzero((s[order][1:] == s[order][:-1]).all(axis=1))
+    order = np.empty(len(f), np.int64)
+    same = np.flatnonzero(_same_corners(f, int(f.max()) + 1, order))
     drop = np.zeros(len(f), np.bool_)
     for i in same:
         a, b = order[i], order[i + 1]

@@ -31,6 +31,7 @@ triangles flipped (a few hundred of 200k on the dragon scene):
 from __future__ import annotations
 
 import functools
+import math
 import os
 from pathlib import Path
 from typing import Mapping
@@ -120,19 +121,80 @@ WET_PROBE = 0.75  # l0: past the far face of a wall a grid cell or two thick (th
 TOUCH = 0.8  # l0: a particle this near a wall touches it (its first layer rests 0.5 l0 off, the second 1.5 l0)
 
 
-def touching(water, points: np.ndarray, normals: np.ndarray, l0: float) -> np.ndarray:
-    """Whether water touches each wall point (``normals`` into the fluid): a particle of the frame (``water``, a
-    KD-tree) within TOUCH l0 in front of it and within an l0 of the point half a spacing out."""
-    if not len(points):
-        return np.zeros(0, np.bool_)
-    # every particle within the ball (a ball of l0 holds about 4 at rest, 16 under four times the rest density):
-    # of the 8 nearest, which of equidistant lattice particles made the 8 was rounding's choice
-    k = min(16, water.n)
-    dist, idx = water.query(points + 0.5 * l0 * normals, k=k, distance_upper_bound=l0)
-    dist, idx = dist.reshape(len(points), k), idx.reshape(len(points), k)
-    found = np.isfinite(dist)
-    ahead = np.einsum("ikj,ij->ik", water.data[np.where(found, idx, 0)] - points[:, None, :], normals)
-    return (found & (ahead > -0.1 * l0) & (ahead < TOUCH * l0)).any(axis=1)
+class Water:
+    """A frame's particles binned in cells of l0, for ``touching``: is a particle within l0 of a point. A dense
+    table of cell starts over the particles' box where it is small, else the sorted cell keys searched (spray
+    kilometres apart)."""
+
+    DENSE_CELLS = 1 << 22
+
+    def __init__(self, x: np.ndarray, l0: float):
+        x = np.ascontiguousarray(x, np.float64)
+        self.l0 = float(l0)
+        self.n = len(x)
+        self.lo = x.min(axis=0) if len(x) else np.zeros(3)
+        span = (x.max(axis=0) - self.lo) / l0 if len(x) else np.zeros(3)
+        self.dims = np.floor(span).astype(np.int64) + 1
+        c = np.floor((x - self.lo) / l0).astype(np.int64)
+        keys = (c[:, 0] * self.dims[1] + c[:, 1]) * self.dims[2] + c[:, 2]
+        order = np.argsort(keys, kind="stable")
+        self.x = x[order]
+        self.keys = keys[order]
+        cells = int(np.prod(self.dims.astype(np.float64)))
+        self.starts = np.zeros(cells + 1 if cells <= self.DENSE_CELLS else 0, np.int64)
+        if len(self.starts):
+            np.cumsum(np.bincount(self.keys, minlength=cells), out=self.starts[1:])
+
+
+def touching(water: Water, points: np.ndarray, normals: np.ndarray, l0: float) -> np.ndarray:
+    """Whether water touches each wall point (``normals`` into the fluid): a particle of the frame within TOUCH
+    l0 in front of it and within an l0 of the point half a spacing out."""
+    out = np.zeros(len(points), np.bool_)
+    if len(points) and water.n:
+        _touching(water.x, water.keys, water.starts, water.lo, water.dims, np.ascontiguousarray(points, np.float64),
+                  np.ascontiguousarray(normals, np.float64), l0, TOUCH * l0, out)
+    return out
+
+
+@nb.njit(cache=True, parallel=True)
+def _touching(px, keys, starts, lo, dims, points, normals, l0, touch, out):
+    """out[i]: a particle of px (sorted by cell key, cells of l0 from lo) lies within l0 of points[i] + l0 / 2
+    normals[i] and between -0.1 l0 and ``touch`` in front of points[i] along normals[i]."""
+    dense = starts.shape[0] > 0
+    r2 = l0 * l0
+    for i in nb.prange(points.shape[0]):
+        qx = points[i, 0] + 0.5 * l0 * normals[i, 0]
+        qy = points[i, 1] + 0.5 * l0 * normals[i, 1]
+        qz = points[i, 2] + 0.5 * l0 * normals[i, 2]
+        fx, fy, fz = (qx - lo[0]) / l0, (qy - lo[1]) / l0, (qz - lo[2]) / l0
+        if not (-2.0 < fx < dims[0] + 1.0 and -2.0 < fy < dims[1] + 1.0 and -2.0 < fz < dims[2] + 1.0):
+            continue  # farther than a cell from every particle (and no integer overflow)
+        cx, cy, cz = int(math.floor(fx)), int(math.floor(fy)), int(math.floor(fz))
+        hit = False
+        for a in range(max(cx - 1, 0), min(cx + 2, dims[0])):
+            for b in range(max(cy - 1, 0), min(cy + 2, dims[1])):
+                for c in range(max(cz - 1, 0), min(cz + 2, dims[2])):
+                    key = (a * dims[1] + b) * dims[2] + c
+                    if dense:
+                        s, e = starts[key], starts[key + 1]
+                    else:
+                        s = np.searchsorted(keys, key)
+                        e = np.searchsorted(keys, key, side="right")
+                    for j in range(s, e):
+                        dx, dy, dz = px[j, 0] - qx, px[j, 1] - qy, px[j, 2] - qz
+                        if dx * dx + dy * dy + dz * dz < r2:
+                            ahead = ((px[j, 0] - points[i, 0]) * normals[i, 0] + (px[j, 1] - points[i, 1]) * normals[i, 1]
+                                     + (px[j, 2] - points[i, 2]) * normals[i, 2])
+                            if -0.1 * l0 < ahead < touch:
+                                hit = True
+                                break
+                    if hit:
+                        break
+                if hit:
+                    break
+            if hit:
+                break
+        out[i] = hit
 
 
 def keep_contacts(near: np.ndarray, normal: np.ndarray, ok: np.ndarray, raw: np.ndarray, raw_normals: np.ndarray,
@@ -700,11 +762,7 @@ def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapPa
     if exact:
         if project is None:
             project = wall_projector(walls, sdf, t)
-        water = None
-        if particles is not None and len(particles):
-            from scipy.spatial import cKDTree
-
-            water = cKDTree(np.asarray(particles, np.float64))
+        water = Water(particles, l0) if particles is not None and len(particles) else None
         idx = np.flatnonzero(moved)
         landed = out.take(idx, axis=0)  # (take: several times faster than [] on rows)
         near, normal = project(landed)
