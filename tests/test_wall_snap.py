@@ -329,3 +329,34 @@ def test_a_drop_hanging_over_the_floor_keeps_its_shape_and_a_drop_on_it_meets_it
         assert snapped[name][1] == pytest.approx(raw[name][1], rel=1e-6)
     assert snapped["resting"][0] < 1e-3  # on the floor
     assert_tidy(load_surface(snap_dir, 0))
+
+
+@pytest.mark.parametrize("dense", [True, False])
+def test_touching_finds_every_particle_in_front_of_a_wall_point_whatever_the_spread(monkeypatch, dense):
+    """The touch test (keep_contacts) bins a frame's particles in cells of l0: a dense table over their box, or, for
+    spray kilometres apart (a box of too many cells), the sorted cell keys. Either way it answers what the definition
+    says for every point (brute force over all particles): a particle within l0 of the point half a spacing out,
+    between -0.1 and TOUCH l0 in front of it; points far outside the particles' box touch nothing."""
+    from stages.wall_snap.distance import TOUCH, Water, touching
+
+    rng = np.random.default_rng(7)
+    l0 = 0.02
+    x = np.vstack([rng.uniform(0, 0.3, (3000, 3)), rng.uniform(500, 500.05, (50, 3))])  # a block and far spray
+    if dense:
+        x = x[:3000]
+    else:
+        monkeypatch.setattr(Water, "DENSE_CELLS", 1000)
+    points = np.vstack([rng.uniform(-0.05, 0.35, (4000, 3)), rng.uniform(499.95, 500.1, (500, 3)), [[-1e9, 0, 0]]])
+    normals = rng.normal(size=points.shape)
+    normals /= np.linalg.norm(normals, axis=1)[:, None]
+    water = Water(x, l0)
+    assert (len(water.starts) > 0) == dense
+    got = touching(water, points, normals, l0)
+    q = points + 0.5 * l0 * normals
+    want = np.zeros(len(points), np.bool_)
+    for i in range(len(points)):
+        near = np.linalg.norm(x - q[i], axis=1) < l0
+        ahead = (x[near] - points[i]) @ normals[i]
+        want[i] = ((ahead > -0.1 * l0) & (ahead < TOUCH * l0)).any()
+    assert want.sum() > 200 and (want[4000:4500].any() or dense)
+    np.testing.assert_array_equal(got, want)
