@@ -19,8 +19,7 @@ def signed_volume(v: np.ndarray, f: np.ndarray) -> float:
     v = _coords(v)
     if len(v) == 0 or len(f) == 0:
         return 0.0
-    centre = 0.5 * (v.min(axis=0).astype(np.float64) + v.max(axis=0).astype(np.float64))
-    return float(_signed_volume(v, np.ascontiguousarray(f), centre))
+    return float(_signed_volume(v, np.ascontiguousarray(f), _box_centre(v)))
 
 
 def face_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
@@ -264,6 +263,20 @@ def _vertex_normals(v, f, out):
             out[a, 0] /= n
             out[a, 1] /= n
             out[a, 2] /= n
+
+
+@nb.njit(cache=True)
+def _box_centre(v):
+    """The centre of the vertices' bounding box, float64 (one pass: (N, 3).min(axis=0) is a slow strided reduction,
+    15 ms for a 200k-vertex surface)."""
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    for a in range(v.shape[0]):
+        for k in range(3):
+            c = np.float64(v[a, k])
+            lo[k] = min(lo[k], c)
+            hi[k] = max(hi[k], c)
+    return 0.5 * (lo + hi)
 
 
 @nb.njit(cache=True)
