@@ -308,3 +308,34 @@ def test_settings_that_lose_the_water_are_said_once(tmp_path, caplog):
         assert len(lines) == (1 if said else 0), lines
         if said:
             assert "with cell 1.5" in lines[0] and "encloses 0." in lines[0]
+
+
+def test_the_dry_node_test_answers_the_same_without_probing_segments_it_can_bound():
+    """cut_by_walls asks, for each wet node near a wall, whether a particle sees it through open space (a segment
+    probed every quarter SDF cell). Where the two ends' distances add up to more than the field can change along
+    the segment (its largest slope per axis), no probe can read a wall: the answer is taken without probing. On a
+    thin divider on a floor with water on one side, the field comes out node for node as with every segment probed
+    (slopes so large that no bound holds); a distance field's slopes are 1 (0 along a wall it does not change)."""
+    from stages.common.sdf import grid_from_function
+    from stages.surface_extract.implicit import cell_grid, cut_by_walls
+
+    t = 0.6 * L0
+    x = lattice([t / 2 + 0.5 * L0, -5 * L0, 0.5 * L0], [t / 2 + 8.5 * L0, 5 * L0, 6.5 * L0], L0)
+    sdf = grid_from_function(lambda p: np.minimum(np.abs(p[:, 0]) - t / 2, p[:, 2]), [-6 * L0, -8 * L0, -3 * L0],
+                             [12 * L0, 8 * L0, 9 * L0], 0.5 * L0, band=4 * L0)
+    np.testing.assert_allclose(sdf.axis_slopes(), [1.0, 0.0, 1.0], atol=1e-6)  # it does not change along y
+    h, radius = 0.25 * L0, 1.7 * L0
+    grid_lo = np.array([-4 * L0, -7 * L0, -2 * L0])
+    shape = (int(8 * L0 / h), int(14 * L0 / h), int(15 * L0 / h))
+    rng = np.random.default_rng(3)
+    phi0 = rng.uniform(0.0, 1.0, shape).astype(np.float32)  # wet everywhere, also on the dry side
+    grid = cell_grid(x, radius)
+    ordered = np.ascontiguousarray(x[grid.sort(x)])
+    cut = []
+    for slopes in (sdf.axis_slopes(), np.full(3, 1e30)):
+        phi = phi0.copy()
+        cut_by_walls(phi, grid_lo, h, 0.6, radius, ordered, grid.starts, grid.lo, 1.0 / grid.cell, grid.dims,
+                     sdf.dist, sdf.origin, 1.0 / sdf.spacing, slopes)
+        cut.append(phi)
+    np.testing.assert_array_equal(cut[0], cut[1])
+    assert (cut[0] == 0).sum() > (phi0 == 0).sum() + 100  # nodes behind the divider went dry

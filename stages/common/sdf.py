@@ -7,7 +7,9 @@ origin + spacing * (i, j, k).
 """
 from __future__ import annotations
 
+import functools
 import json
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -85,6 +87,15 @@ class SDFGrid:
                        dist=np.ascontiguousarray(z["dist"], np.float32), band=float(z["band"]),
                        shell_thickness=np.asarray(z["shell_thickness"], np.float64) if "shell_thickness" in z else None)
 
+    def axis_slopes(self) -> np.ndarray:
+        """The field's largest |change| between neighbouring nodes along each axis, per unit length (kept): its
+        trilinear interpolant changes by at most sum_k slopes_k |step_k| along any step (1 for a distance
+        field; more where a sign flips across a wall that is not closed)."""
+        if getattr(self, "_slopes", None) is None:
+            self._slopes = np.array([float(np.abs(np.diff(self.dist, axis=k)).max(initial=0.0)) / self.spacing
+                                     for k in range(3)])
+        return self._slopes
+
     def sample(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Distance (N,) and unit normal (N, 3) at ``points`` (N, 3); convenience wrapper."""
         pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
@@ -92,6 +103,20 @@ class SDFGrid:
         n = np.empty((len(pts), 3), np.float64)
         sdf_sample_many(self.dist, self.origin, 1.0 / self.spacing, pts, d, n)
         return d, n
+
+
+# Per process (a worker runs many frames of one shot): the field every frame shares, loaded once. Cache
+# entries are written once and moved in whole, so a folder with the same files' times and sizes holds
+# the same data.
+def file_stamps(folder: Path) -> tuple:
+    """(name, mtime_ns, size) of each file in ``folder``: the key of what was loaded from it."""
+    return tuple(sorted((e.name, e.stat().st_mtime_ns, e.stat().st_size) for e in os.scandir(folder) if e.is_file()))
+
+
+@functools.lru_cache(maxsize=2)
+def field(folder: Path, stamps: tuple) -> tuple["SDFGrid", list[tuple["SDFGrid", RigidMotion]]]:
+    """The static SDF and the moving walls' fields of an sdf artifact (``stamps``: file_stamps of ``folder``)."""
+    return SDFGrid.load(folder), load_bodies(folder)
 
 
 def load_bodies(folder: Path) -> list[tuple[SDFGrid, RigidMotion]]:

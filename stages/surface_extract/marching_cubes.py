@@ -49,7 +49,7 @@ from pydantic import Field, field_validator
 from pipeline.stage import Artifact, Context, Params, Stage
 from stages.common.formats import ParticleMeta, SurfaceMesh, load_particle_frame, position_dtype, save_surface
 from stages.common.meshes import signed_volume, vertex_normals
-from stages.common.sdf import SDFGrid, load_bodies, posed_field
+from stages.common.sdf import SDFGrid, field, file_stamps, posed_field
 
 from .anisotropic import anisotropic_kernels, scatter_anisotropic
 from .implicit import (add_seen_images, cell_grid, cut_by_walls, ghost_particles, order_and_chunks, particle_volumes,
@@ -141,10 +141,21 @@ _Y_TO_Z = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
 
 def z_up_field(sdf: SDFGrid) -> SDFGrid:
     """A Y-up scene's SDF seen from the Z-up frame: node (i, j, k) at (x, y, z) becomes node (i, nz-1-k, j)
-    at (x, -z, y); the same values, moved, not resampled."""
+    at (x, -z, y); the same values, moved, not resampled. The last one is kept: a shot's static field is
+    turned once per process, not every frame."""
+    kept = _turned.get(id(sdf))
+    if kept is not None and kept[0] is sdf:
+        return kept[1]
     dist = np.ascontiguousarray(np.flip(np.transpose(sdf.dist, (0, 2, 1)), axis=1))
     origin = np.array([sdf.origin[0], -sdf.upper[2], sdf.origin[1]])
-    return dataclasses.replace(sdf, origin=origin, dist=dist)
+    turned = dataclasses.replace(sdf, origin=origin, dist=dist)
+    turned._slopes = sdf.axis_slopes()[[0, 2, 1]]
+    _turned.clear()
+    _turned[id(sdf)] = (sdf, turned)
+    return turned
+
+
+_turned: dict = {}  # id -> (field, its Z-up copy)
 
 
 def extract_in_z_up(x: np.ndarray, vol: np.ndarray, l0: float, params: MarchingCubesParams, up_axis: str,
@@ -315,7 +326,7 @@ def extract(x: np.ndarray, vol: np.ndarray, l0: float, params: MarchingCubesPara
         grid = cell_grid(pts, R)
         ordered = pts[grid.sort(pts)]
         cut_by_walls(phi, grid_lo, h, params.iso, R, ordered, grid.starts, grid.lo, 1.0 / grid.cell, grid.dims,
-                     sdf.dist, sdf.origin, 1.0 / sdf.spacing)
+                     sdf.dist, sdf.origin, 1.0 / sdf.spacing, sdf.axis_slopes())
     t1 = time.perf_counter()
 
     vtk_threads(nb.get_num_threads())
@@ -387,7 +398,7 @@ class MarchingCubes(Stage):
         sdf = None
         if inputs.get("sdf") is not None:  # moving walls folded in at the frame's time
             folder = inputs["sdf"].frame(frame)
-            sdf = posed_field(SDFGrid.load(folder), load_bodies(folder), frame / meta.fps)
+            sdf = posed_field(*field(folder, file_stamps(folder)), frame / meta.fps)
         timings: dict = {}
         mesh = extract_in_z_up(pf.x, vol, meta.spacing, params, meta.up_axis, sdf=sdf, timings=timings,
                                check_memory=ctx.check_memory)

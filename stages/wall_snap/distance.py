@@ -46,7 +46,7 @@ from stages.common.formats import (ParticleMeta, SurfaceMesh, WallMesh, load_par
                                    save_surface)
 from stages.common.meshes import face_normals, tidy, vertex_normals
 from stages.common.motion import RigidMotion
-from stages.common.sdf import SDFGrid, load_bodies, sdf_sample
+from stages.common.sdf import SDFGrid, field, file_stamps, sdf_sample
 
 
 class DistanceSnapParams(Params):
@@ -817,20 +817,6 @@ def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapPa
         out[drop] = out[into[drop]]
         normals[drop] = normals[into[drop]]
     return SurfaceMesh(out.astype(stored), f, normals.astype(np.float32)), counts
-
-
-# Per process (a worker runs many frames of one shot): the inputs every frame shares, loaded once. Cache
-# entries are written once and moved in whole, so a folder with the same files' times and sizes holds
-# the same data.
-def file_stamps(folder: Path) -> tuple:
-    """(name, mtime_ns, size) of each file in ``folder``: the key of what was loaded from it."""
-    return tuple(sorted((e.name, e.stat().st_mtime_ns, e.stat().st_size) for e in os.scandir(folder) if e.is_file()))
-
-
-@functools.lru_cache(maxsize=2)
-def field(folder: Path, stamps: tuple) -> tuple[SDFGrid, list[tuple[SDFGrid, RigidMotion]]]:
-    """The static SDF and the moving walls' fields of an sdf artifact."""
-    return SDFGrid.load(folder), load_bodies(folder)
 
 
 @functools.lru_cache(maxsize=2)
