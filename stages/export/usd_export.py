@@ -373,7 +373,8 @@ class UsdExport(Stage):
             velocities = None
             if particles is not None and particles.path is not None:
                 velocities = ul.apply_linear(m, surface_velocities(s.vertices, particles.path, f))
-            ul.set_mesh(mesh, ul.apply(m, s.vertices) - shift, faces,
+            points = ul.apply(m, s.vertices)
+            ul.set_mesh(mesh, points if origin is None else points - shift, faces,
                         ul.apply_normals(m, s.normals) if len(s.normals) else s.normals, f, velocities)
             progress.advance()
         ul.bind(mesh.GetPrim(), material)

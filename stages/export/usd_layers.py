@@ -14,6 +14,7 @@ import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade, Vt
 
 from stages.common import usd_stage
+from stages.common.meshes import bounds
 from stages.common.usd_points import empty_extent
 
 # Y-up -> Z-up is +90 degrees about X: (x, y, z) -> (x, -z, y); its inverse takes Z-up to Y-up
@@ -84,7 +85,7 @@ def new_stage(path: Path, *, up_axis: str, meters_per_unit: float, fps: float, f
 def extent_of(points: np.ndarray) -> Vt.Vec3fArray:
     if len(points) == 0:
         return empty_extent()
-    return Vt.Vec3fArray.FromNumpy(np.stack([points.min(axis=0), points.max(axis=0)]).astype(np.float32))
+    return Vt.Vec3fArray.FromNumpy(np.stack(bounds(points)).astype(np.float32))
 
 
 def vec3f(a: np.ndarray) -> Vt.Vec3fArray:
