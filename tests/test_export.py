@@ -651,3 +651,34 @@ def test_the_same_export_gives_the_same_usdz_bytes(tmp_path):
     assert digests[0] == digests[1]
     with pytest.raises(Exception, match="fluid_layer_path is the surface's layer: it needs surface: true"):
         UsdExport.Params(fluid_layer_path="layers/fluid.usdc", surface=False)
+
+
+def test_surface_velocities_are_the_kernel_mean_of_the_particles_within_reach_or_the_nearest(tmp_path):
+    """surface_velocities against its definition, by brute force: at each vertex the (1 - r^2 / R^2)^3-weighted mean
+    of the velocities of the particles within R = 2 l0, or, with none that near, the nearest particle's among
+    those within the cells searched (a vertex 1.5 R off gets its nearest; one far off gets zero)."""
+    from stages.common.formats import ParticleFrame, ParticleMeta, load_particle_frame, save_particle_frame
+    from stages.export.surface_velocity import surface_velocities
+
+    rng = np.random.default_rng(5)
+    l0 = 0.02
+    x = rng.uniform(0.0, 0.3, (4000, 3))
+    v = rng.normal(size=x.shape)
+    ParticleMeta(spacing=l0, mass=0.008, density=1000.0, support=2 * l0, fps=10, frame_count=1, up_axis="Z",
+                 meters_per_unit=1.0, solver="test").save(tmp_path)
+    save_particle_frame(tmp_path, 0, ParticleFrame(x=x, v=v, rho=np.full(len(x), 1000.0), p=np.zeros(len(x)),
+                                                   id=np.arange(len(x))))
+    stored = load_particle_frame(tmp_path, 0)  # as the frame keeps them (float32)
+    x, v = stored.x.astype(np.float64), stored.v.astype(np.float64)
+    reach = 2 * l0
+    pts = np.vstack([rng.uniform(-0.02, 0.32, (3000, 3)), [[0.15, 0.15, 0.3 + 1.5 * reach], [5.0, 5.0, 5.0]]])
+    got = surface_velocities(pts, tmp_path, 0)
+    for q, p in enumerate(pts[:-2]):
+        r2 = ((x - p) ** 2).sum(axis=1)
+        w = np.where(r2 < reach ** 2, (1 - r2 / reach ** 2) ** 3, 0.0)
+        want = (w[:, None] * v).sum(axis=0) / w.sum() if w.sum() > 0 else v[np.argmin(r2)]
+        np.testing.assert_allclose(got[q], want, rtol=1e-9, atol=1e-12)
+    far = ((x - pts[-2]) ** 2).sum(axis=1)
+    assert far.min() > reach ** 2
+    np.testing.assert_array_equal(got[-2], v[np.argmin(far)])
+    np.testing.assert_array_equal(got[-1], 0.0)
