@@ -13,15 +13,22 @@ from stages.common.meshes import bounds
 
 
 @nb.njit(cache=True)
-def _cells(x, lo, cell, dims):
-    """Particles sorted by their cell of a grid of ``cell`` from ``lo``: (order, CSR starts per cell)."""
-    n = x.shape[0]
-    ids = np.empty(n, np.int64)
-    for p in range(n):
+def _cell_ids(x, lo, cell, dims):
+    """The cell of each point of ``x`` in the grid of ``cell`` from ``lo`` (clamped onto it), x fastest."""
+    ids = np.empty(x.shape[0], np.int64)
+    for p in range(x.shape[0]):
         i = min(max(int((x[p, 0] - lo[0]) / cell), 0), dims[0] - 1)
         j = min(max(int((x[p, 1] - lo[1]) / cell), 0), dims[1] - 1)
         k = min(max(int((x[p, 2] - lo[2]) / cell), 0), dims[2] - 1)
         ids[p] = (k * dims[1] + j) * dims[0] + i
+    return ids
+
+
+@nb.njit(cache=True)
+def _cells(x, lo, cell, dims):
+    """Particles sorted by their cell of a grid of ``cell`` from ``lo``: (order, CSR starts per cell)."""
+    n = x.shape[0]
+    ids = _cell_ids(x, lo, cell, dims)
     order = np.argsort(ids, kind="mergesort")
     starts = np.zeros(dims[0] * dims[1] * dims[2] + 1, np.int64)
     for p in range(n):
@@ -35,12 +42,7 @@ def _cells(x, lo, cell, dims):
 def _query_blocks(points, lo, cell, dims):
     """The query points grouped by the cell they fall in: (order, CSR starts per group, each group's cell)."""
     n = points.shape[0]
-    ids = np.empty(n, np.int64)
-    for q in range(n):
-        i = min(max(int((points[q, 0] - lo[0]) / cell), 0), dims[0] - 1)
-        j = min(max(int((points[q, 1] - lo[1]) / cell), 0), dims[1] - 1)
-        k = min(max(int((points[q, 2] - lo[2]) / cell), 0), dims[2] - 1)
-        ids[q] = (k * dims[1] + j) * dims[0] + i
+    ids = _cell_ids(points, lo, cell, dims)
     order = np.argsort(ids, kind="mergesort")
     groups = 0
     for m in range(n):
