@@ -360,3 +360,17 @@ def test_touching_finds_every_particle_in_front_of_a_wall_point_whatever_the_spr
         want[i] = ((ahead > -0.1 * l0) & (ahead < TOUCH * l0)).any()
     assert want.sum() > 200 and (want[4000:4500].any() or dense)
     np.testing.assert_array_equal(got, want)
+
+
+def test_touching_bins_spray_light_years_apart_without_overflow():
+    """Cells of l0 over a box 1e15 spacings wide would overflow the cell keys: the bins grow there, and the answer
+    is still the definition's (a point beside each of two particles 1e13 m apart touches, one between them not)."""
+    from stages.wall_snap.distance import Water, touching
+
+    l0 = 0.01
+    x = np.array([[0.0, 0.0, 0.0], [1e13, 1e13, 1e13]])
+    water = Water(x, l0)
+    assert water.cell > l0 and np.prod(water.dims.astype(float)) < 2.0 ** 62
+    up = np.array([[0.0, 0.0, 1.0]] * 3)
+    points = np.array([[0.0, 0.0, -0.5 * l0], [1e13, 1e13, 1e13 - 0.5 * l0], [5e12, 5e12, 5e12]])
+    np.testing.assert_array_equal(touching(water, points, up, l0), [True, True, False])

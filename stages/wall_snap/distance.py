@@ -130,12 +130,13 @@ class Water:
 
     def __init__(self, x: np.ndarray, l0: float):
         x = np.ascontiguousarray(x, np.float64)
-        self.l0 = float(l0)
         self.n = len(x)
         self.lo = x.min(axis=0) if len(x) else np.zeros(3)
-        span = (x.max(axis=0) - self.lo) / l0 if len(x) else np.zeros(3)
-        self.dims = np.floor(span).astype(np.int64) + 1
-        c = np.floor((x - self.lo) / l0).astype(np.int64)
+        span = (x.max(axis=0) - self.lo) if len(x) else np.zeros(3)
+        # cells of l0, larger where the keys of a box that wide would pass 2^60 (still one cell around covers l0)
+        self.cell = float(l0) * max(1.0, float(np.prod(span / l0 + 1.0) / 2.0 ** 60) ** (1.0 / 3.0))
+        self.dims = np.floor(span / self.cell).astype(np.int64) + 1
+        c = np.floor((x - self.lo) / self.cell).astype(np.int64)
         keys = (c[:, 0] * self.dims[1] + c[:, 1]) * self.dims[2] + c[:, 2]
         order = np.argsort(keys, kind="stable")
         self.x = x[order]
@@ -151,14 +152,14 @@ def touching(water: Water, points: np.ndarray, normals: np.ndarray, l0: float) -
     l0 in front of it and within an l0 of the point half a spacing out."""
     out = np.zeros(len(points), np.bool_)
     if len(points) and water.n:
-        _touching(water.x, water.keys, water.starts, water.lo, water.dims, np.ascontiguousarray(points, np.float64),
-                  np.ascontiguousarray(normals, np.float64), l0, TOUCH * l0, out)
+        _touching(water.x, water.keys, water.starts, water.lo, water.cell, water.dims,
+                  np.ascontiguousarray(points, np.float64), np.ascontiguousarray(normals, np.float64), l0, TOUCH * l0, out)
     return out
 
 
 @nb.njit(cache=True, parallel=True)
-def _touching(px, keys, starts, lo, dims, points, normals, l0, touch, out):
-    """out[i]: a particle of px (sorted by cell key, cells of l0 from lo) lies within l0 of points[i] + l0 / 2
+def _touching(px, keys, starts, lo, cell, dims, points, normals, l0, touch, out):
+    """out[i]: a particle of px (sorted by cell key, cells of ``cell`` >= l0 from lo) lies within l0 of points[i] + l0 / 2
     normals[i] and between -0.1 l0 and ``touch`` in front of points[i] along normals[i]."""
     dense = starts.shape[0] > 0
     r2 = l0 * l0
@@ -166,7 +167,7 @@ def _touching(px, keys, starts, lo, dims, points, normals, l0, touch, out):
         qx = points[i, 0] + 0.5 * l0 * normals[i, 0]
         qy = points[i, 1] + 0.5 * l0 * normals[i, 1]
         qz = points[i, 2] + 0.5 * l0 * normals[i, 2]
-        fx, fy, fz = (qx - lo[0]) / l0, (qy - lo[1]) / l0, (qz - lo[2]) / l0
+        fx, fy, fz = (qx - lo[0]) / cell, (qy - lo[1]) / cell, (qz - lo[2]) / cell
         if not (-2.0 < fx < dims[0] + 1.0 and -2.0 < fy < dims[1] + 1.0 and -2.0 < fz < dims[2] + 1.0):
             continue  # farther than a cell from every particle (and no integer overflow)
         cx, cy, cz = int(math.floor(fx)), int(math.floor(fy)), int(math.floor(fz))
