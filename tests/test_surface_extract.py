@@ -339,3 +339,21 @@ def test_the_dry_node_test_answers_the_same_without_probing_segments_it_can_boun
         cut.append(phi)
     np.testing.assert_array_equal(cut[0], cut[1])
     assert (cut[0] == 0).sum() > (phi0 == 0).sum() + 100  # nodes behind the divider went dry
+
+
+def test_a_moving_walls_posed_field_has_the_slopes_of_its_whole_grid():
+    """posed_field folds a moving wall into the static field every frame; its per-axis slopes (what the dry-node
+    test's bound uses) come from the static field's and the changed block's, not a pass over the whole grid: the
+    same as computed over all of it."""
+    from stages.common.motion import RigidMotion
+    from stages.common.sdf import grid_from_function, posed_field
+
+    static = grid_from_function(lambda p: p[:, 2], [-0.2, -0.2, -0.1], [0.2, 0.2, 0.3], 0.01, band=0.05)
+    paddle = grid_from_function(lambda p: np.abs(p[:, 0]) - 0.01 + 0 * p[:, 1], [-0.05, -0.05, 0.0], [0.05, 0.05, 0.2],
+                                0.01, band=0.05)
+    turn = [np.cos(np.radians(15.0)), 0.0, 0.0, np.sin(np.radians(15.0))]  # 30 degrees about z
+    motion = RigidMotion([0.0, 1.0], [[0, 0, 0], [0.05, 0, 0]], [[1, 0, 0, 0], turn], [0, 0, 0.1])
+    for t in (0.0, 0.5, 1.0):
+        posed = posed_field(static, [(paddle, motion)], t)
+        whole = [float(np.abs(np.diff(posed.dist, axis=k)).max()) / posed.spacing for k in range(3)]
+        np.testing.assert_array_equal(posed.axis_slopes(), whole)

@@ -145,6 +145,7 @@ def posed_field(static: SDFGrid, bodies: list[tuple[SDFGrid, RigidMotion]], t: f
     if not bodies:
         return static
     dist = static.dist.copy()
+    changed = []  # the node blocks the bodies changed, a node wider: where the slopes can differ from static's
     for grid, motion in bodies:
         # only the static nodes within the body's grid box where it stands at t (its field beyond that box
         # is the clamped border value, at least the band: the minimum leaves those nodes as they are)
@@ -165,7 +166,13 @@ def posed_field(static: SDFGrid, bodies: list[tuple[SDFGrid, RigidMotion]], t: f
             sdf_sample_many(grid.dist, grid.origin, 1.0 / grid.spacing, np.ascontiguousarray(motion.to_rest(plane, t)), d, n)
             block = dist[i, i0[1]:i1[1], i0[2]:i1[2]]
             np.minimum(block, np.clip(d, -static.band, static.band).reshape(ny, nz).astype(np.float32), out=block)
-    return SDFGrid(static.origin, static.spacing, dist, static.band, static.shell_thickness)
+        changed.append(tuple(slice(max(a - 1, 0), b + 1) for a, b in zip(i0, i1)))
+    posed = SDFGrid(static.origin, static.spacing, dist, static.band, static.shell_thickness)
+    slopes = static.axis_slopes()  # and the changed blocks' own, not a pass over the whole grid every frame
+    for block in changed:
+        slopes = np.maximum(slopes, SDFGrid(static.origin, static.spacing, dist[block], static.band).axis_slopes())
+    posed._slopes = slopes
+    return posed
 
 
 @nb.njit(cache=True, inline="always")
