@@ -410,8 +410,7 @@ def grid_box(wm: WallMesh, domain, l0: float, p: BakeParams, up_axis: str | None
     and no moving wall, so that the widest floor is on the wall maps' nodes (_on_floor_nodes)."""
     if domain is not None:
         pad = p.margin * l0
-        return (_on_body_nodes(wm, np.asarray(domain.min, np.float64) - pad, l0, p, up_axis) if wm is not None else
-                np.asarray(domain.min, np.float64) - pad), np.asarray(domain.max, np.float64) + pad
+        return _on_nodes(wm, np.asarray(domain.min, np.float64) - pad, l0, p, up_axis), np.asarray(domain.max, np.float64) + pad
     moving = wm.motions()
     still = ~np.isin(wm.wall_id, [i for i, _ in moving])
     boxes = []
@@ -426,8 +425,18 @@ def grid_box(wm: WallMesh, domain, l0: float, p: BakeParams, up_axis: str | None
     if not boxes:
         raise StageError("sdf_bake: no walls and no scene.domain: nothing to bound the grid")
     pad = (p.band + p.margin) * l0
-    return _on_body_nodes(wm, np.min([b[0] for b in boxes], axis=0) - pad, l0, p, up_axis), \
+    return _on_nodes(wm, np.min([b[0] for b in boxes], axis=0) - pad, l0, p, up_axis), \
         np.max([b[1] for b in boxes], axis=0) + pad
+
+
+def _on_nodes(wm: WallMesh | None, lo: np.ndarray, l0: float, p: BakeParams, up_axis: str | None) -> np.ndarray:
+    """``lo`` moved down onto the first moving wall's nodes, or, where no wall moves, so that the floor is on
+    the wall maps' nodes (with ``up_axis``)."""
+    if wm is None or not len(wm.faces):
+        return lo
+    if wm.motions():
+        return _on_body_nodes(wm, lo, l0, p)
+    return lo if up_axis is None else _on_floor_nodes(wm, lo, l0, up_axis)
 
 
 def _on_floor_nodes(wm: WallMesh, lo: np.ndarray, l0: float, up_axis: str) -> np.ndarray:
@@ -454,14 +463,14 @@ def _on_floor_nodes(wm: WallMesh, lo: np.ndarray, l0: float, up_axis: str) -> np
     return out
 
 
-def _on_body_nodes(wm: WallMesh, lo: np.ndarray, l0: float, p: BakeParams, up_axis: str | None = None) -> np.ndarray:
+def _on_body_nodes(wm: WallMesh, lo: np.ndarray, l0: float, p: BakeParams) -> np.ndarray:
     """``lo`` moved down onto the first moving wall's grid nodes (less than a cell): at its rest pose that
     wall's field is then resampled node for node onto the static grid, exactly. Off its nodes, trilinear
     resampling rounded a turning tank's concave corners at t = 0 below l0 / 2: 24 of 640 particles of a
     dam break were dropped from its bottom edges, and their columns started without hydrostatic compression."""
     boxes = body_boxes(wm, l0, p)
     if not boxes:
-        return lo if up_axis is None or wm is None or not len(wm.faces) else _on_floor_nodes(wm, lo, l0, up_axis)
+        return lo
     h = p.cell * l0
     body_lo = boxes[0][0]
     return body_lo + np.floor((lo - body_lo) / h + 1e-9) * h

@@ -44,7 +44,7 @@ from pipeline.stage import Artifact, Context, Params, Stage
 from stages.common.closest import ClosestPoints
 from stages.common.formats import (ParticleMeta, SurfaceMesh, WallMesh, load_particle_frame, load_surface, position_dtype,
                                    save_surface)
-from stages.common.meshes import face_normals, tidy, vertex_normals
+from stages.common.meshes import bounds, face_normals, tidy, vertex_normals
 from stages.common.motion import RigidMotion
 from stages.common.sdf import SDFGrid, field, file_stamps, sdf_sample
 
@@ -131,8 +131,8 @@ class Water:
     def __init__(self, x: np.ndarray, l0: float):
         x = np.ascontiguousarray(x, np.float64)
         self.n = len(x)
-        self.lo = x.min(axis=0) if len(x) else np.zeros(3)
-        span = (x.max(axis=0) - self.lo) if len(x) else np.zeros(3)
+        self.lo, hi = bounds(x) if len(x) else (np.zeros(3), np.zeros(3))
+        span = hi - self.lo
         # cells of l0, larger where the keys of a box that wide would pass 2^60 (still one cell around covers l0)
         self.cell = float(l0) * max(1.0, float(np.prod(span / l0 + 1.0) / 2.0 ** 60) ** (1.0 / 3.0))
         self.dims = np.floor(span / self.cell).astype(np.int64) + 1
@@ -161,41 +161,33 @@ def touching(water: Water, points: np.ndarray, normals: np.ndarray, l0: float) -
 def _touching(px, keys, starts, lo, cell, dims, points, normals, l0, touch, out):
     """out[i]: a particle of px (sorted by cell key, cells of ``cell`` >= l0 from lo) lies within l0 of points[i] + l0 / 2
     normals[i] and between -0.1 l0 and ``touch`` in front of points[i] along normals[i]."""
-    dense = starts.shape[0] > 0
-    r2 = l0 * l0
     for i in nb.prange(points.shape[0]):
-        qx = points[i, 0] + 0.5 * l0 * normals[i, 0]
-        qy = points[i, 1] + 0.5 * l0 * normals[i, 1]
-        qz = points[i, 2] + 0.5 * l0 * normals[i, 2]
-        fx, fy, fz = (qx - lo[0]) / cell, (qy - lo[1]) / cell, (qz - lo[2]) / cell
-        if not (-2.0 < fx < dims[0] + 1.0 and -2.0 < fy < dims[1] + 1.0 and -2.0 < fz < dims[2] + 1.0):
-            continue  # farther than a cell from every particle (and no integer overflow)
-        cx, cy, cz = int(math.floor(fx)), int(math.floor(fy)), int(math.floor(fz))
-        hit = False
-        for a in range(max(cx - 1, 0), min(cx + 2, dims[0])):
-            for b in range(max(cy - 1, 0), min(cy + 2, dims[1])):
-                for c in range(max(cz - 1, 0), min(cz + 2, dims[2])):
-                    key = (a * dims[1] + b) * dims[2] + c
-                    if dense:
-                        s, e = starts[key], starts[key + 1]
-                    else:
-                        s = np.searchsorted(keys, key)
-                        e = np.searchsorted(keys, key, side="right")
-                    for j in range(s, e):
-                        dx, dy, dz = px[j, 0] - qx, px[j, 1] - qy, px[j, 2] - qz
-                        if dx * dx + dy * dy + dz * dz < r2:
-                            ahead = ((px[j, 0] - points[i, 0]) * normals[i, 0] + (px[j, 1] - points[i, 1]) * normals[i, 1]
-                                     + (px[j, 2] - points[i, 2]) * normals[i, 2])
-                            if -0.1 * l0 < ahead < touch:
-                                hit = True
-                                break
-                    if hit:
-                        break
-                if hit:
-                    break
-            if hit:
-                break
-        out[i] = hit
+        out[i] = _touches(px, keys, starts, lo, cell, dims, points[i], normals[i], l0, touch)
+
+
+@nb.njit(cache=True, inline="always")
+def _touches(px, keys, starts, lo, cell, dims, p, n, l0, touch):
+    """_touching's test for one point ``p`` with normal ``n``."""
+    qx, qy, qz = p[0] + 0.5 * l0 * n[0], p[1] + 0.5 * l0 * n[1], p[2] + 0.5 * l0 * n[2]
+    fx, fy, fz = (qx - lo[0]) / cell, (qy - lo[1]) / cell, (qz - lo[2]) / cell
+    if not (-2.0 < fx < dims[0] + 1.0 and -2.0 < fy < dims[1] + 1.0 and -2.0 < fz < dims[2] + 1.0):
+        return False  # farther than a cell from every particle (and no integer overflow)
+    cx, cy, cz = int(math.floor(fx)), int(math.floor(fy)), int(math.floor(fz))
+    for a in range(max(cx - 1, 0), min(cx + 2, dims[0])):
+        for b in range(max(cy - 1, 0), min(cy + 2, dims[1])):
+            for c in range(max(cz - 1, 0), min(cz + 2, dims[2])):
+                key = (a * dims[1] + b) * dims[2] + c
+                if starts.shape[0] > 0:
+                    first, last = starts[key], starts[key + 1]
+                else:  # sparse: the sorted keys searched
+                    first, last = np.searchsorted(keys, key), np.searchsorted(keys, key, side="right")
+                for j in range(first, last):
+                    dx, dy, dz = px[j, 0] - qx, px[j, 1] - qy, px[j, 2] - qz
+                    if dx * dx + dy * dy + dz * dz < l0 * l0:
+                        ahead = (px[j, 0] - p[0]) * n[0] + (px[j, 1] - p[1]) * n[1] + (px[j, 2] - p[2]) * n[2]
+                        if -0.1 * l0 < ahead < touch:
+                            return True
+    return False
 
 
 def keep_contacts(near: np.ndarray, normal: np.ndarray, ok: np.ndarray, raw: np.ndarray, raw_normals: np.ndarray,
