@@ -4,7 +4,7 @@ WCSPH (sph), DFSPH and MPS, each from the scene's start as the pipeline makes it
 DFSPH on the same tank (its own lattice start, volume maps, CFL steps) when pysplishsplash imports:
 
     .venv/bin/python benchmarks/bench_rest.py [--solvers sph,dfsph,mps,splishsplash] [--until 3] [--settle 1.5]
-                                              [--set sph.wall_gradient=false ...] [--wall-offset 0.25]
+                                              [--set sph.wall_gradient=false ...] [--wall-offset 0.25[,0.25,0]]
 
 Also the hydrostatic pressure error over the last 0.3 s (mean of 11 samples, and their range; pressure of the particles 2-8 layers deep, at least
 2 l0 from the side walls, against rho g h of their depth below the mean free surface). Each solver runs in
@@ -39,7 +39,7 @@ def tank():
     from stages.common.sdf import box_interior_sdf, grid_from_function
     from stages.simulate.emitters import lattice
     lo, hi = np.array([0.0, 0.0, 0.0]), np.array([SIZE[0], SIZE[1], TANK_H])
-    shift = float(os.environ.get("REST_WALL_OFFSET", "0"))
+    shift = np.array([float(v) for v in os.environ.get("REST_WALL_OFFSET", "0").split(",")]) * np.ones(3)
     sdf = grid_from_function(box_interior_sdf(lo, hi), lo - shift * L0, hi, 0.5 * L0)
     x = lattice([0, 0, 0], [SIZE[0], SIZE[1], DEPTH], L0)
     return x, sdf
@@ -133,8 +133,9 @@ def main() -> None:
     ap.add_argument("--until", type=float, default=3.0)
     ap.add_argument("--set", action="append", default=[], help="SOLVER.PARAM=VALUE")
     ap.add_argument("--settle", type=float, default=0.0, help="seconds of fluid.settle before t = 0 (driver.settle)")
-    ap.add_argument("--wall-offset", type=float, default=0.0, help="the SDF's nodes this many l0 off the walls "
-                    "(0.25: the wall maps' nodes a quarter of their spacing off, as for most meshes)")
+    ap.add_argument("--wall-offset", default="0", help="the SDF's nodes this many l0 off the walls, one number or "
+                    "x,y,z (0.25: the wall maps' nodes a quarter of their spacing off, as for most meshes; 0.25,0.25,0: "
+                    "the floor on them, as sdf_bake puts it)")
     ap.add_argument("--one", help=argparse.SUPPRESS)
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "rest.json"))
     a = ap.parse_args()

@@ -407,7 +407,7 @@ def grid_box(wm: WallMesh, domain, l0: float, p: BakeParams, up_axis: str | None
     """The static grid's box: scene.domain padded by the margin; without a domain, the fluid's reach:
     the static walls' bounds and every moving wall's swept bounds, padded by band + margin. Its low
     corner is moved down (less than a node) onto the first moving wall's nodes, or, with ``up_axis``
-    and no moving wall, so that the widest floor is on the wall maps' nodes (_on_floor_nodes)."""
+    and no moving wall, so that the widest wall along each axis is on the wall maps' nodes (_on_wall_nodes)."""
     if domain is not None:
         pad = p.margin * l0
         return _on_nodes(wm, np.asarray(domain.min, np.float64) - pad, l0, p, up_axis), np.asarray(domain.max, np.float64) + pad
@@ -430,36 +430,42 @@ def grid_box(wm: WallMesh, domain, l0: float, p: BakeParams, up_axis: str | None
 
 
 def _on_nodes(wm: WallMesh | None, lo: np.ndarray, l0: float, p: BakeParams, up_axis: str | None) -> np.ndarray:
-    """``lo`` moved down onto the first moving wall's nodes, or, where no wall moves, so that the floor is on
-    the wall maps' nodes (with ``up_axis``)."""
+    """``lo`` moved down onto the first moving wall's nodes, or, where no wall moves, so that the widest wall
+    along each axis, the floor along the up axis, is on the wall maps' nodes (with ``up_axis``)."""
     if wm is None or not len(wm.faces):
         return lo
     if wm.motions():
         return _on_body_nodes(wm, lo, l0, p)
-    return lo if up_axis is None else _on_floor_nodes(wm, lo, l0, up_axis)
+    return lo if up_axis is None else _on_wall_nodes(wm, lo, l0, up_axis)
 
 
-def _on_floor_nodes(wm: WallMesh, lo: np.ndarray, l0: float, up_axis: str) -> np.ndarray:
-    """``lo`` moved down (less than l0 / 2) so that the static walls' widest upward-facing plane, a floor where
-    the water's weight rests, lies on the wall maps' nodes (every l0 / 2 from the grid's corner): their
-    trilinear interpolation of a wall's curved density profile reads the first row 2.7 % too dense a quarter
-    of a node off the wall, 0.03 % on it (benchmarks/bench_wall_offset.py). Unchanged without such a plane."""
-    k = "XYZ".index(up_axis)
+def _on_wall_nodes(wm: WallMesh, lo: np.ndarray, l0: float, up_axis: str) -> np.ndarray:
+    """``lo`` moved down (less than l0 / 2 per axis) so that, along each axis, the static walls' widest plane
+    facing along it lies on the wall maps' nodes (every l0 / 2 from the grid's corner); along the up axis the
+    widest upward-facing one, a floor where the water's weight rests (a downward-facing one if none faces up:
+    a single-sided floor seen from below). The maps interpolate a wall's curved density profile trilinearly:
+    a quarter of a node off, the first row over a flat wall reads 2.7 % too dense, on the nodes 0.03 %
+    (benchmarks/bench_wall_offset.py), and a tank's edges 3.6-4.4 % against 1.1 % where both walls are on them
+    (their trilinear SDF is biased towards the walls). A box tank whose sides are whole multiples of l0 / 2 apart
+    then has every wall and edge on the nodes. An axis without such a plane keeps its corner."""
     tri = wm.vertices[wm.faces]
     n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     area = np.linalg.norm(n, axis=1)
-    up = (area > 0) & (n[:, k] > 0.9999 * area)  # facing up: a floor's top (or an open tank's floor seen from inside)
-    if not up.any():
-        return lo
-    height = tri[up][:, :, k].mean(axis=1)
-    _, plane = np.unique(np.round(height / (1e-6 * l0)), return_inverse=True)
-    floor = height[np.argmax(np.bincount(plane, area[up])[plane])]
     node = 0.5 * l0
-    steps = (floor - lo[k]) / node
-    if abs(steps - round(steps)) < 1e-6:
-        return lo  # on the nodes already (as the builtin tanks are)
     out = np.array(lo, np.float64)
-    out[k] = floor - np.ceil(steps) * node
+    for k in range(3):
+        facing = (area > 0) & (np.abs(n[:, k]) > 0.9999 * area)
+        if k == "XYZ".index(up_axis) and (facing & (n[:, k] > 0)).any():
+            facing &= n[:, k] > 0  # the floor before a lid
+        if not facing.any():
+            continue
+        at = tri[facing][:, :, k].mean(axis=1)
+        _, plane = np.unique(np.round(at / (1e-6 * l0)), return_inverse=True)
+        sums = np.bincount(plane, area[facing])
+        wall = at[plane == np.argmax(sums >= sums.max() * (1.0 - 1e-9))][0]  # the widest; the lowest of equals
+        steps = (wall - lo[k]) / node
+        if abs(steps - round(steps)) > 1e-6:  # not on the nodes already (as the builtin tanks are)
+            out[k] = wall - np.ceil(steps) * node
     return out
 
 
@@ -602,7 +608,7 @@ class Open3dBake(Stage):
 
     kind = "sdf_bake"
     name = "open3d"
-    version = "6"
+    version = "7"
     Params = BakeParams
     inputs = ("walls",)
     outputs = ("sdf",)
