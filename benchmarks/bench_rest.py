@@ -4,7 +4,8 @@ WCSPH (sph), DFSPH and MPS, each from the scene's start as the pipeline makes it
 DFSPH on the same tank (its own lattice start, volume maps, CFL steps) when pysplishsplash imports:
 
     .venv/bin/python benchmarks/bench_rest.py [--solvers sph,dfsph,mps,splishsplash] [--until 3] [--settle 1.5]
-                                              [--set sph.wall_gradient=false ...] [--wall-offset 0.25[,0.25,0]]
+                                              [--set sph.wall_gradient=false ...] [--wall-offset 0.25[,0.25,0]] [--spacing 0.013]
+                                              [--sdf-cell 0.25]
 
 Also the hydrostatic pressure error over the last 0.3 s (mean of 11 samples, and their range; pressure of the particles 2-8 layers deep, at least
 2 l0 from the side walls, against rho g h of their depth below the mean free surface). Each solver runs in
@@ -28,19 +29,20 @@ sys.path.insert(0, str(ROOT))
 G, RHO0, MU = 9.81, 1000.0, 0.001
 SIZE = (0.3, 0.2)
 DEPTH = 0.25
-L0 = 0.0125
+L0 = float(os.environ.get("REST_SPACING", "0.0125"))  # --spacing (the solvers' subprocesses read it)
 TANK_H = 0.35
 TIMES = (0.5, 1.0, 1.5, 3.0)
 GL_PRELOAD = "/lib/x86_64-linux-gnu/libGLdispatch.so.0"
 
 
 def tank():
-    """The tank's SDF (its nodes on the walls, or REST_WALL_OFFSET l0 off them: --wall-offset) and its lattice."""
+    """The tank's SDF (its nodes on the walls, or REST_WALL_OFFSET l0 off them: --wall-offset; REST_SDF_CELL l0 apart:
+    --sdf-cell) and its lattice."""
     from stages.common.sdf import box_interior_sdf, grid_from_function
     from stages.simulate.emitters import lattice
     lo, hi = np.array([0.0, 0.0, 0.0]), np.array([SIZE[0], SIZE[1], TANK_H])
     shift = np.array([float(v) for v in os.environ.get("REST_WALL_OFFSET", "0").split(",")]) * np.ones(3)
-    sdf = grid_from_function(box_interior_sdf(lo, hi), lo - shift * L0, hi, 0.5 * L0)
+    sdf = grid_from_function(box_interior_sdf(lo, hi), lo - shift * L0, hi, float(os.environ.get("REST_SDF_CELL", "0.5")) * L0)
     x = lattice([0, 0, 0], [SIZE[0], SIZE[1], DEPTH], L0)
     return x, sdf
 
@@ -134,13 +136,19 @@ def main() -> None:
     ap.add_argument("--set", action="append", default=[], help="SOLVER.PARAM=VALUE")
     ap.add_argument("--settle", type=float, default=0.0, help="seconds of fluid.settle before t = 0 (driver.settle)")
     ap.add_argument("--wall-offset", default="0", help="the SDF's nodes this many l0 off the walls, one number or "
-                    "x,y,z (0.25: the wall maps' nodes a quarter of their spacing off, as for most meshes; 0.25,0.25,0: "
-                    "the floor on them, as sdf_bake puts it)")
+                    "x,y,z (0.25: the wall maps' nodes a quarter of their spacing off, as for a mesh sdf_bake cannot align; "
+                    "0.25,0.25,0: the floor on them, the sides off)")
+    ap.add_argument("--spacing", type=float, default=0.0125, help="particle spacing l0, m (0.013: the tank is no "
+                    "whole number of spacings wide, as a user's rarely is: a gap at the far walls)")
+    ap.add_argument("--sdf-cell", type=float, default=0.5, help="the SDF's node spacing in l0 (sdf_bake's cell; "
+                    "0.25: the wall maps' quadrature points on its nodes)")
     ap.add_argument("--one", help=argparse.SUPPRESS)
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "rest.json"))
     a = ap.parse_args()
     if not a.one:
         os.environ["REST_WALL_OFFSET"] = str(a.wall_offset)  # the solvers' subprocesses read it
+        os.environ["REST_SPACING"] = str(a.spacing)
+        os.environ["REST_SDF_CELL"] = str(a.sdf_cell)
     sets: dict = {}
     for kv in a.set:
         k, v = kv.split("=", 1)
