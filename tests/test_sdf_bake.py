@@ -442,3 +442,25 @@ def test_a_tanks_side_walls_and_edges_off_the_grid_are_put_on_the_wall_maps_node
     np.testing.assert_allclose(rho[face], 1.0, atol=0.002)
     assert np.all(rho[edge] < 1.013), rho[edge].max()
     assert np.all(rho[corner] < 1.02), rho[corner].max()
+
+
+@pytest.mark.parametrize("normal", [1.0, -1.0])
+def test_a_single_sided_floors_top_surface_is_put_on_the_wall_maps_nodes(tmp_path, normal):
+    """An open floor (one quad, baked as a shell) 0.41 l0 above a domain-set corner, its normal up or down (a
+    single-sided floor seen from below): the water rests on the shell's upper surface, half the shell's thickness
+    above the face, and that surface is put on the wall maps' nodes. (The first row over a shell 0.6 l0 thick
+    reads 0.91 rho0: a thin wall holds less than the half space the wall tables assume; a matter of its own.)"""
+    l0 = 0.05
+    face = 0.41 * l0
+    v = np.array([[-0.5, -0.5, face], [0.5, -0.5, face], [0.5, 0.5, face], [-0.5, 0.5, face]])
+    f = np.array([[0, 1, 2], [0, 2, 3]]) if normal > 0 else np.array([[0, 2, 1], [0, 3, 2]])
+    trimesh.Trimesh(v, f, process=False).export(tmp_path / "floor.obj")
+    domain = {"min": [-0.6, -0.6, face - 1.37 * l0], "max": [0.6, 0.6, face + 8 * l0]}
+    scene = {"scene": {"name": "t", "units": {"up_axis": "Z"}, "domain": domain}, "walls": [{"file": "floor.obj"}],
+             "fluid": FLUID}
+    walls_dir = run_stage(TrimeshImport, tmp_path / "walls", scene=scene, config_dir=tmp_path)
+    g = SDFGrid.load(run_stage(Open3dBake, tmp_path / "sdf", scene=scene, inputs={"walls": walls_dir}))
+    top = face + l0 - float(g.sample(np.array([[0.0, 0.0, face + l0]]))[0][0])  # the shell's upper surface
+    assert top > face + 0.25 * l0
+    steps = (top - g.origin[2]) / (0.5 * l0)
+    assert abs(steps - round(steps)) < 1e-4, f"the shell's top is {steps % 1:.3f} of a node off the map's nodes"

@@ -436,10 +436,10 @@ def _on_nodes(wm: WallMesh | None, lo: np.ndarray, l0: float, p: BakeParams, up_
         return lo
     if wm.motions():
         return _on_body_nodes(wm, lo, l0, p)
-    return lo if up_axis is None else _on_wall_nodes(wm, lo, l0, up_axis)
+    return lo if up_axis is None else _on_wall_nodes(wm, lo, l0, up_axis, wall_thicknesses(wm, l0, p))
 
 
-def _on_wall_nodes(wm: WallMesh, lo: np.ndarray, l0: float, up_axis: str) -> np.ndarray:
+def _on_wall_nodes(wm: WallMesh, lo: np.ndarray, l0: float, up_axis: str, shells: np.ndarray) -> np.ndarray:
     """``lo`` moved down (less than l0 / 2 per axis) so that, along each axis, the static walls' widest plane
     facing along it lies on the wall maps' nodes (every l0 / 2 from the grid's corner); along the up axis the
     widest upward-facing one, a floor where the water's weight rests (a downward-facing one if none faces up:
@@ -447,7 +447,9 @@ def _on_wall_nodes(wm: WallMesh, lo: np.ndarray, l0: float, up_axis: str) -> np.
     a quarter of a node off, the first row over a flat wall reads 2.7 % too dense, on the nodes 0.03 %
     (benchmarks/bench_wall_offset.py), and a tank's edges 3.6-4.4 % against 1.1 % where both walls are on them
     (their trilinear SDF is biased towards the walls). A box tank whose sides are whole multiples of l0 / 2 apart
-    then has every wall and edge on the nodes. An axis without such a plane keeps its corner."""
+    then has every wall and edge on the nodes. A shell's (``shells``: each wall's baked thickness, 0 for a
+    solid) surface is half its thickness off its faces: the upper one along the up axis, where water rests,
+    else the one its faces' normal points to. An axis without such a plane keeps its corner."""
     tri = wm.vertices[wm.faces]
     n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     area = np.linalg.norm(n, axis=1)
@@ -459,7 +461,8 @@ def _on_wall_nodes(wm: WallMesh, lo: np.ndarray, l0: float, up_axis: str) -> np.
             facing &= n[:, k] > 0  # the floor before a lid
         if not facing.any():
             continue
-        at = tri[facing][:, :, k].mean(axis=1)
+        half = 0.5 * shells[wm.wall_id[facing]]
+        at = tri[facing][:, :, k].mean(axis=1) + (half if k == "XYZ".index(up_axis) else half * np.sign(n[facing, k]))
         _, plane = np.unique(np.round(at / (1e-6 * l0)), return_inverse=True)
         sums = np.bincount(plane, area[facing])
         wall = at[plane == np.argmax(sums >= sums.max() * (1.0 - 1e-9))][0]  # the widest; the lowest of equals
