@@ -445,7 +445,7 @@ def _on_wall_nodes(wm: WallMesh, lo: np.ndarray, l0: float, up_axis: str, shells
     widest upward-facing one, a floor where the water's weight rests (a downward-facing one if none faces up:
     a single-sided floor seen from below). The maps interpolate a wall's curved density profile trilinearly:
     a quarter of a node off, the first row over a flat wall reads 2.7 % too dense, on the nodes 0.03 %
-    (benchmarks/bench_wall_offset.py), and a tank's edges 3.6-4.4 % against 1.1 % where both walls are on them
+    (benchmarks/bench_wall_offset.py), and a tank's edges 3.6-4.4 % against 1.0-1.3 % where both walls are on them
     (their trilinear SDF is biased towards the walls). A box tank whose sides are whole multiples of l0 / 2 apart
     then has every wall and edge on the nodes. A shell's (``shells``: each wall's baked thickness, 0 for a
     solid) surface is half its thickness off its faces: the upper one along the up axis, where water rests,
