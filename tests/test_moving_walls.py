@@ -113,7 +113,7 @@ def test_a_body_at_rest_is_the_static_wall_and_moves_with_its_pose():
 
 
 def sloshing_frequency(L=0.2, depth=0.1, width=0.2, l0=0.0125, amplitude=0.002, cycles=2, free=3.5, solver=SPHSolver,
-                       params=None):
+                       params=None, jitter_seed=None):
     """Sway a tank at the linear f1 for ``cycles`` periods, stop it, and measure the free oscillation of
     the first sloshing mode over ``free`` periods by a damped sinusoid fitted to (a) its modal velocity: the
     particles' velocities projected on the mode's, u ~ (sin kx cosh kz, -cos kx sinh kz) from the floor
@@ -122,9 +122,10 @@ def sloshing_frequency(L=0.2, depth=0.1, width=0.2, l0=0.0125, amplitude=0.002, 
     Returns (measured by the velocity, measured at the wall, theory) in Hz. ``solver``: the solver class
     (SPHSolver's keywords), with ``params`` (its defaults without).
     (At l0 = 1 cm a tank 6 l0 wide rang 4-6 % fast by zero crossings, with free-slip walls too; 12 l0 wide,
-    3 %; 20 l0, 1-2 %. Here, 16 l0 wide, the fit gives +0.6 % by the velocity and +0.6 % at the wall (MPS, 8 l0
-    wide: -1.6 % and -1.7 %), and a decay delta ~ 2.2 / s: damping ratio 0.19, far above water's; the
-    solver's artificial viscosity.)"""
+    3 %; 20 l0, 1-2 %. Here, 16 l0 wide, the fit gives +1.2 to +2.3 % by the velocity and +1.3 to +2.3 % at the
+    wall over starts 1e-4 l0 off the lattice (``jitter_seed``; +0.3 % from the exact lattice) (MPS, 8 l0 wide:
+    -1.6 % and -1.7 %), and a decay delta ~ 2.2 / s: damping ratio 0.19, far above water's; the solver's
+    artificial viscosity.)"""
     k = math.pi / L
     f1 = sloshing_f1(L, depth, G)
     w = 2.0 * math.pi * f1
@@ -133,6 +134,8 @@ def sloshing_frequency(L=0.2, depth=0.1, width=0.2, l0=0.0125, amplitude=0.002, 
     tank = grid_from_function(box_interior_sdf(lo, hi), lo, hi, 0.5 * l0)
     space = open_space(lo - 0.02, hi + [0.02 + 2 * amplitude, 0.02, 0.02], 0.5 * l0)
     x = lattice(lo, [L, width, depth], l0)
+    if jitter_seed is not None:  # a start 1e-4 l0 off the lattice: one member of an ensemble (the fit's spread)
+        x += np.random.default_rng(jitter_seed).uniform(-1e-4, 1e-4, x.shape) * l0
     s = solver(x, np.zeros_like(x), np.arange(len(x)), space, spacing=l0, rho0=1000.0,
                params=params if params is not None else SPHParams(), gravity=(0, 0, -G), mu=MU,
                v_ref=math.sqrt(2 * G * depth), bodies=[(tank, Sway(amplitude, w, stop, pivot=0.5 * (lo + hi)))])
@@ -158,10 +161,14 @@ def sloshing_frequency(L=0.2, depth=0.1, width=0.2, l0=0.0125, amplitude=0.002, 
 
 
 def test_sloshing_rings_at_the_first_natural_frequency():
-    """The mode's velocity and the free surface at the wall both ring at f1 within 3 %."""
-    by_velocity, at_wall, f1 = sloshing_frequency()
-    assert abs(by_velocity / f1 - 1.0) < 0.03, (by_velocity, f1)
-    assert abs(at_wall / f1 - 1.0) < 0.03, (at_wall, f1)
+    """The mode's velocity and the free surface at the wall both ring at f1 within 3 %, on the mean of three starts
+    1e-4 l0 off the lattice. One run's fit moves by 1-2 % with a perturbation that small: the exact lattice gave
+    +0.3 %, the same with 200 / 300 wall-table samples +2.8 / +2.4 %, these members +1.6 / +1.8 / +2.3 % by the
+    velocity; so a single run passed by a margin the method does not have (session 27)."""
+    runs = np.array([sloshing_frequency(jitter_seed=seed) for seed in range(3)])
+    by_velocity, at_wall, f1 = runs.mean(axis=0)
+    assert abs(by_velocity / f1 - 1.0) < 0.03, runs
+    assert abs(at_wall / f1 - 1.0) < 0.03, runs
 
 
 def test_a_paddle_pushes_water_without_entering_it_and_within_its_work():
