@@ -96,13 +96,17 @@ def test_a_body_at_rest_is_the_static_wall_and_moves_with_its_pose():
 def test_sloshing_rings_at_the_first_natural_frequency():
     """test_moving_walls.sloshing_frequency with MPS: the same tank length and depth (f1 depends on those alone),
     half as wide (8 l0: the first mode is planar; MPS steps at 0.2 l0 / sqrt(2 g h), ~1600 steps with a Poisson
-    solve each, so the full 0.2 m width takes ~100 s of CPU). Fitted: -1.6 % by the mode's velocity, -1.7 %
-    at the wall (by zero crossings, the full width: -0.6 %)."""
-    measured, at_wall, f1 = sloshing_frequency(width=0.1, solver=MPSSolver, params=MPSParams())
+    solve each, so the full 0.2 m width takes ~100 s of CPU). On the mean of three starts 1e-4 l0 off the lattice,
+    as the SPH test (one run's fit moves by ~1 % with such a perturbation: the exact lattice gave -2.7 % by the
+    mode's velocity, -2.8 % at the wall; starts 0 and 1 -2.0 % and -1.7 %; by zero crossings, the full width:
+    -0.6 %)."""
+    runs = np.array([sloshing_frequency(width=0.1, solver=MPSSolver, params=MPSParams(), jitter_seed=seed)
+                     for seed in range(3)])
+    measured, at_wall, f1 = runs.mean(axis=0)
     print("MPS sloshing: %.4f Hz, at the wall %.4f Hz, f1 %.4f Hz (%+.2f %%, %+.2f %%)"
           % (measured, at_wall, f1, 100 * (measured / f1 - 1), 100 * (at_wall / f1 - 1)))
-    assert abs(measured / f1 - 1.0) < 0.03, (measured, f1)
-    assert abs(at_wall / f1 - 1.0) < 0.03, (at_wall, f1)
+    assert abs(measured / f1 - 1.0) < 0.03, runs
+    assert abs(at_wall / f1 - 1.0) < 0.03, runs
 
 
 def test_a_paddle_pushes_water_without_entering_it_and_within_its_work():
