@@ -1,7 +1,8 @@
 """Water at rest (issue 17): a 0.3 x 0.2 m tank filled 0.25 m deep at 1.25 cm spacing, gravity and
 water's viscosity (mu = 0.001 Pa s) only; mean and 99th percentile speed at 0.5, 1, 1.5 and 3 s (and the mean
 averaged over the half second before each: one sample swings with the tank's first mode) for WCSPH (sph), DFSPH
-and MPS, each from the scene's start as the pipeline makes it, and SPlisHSPlasH's DFSPH on the same tank (its own lattice start, volume maps, CFL steps) when pysplishsplash imports:
+and MPS, each from the scene's start as the pipeline makes it, and SPlisHSPlasH's DFSPH on the same tank (its own
+lattice start, volume maps, CFL steps) when pysplishsplash imports:
 
     .venv/bin/python benchmarks/bench_rest.py [--solvers sph,dfsph,mps,splishsplash] [--until 3] [--settle 1.5]
                                               [--set sph.wall_gradient=false ...] [--wall-offset 0.25[,0.25,0]] [--spacing 0.013]
