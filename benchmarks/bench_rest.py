@@ -5,8 +5,8 @@ and MPS, each from the scene's start as the pipeline makes it, and SPlisHSPlasH'
 lattice start, volume maps, CFL steps) when pysplishsplash imports:
 
     .venv/bin/python benchmarks/bench_rest.py [--solvers sph,dfsph,mps,splishsplash] [--until 3] [--settle 1.5]
-                                              [--set sph.wall_gradient=false ...] [--wall-offset 0.25[,0.25,0]] [--spacing 0.013]
-                                              [--sdf-cell 0.25]
+                                              [--set sph.wall_gradient=false ...] [--wall-offset 0.25[,0.25,0]]
+                                              [--spacing 0.013] [--sdf-cell 0.25]
 
 Also the hydrostatic pressure error over the last 0.3 s (mean of 11 samples, and their range; pressure of the particles 2-8 layers deep, at least
 2 l0 from the side walls, against rho g h of their depth below the mean free surface). Each solver runs in

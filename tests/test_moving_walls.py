@@ -124,8 +124,8 @@ def sloshing_frequency(L=0.2, depth=0.1, width=0.2, l0=0.0125, amplitude=0.002, 
     (At l0 = 1 cm a tank 6 l0 wide rang 4-6 % fast by zero crossings, with free-slip walls too; 12 l0 wide,
     3 %; 20 l0, 1-2 %. Here, 16 l0 wide, the fit gives +1.2 to +2.3 % by the velocity and +1.3 to +2.3 % at the
     wall over starts 1e-4 l0 off the lattice (``jitter_seed``; +0.3 % from the exact lattice) (MPS, 8 l0 wide:
-    -1.6 % and -1.7 %), and a decay delta ~ 2.2 / s: damping ratio 0.19, far above water's; the solver's
-    artificial viscosity.)"""
+    -1.8 % and -1.8 % on the mean of three such starts), and a decay delta ~ 2.2 / s: damping ratio 0.19, far
+    above water's; the solver's artificial viscosity.)"""
     k = math.pi / L
     f1 = sloshing_f1(L, depth, G)
     w = 2.0 * math.pi * f1
