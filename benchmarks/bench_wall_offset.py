@@ -25,30 +25,36 @@ from stages.simulate.sph import SPHParams, SPHSolver  # noqa: E402
 L0 = 0.004
 
 
-def first_row(cell: float, shift: float, kernel: str) -> float:
-    """The first row's density over rho0 with an SDF of ``cell`` l0 whose nodes lie ``shift`` l0 off the floor's
-    (grid_from_function pads the box by one cell)."""
+def floor_lattice(cell: float, shift: float) -> tuple:
+    """(SDF, lattice): a 10-row lattice over a floor whose SDF of ``cell`` l0 has its nodes ``shift`` l0 off the
+    floor's (grid_from_function pads the box by one cell)."""
     lo, hi = np.zeros(3), np.array([0.4, 0.02, 0.04])
     sdf = grid_from_function(box_interior_sdf(lo, hi), lo - shift * L0, hi, cell * L0)
-    x = lattice([0.0, 0.0, 0.0], [0.1, 0.02, 10 * L0], L0)
+    return sdf, lattice([0.0, 0.0, 0.0], [0.1, 0.02, 10 * L0], L0)
+
+
+def first_particle(x: np.ndarray) -> int:
+    """A first-row particle away from the side walls."""
+    return int(np.argmin(np.linalg.norm(x - np.array([5.5, 2.5, 0.5]) * L0, axis=1)))
+
+
+def first_row(cell: float, shift: float, kernel: str) -> float:
+    """The first row's density over rho0 (WCSPH with ``kernel``)."""
+    sdf, x = floor_lattice(cell, shift)
     s = SPHSolver(x, np.zeros_like(x), np.arange(len(x)), sdf, spacing=L0, rho0=1000.0,
                   params=SPHParams(kernel=kernel, sound_speed=2.0))
     s.sort_and_density(rebuild=True)
-    i = int(np.argmin(np.linalg.norm(s.x - np.array([5.5, 2.5, 0.5]) * L0, axis=1)))
-    return float(s.rho[i] / 1000.0)
+    return float(s.rho[first_particle(s.x)] / 1000.0)
 
 
 def first_row_mps(cell: float, shift: float) -> float:
     """MPS's first row over the same floor: its number density over n0 (walls/mps.py's maps of the SDF distance)."""
     from stages.simulate.mps import MPSParams, MPSSolver
-    lo, hi = np.zeros(3), np.array([0.4, 0.02, 0.04])
-    sdf = grid_from_function(box_interior_sdf(lo, hi), lo - shift * L0, hi, cell * L0)
-    x = lattice([0.0, 0.0, 0.0], [0.1, 0.02, 10 * L0], L0)
+    sdf, x = floor_lattice(cell, shift)
     s = MPSSolver(x, np.zeros_like(x), np.arange(len(x)), sdf, spacing=L0, rho0=1000.0, params=MPSParams())
     s.sort_and_neighbours()
     s.number_density(s.x)
-    i = int(np.argmin(np.linalg.norm(s.x - np.array([5.5, 2.5, 0.5]) * L0, axis=1)))
-    return float(s.n[i] / s.n0)
+    return float(s.n[first_particle(s.x)] / s.n0)
 
 
 def main() -> None:

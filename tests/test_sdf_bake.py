@@ -18,8 +18,9 @@ ASSETS = Path(__file__).resolve().parents[1] / "configs" / "assets"
 FLUID = {"spacing": 0.05, "emitters": [{"box": {"min": [0, 0, 0], "max": [0.1, 0.1, 0.1]}}]}
 
 
-def _bake(tmp_path, walls, domain=None, **params):
-    scene = {"scene": {"name": "t", **({"domain": domain} if domain else {})}, "walls": walls, "fluid": FLUID}
+def _bake(tmp_path, walls, domain=None, up_axis=None, **params):
+    scene = {"scene": {"name": "t", **({"domain": domain} if domain else {}),
+                       **({"units": {"up_axis": up_axis}} if up_axis else {})}, "walls": walls, "fluid": FLUID}
     walls_dir = run_stage(TrimeshImport, tmp_path / "walls", scene=scene, config_dir=tmp_path)
     sdf_dir = run_stage(Open3dBake, tmp_path / "sdf", scene=scene, params=params, inputs={"walls": walls_dir})
     return SDFGrid.load(sdf_dir), WallMesh.load(walls_dir)
@@ -384,9 +385,7 @@ def test_a_tanks_floor_off_the_grid_is_put_on_the_wall_maps_nodes(tmp_path, up):
         slab.apply_transform(trimesh.transformations.rotation_matrix(-np.pi / 2, [1, 0, 0]))  # z -> y
     slab.export(tmp_path / "slab.obj")
     k = "XYZ".index(up)
-    scene = {"scene": {"name": "t", "units": {"up_axis": up}}, "walls": [{"file": "slab.obj"}], "fluid": FLUID}
-    walls_dir = run_stage(TrimeshImport, tmp_path / "walls", scene=scene, config_dir=tmp_path)
-    g = SDFGrid.load(run_stage(Open3dBake, tmp_path / "sdf", scene=scene, inputs={"walls": walls_dir}))
+    g, _ = _bake(tmp_path, [{"file": "slab.obj"}], up_axis=up)
     steps = (top - g.origin[k]) / (0.5 * l0)
     assert abs(steps - round(steps)) < 1e-6, f"the floor is {steps % 1:.3f} of a node off the map's nodes"
     lo, hi = np.full(3, -0.3), np.full(3, 0.3)
@@ -421,10 +420,7 @@ def test_a_tanks_side_walls_and_edges_off_the_grid_are_put_on_the_wall_maps_node
     box_lo, box_hi = tank.bounds
     corner = box_lo - np.array([1.37, 2.61, 1.23]) * l0  # where the domain puts the grid's corner
     domain = {"min": corner.tolist(), "max": (box_hi + l0).tolist()}
-    scene = {"scene": {"name": "t", "units": {"up_axis": up}, "domain": domain},
-             "walls": [{"file": "tank.obj", "fluid": "inside"}], "fluid": FLUID}
-    walls_dir = run_stage(TrimeshImport, tmp_path / "walls", scene=scene, config_dir=tmp_path)
-    g = SDFGrid.load(run_stage(Open3dBake, tmp_path / "sdf", scene=scene, inputs={"walls": walls_dir}))
+    g, _ = _bake(tmp_path, [{"file": "tank.obj", "fluid": "inside"}], domain=domain, up_axis=up)
     for k in range(3):
         for wall in (box_lo[k], box_hi[k]):
             steps = (wall - g.origin[k]) / (0.5 * l0)
@@ -455,10 +451,7 @@ def test_a_single_sided_floors_top_surface_is_put_on_the_wall_maps_nodes(tmp_pat
     f = np.array([[0, 1, 2], [0, 2, 3]]) if normal > 0 else np.array([[0, 2, 1], [0, 3, 2]])
     trimesh.Trimesh(v, f, process=False).export(tmp_path / "floor.obj")
     domain = {"min": [-0.6, -0.6, face - 1.37 * l0], "max": [0.6, 0.6, face + 8 * l0]}
-    scene = {"scene": {"name": "t", "units": {"up_axis": "Z"}, "domain": domain}, "walls": [{"file": "floor.obj"}],
-             "fluid": FLUID}
-    walls_dir = run_stage(TrimeshImport, tmp_path / "walls", scene=scene, config_dir=tmp_path)
-    g = SDFGrid.load(run_stage(Open3dBake, tmp_path / "sdf", scene=scene, inputs={"walls": walls_dir}))
+    g, _ = _bake(tmp_path, [{"file": "floor.obj"}], domain=domain, up_axis="Z")
     top = face + l0 - float(g.sample(np.array([[0.0, 0.0, face + l0]]))[0][0])  # the shell's upper surface
     assert top > face + 0.25 * l0
     steps = (top - g.origin[2]) / (0.5 * l0)

@@ -455,14 +455,15 @@ def _on_wall_nodes(wm: WallMesh, lo: np.ndarray, l0: float, up_axis: str, shells
     area = np.linalg.norm(n, axis=1)
     node = 0.5 * l0
     out = np.array(lo, np.float64)
+    up = "XYZ".index(up_axis)
     for k in range(3):
         facing = (area > 0) & (np.abs(n[:, k]) > 0.9999 * area)
-        if k == "XYZ".index(up_axis) and (facing & (n[:, k] > 0)).any():
+        if k == up and (facing & (n[:, k] > 0)).any():
             facing &= n[:, k] > 0  # the floor before a lid
         if not facing.any():
             continue
         half = 0.5 * shells[wm.wall_id[facing]]
-        at = tri[facing][:, :, k].mean(axis=1) + (half if k == "XYZ".index(up_axis) else half * np.sign(n[facing, k]))
+        at = tri[facing][:, :, k].mean(axis=1) + (half if k == up else half * np.sign(n[facing, k]))
         _, plane = np.unique(np.round(at / (1e-6 * l0)), return_inverse=True)
         sums = np.bincount(plane, area[facing])
         wall = at[plane == np.argmax(sums >= sums.max() * (1.0 - 1e-9))][0]  # the widest; the lowest of equals
