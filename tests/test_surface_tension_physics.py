@@ -22,18 +22,21 @@ GAMMA = 0.0728  # N/m, water
 RHO = 1000.0  # kg/m^3
 
 
-def _l2_period(l0: float, n: int, t_end: float, samples: int = 300) -> tuple[float, float]:
+def _l2_period(l0: float, n: int, t_end: float, samples: int = 300, jitter_seed: int | None = None) -> tuple[float, float]:
     """A ball of water of the volume of 2 n^3 particles (R = 6.25 l0 for n = 8) in zero gravity, stretched
     15 % (the linear regime: a 2:1 block's first swing is slower, its later ones match), default
     parameters (Monaghan alpha 0.05, no physical viscosity): the period of its l=2 oscillation (a damped
     cosine fitted to <x^2> - (<y^2> + <z^2>) / 2 from its first minimum) and Rayleigh's,
-    omega^2 = 8 gamma / (rho R^3)."""
+    omega^2 = 8 gamma / (rho R^3). ``jitter_seed``: the particles start up to 1e-4 l0 off the lattice
+    (one member of an ensemble)."""
     R = l0 * (3 * 2 * n ** 3 / (4 * math.pi)) ** (1 / 3)
     box = 2 * R + 40 * l0
     g = lattice(np.full(3, box / 2 - R - 2 * l0), np.full(3, box / 2 + R + 2 * l0), l0)
     c = g[np.argmin(np.linalg.norm(g - box / 2, axis=1))]
     x = g[np.linalg.norm(g - c, axis=1) < R]  # a lattice ball, stretched by 15 % along x at constant volume
     x = c + (x - c) * np.array([1.15, 1.15 ** -0.5, 1.15 ** -0.5])
+    if jitter_seed is not None:
+        x = x + np.random.default_rng(jitter_seed).uniform(-1e-4, 1e-4, x.shape) * l0
     lo, hi = np.zeros(3), np.full(3, box)
     sdf = grid_from_function(box_interior_sdf(lo, hi), lo, hi, l0)
     eff = Effects(surface_tension={"gamma": GAMMA})
@@ -69,9 +72,13 @@ def _l2_period(l0: float, n: int, t_end: float, samples: int = 300) -> tuple[flo
 
 def test_a_water_drop_oscillates_at_rayleighs_period():
     """The tester's drop: the volume of 16 x 8 x 8 mm of water at 1 mm spacing (R = 6.25 mm = 6.25 l0),
-    Rayleigh's period 0.129 s. Measured 0.122 s (README "surface_tension"); the old calibration gave 0.05 s."""
-    period, rayleigh = _l2_period(0.001, 8, 0.4)
-    assert abs(period / rayleigh - 1) < 0.15, (period, rayleigh)
+    Rayleigh's period 0.129 s, on the mean of three starts 1e-4 l0 off the lattice: 0.125 / 0.121 / 0.122 s
+    (0.95 of Rayleigh's; README "surface_tension"); the old calibration gave 0.05 s. The exact lattice ball is
+    a symmetric start whose outcome rounding decides: it gave 0.122 s in earlier sessions and 0.107 s (0.83,
+    the suite's one failure) on session 28's machine with the same code, so one run of it is not a measurement."""
+    runs = np.array([_l2_period(0.001, 8, 0.4, jitter_seed=seed) for seed in range(3)])
+    period, rayleigh = runs.mean(axis=0)
+    assert abs(period / rayleigh - 1) < 0.15, runs
 
 
 def test_tension_constant_counts_both_terms():
