@@ -66,7 +66,7 @@ from .driver import SolverBase, drive, moving_wall, prepare, set_threads
 from .emitters import emitter_files
 from .effects import EffectConstants, compile_effects
 from .walls.spline import SplineWallMaps, spline_coefs, spline_lattice_mass
-from .kernels import lattice_mass, poly6_coef, spiky_grad_coef, spiky_lattice_factor
+from .kernels import lattice_mass, poly6_coef, spiky_grad_coef, spiky_lattice_factor, visc_lattice_factor
 from .neighbours import CellGrid
 from .sph import SPHSolver
 from .walls.maps import BrickWallMaps, make_walls
@@ -138,6 +138,7 @@ class DFSPHSolver(SolverBase):
         if effects.adhesion_accel is not None and len(effects.adhesion_accel) != params.table_samples:
             raise ValueError("effects.adhesion_accel must be sampled like the wall tables (table_samples)")
         self.grad_norm = spiky_lattice_factor(self.rho0, self.l0, self.h, self.mass)
+        self.visc_factor = visc_lattice_factor(self.rho0, self.l0, self.h, self.mass)
         self.grad_coef = spiky_grad_coef(self.h) / self.grad_norm if self.mode == D.SPIKY else 6.0 * poly6_coef(self.h)
         self.fix_press = self.walls.fix_press / self.grad_norm  # Spiky wall gradient, normalised like grad_coef
         self.density_coefs = (poly6_coef(self.h), self.grad_coef)

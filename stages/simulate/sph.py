@@ -20,7 +20,7 @@ from .driver import SolverBase, drive, moving_wall, prepare, set_threads
 from .emitters import emitter_files
 from .effects import EffectConstants, compile_effects, cohesion_coef
 from .kernels import (lattice_mass, poly6_coef, spiky_grad_coef, spiky_lattice_factor, visc_lap_coef,
-                      wall_gradient_tables)
+                      visc_lattice_factor, wall_gradient_tables)
 from .neighbours import CellGrid, neighbour_list, reorder
 from .walls.maps import BrickWallMaps, make_walls
 from .walls.spline import SplineWallMaps, spline_coefs, spline_lattice_mass
@@ -115,6 +115,7 @@ class SPHSolver(SolverBase):
         if effects.adhesion_accel is not None and len(effects.adhesion_accel) != params.table_samples:
             raise ValueError("effects.adhesion_accel must be sampled like the wall tables (table_samples)")
         self.grad_norm = spiky_lattice_factor(self.rho0, self.l0, self.h, self.mass)
+        self.visc_factor = visc_lattice_factor(self.rho0, self.l0, self.h, self.mass)
         if not self.spline:
             self.density_coef, self.pressure_coef = poly6_coef(self.h), spiky_grad_coef(self.h) / self.grad_norm
         self.fix_press = self.walls.fix_press / self.grad_norm  # the mirrored wall's table (wall_pressure)
@@ -203,7 +204,8 @@ class SPHSolver(SolverBase):
     def effect_args(self) -> tuple:
         """(viscosity, tension, adhesion, friction, wind, attractor) for K.forces: None when absent."""
         e = self.effects
-        vis = (self.mu, visc_lap_coef(self.h), self.fix_vis) if e.mu is not None else None
+        # mu over the lattice's Laplacian factor: the eq. 9 sum exact on the rest lattice at any support
+        vis = (self.mu / self.visc_factor, visc_lap_coef(self.h), self.fix_vis) if e.mu is not None else None
         ten = (e.tension_k, self.normals, cohesion_coef(self.h)) if e.tension_k is not None else None
         adh = (e.adhesion_accel,) if e.adhesion_accel is not None else None
         fri = (e.friction_rate,) if e.friction_rate is not None else None
