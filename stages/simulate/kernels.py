@@ -82,7 +82,7 @@ def visc_lattice_factor(rho0: float, l0: float, h: float, mass: float) -> float:
     """sum_j (m / rho0) lap W(r_j) z_j^2 / 2 over the rest lattice: what the eq. 9 viscosity sum makes of the
     Laplacian of v = z^2 / 2, whose true value is 1 (the continuum integral is exactly 1 at any h). On the lattice it
     swings with the support: 0.98 at h = 2 l0, 0.87 at 2.25 l0, 1.03 at 2.5 l0 (Poly6's mass), so a user's support of
-    2.25 l0 damped a shear mode 18 % below nu k^2. Dividing mu by it makes the viscosity exact on the rest lattice at
+    2.25 l0 damped a shear mode 17 % below nu k^2. Dividing mu by it makes the viscosity exact on the rest lattice at
     any support (fluid and wall terms alike), as spiky_lattice_factor does for the pressure gradient."""
     import numpy as np
     k = int(math.ceil(h / l0)) + 1
