@@ -138,7 +138,6 @@ class DFSPHSolver(SolverBase):
         if effects.adhesion_accel is not None and len(effects.adhesion_accel) != params.table_samples:
             raise ValueError("effects.adhesion_accel must be sampled like the wall tables (table_samples)")
         self.grad_norm = spiky_lattice_factor(self.rho0, self.l0, self.h, self.mass)
-        self.visc_factor = visc_lattice_factor(self.rho0, self.l0, self.h, self.mass)
         self.grad_coef = spiky_grad_coef(self.h) / self.grad_norm if self.mode == D.SPIKY else 6.0 * poly6_coef(self.h)
         self.fix_press = self.walls.fix_press / self.grad_norm  # Spiky wall gradient, normalised like grad_coef
         self.density_coefs = (poly6_coef(self.h), self.grad_coef)
@@ -147,7 +146,9 @@ class DFSPHSolver(SolverBase):
             self.grad_coef = spiky_grad_coef(self.h) / self.grad_norm  # surface tension's normals only
             self.fix_press = self.walls.fix_press  # the spline's own wall gradient, not normalised
         self.gravity = np.asarray(gravity, np.float64)
-        self.mu = float(effects.mu) if effects.mu is not None else 0.0
+        # as SPHSolver: mu over the eq. 9 sum's Laplacian on the rest lattice
+        self.mu = (float(effects.mu) / visc_lattice_factor(self.rho0, self.l0, self.h, self.mass)
+                   if effects.mu is not None else 0.0)
         self.sdf = sdf
         self.sdf_inv = 1.0 / sdf.spacing
         self.wall_terms = make_walls(sdf, self.walls)  # what the shared WCSPH kernels take

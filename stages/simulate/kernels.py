@@ -55,25 +55,28 @@ def visc_lap_np(r, h):
     return np.where(r < h, visc_lap_coef(h) * np.clip(h - r, 0, None), 0.0)
 
 
-def lattice_mass(rho0: float, l0: float, h: float) -> float:
-    """Particle mass such that the eq. 4 kernel sum over a full cubic lattice gives exactly rho0."""
+def rest_lattice(l0: float, reach: float):
+    """(z, r): the height and distance of every point of the full cubic lattice of spacing l0 within a cube
+    reaching past ``reach`` around a particle at the origin (itself included, r = 0), as (n, n, n) arrays: the
+    rest state the lattice sums (mass, gradient and viscosity factors, MPS's n0) are calibrated on."""
     import numpy as np
-    k = int(math.ceil(h / l0)) + 1
+    k = int(math.ceil(reach / l0)) + 1
     g = np.arange(-k, k + 1) * l0
     X, Y, Z = np.meshgrid(g, g, g, indexing="ij")
-    s = poly6_np(np.sqrt(X * X + Y * Y + Z * Z), h).sum()
-    return float(rho0 / s)
+    return Z, np.sqrt(X * X + Y * Y + Z * Z)
+
+
+def lattice_mass(rho0: float, l0: float, h: float) -> float:
+    """Particle mass such that the eq. 4 kernel sum over a full cubic lattice gives exactly rho0."""
+    _, r = rest_lattice(l0, h)
+    return float(rho0 / poly6_np(r, h).sum())
 
 
 def spiky_lattice_factor(rho0: float, l0: float, h: float, mass: float) -> float:
     """sum_j (m / rho0) |grad W(r_j)| x_j^2 / r_j over the rest lattice (1 in the continuum, about 0.95
     at h = 2 l0): dividing the eq. 8 gradient by it makes the discrete pressure force reproduce grad p
     exactly on the rest lattice (a scalar kernel-gradient normalisation)."""
-    import numpy as np
-    k = int(math.ceil(h / l0)) + 1
-    g = np.arange(-k, k + 1) * l0
-    X, Y, Z = np.meshgrid(g, g, g, indexing="ij")
-    r = np.sqrt(X * X + Y * Y + Z * Z)
+    Z, r = rest_lattice(l0, h)
     sel = (r > 0) & (r < h)
     return float((mass / rho0 * spiky_grad_coef(h) * (h - r[sel]) ** 2 * Z[sel] ** 2 / r[sel]).sum())
 
@@ -84,11 +87,7 @@ def visc_lattice_factor(rho0: float, l0: float, h: float, mass: float) -> float:
     swings with the support: 0.98 at h = 2 l0, 0.87 at 2.25 l0, 1.03 at 2.5 l0 (Poly6's mass), so a user's support of
     2.25 l0 damped a shear mode 17 % below nu k^2. Dividing mu by it makes the viscosity exact on the rest lattice at
     any support (fluid and wall terms alike), as spiky_lattice_factor does for the pressure gradient."""
-    import numpy as np
-    k = int(math.ceil(h / l0)) + 1
-    g = np.arange(-k, k + 1) * l0
-    X, Y, Z = np.meshgrid(g, g, g, indexing="ij")
-    r = np.sqrt(X * X + Y * Y + Z * Z)
+    Z, r = rest_lattice(l0, h)
     return float((mass / rho0 * visc_lap_np(r, h) * Z * Z).sum() / 2.0)
 
 

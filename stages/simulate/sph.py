@@ -115,7 +115,6 @@ class SPHSolver(SolverBase):
         if effects.adhesion_accel is not None and len(effects.adhesion_accel) != params.table_samples:
             raise ValueError("effects.adhesion_accel must be sampled like the wall tables (table_samples)")
         self.grad_norm = spiky_lattice_factor(self.rho0, self.l0, self.h, self.mass)
-        self.visc_factor = visc_lattice_factor(self.rho0, self.l0, self.h, self.mass)
         if not self.spline:
             self.density_coef, self.pressure_coef = poly6_coef(self.h), spiky_grad_coef(self.h) / self.grad_norm
         self.fix_press = self.walls.fix_press / self.grad_norm  # the mirrored wall's table (wall_pressure)
@@ -135,7 +134,9 @@ class SPHSolver(SolverBase):
         self.stiffness = self.c ** 2 if params.eos == "linear" else self.rho0 * self.c ** 2 / 7.0
         self.eos = K.EOS_LINEAR if params.eos == "linear" else K.EOS_TAIT
         self.gravity = np.asarray(gravity, np.float64)
-        self.mu = float(mu) if mu is not None else 0.0
+        # the eq. 9 sum's coefficient: mu over its Laplacian on the rest lattice (exact there at any support), for
+        # the force and the viscous step limit alike
+        self.mu = float(mu) / visc_lattice_factor(self.rho0, self.l0, self.h, self.mass) if mu is not None else 0.0
         self.sdf = sdf
         self.sdf_inv = 1.0 / sdf.spacing
         lo, hi = (sdf.origin, sdf.upper) if domain is None else domain
@@ -204,8 +205,7 @@ class SPHSolver(SolverBase):
     def effect_args(self) -> tuple:
         """(viscosity, tension, adhesion, friction, wind, attractor) for K.forces: None when absent."""
         e = self.effects
-        # mu over the lattice's Laplacian factor: the eq. 9 sum exact on the rest lattice at any support
-        vis = (self.mu / self.visc_factor, visc_lap_coef(self.h), self.fix_vis) if e.mu is not None else None
+        vis = (self.mu, visc_lap_coef(self.h), self.fix_vis) if e.mu is not None else None
         ten = (e.tension_k, self.normals, cohesion_coef(self.h)) if e.tension_k is not None else None
         adh = (e.adhesion_accel,) if e.adhesion_accel is not None else None
         fri = (e.friction_rate,) if e.friction_rate is not None else None

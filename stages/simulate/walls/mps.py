@@ -34,6 +34,7 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
+from ..kernels import rest_lattice
 from .maps import body_direction, body_distance, body_fields, body_velocity, map_sample, to_body
 from .tables import table_lookup, wall_lattice
 
@@ -50,10 +51,7 @@ def mps_weight_np(r: np.ndarray, re: float) -> np.ndarray:
 def lattice_constants(l0: float, re: float) -> tuple[float, float]:
     """(n0, lambda) on the full cubic lattice around an interior particle (PHYSICS.md: re = 2.1 l0
     gives n0 = 14.42, lambda = 1.702 l0^2)."""
-    k = int(math.ceil(re / l0)) + 1
-    g = np.arange(-k, k + 1) * l0
-    X, Y, Z = np.meshgrid(g, g, g, indexing="ij")
-    r = np.sqrt(X * X + Y * Y + Z * Z)
+    _, r = rest_lattice(l0, re)
     w = mps_weight_np(r, re)
     n0 = float(w.sum())
     lam = float((w * r * r).sum() / n0)

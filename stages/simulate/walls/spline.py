@@ -27,7 +27,7 @@ import numpy as np
 
 from stages.common.sdf import SDFGrid
 
-from ..kernels import visc_lap_np
+from ..kernels import rest_lattice, visc_lap_np
 from .maps import BrickWallMaps, build_bricks, flat_wall_sums, quadrature_stencil
 from .tables import wall_lattice
 
@@ -78,10 +78,8 @@ def spline_f_np(r, h):
 def spline_lattice_mass(rho0: float, l0: float, h: float) -> float:
     """Particle mass such that the spline sum over a full cubic lattice (self included) gives rho0
     (kernels.lattice_mass for Poly6)."""
-    k = int(math.ceil(h / l0)) + 1
-    g = np.arange(-k, k + 1) * l0
-    X, Y, Z = np.meshgrid(g, g, g, indexing="ij")
-    return float(rho0 / spline_np(np.sqrt(X * X + Y * Y + Z * Z), h).sum())
+    _, r = rest_lattice(l0, h)
+    return float(rho0 / spline_np(r, h).sum())
 
 
 def flat_wall_tables(l0: float, h: float, mass: float, rho0: float, samples: int):
