@@ -92,20 +92,24 @@ def _shear_mode_rates(**params) -> tuple[dict, float]:
     return rate, mu / 1000.0 * k * k
 
 
-def test_viscosity_damps_a_shear_mode_at_nu_k2():
-    """The mode decays as exp(-nu k^2 t) within 15 %, and not at all without viscosity."""
-    rate, expected = _shear_mode_rates()
+@pytest.mark.parametrize("kernel", ["spline", "poly6_spiky"])
+def test_viscosity_damps_a_shear_mode_at_nu_k2(kernel):
+    """The viscosity's share of the mode's decay (the rate with it, less the rate without) is nu k^2 within 10 %, and
+    without viscosity the mode neither decays nor grows by more than 10 % of nu k^2, at each kernel's default
+    support. Measured: the spline (2.25 l0) 0.93 of nu k^2, and its inviscid mode grows at 0.09 of it (0.24 /s:
+    the total decay is 0.84 of nu k^2); Poly6 / Spiky (2 l0) 0.95."""
+    rate, expected = _shear_mode_rates(kernel=kernel)
     assert abs(rate["none"]) < 0.1 * expected, rate
-    assert abs(rate["visc"] - expected) < 0.15 * expected, (rate, expected)
+    assert abs(rate["visc"] - rate["none"] - expected) < 0.1 * expected, (rate, expected)
 
 
-@pytest.mark.parametrize("support", [2.25, 2.5])
-def test_the_viscosity_is_right_at_any_kernel_support(support):
+@pytest.mark.parametrize("kernel, support", [("poly6_spiky", 2.25), ("poly6_spiky", 2.5), ("spline", 2.0)])
+def test_the_viscosity_is_right_at_any_kernel_support(kernel, support):
     """The viscosity's share of the decay (with it, less without) is nu k^2 within 10 % at supports other than
-    2 l0 too: the eq. 9 sum's Laplacian on the lattice swings with the support (0.87 of the true one at 2.25 l0),
-    so mu is divided by it (kernels.visc_lattice_factor). Measured 0.96 and 0.95 of nu k^2 (0.83 at 2.25 l0
-    before; 0.95 at the default 2 l0)."""
-    rate, expected = _shear_mode_rates(support=support)
+    the default too: the eq. 9 sum's Laplacian on the lattice swings with the support (0.87 of the true one at
+    2.25 l0), so mu is divided by it (kernels.visc_lattice_factor). Measured with Poly6 / Spiky 0.96 and 0.95 of
+    nu k^2 at 2.25 and 2.5 l0 (0.83 at 2.25 l0 before)."""
+    rate, expected = _shear_mode_rates(kernel=kernel, support=support)
     assert abs(rate["visc"] - rate["none"] - expected) < 0.1 * expected, (rate, expected)
 
 

@@ -33,7 +33,7 @@ from stages.simulate.emitters import drop_inside_walls, drop_overlaps, lattice  
 G = 9.81
 RHO0 = 1000.0
 MU = 0.001  # water
-SOLVERS = ("sph", "sph_spline", "dfsph", "mps")  # sph_spline: WCSPH with kernel: spline
+SOLVERS = ("sph", "sph_poly6", "dfsph", "mps")  # sph: the cubic spline (the default); sph_poly6: kernel: poly6_spiky
 
 
 @dataclass
@@ -302,10 +302,10 @@ def make_solver(name: str, s: Scene):
     g = s.gravity
     params = s.params.get(name, {})
     vref = s.v_bound
-    if name in ("sph", "sph_spline"):
+    if name in ("sph", "sph_poly6"):
         from stages.simulate.sph import SPHParams, SPHSolver
-        if name == "sph_spline":
-            params = {**s.params.get("sph", {}), "kernel": "spline"}
+        if name == "sph_poly6":
+            params = {**s.params.get("sph", {}), "kernel": "poly6_spiky"}
         sol = SPHSolver(s.x, s.v, ids, s.sdf, spacing=s.l0, rho0=RHO0, params=SPHParams(**params), gravity=g,
                         mu=s.mu, v_ref=vref)
     elif name == "dfsph":
