@@ -19,7 +19,7 @@ from . import sph_kernels as K
 from .driver import SolverBase, drive, moving_wall, prepare, set_threads
 from .emitters import emitter_files
 from .effects import EffectConstants, compile_effects, cohesion_coef
-from .kernels import (lattice_mass, poly6_coef, rest_lattice, spiky_grad_coef, spiky_lattice_factor, visc_lap_coef,
+from .kernels import (lattice_mass, poly6_coef, spiky_grad_coef, spiky_lattice_factor, visc_lap_coef,
                       visc_lattice_factor, wall_gradient_tables)
 from .neighbours import CellGrid, neighbour_list, reorder
 from .walls.maps import BrickWallMaps, make_walls
@@ -83,10 +83,10 @@ class SPHParams(Params):
         return self
 
 
-# neighbour-list slots per particle to start with, past the resting lattice's count within h + skin (81 within
-# 2.45 l0, the spline's default support and skin; 44 within 2.2 l0); grown to the largest count seen when a build
-# finds more
-NEIGHBOUR_SLACK = 8
+# neighbour-list slots per particle to start with: 44 within h + skin = 2.2 l0 on the resting lattice (Poly6 /
+# Spiky's support and the default skin), 81 within 2.45 l0 (the spline's); grown to the largest count seen when a
+# build finds more, which the spline's first build does once
+NEIGHBOUR_CAP = 48
 
 
 class SPHSolver(SolverBase):
@@ -168,10 +168,7 @@ class SPHSolver(SolverBase):
         self.acc = np.zeros((n, 3))
         # the Verlet list: the pairs within h + skin at the last build (grown on overflow, never shrunk);
         # each density pass moves the pairs r < h to the front of the row, cnt_in of them
-        if not hasattr(self, "nbr_cap"):
-            _, r = rest_lattice(self.l0, self.h + self.skin)
-            self.nbr_cap = int((r <= self.h + self.skin).sum()) + NEIGHBOUR_SLACK
-        self.nbr = np.zeros((n, self.nbr_cap), np.int32)
+        self.nbr = np.zeros((n, getattr(self, "nbr_cap", NEIGHBOUR_CAP)), np.int32)
         self.cnt = np.zeros(n, np.int32)
         self.cnt_in = np.zeros(n, np.int32)
         self.travel = np.zeros(n)  # path length of each particle since the build
