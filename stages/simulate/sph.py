@@ -83,9 +83,9 @@ class SPHParams(Params):
         return self
 
 
-# neighbour-list slots per particle to start with: 44 within h + skin = 2.2 l0 on the resting lattice (Poly6 /
-# Spiky's support and the default skin), 81 within 2.45 l0 (the spline's); grown to the largest count seen when a
-# build finds more, which the spline's first build does once
+# neighbour-list slots per particle to start with: 32 neighbours within h + skin = 2.2 l0 on the resting lattice
+# (Poly6 / Spiky's support and the default skin), 80 within 2.45 l0 (the spline's); grown to the largest count seen
+# when a build finds more, which the spline's first build does once
 NEIGHBOUR_CAP = 48
 
 
