@@ -66,15 +66,17 @@ def test_absent_effects_bitwise_identical_to_hand_written_kernel():
 
 
 # -- viscosity ---------------------------------------------------------------------------------------
-def _shear_mode_rates(**params) -> tuple[dict, float]:
+def _shear_mode_rates(U: float = 0.1, **params) -> tuple[dict, float]:
     """v_x = U cos(pi z / L) between free-slip walls (wall viscosity off): the decay rates of the mode's amplitude,
     fitted over 0.25 s (acoustic ripples average out), with water 1,000 x as viscous ('visc') and without any
-    viscosity ('none'), and nu k^2."""
+    viscosity ('none'), and nu k^2. U = 0.1 m/s, Mach 0.1 at the sound speed of 1 m/s: at 0.02 m/s the energy the
+    walls' density excess in the box's edges releases (the box is 5 layers wide) was as large as the mode's, and
+    the box's kinetic energy rose to 2.7-7.8 x the mode's without viscosity, so the fitted rates were that noise's
+    (the spline at 2.25 l0 seemed to grow at 0.24 /s; session 29)."""
     l0, L = 0.004, 0.06
     lo, hi = np.array([0.0, 0.0, 0.0]), np.array([0.24, 0.02, L])
     x = lattice(lo, hi, l0)  # 4500 particles, 15 layers across the mode
     k = math.pi / L
-    U = 0.02
     v = np.zeros_like(x)
     v[:, 0] = U * np.cos(k * x[:, 2])
     mu = 1.0  # nu = 1e-3 m^2/s: nu k^2 = 2.74 /s
@@ -92,25 +94,18 @@ def _shear_mode_rates(**params) -> tuple[dict, float]:
     return rate, mu / 1000.0 * k * k
 
 
-@pytest.mark.parametrize("kernel", ["spline", "poly6_spiky"])
-def test_viscosity_damps_a_shear_mode_at_nu_k2(kernel):
-    """The viscosity's share of the mode's decay (the rate with it, less the rate without) is nu k^2 within 10 %, and
-    without viscosity the mode neither decays nor grows by more than 10 % of nu k^2, at each kernel's default
-    support. Measured: the spline (2.25 l0) 0.93 of nu k^2, and its inviscid mode grows at 0.09 of it (0.24 /s:
-    the total decay is 0.84 of nu k^2); Poly6 / Spiky (2 l0) 0.95."""
-    rate, expected = _shear_mode_rates(kernel=kernel)
-    assert abs(rate["none"]) < 0.1 * expected, rate
-    assert abs(rate["visc"] - rate["none"] - expected) < 0.1 * expected, (rate, expected)
-
-
-@pytest.mark.parametrize("kernel, support", [("poly6_spiky", 2.25), ("poly6_spiky", 2.5), ("spline", 2.0)])
-def test_the_viscosity_is_right_at_any_kernel_support(kernel, support):
-    """The viscosity's share of the decay (with it, less without) is nu k^2 within 10 % at supports other than
-    the default too: the eq. 9 sum's Laplacian on the lattice swings with the support (0.87 of the true one at
-    2.25 l0), so mu is divided by it (kernels.visc_lattice_factor). Measured with Poly6 / Spiky 0.96 and 0.95 of
-    nu k^2 at 2.25 and 2.5 l0 (0.83 at 2.25 l0 before)."""
+@pytest.mark.parametrize("kernel, support", [(None, None), ("poly6_spiky", None), ("poly6_spiky", 2.25),
+                                             ("poly6_spiky", 2.5), ("spline", 2.0)])
+def test_viscosity_damps_a_shear_mode_at_nu_k2(kernel, support):
+    """The mode decays as exp(-nu k^2 t) within 10 %, and without viscosity by less than 5 % of that, with each
+    kernel at its default support (the spline's 2.25 l0, Poly6 / Spiky's 2 l0) and at others. The eq. 9 sum's
+    Laplacian on the lattice swings with the support (0.87 of the true one at 2.25 l0), so mu is divided by it
+    (kernels.visc_lattice_factor; without it Poly6 / Spiky at 2.25 l0 decays at 0.885 and the spline at 0.878). Measured (the decay over nu
+    k^2, and without viscosity): spline 1.001 and 0.006; Poly6 / Spiky 0.943 and 0.034, at 2.25 l0 1.016 and -0.002,
+    at 2.5 l0 0.964 and 0.025; the spline at 2 l0 0.931 and 0.023."""
     rate, expected = _shear_mode_rates(kernel=kernel, support=support)
-    assert abs(rate["visc"] - rate["none"] - expected) < 0.1 * expected, (rate, expected)
+    assert abs(rate["none"]) < 0.05 * expected, (rate, expected)
+    assert abs(rate["visc"] - expected) < 0.1 * expected, (rate, expected)
 
 
 # -- surface tension ---------------------------------------------------------------------------------
