@@ -8,7 +8,8 @@ lattice start, volume maps, CFL steps) when pysplishsplash imports:
                                               [--set sph.wall_gradient=false ...] [--wall-offset 0.25[,0.25,0]]
                                               [--spacing 0.013] [--sdf-cell 0.25]
 
-Also the hydrostatic pressure error over the last 0.3 s (mean of 11 samples, and their range; pressure of the particles 2-8 layers deep, at least
+Also the centre of mass's drop since t = 0 (the potential energy the start releases: g times it), overall, in the
+band within 3 l0 of the side walls and in the interior. Also the hydrostatic pressure error over the last 0.3 s (mean of 11 samples, and their range; pressure of the particles 2-8 layers deep, at least
 2 l0 from the side walls, against rho g h of their depth below the mean free surface). Each solver runs in
 its own subprocess (2 threads). Writes benchmarks/results/rest.json."""
 from __future__ import annotations
@@ -84,6 +85,8 @@ def run_one(solver: str, until: float, sets: dict, settle: float = 0.0) -> dict:
         from stages.simulate.driver import settle as settle_start
         settle_start(s, settle)
     errors, speeds = [], []
+    f0 = s.frame()
+    z0, band = heights(f0)
     times = [t for t in TIMES if t <= until + 1e-9]
     pressure_at = {round(until - 0.3 + 0.03 * k, 9) for k in range(10)}  # the pressure swings with the surface's
     speed_at = {round(AVERAGE_EVERY * k, 9) for k in range(1, int(until / AVERAGE_EVERY + 1e-9) + 1)}  # slow modes
@@ -97,13 +100,27 @@ def run_one(solver: str, until: float, sets: dict, settle: float = 0.0) -> dict:
             speeds.append((t, float(sp.mean())))
         if any(abs(t - tt) < 1e-9 for tt in times):
             window = [m for ts, m in speeds if t - 0.5 < ts <= t + 1e-9]
+            z, _ = heights(f)
+            dz = 1e3 * (z - z0)  # mm, per particle (by id)
             rows.append({"t": t, "mean": float(sp.mean()), "p99": float(np.percentile(sp, 99)), "max": float(sp.max()),
-                         "mean_last_half_second": float(np.mean(window)), "steps": s.steps})
+                         "mean_last_half_second": float(np.mean(window)), "steps": s.steps,
+                         "drop_mm": -float(dz.mean()), "drop_side_mm": -float(dz[band].mean()),
+                         "drop_inner_mm": -float(dz[~band].mean())})
     f = s.frame()
     errors.append(hydrostatic_error(f))
     return {"solver": solver, "particles": len(f.x), "rows": rows, "hydrostatic_error": float(np.mean(errors)),
             "hydrostatic_error_range": [float(min(errors)), float(max(errors))],
             "surface_drop_mm": 1e3 * (DEPTH - surface(f.x)), "wall_seconds": time.perf_counter() - t0, "set": sets, "settle": settle}
+
+
+def heights(f):
+    """Each particle's height (ordered by id) and, from the given frame, whether it lies within 3 l0 of a side
+    wall: the centre of mass's drop since t = 0 is the potential energy the fluid released (g times it, J/kg),
+    in the band along the side walls and in the interior."""
+    o = np.argsort(f.id)
+    x = f.x[o]
+    side = np.minimum(np.minimum(x[:, 0], SIZE[0] - x[:, 0]), np.minimum(x[:, 1], SIZE[1] - x[:, 1])) < 3 * L0
+    return x[:, 2], side
 
 
 def surface(x) -> float:
@@ -186,6 +203,10 @@ def table_row(res: dict) -> str:
         return f"{res['solver']:<20} {res.get('skipped') or res.get('failed')}"
     cells = "  ".join(f"{r['t']:.1f}s {r['mean']:.4f}/{r['p99']:.4f}" + (f" (avg {r['mean_last_half_second']:.4f})"
                       if "mean_last_half_second" in r else "") for r in res["rows"])
+    last = res["rows"][-1] if res["rows"] else {}
+    if "drop_mm" in last:
+        cells += (f"  centre of mass {last['drop_mm']:+.2f} mm down (side band {last['drop_side_mm']:+.2f}, "
+                  f"interior {last['drop_inner_mm']:+.2f})")
     extra = ""
     if "hydrostatic_error" in res:
         extra = f"  p err {100 * res['hydrostatic_error']:+.1f}%  surface drop {res['surface_drop_mm']:.2f} mm"
