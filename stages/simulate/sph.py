@@ -19,7 +19,7 @@ from . import sph_kernels as K
 from .driver import SolverBase, drive, moving_wall, prepare, set_threads
 from .emitters import emitter_files
 from .effects import EffectConstants, compile_effects, cohesion_coef
-from .kernels import (lattice_mass, poly6_coef, spiky_grad_coef, spiky_lattice_factor, visc_lap_coef,
+from .kernels import (lattice_mass, poly6_coef, rest_lattice, spiky_grad_coef, spiky_lattice_factor, visc_lap_coef,
                       visc_lattice_factor, wall_gradient_tables)
 from .neighbours import CellGrid, neighbour_list, reorder
 from .walls.maps import BrickWallMaps, make_walls
@@ -83,14 +83,17 @@ class SPHParams(Params):
         return self
 
 
-# neighbour-list slots per particle to start with: 32 neighbours within h + skin = 2.2 l0 on the resting lattice
-# (Poly6 / Spiky's support and the default skin), 80 within 2.45 l0 (the spline's); grown to the largest count seen
-# when a build finds more, which the spline's first build does once
+# neighbour-list slots per particle to start with, at least (33 within h + skin = 2.2 l0 on the resting lattice,
+# the particle itself included: Poly6 / Spiky's support and the default skin); a list starts at its kernel's
+# lattice count + NEIGHBOUR_SLACK when that is more (81 within the spline's 2.45 l0) and grows when a build finds more
 NEIGHBOUR_CAP = 48
+NEIGHBOUR_SLACK = 8
 
 
 class SPHSolver(SolverBase):
     """State (x, v, id in cell order) plus the per-step kernels; every buffer is reused."""
+
+    nbr_cap: int | None = None  # neighbour-list slots per particle (None: sized from the rest lattice at the start)
 
     def __init__(self, x, v, ids, sdf: SDFGrid, *, spacing: float, rho0: float, params: SPHParams,
                  gravity=(0.0, 0.0, 0.0), mu: float | None = None, wall_viscosity: bool = True,
@@ -168,7 +171,10 @@ class SPHSolver(SolverBase):
         self.acc = np.zeros((n, 3))
         # the Verlet list: the pairs within h + skin at the last build (grown on overflow, never shrunk);
         # each density pass moves the pairs r < h to the front of the row, cnt_in of them
-        self.nbr = np.zeros((n, getattr(self, "nbr_cap", NEIGHBOUR_CAP)), np.int32)
+        if self.nbr_cap is None:
+            _, r = rest_lattice(self.l0, self.h + self.skin)
+            self.nbr_cap = max(NEIGHBOUR_CAP, int((r <= self.h + self.skin).sum()) + NEIGHBOUR_SLACK)  # self included
+        self.nbr = np.zeros((n, self.nbr_cap), np.int32)
         self.cnt = np.zeros(n, np.int32)
         self.cnt_in = np.zeros(n, np.int32)
         self.travel = np.zeros(n)  # path length of each particle since the build
@@ -190,7 +196,8 @@ class SPHSolver(SolverBase):
                 break
             # a compressed spot has more neighbours than the list holds: grow it and redo the pass
             # (the list does not depend on the capacity, so this stays deterministic)
-            self.nbr_cap = most + 8
+            self.nbr_cap = most + NEIGHBOUR_SLACK
+            self.nbr = None  # the old list freed first: the peak memory holds one list, not both
             self.nbr = np.zeros((len(self.x), self.nbr_cap), np.int32)
         self.travel[:] = 0.0
         self.stale = False
