@@ -4,6 +4,7 @@ import math
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
 from stages.common.sdf import box_interior_sdf, grid_from_function
 from stages.simulate import sph_kernels as K
@@ -16,6 +17,7 @@ def no_wall_terms(sdf, h):
                             shape=np.array([2, 2, 2]), origin=np.zeros(3), spacing=1.0, fix_rho=np.zeros(8), inv_dr=7 / h)
     return make_walls(sdf, empty)
 from stages.simulate.effects import cohesion_coef
+from stages.simulate.emitters import lattice
 from stages.simulate.kernels import lattice_mass, poly6_coef, poly6_np, spiky_grad_coef, visc_lap_coef
 from stages.simulate.neighbours import CellGrid
 from stages.simulate.walls.tables import build_tables, half_space_density
@@ -281,6 +283,25 @@ def test_solver_grows_the_neighbour_list_and_matches_a_roomy_one():
     assert runs[0].nbr.shape[1] > 16 and runs[0].nbr.shape[1] >= runs[0].cnt.max()
     assert np.array_equal(runs[0].x, runs[1].x) and np.array_equal(runs[0].v, runs[1].v)
 
+
+
+@pytest.mark.parametrize("kernel, slots", [("spline", 89), ("poly6_spiky", 48)])
+def test_neighbour_list_starts_at_the_rest_lattice_count(kernel, slots):
+    """The list starts at the kernel's rest-lattice count within h + skin plus the slack (81 + 8 for the spline at
+    2.25 l0 with the 0.2 l0 skin; Poly6 / Spiky's 33 is below NEIGHBOUR_CAP): a hydrostatic tank's first builds
+    do not grow it, so the peak memory never holds two lists (it held 48 + 89 slots before)."""
+    from stages.simulate import sph as S
+    from stages.simulate.driver import hydrostatic_start
+    l0 = 0.01
+    sdf = grid_from_function(box_interior_sdf([0, 0, 0], [0.1, 0.1, 0.2]), [0, 0, 0], [0.1, 0.1, 0.2], l0 / 2)
+    x = lattice([0, 0, 0], [0.1, 0.1, 0.15], l0)
+    s = S.SPHSolver(x, np.zeros_like(x), np.arange(len(x)), sdf, spacing=l0, rho0=1000.0,
+                    params=S.SPHParams(kernel=kernel), gravity=(0, 0, -9.81), mu=0.001, v_ref=float(np.sqrt(2 * 9.81 * 0.15)))
+    hydrostatic_start(s)
+    assert s.nbr.shape[1] == slots
+    for _ in range(3):
+        s.step(1.0)
+    assert s.nbr.shape[1] == slots and s.cnt.max() <= slots
 
 def test_bricked_wall_maps_are_the_dense_maps():
     """BrickWallMaps keeps only the bricks near the walls, with the same node values as WallMaps, and
