@@ -86,7 +86,9 @@ def run_one(solver: str, until: float, sets: dict, settle: float = 0.0) -> dict:
         settle_start(s, settle)
     errors, speeds = [], []
     f0 = s.frame()
-    z0, band = heights(f0)
+    z0 = heights(f0)
+    x0 = f0.x[np.argsort(f0.id)]  # the band within 3 l0 of a side wall, by id, as it starts
+    band = np.minimum(np.minimum(x0[:, 0], SIZE[0] - x0[:, 0]), np.minimum(x0[:, 1], SIZE[1] - x0[:, 1])) < 3 * L0
     times = [t for t in TIMES if t <= until + 1e-9]
     pressure_at = {round(until - 0.3 + 0.03 * k, 9) for k in range(10)}  # the pressure swings with the surface's
     speed_at = {round(AVERAGE_EVERY * k, 9) for k in range(1, int(until / AVERAGE_EVERY + 1e-9) + 1)}  # slow modes
@@ -100,8 +102,7 @@ def run_one(solver: str, until: float, sets: dict, settle: float = 0.0) -> dict:
             speeds.append((t, float(sp.mean())))
         if any(abs(t - tt) < 1e-9 for tt in times):
             window = [m for ts, m in speeds if t - 0.5 < ts <= t + 1e-9]
-            z, _ = heights(f)
-            dz = 1e3 * (z - z0)  # mm, per particle (by id)
+            dz = 1e3 * (heights(f) - z0)  # mm, per particle
             rows.append({"t": t, "mean": float(sp.mean()), "p99": float(np.percentile(sp, 99)), "max": float(sp.max()),
                          "mean_last_half_second": float(np.mean(window)), "steps": s.steps,
                          "drop_mm": -float(dz.mean()), "drop_side_mm": -float(dz[band].mean()),
@@ -113,14 +114,10 @@ def run_one(solver: str, until: float, sets: dict, settle: float = 0.0) -> dict:
             "surface_drop_mm": 1e3 * (DEPTH - surface(f.x)), "wall_seconds": time.perf_counter() - t0, "set": sets, "settle": settle}
 
 
-def heights(f):
-    """Each particle's height (ordered by id) and, from the given frame, whether it lies within 3 l0 of a side
-    wall: the centre of mass's drop since t = 0 is the potential energy the fluid released (g times it, J/kg),
-    in the band along the side walls and in the interior."""
-    o = np.argsort(f.id)
-    x = f.x[o]
-    side = np.minimum(np.minimum(x[:, 0], SIZE[0] - x[:, 0]), np.minimum(x[:, 1], SIZE[1] - x[:, 1])) < 3 * L0
-    return x[:, 2], side
+def heights(f) -> np.ndarray:
+    """Each particle's height, ordered by id: the centre of mass's drop since t = 0 is the potential energy the
+    fluid released (g times it, J/kg)."""
+    return f.x[np.argsort(f.id), 2]
 
 
 def surface(x) -> float:

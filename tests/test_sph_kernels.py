@@ -273,16 +273,15 @@ def test_solver_grows_the_neighbour_list_and_matches_a_roomy_one():
     sdf = grid_from_function(box_interior_sdf([0, 0, 0], [0.12, 0.12, 0.12]), [0, 0, 0], [0.12, 0.12, 0.12], l0)
     runs = []
     for cap in (16, 200):
-        s = S.SPHSolver.__new__(S.SPHSolver)
+        s = S.SPHSolver(x, np.zeros_like(x), np.arange(len(x)), sdf, spacing=l0, rho0=1000.0, params=S.SPHParams(),
+                        gravity=(0, 0, -9.81), mu=0.01)
         s.nbr_cap = cap  # the list's starting size (else the rest lattice's count within h + skin)
-        s.__init__(x, np.zeros_like(x), np.arange(len(x)), sdf, spacing=l0, rho0=1000.0, params=S.SPHParams(),
-                   gravity=(0, 0, -9.81), mu=0.01)
+        s._resized()
         for _ in range(5):
             s.step(1.0)
         runs.append(s)
     assert runs[0].nbr.shape[1] > 16 and runs[0].nbr.shape[1] >= runs[0].cnt.max()
     assert np.array_equal(runs[0].x, runs[1].x) and np.array_equal(runs[0].v, runs[1].v)
-
 
 
 @pytest.mark.parametrize("kernel, slots", [("spline", 89), ("poly6_spiky", 48)])
@@ -302,6 +301,7 @@ def test_neighbour_list_starts_at_the_rest_lattice_count(kernel, slots):
     for _ in range(3):
         s.step(1.0)
     assert s.nbr.shape[1] == slots and s.cnt.max() <= slots
+
 
 def test_bricked_wall_maps_are_the_dense_maps():
     """BrickWallMaps keeps only the bricks near the walls, with the same node values as WallMaps, and
