@@ -315,8 +315,11 @@ def test_a_nozzle_just_above_resting_water_does_not_throw_it(solver, height):
 
 def test_inflow_and_sink_in_centimetres_y_up_move_as_in_metres_z_up(tmp_path):
     """The resume test's tank (tap, overflow drain) in metres Z-up and in centimetres Y-up (y and z
-    swapped): the same particles come and go, and every frame is the same point set within 1e-5 l0
-    (measured 1.1e-6: the frames' float32)."""
+    swapped): the same particles come and go, and every frame is the same point set, to within the rounding
+    the two frames of reference differ by as a chaotic flow amplifies it. Measured: 1.1e-6 l0 (the frames'
+    float32) for the first four frames; at 0.2 s a push-out decision at the walls (contact_velocity's band
+    or the 0.999 r_rep tolerance) goes the other way on that rounding, and the difference grows to 0.0036 l0 at
+    most by frame 7 (median 3e-4 l0). A unit or axis error moves particles by a spacing or more."""
     import copy
     from scipy.spatial import cKDTree
 
@@ -347,7 +350,7 @@ def test_inflow_and_sink_in_centimetres_y_up_move_as_in_metres_z_up(tmp_path):
         fa, fb = load_particle_frame(a, f), load_particle_frame(b, f)
         assert len(fa) == len(fb)
         d, _ = cKDTree(fa.x).query((fb.x / 100.0)[:, [0, 2, 1]])
-        assert d.max() < 1e-5 * TANK_L0, (f, d.max())
+        assert d.max() < 0.01 * TANK_L0 and np.median(d) < 1e-3 * TANK_L0, (f, d.max() / TANK_L0)
 
 
 # -- a nozzle on a moving wall ------------------------------------------------------------------------------

@@ -16,16 +16,16 @@ import pipeline
 from pipeline import Registry
 from stages.common.formats import ParticleMeta, WallMesh, load_particle_frame
 from stages.common.sdf import DEFAULT_SHELL_THICKNESS, SHELL_R_REP, SHELL_STEP, SDFGrid, min_shell_thickness
-from stages.simulate.sph_kernels import push_out_of_walls
+from stages.simulate.walls.maps import StaticWalls, push_out
 from stages.wall_snap.distance import DistanceSnapParams
 
 
 # -- the bound: a particle left at d >= r_rep and moved by one step never ends across the wall ------
 @nb.njit(cache=True)
-def _step_and_push(p, step, dist, origin, inv_h, r_rep, out):
+def _step_and_push(p, step, walls, r_rep, out):
     for i in range(p.shape[0]):
-        x, y, z, _, _, _ = push_out_of_walls(p[i, 0] + step[i, 0], p[i, 1] + step[i, 1], p[i, 2] + step[i, 2],
-                                             0.0, 0.0, 0.0, dist, origin, inv_h, r_rep, 0.5)
+        x, y, z, _, _, _ = push_out(walls, None, -1, p[i, 0] + step[i, 0], p[i, 1] + step[i, 1], p[i, 2] + step[i, 2],
+                                    0.0, 0.0, 0.0, r_rep, 0.5, True)
         out[i, 0] = x
         out[i, 1] = y
         out[i, 2] = z
@@ -51,11 +51,10 @@ def _crossings(thickness: float, step: float, cell: float = 0.5, seed: int = 1) 
                 p = rng.uniform(-0.8, 0.8, (300, 3))
                 p += ((s + side * (SHELL_R_REP + thickness / 2 + 0.3)) - p @ n)[:, None] * n
                 settled = np.empty_like(p)
-                _step_and_push(p, np.tile(-side * 0.3 * n, (len(p), 1)), grid.dist, grid.origin, 1 / cell, SHELL_R_REP,
-                               settled)
+                walls = StaticWalls(grid.dist, grid.origin, 1 / cell)
+                _step_and_push(p, np.tile(-side * 0.3 * n, (len(p), 1)), walls, SHELL_R_REP, settled)
                 moved = np.empty_like(p)
-                _step_and_push(settled, np.tile(-side * step * n, (len(p), 1)), grid.dist, grid.origin, 1 / cell,
-                               SHELL_R_REP, moved)
+                _step_and_push(settled, np.tile(-side * step * n, (len(p), 1)), walls, SHELL_R_REP, moved)
                 crossed += int(np.sum(np.sign(settled @ n - s) != side) + np.sum(np.sign(moved @ n - s) != side))
     return crossed
 

@@ -17,8 +17,7 @@ import numba as nb
 from stages.common.sdf import sdf_sample
 
 from .neighbours import cell_coords
-from .sph_kernels import push_out_of_walls
-from .walls.maps import bodies_push_out
+from .walls.maps import bodies_push_out, push_out
 from .walls.mps import (FIX_G, FIX_L, FIX_M, FIX_N, FIX_T, G, M, T, ZL, ZN, bodies_divergence, bodies_gradient,
                         bodies_hydrostatic, bodies_laplacian, bodies_number_density, wall_sum)
 
@@ -601,10 +600,9 @@ def project_out_of_walls(x, v, walls, r_rep, max_corr):
         vx = v[i, 0]
         vy = v[i, 1]
         vz = v[i, 2]
-        px, py, pz, vx, vy, vz = push_out_of_walls(px, py, pz, vx, vy, vz, walls.sdf, walls.sdf_o, walls.sdf_inv,
-                                                   r_rep, max_corr)
+        px, py, pz, vx, vy, vz = push_out(walls, None, -1, px, py, pz, vx, vy, vz, r_rep, max_corr, False)
         if walls.pose.shape[0] > 0:
-            px, py, pz, vx, vy, vz = bodies_push_out(walls, walls.pose, px, py, pz, vx, vy, vz, r_rep, max_corr)
+            px, py, pz, vx, vy, vz = bodies_push_out(walls, walls.pose, px, py, pz, vx, vy, vz, r_rep, max_corr, False)
         x[i, 0] = px
         x[i, 1] = py
         x[i, 2] = pz

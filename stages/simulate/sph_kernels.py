@@ -59,7 +59,7 @@ from .kernels import FASTMATH
 from .walls.spline import spline_f, spline_w
 from .neighbours import cell_coords
 from .walls.maps import (bodies_density, bodies_nearest, bodies_push_out, bodies_viscous, brick_sample,
-                         brick_sample_1234, nearest_wall_velocity, push_move, push_velocity, static_distance,
+                         brick_sample_1234, nearest_wall_velocity, push_out, static_distance,
                          wall_density)
 from .walls.tables import table_lookup
 
@@ -644,35 +644,10 @@ def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, walls, 
         acc[i, 2] = az
 
 
-# push_out_of_walls and move_near_walls are called, not inlined: numba inlines at its own IR level, so each
+# walls.maps.push_out and move_near_walls are called, not inlined: numba inlines at its own IR level, so each
 # kernel that inlined them typed and compiled their bodies again (integrate's two builds in the demo 27 -> 14 s);
 # LLVM still inlines the machine code, and their callers are not fastmath, so the arithmetic is the same.
 # (_walls_and_pressure above stays inlined: called, numba built it twice, for more than it saved.)
-@nb.njit(cache=True)
-def push_out_of_walls(px, py, pz, vx, vy, vz, sdf, sdf_o, sdf_inv, r_rep, max_corr):
-    """Eq. 16: a particle closer to a wall than r_rep moves out along the SDF normal (at most max_corr
-    per projection) and loses its velocity into the wall; up to three projections, since in an edge or
-    corner each one finds the next closest wall (in an acute V, along the part of the normal that keeps
-    the last wall satisfied, and no velocity into either: walls.maps.push_move, push_velocity). Returns
-    the new (x, v)."""
-    mx = 0.0
-    my = 0.0
-    mz = 0.0
-    for _ in range(3):
-        dw, nx, ny, nz = sdf_sample(sdf, sdf_o[0], sdf_o[1], sdf_o[2], sdf_inv, px, py, pz)
-        if dw >= r_rep * 0.999:
-            break
-        corr, ex, ey, ez = push_move(nx, ny, nz, mx, my, mz, r_rep - dw, max_corr)
-        px += corr * ex
-        py += corr * ey
-        pz += corr * ez
-        vx, vy, vz = push_velocity(vx, vy, vz, 0.0, 0.0, 0.0, nx, ny, nz, mx, my, mz)
-        mx = nx
-        my = ny
-        mz = nz
-    return px, py, pz, vx, vy, vz
-
-
 @nb.njit(cache=True, inline="always")
 def sub_steps(step, max_move):
     """How many sub-steps a move of length ``step`` takes: moves no longer than ``max_move`` each."""
@@ -695,9 +670,8 @@ def move_near_walls(x0, y0, z0, vx, vy, vz, dt, walls, r_rep, max_corr, max_move
         px += h * vx
         py += h * vy
         pz += h * vz
-        px, py, pz, vx, vy, vz = push_out_of_walls(px, py, pz, vx, vy, vz, walls.sdf, walls.sdf_o, walls.sdf_inv,
-                                                   r_rep, max_corr)
-        px, py, pz, vx, vy, vz = bodies_push_out(walls, walls.pose, px, py, pz, vx, vy, vz, r_rep, max_corr)
+        px, py, pz, vx, vy, vz = push_out(walls, None, -1, px, py, pz, vx, vy, vz, r_rep, max_corr, True)
+        px, py, pz, vx, vy, vz = bodies_push_out(walls, walls.pose, px, py, pz, vx, vy, vz, r_rep, max_corr, True)
     return px, py, pz, vx, vy, vz
 
 
