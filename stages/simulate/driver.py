@@ -367,8 +367,8 @@ def settle(solver: SolverBase, seconds: float, progress=None, log=None, spacing:
     """Let a fluid that starts at rest settle before t = 0: ``seconds`` of the solver's own steps with every
     velocity set to zero 30 times a second (kinetic damping of the start, not of the shot), then the clock
     and the step count back at the start. The start lattice is not the method's resting packing: left alone it
-    creeps into it during the shot (bench_rest's tank with the spline kernel: 0.0067 m/s at 1.5 s); started from
-    that packing the same tank moves at 0.0024-0.0027 m/s (README, Water at rest)."""
+    creeps into it during the shot (bench_rest's tank: 0.0033 m/s at 1.5 s); settled for 1.5 s first, 0.0019
+    m/s (README, Water at rest)."""
     t0, steps0 = solver.t, solver.steps
     before = solver.frame()
     n = settle_intervals(seconds)

@@ -25,7 +25,7 @@ def _one_thread():
 
 # Open defects the suite found (issue 17), kept visible: strict, so a fix turns them into errors to remove.
 KNOWN = {
-    ("rest", "sph"): "not yet below 1 cm/s at 0.3 s (the start's transient; 0.006 m/s at 1.5 s in bench_rest's tank)",
+    ("rest", "sph"): "not yet below 1 cm/s at 0.3 s (the start's transient; 0.0033 m/s at 1.5 s in bench_rest's tank)",
     ("rest", "sph_poly6"): "not yet below 1 cm/s at 0.3 s with water's viscosity (decaying since the wall pressure is "
                            "conservative: 0.02 m/s mean at 1.5 s; the start's slow surface modes)",
     ("rest", "dfsph"): "not at rest with water's viscosity: the floor layer's pressure and the wall term (dfsph.py)",
