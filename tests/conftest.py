@@ -31,6 +31,19 @@ outputs: [frames]
 """
 
 
+def no_wall_terms(sdf, h):
+    """Walls whose map is empty (no wall term anywhere) over ``sdf``: internal forces only, and the push-out
+    (walls.maps.push_out) against the SDF alone."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from stages.simulate.walls.maps import make_walls
+    empty = SimpleNamespace(index=np.full((1, 1, 1), -1, np.int32), bricks=np.zeros((0, 4, 4, 4, 5), np.float32),
+                            shape=np.array([2, 2, 2]), origin=np.zeros(3), spacing=1.0, fix_rho=np.zeros(8), inv_dr=7 / h)
+    return make_walls(sdf, empty)
+
+
 def write_toy_plugin(root: Path) -> Path:
     """A fake installed distribution whose entry points register the toy stages (the real mechanism)."""
     dist = root / "toy_plugin-0.1.dist-info"

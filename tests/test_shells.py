@@ -13,10 +13,11 @@ import trimesh
 import yaml
 
 import pipeline
+from conftest import no_wall_terms
 from pipeline import Registry
 from stages.common.formats import ParticleMeta, WallMesh, load_particle_frame
 from stages.common.sdf import DEFAULT_SHELL_THICKNESS, SHELL_R_REP, SHELL_STEP, SDFGrid, min_shell_thickness
-from stages.simulate.walls.maps import StaticWalls, push_out
+from stages.simulate.walls.maps import push_out
 from stages.wall_snap.distance import DistanceSnapParams
 
 
@@ -51,7 +52,7 @@ def _crossings(thickness: float, step: float, cell: float = 0.5, seed: int = 1) 
                 p = rng.uniform(-0.8, 0.8, (300, 3))
                 p += ((s + side * (SHELL_R_REP + thickness / 2 + 0.3)) - p @ n)[:, None] * n
                 settled = np.empty_like(p)
-                walls = StaticWalls(grid.dist, grid.origin, 1 / cell)
+                walls = no_wall_terms(grid, 2.0)
                 _step_and_push(p, np.tile(-side * 0.3 * n, (len(p), 1)), walls, SHELL_R_REP, settled)
                 moved = np.empty_like(p)
                 _step_and_push(settled, np.tile(-side * step * n, (len(p), 1)), walls, SHELL_R_REP, moved)

@@ -1,21 +1,13 @@
 """SPH kernels, wall tables, pair-force symmetry (PHYSICS.md eq. 6-15)."""
 import math
 
-from types import SimpleNamespace
-
 import numpy as np
 import pytest
 
 from stages.common.sdf import box_interior_sdf, grid_from_function, wall_move_limit
 from stages.simulate import sph_kernels as K
-from stages.simulate.walls.maps import BrickWallMaps, StaticWalls, make_walls, push_out
-
-
-def no_wall_terms(sdf, h):
-    """Walls whose map is empty (no wall term anywhere) over ``sdf``: internal forces only."""
-    empty = SimpleNamespace(index=np.full((1, 1, 1), -1, np.int32), bricks=np.zeros((0, 4, 4, 4, 5), np.float32),
-                            shape=np.array([2, 2, 2]), origin=np.zeros(3), spacing=1.0, fix_rho=np.zeros(8), inv_dr=7 / h)
-    return make_walls(sdf, empty)
+from conftest import no_wall_terms
+from stages.simulate.walls.maps import BrickWallMaps, make_walls, push_out
 from stages.simulate.effects import cohesion_coef
 from stages.simulate.emitters import lattice
 from stages.simulate.kernels import lattice_mass, poly6_coef, poly6_np, spiky_grad_coef, visc_lap_coef
@@ -493,7 +485,7 @@ def _plain_push_out(p, v, sdf, r_rep, max_corr):
 
 
 def _push_out(p, v, sdf, r_rep, max_corr):
-    return push_out(StaticWalls(sdf.dist, sdf.origin, 1.0 / sdf.spacing), None, -1, *p, *v, r_rep, max_corr, True)
+    return push_out(no_wall_terms(sdf, 2 * r_rep), None, -1, *p, *v, r_rep, max_corr, True)
 
 
 def test_push_out_leaves_an_acute_v_and_keeps_right_angled_corners():

@@ -332,7 +332,6 @@ def map_density(wmap, wo, winv, fix_rho, inv_dr, sdf, sdf_o, sdf_inv, h, x, y, z
 Walls = namedtuple("Walls", "sdf sdf_o sdf_inv index bricks shape wo winv fix_rho inv_dr "
                             "b_sdf b_grid b_sdf_o b_sdf_inv b_index b_igrid b_bricks b_shape b_wo b_winv pose")
 POSE_SIZE = 21
-StaticWalls = namedtuple("StaticWalls", "sdf sdf_o sdf_inv")  # all of Walls that push_out reads of the static walls
 
 
 def body_fields(grids) -> tuple:
