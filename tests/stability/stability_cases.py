@@ -308,6 +308,17 @@ def rest_floor(l0: float) -> float:
     return REST_FLOOR * math.sqrt(l0 / REST_FLOOR_SPACING)
 
 
+def rest_summary(r) -> dict:
+    """The resting tank's verdict figures from a Result: the mean speed averaged over the run's last sixth (late)
+    and over its third to its half (early: 1-1.5 s of the CI run), the floor at its spacing, and the free surface's
+    change over the whole run and its range over the second half, in l0."""
+    t_end = r.speeds[-1][0]
+    half = [h for t, h in r.surfaces if t >= t_end / 2 - 1e-9]
+    return {"late": float(np.mean([v for t, v in r.speeds if t > t_end * 5 / 6 - 1e-9])),
+            "early": float(np.mean([v for t, v in r.speeds if t_end / 3 - 1e-9 <= t <= t_end / 2 + 1e-9])),
+            "floor": rest_floor(r.l0), "drift": r.surface_drift, "drift_second_half": max(half) - min(half)}
+
+
 def make_solver(name: str, s: Scene):
     ids = np.arange(len(s.x))
     g = s.gravity
@@ -462,6 +473,11 @@ def main() -> None:
         for solver in a.solvers.split(","):
             r = run_case(case, solver, long=a.long)
             print(r.row(), flush=True)
+            if case == "rest" and r.blowup is None:
+                f = rest_summary(r)
+                print(f"    mean speed over {r.speeds[-1][0] / 3:.2g}-{r.speeds[-1][0] / 2:.2g} s {f['early']:.4f}, over the "
+                      f"last sixth {f['late']:.4f} m/s (floor {f['floor']:.4f}); free surface {f['drift']:+.3f} l0, "
+                      f"{f['drift_second_half']:.3f} l0 over the second half", flush=True)
             if r.blowup:
                 print(f"    {r.blowup}", flush=True)
 

@@ -11,9 +11,7 @@ from __future__ import annotations
 import numba as nb
 import pytest
 
-import numpy as np
-
-from stability_cases import CASES, SOLVERS, rest_floor, run_case
+from stability_cases import CASES, SOLVERS, rest_summary, run_case
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -80,14 +78,10 @@ def assert_at_rest(r) -> None:
     free surface still over the run's second half (no creep or leak: within 0.1 l0) and within half a spacing
     of where it started (the top layer settles by about a third of a spacing into its resting packing in the
     first second: 0.31 l0 for WCSPH at 1 s, 0.345 at 3 s)."""
-    t_end = r.speeds[-1][0]
-    late = np.mean([v for t, v in r.speeds if t > t_end * 5 / 6 - 1e-9])
-    early = np.mean([v for t, v in r.speeds if t_end / 3 - 1e-9 <= t <= t_end / 2 + 1e-9])
-    floor = rest_floor(r.l0)
-    assert late < floor and late < early, (late, early, floor, r.speeds)
-    half = [h for t, h in r.surfaces if t >= t_end / 2 - 1e-9]
-    assert max(half) - min(half) < 0.1, r.surfaces
-    assert abs(r.surface_drift) < 0.5, r.surface_drift
+    f = rest_summary(r)
+    assert f["late"] < f["floor"] and f["late"] < f["early"], (f, r.speeds)
+    assert f["drift_second_half"] < 0.1, (f, r.surfaces)
+    assert abs(f["drift"]) < 0.5, (f, r.surfaces)
 
 
 @pytest.mark.parametrize("angle", [10.0, 20.0, 30.0])
