@@ -45,8 +45,26 @@ at 1.5 s against our 0.21). What was measured:
   rest distance, Psi its exact gradient) kept the bottom layer off the clamp (>= 0.4 l0) but the column
   bounced as before, also with both solves converged to 1e-5: the fastest particles then sat in the
   bottom edges and corners.
-Next: wall terms that are right in edges and corners (from the wall geometry, not a flat-wall factor
-of the nearest distance), then the floor's slope; the tank of the test is the check."""
+- session 32 (bench_rest's tank, throw-away harnesses): per step, the density solve ADDS kinetic energy
+  and the divergence solve takes it away (over the first second +2.8 J and -2.6 J; the tank holds 0.2 J),
+  spread over the whole depth. The density solve's kappa is about 0 above the bottom layers, where the
+  divergence solve's kappa_v carries the hydrostatic pressure (0.9-1.2 g depth): v* keeps g dt through
+  the position update, the fluid sinks g dt^2 a step and the next step's error term pushes it back up.
+  The fluid also circulates: with WALL_MIRROR = 1 the band by the side walls sinks (10 mm at 1 s) and the
+  interior rises. The hydrostatic state (kappa = g depth) on the rest lattice is far from a balance with
+  WALL_MIRROR = 1 (first row at a side wall -5.2 g into it, floor row -10 g); WALL_MIRROR = 2 with the
+  walls' share of the hydrostatic gradient (-T_wall g, Adami et al. 2012: kernels.wall_gradient_tables)
+  balances it at flat walls (within 0.007 g) and leaves 0.14-0.66 g in edges. Not the cause, measured
+  (mean speed, m/s, at 1 s unless said): Psi the exact gradient of Z (spline, central differences) 0.19 at
+  1.5 s; both solves to 1e-5 0.165; the error term's share beta x 0.2 0.086 (the divergence solve then
+  adds energy); no warm start 0.13 (0.066 with beta x 0.2); the density solve warm-started with kappa +
+  kappa_v and the divergence solve from zero 0.33 (0.35 with mirror 2 and -T_wall g); mirror 2 0.26, with
+  -T_wall g 0.18 (0.087 at 0.4 s); mirror 1 with -T_wall g 0.21, the circulation reversed (sides up 41 mm);
+  and the start made an exact balance (mirror 2, -T_wall g, the lattice's residual subtracted as a fixed
+  field) 0.06 at 0.1 s growing to 0.17. So the wall terms are not the whole cause: the split pressure
+  (kappa, kappa_v) lets the two solves trade energy every step.
+Next: a pressure that holds the fluid within the density solve (one total pressure, warm started, with
+an error that counts expansion where kappa > 0), then the wall terms; the tank of the test is the check."""
 from __future__ import annotations
 
 import math

@@ -25,6 +25,18 @@ the flat-wall lattice tables; no wall particles. A moving rigid wall has its own
 rest frame and sampled through its pose (walls/mps.MPSWalls); its wall particles move with it (viscosity,
 divergence and the eq. 16 projection take its velocity) and the step is limited by its speed.
 
+At rest (issue 17; session 32, bench_rest's tank): calm for 0.2 s (mean 0.002-0.004 m/s), then motion at the
+particle scale (at 0.3 s 85 % of the kinetic energy below 2 l0) grows in the bulk, e-folding in about 0.07 s,
+to 0.033 m/s by 0.4 s, and decays slowly after (0.022 at 1.5 s). It scales with gravity as a Froude-scaled flow
+(g / 4: onset at 0.4-0.5 s, 0.017 m/s), as the p_min gradient's repulsion does (its stiffness is (p_i - p_min)
+/ rho l0^2 ~ 2 g / l0). Unchanged by: dt (cfl 0.1), CG to 1e-9, no collision, beta 0.95, re_laplacian 2.1, gamma
+0.001 or 0.05, compressibility 0 or 5e-9, r_rep 0.3, the wall maps' edge excess of n removed, the start made an
+exact balance (the gradient's hydrostatic residual on the lattice subtracted: +0.255 g in the layer under the
+p = 0 surface, 0.12 g out of vertical edges), particle shifting (Lind et al. 2012, 0.01-0.05 l0^2 (d / n0)
+sum (x_j - x_i) w / r^2 a step in the bulk). The plain gradient (p_j - p_i, corrected) ran away (mean 0.57 m/s
+at 0.2 s). p_min taken over p_j - rho g . (x_j - x_i) (no hydrostatic stiffness): the jump gone (0.014 m/s at 1 s
+against 0.026) but slow growth and single particles at 0.2-0.4 m/s (test_mps_pressure_output fails), not kept.
+
 Effects: gravity and viscosity (with its no-slip wall term) only; a scene declaring any other effect
 is rejected with a StageError that names them.
 
