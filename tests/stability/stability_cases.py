@@ -313,10 +313,12 @@ def rest_summary(r) -> dict:
     and over its third to its half (early: 1-1.5 s of the CI run), the floor at its spacing, and the free surface's
     change over the whole run and its range over the second half, in l0."""
     t_end = r.speeds[-1][0]
+    early = (t_end / 3, t_end / 2)
     half = [h for t, h in r.surfaces if t >= t_end / 2 - 1e-9]
     return {"late": float(np.mean([v for t, v in r.speeds if t > t_end * 5 / 6 - 1e-9])),
-            "early": float(np.mean([v for t, v in r.speeds if t_end / 3 - 1e-9 <= t <= t_end / 2 + 1e-9])),
-            "floor": rest_floor(r.l0), "drift": r.surface_drift, "drift_second_half": max(half) - min(half)}
+            "early": float(np.mean([v for t, v in r.speeds if early[0] - 1e-9 <= t <= early[1] + 1e-9])),
+            "early_window": early, "floor": rest_floor(r.l0), "drift": r.surface_drift,
+            "drift_second_half": max(half) - min(half)}
 
 
 def make_solver(name: str, s: Scene):
@@ -475,7 +477,7 @@ def main() -> None:
             print(r.row(), flush=True)
             if case == "rest" and r.blowup is None:
                 f = rest_summary(r)
-                print(f"    mean speed over {r.speeds[-1][0] / 3:.2g}-{r.speeds[-1][0] / 2:.2g} s {f['early']:.4f}, over the "
+                print(f"    mean speed over {f['early_window'][0]:.2g}-{f['early_window'][1]:.2g} s {f['early']:.4f}, over the "
                       f"last sixth {f['late']:.4f} m/s (floor {f['floor']:.4f}); free surface {f['drift']:+.3f} l0, "
                       f"{f['drift_second_half']:.3f} l0 over the second half", flush=True)
             if r.blowup:
