@@ -36,6 +36,13 @@ p = 0 surface, 0.12 g out of vertical edges), particle shifting (Lind et al. 201
 sum (x_j - x_i) w / r^2 a step in the bulk). The plain gradient (p_j - p_i, corrected) ran away (mean 0.57 m/s
 at 0.2 s). p_min taken over p_j - rho g . (x_j - x_i) (no hydrostatic stiffness): the jump gone (0.014 m/s at 1 s
 against 0.026) but slow growth and single particles at 0.2-0.4 m/s (test_mps_pressure_output fails), not kept.
+Session 33: the onset comes with the free-surface flag flickering (4 top-corner particles leave it at 0.17 s;
+11,600 flips by 0.45 s, down to layer 13), but it is a symptom: keeping the bulk interior (the flag only where the
+neighbourhood, walls included, is lopsided: l0 (d / n0) |sum (x_j - x_i) w / r^2 + G| > 0.1-0.2, 0 in the bulk
+and 0.09-0.11 in edges and corners on the lattice, 0.5 in the top layer) or a hysteresis (off again only above
+n0) left the run as it was (0.022 m/s at 1.5 s). Worse: no corrective matrix (0.097 at 1.5 s), SPH's symmetric
+pair form p_i + p_j (the walls' first-moment error in edges times p_i: 1.25 g out of vertical edges 10 layers
+deep; 0.05 m/s), the repulsion made pairwise symmetric ((p_j - p_i) + (k_i + k_j) / 2, k = p - p_min: 0.075 m/s).
 
 Effects: gravity and viscosity (with its no-slip wall term) only; a scene declaring any other effect
 is rejected with a StageError that names them.
