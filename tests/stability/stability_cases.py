@@ -416,8 +416,6 @@ def run_case(case: str, solver: str, long: bool = False) -> Result:
                 target = REST_LONG_STEPS * k // samples
                 while sol.steps < target:
                     sol.advance_to(sol.t + 1e-3)
-                    if sol.steps >= target:
-                        break
             else:
                 sol.advance_to(t_end * k / samples)
             _measure(res, sol, s, up)

@@ -28,7 +28,8 @@ KNOWN = {
     ("rest", "sph_poly6"): "decaying but above the floor: 0.0087 m/s over 2.5-3 s against 0.0071 (0.017 m/s at 1.5 s "
                            "in bench_rest's tank; the spline default is at the goal)",
     ("rest", "dfsph"): "not at rest with water's viscosity: 0.20 m/s over 2.5-3 s, the surface churning a spacing "
-                       "up and down (dfsph.py: the solves trade energy every step)",
+                       "up and down (dfsph.py: the constant-density solve keeps the work of removing each step's "
+                       "compression as kinetic energy)",
     ("rest", "mps"): "decaying but above the floor: 0.025 m/s over 2.5-3 s (particle-scale motion that grows from "
                      "0.004 m/s after 0.2 s: mps.py)",
     ("dam_break", "mps"): "single spurious impact particles at 2.9 x the ballistic bound: the one-particle-thick "
