@@ -7,7 +7,9 @@ particle cache, checkpoints, statistics and USD layer are identical in form.
 One step (PHYSICS.md "MPS"): u* = u + dt (nu <lap u> + g), x* = x + dt u*; collision of close pairs;
 n* at x* (fluid + wall maps); free surface n* < beta n0 -> p = 0; the pressure Poisson equation
 -<lap p> + (alpha rho / dt^2) p = gamma (rho / dt^2) (n* - n0) / n0 - (1 - gamma) (rho / dt) <div u*>
-by Jacobi-preconditioned CG (numba CSR, warm-started with the last pressure); p < 0 -> 0;
+whose rows also count the p_min gradient's repulsion for the pressure's change from the last step
+(mps_kernels.add_repulsion_rows), by Jacobi-preconditioned CG (numba CSR, warm-started with the last
+pressure); p < 0 -> 0;
 u = u* - (dt / rho) <grad p> with the p_min form and the corrective matrix (Khayyer and Gotoh 2011:
 exact for a linear pressure on any arrangement; without it the tank at rest settled into a packing
 whose gradient tensor has zz part 1.09 and the pressure 6-9 % below rho g h); x = x* + dt (u - u*);
@@ -43,6 +45,21 @@ and 0.09-0.11 in edges and corners on the lattice, 0.5 in the top layer) or a hy
 n0) left the run as it was (0.022 m/s at 1.5 s). Worse: no corrective matrix (0.097 at 1.5 s), SPH's symmetric
 pair form p_i + p_j (the walls' first-moment error in edges times p_i: 1.25 g out of vertical edges 10 layers
 deep; 0.05 m/s), the repulsion made pairwise symmetric ((p_j - p_i) + (k_i + k_j) / 2, k = p - p_min: 0.075 m/s).
+
+Impacts (issue 17, session 34). The p_min gradient is the difference form plus a repulsion (p_i - p_min) m_i,
+m_i the first moment of i's neighbourhood, walls included (about 0 when it is full). The Laplacian models the
+difference form only, so where the neighbourhood is lopsided (a thin front hitting a wall, a cluster beside the
+free surface) the solve asked for several times the pressure that stops a particle, and the repulsion threw it
+out: the stability suite's dam break (and its kilometre copy) at 2.9 x the ballistic bound; the thin plate's
+splash blew up in the tank's top corners (168 m/s). Each row now counts the repulsion's effect on the particle's
+own divergence, (d / n0)^2 |m_i|^2, for the pressure's change from the last step: dam break 1.38 x, kilometres
+1.40 x, thin plate 0.65 x (short suite); in the long suite no case above 1.14 x (the thin plate 2.03 x before,
+the overlapping emitters 2.60 x). Sessions 16-17 tried the walls' part alone (|G_i|^2): the paddle's face layer
+then fell to 0.88 U and the long thin plate reached 5.4 x. Counted for the whole pressure (p_min lagged on the
+right), the rows lowered the steady pressure wherever m_i is the wall maps' error: 271 % density error in the 20
+degree wedge's apex. Cost at rest (bench_rest's tank): the top two layers churn more (99th percentile 0.091 m/s
+at 1.5 s against 0.053; mean 0.0256 against 0.021), the bulk as before, the pressure 2-8 layers down -2.0 % from
+rho g h against +6.8 %.
 
 Effects: gravity and viscosity (with its no-slip wall term) only; a scene declaring any other effect
 is rejected with a StageError that names them.
@@ -240,6 +257,9 @@ class MPSSolver(SolverBase):
             need = int(self.row_off[-1] * 1.25) + 16
             self.cols = np.zeros(need, np.int32)
             self.vals = np.zeros(need)
+        # self.pr still holds the last step's pressure (the warm start)
+        K.add_repulsion_rows(self.xs, self.pr, self.offsets, self.nbr, self.re_n, self.grad_coef, self.d, self.wall_terms,
+                             self.dirichlet, self.diag, self.b)
         r, z, pd, q = self.cg
         it = K.pcg(self.row_off, self.cols, self.vals, self.diag, self.b, self.pr, r, z, pd, q, self.partial,
                    self.partial2, self.p.cg_tolerance, self.p.cg_max_iterations)
@@ -339,7 +359,7 @@ def check_effects(effects) -> None:
 class MPSSimulate(Stage):
     kind = "simulate"
     name = "mps"
-    version = "4"  # 4: a frame's pressure is its mean over the frame's steps
+    version = "5"  # 5: the PPE counts the p_min repulsion (impacts); 4: a frame's pressure is its mean over the frame's steps
     Params = MPSParams
     inputs = ("sdf",)
     reads = ("scene.units", "scene.domain", "scene.frames.count", "scene.frames.fps", "fluid", "effects")

@@ -30,17 +30,8 @@ KNOWN = {
     ("rest", "dfsph"): "not at rest with water's viscosity: 0.20 m/s over 2.5-3 s, the surface churning a spacing "
                        "up and down (dfsph.py: the constant-density solve keeps the work of removing each step's "
                        "compression as kinetic energy)",
-    ("rest", "mps"): "decaying but above the floor: 0.025 m/s over 2.5-3 s (particle-scale motion that grows from "
+    ("rest", "mps"): "decaying but above the floor: 0.024 m/s over 2.5-3 s (particle-scale motion that grows from "
                      "0.004 m/s after 0.2 s: mps.py)",
-    ("dam_break", "mps"): "single spurious impact particles at 2.9 x the ballistic bound: the one-particle-thick "
-                          "front reaches the far wall's floor corners at 2 m/s, gets 86 kPa (3.4 x what stopping it "
-                          "over a spacing takes) and the p_min gradient throws it up (the thin plate's mechanism)",
-    ("kilometres", "mps"): "the metre dam break's spurious impact particles, scaled (2.9 x the bound): with the "
-                           "compressibility term Froude-scaled it is the same run, 209 steps both",
-    ("thin_plate", "mps"): "blows up (168 m/s) where splashed particles reach the tank's top corners, not at the "
-                           "plate: 4-5 particles rising at 2.4 m/s into a corner get 1.6 MPa from the walls' share "
-                           "of the divergence source, and the p_min gradient (p_min = 0, a free-surface neighbour) "
-                           "turns it into repulsion of pairs 0.45 l0 apart",
 }
 
 
