@@ -10,7 +10,8 @@ Each scene runs through the pipeline (configs/<scene>.yaml, the spacing multipli
 keep it short). Without numerical energy creation the total can only fall (viscosity, the walls'
 no-slip, artificial viscosity); one particle can exceed its own start energy only by work the pressure
 does on it (a splash is physical when the total still falls and the gain is a pressure transfer, as in
-Ritter's dam-break front at 2 sqrt(g H)). Writes benchmarks/results/energy.json."""
+Ritter's dam-break front at 2 sqrt(g H)). Writes benchmarks/results/energy.json (energy_<solver>.json for
+another solver)."""
 from __future__ import annotations
 
 import argparse
@@ -34,7 +35,9 @@ def budget(scene: str, factor: float, solver: str, frames: int | None) -> dict:
     import yaml
     cfg = yaml.safe_load((ROOT / "configs" / f"{scene}.yaml").read_text())
     spacing = float(cfg["fluid"]["spacing"]) * factor
-    over = [f"fluid.spacing={spacing}", f"simulate.use={solver}", "outputs=[particles, sdf]"]
+    same = cfg["stages"]["simulate"].get("use") == solver  # another solver: the config's section replaced whole
+    over = [f"fluid.spacing={spacing}", f"simulate.use={solver}" if same else f"simulate={{use: {solver}}}",
+            "outputs=[particles, sdf]"]
     if frames:
         over.append(f"scene.frames.count={frames}")
     report = pipeline.run(ROOT / "configs" / f"{scene}.yaml", overrides=tuple(over),
@@ -91,7 +94,8 @@ def main() -> None:
             print(f"  t {row['t']:.2f} s  KE {row['kinetic']:9.2f} J  PE {row['potential']:9.2f} J  total "
                   f"{row['total'] / r['frames'][0]['total']:.3f}  e_max {row['specific_max_over_start']:.2f}  "
                   f"z99 {row['z_p99_over_release_top']:.2f}  zmax {row['z_max_over_release_top']:.2f}", flush=True)
-    (ROOT / "benchmarks" / "results" / "energy.json").write_text(json.dumps(results, indent=1) + "\n")
+    name = "energy.json" if a.solver == "sph" else f"energy_{a.solver}.json"
+    (ROOT / "benchmarks" / "results" / name).write_text(json.dumps(results, indent=1) + "\n")
 
 
 if __name__ == "__main__":
