@@ -351,8 +351,8 @@ def add_repulsion_rows(x, p_last, offsets, nbr, re_n, grad_coef, d, walls, diric
     The gradient is the difference form sum_j (p_j - p_i) e_j plus a repulsion (p_i - p_min) m_i, where
     m_i = sum_j e_j + G(x_i) is the first moment of the neighbourhood (walls included; e_j = (x_j - x_i) w / r^2).
     The Laplacian models the difference form only. A change dp_i of i's pressure changes its divergence
-    through the repulsion by (dt / rho) (d / n0)^2 |m_i|^2 dp_i, so the row gets c = (d / n0)^2 |m_i|^2 on its
-    diagonal and c p_last_i on its right-hand side.
+    through the repulsion by (dt / rho) (d / n0)^2 |m_i|^2 dp_i (the corrective matrix left out), so the row gets
+    c = (d / n0)^2 |m_i|^2 on its diagonal and c p_last_i on its right-hand side.
     - m_i is about 0 in a full neighbourhood (the lattice, walls included) and large where it is lopsided:
       next to the free surface, or in a thin front hitting a wall. There, the Laplacian alone solved for 3-4 x
       the pressure that stops a particle in one step. The repulsion (p_min = 0 beside a free-surface particle)
