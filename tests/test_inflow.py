@@ -121,7 +121,7 @@ TANK_L0 = 0.02
 TAP = {"center": [0.06, 0.05, 0.26], "direction": [0, 0, -1], "radius": 0.03, "speed": 0.5}
 TANK_FPS = 10
 TANK_SCENE = {
-    "scene": {"name": "tank", "frames": {"fps": TANK_FPS, "count": 16}, "units": {"up_axis": "Z"}},
+    "scene": {"name": "tank", "frames": {"fps": TANK_FPS, "count": 31}, "units": {"up_axis": "Z"}},
     "fluid": {"spacing": TANK_L0, "emitters": [{"box": {"min": [0, 0, 0], "max": [0.2, 0.1, 0.12]}}],
               "inflow": [TAP],
               # the drain: the fluid rising above z = 0.13 in the last two columns overflows into it
@@ -133,10 +133,14 @@ TANK_SCENE = {
 @pytest.mark.parametrize("solver", list(SOLVERS))
 def test_tank_with_tap_and_drain_reaches_a_constant_level(solver, tmp_path):
     """The tap (pi r^2 v = 1.41 l/s, 17.7 particles a frame) fills the tank to the drain's lip (about 0.15 s)
-    and from then on the drain takes what the tap gives: over the second (0.5 s to 1.5 s) the particles
-    drained equal those emitted within 10 % and the particle count in the tank stays within 8 % (filling, it
-    would grow 5 % a frame). Measured: drained +4.7 / +6.4 / +7.0 % (sph / dfsph / mps: the level still falls
-    by a few particles after the filling's overshoot), count within 3.9 / 3.5 / 4.5 %."""
+    and from then on the drain takes what the tap gives: over 1-3 s the particles drained equal those emitted
+    within 5 % (17 particles of 351) and the particle count in the tank stays within 8 % (filling, it would grow
+    5 % a frame). Measured: +5 / +3 / +9 particles (sph / dfsph / mps).
+    The window was 0.5-1.5 s at 10 % until session 34. The level still sloshes after the filling's overshoot there
+    (mps: the count swings between 324 and 346), so the count at the window's ends decided the result. MPS drained
+    +7 to +13 particles more than it got (four starts, the tap's speed 1e-4 apart), and +7 to +23 with session 34's
+    Poisson rows. Its level over 1.5-3 s is the same as before within 1 % (331 against 334 particles). Over 1-3 s
+    both give -3 to +12."""
     sdf = _tank(tmp_path, [0.2, 0.1, 0.3], TANK_L0)
     out = run_stage(SOLVERS[solver], tmp_path / "out", scene=TANK_SCENE, params={"threads": 1}, inputs={"sdf": sdf})
     stats = ParticleMeta.load(out).stats
@@ -147,11 +151,12 @@ def test_tank_with_tap_and_drain_reaches_a_constant_level(solver, tmp_path):
     assert stats["left_domain"] == 0 and stats["sunk"] == sum(gone) > 0
     assert stats["inflow_particles"] == sum(new) and stats["inflow_skipped_layers"] == [0]
     assert stats["particles"] == len(frames[0]) + sum(new) - sum(gone) == len(frames[-1])
-    steady = slice(5, None)  # the frame intervals from t = 0.5 s on
+    steady = slice(10, None)  # the frame intervals from t = 1 s on
     inflow, drained = sum(new[steady]), sum(gone[steady])
-    assert inflow == pytest.approx(math.pi * TAP["radius"] ** 2 * TAP["speed"] / TANK_L0 ** 3, rel=0.1)
-    assert abs(drained - inflow) <= 0.1 * inflow, (new, gone)
-    counts = [len(fr) for fr in frames[5:]]
+    assert inflow == pytest.approx(2 * math.pi * TAP["radius"] ** 2 * TAP["speed"] / TANK_L0 ** 3, rel=0.1)
+    print(solver, "drained - inflow", drained - inflow, "of", inflow, "counts", [len(fr) for fr in frames])
+    assert abs(drained - inflow) <= 0.05 * inflow, (new, gone)
+    counts = [len(fr) for fr in frames[10:]]
     assert max(counts) - min(counts) <= 0.08 * np.mean(counts), counts
 
 
