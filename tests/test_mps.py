@@ -117,7 +117,7 @@ def test_a_small_block_fired_into_a_wall_is_not_thrown_back(into, frame):
     """A 3 x 3 x 3 block of water (l0 = 1 cm, water's viscosity, no gravity) fired at 2 m/s into a floor,
     an edge and a corner of a box, stepped freely and to 1 ms frames: the water spreads along the walls,
     and no particle may come off them much faster than the block came in. Before the PPE counted the
-    p_min gradient's repulsion in lopsided neighbourhoods (mps_kernels.add_repulsion_rows), the Laplacian
+    p_min gradient's repulsion in lopsided neighbourhoods (mps_kernels.build_poisson), the Laplacian
     alone solved for several times the pressure that stops such a block, and the repulsion threw single
     particles out: 2.64 x the impact speed out of the edge (free steps), 1.28 x out of the corner (1 ms
     frames). Now at most 1.11 x."""

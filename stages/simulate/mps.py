@@ -8,7 +8,7 @@ One step (PHYSICS.md "MPS"): u* = u + dt (nu <lap u> + g), x* = x + dt u*; colli
 n* at x* (fluid + wall maps); free surface n* < beta n0 -> p = 0; the pressure Poisson equation
 -<lap p> + (alpha rho / dt^2) p = gamma (rho / dt^2) (n* - n0) / n0 - (1 - gamma) (rho / dt) <div u*>
 whose rows also count the p_min gradient's repulsion for the pressure's change from the last step
-(mps_kernels.add_repulsion_rows), by Jacobi-preconditioned CG (numba CSR, warm-started with the last
+(mps_kernels.build_poisson), by Jacobi-preconditioned CG (numba CSR, warm-started with the last
 pressure); p < 0 -> 0;
 u = u* - (dt / rho) <grad p> with the p_min form and the corrective matrix (Khayyer and Gotoh 2011:
 exact for a linear pressure on any arrangement; without it the tank at rest settled into a packing
@@ -186,6 +186,7 @@ class MPSSolver(SolverBase):
         self.nrm = np.zeros((n, 3))
         self.n = np.zeros(n)
         self.div = np.zeros(n)
+        self.moment2 = np.zeros(n)  # (d / n0)^2 |first moment|^2 (divergence(); the repulsion rows)
         self.xs = np.zeros((n, 3))
         self.vs = np.zeros((n, 3))
         self.xb = np.zeros((n, 3))
@@ -240,26 +241,25 @@ class MPSSolver(SolverBase):
         gamma = self.p.relaxation or (0.01 if mixed else 0.2)
         src = gamma * rho / dt ** 2
         div_coef = -(1.0 - gamma) * rho / dt if mixed else 0.0
-        if mixed:
-            np.multiply(self.gravity, dt, out=self.g_dt)
-            K.divergence(self.xs, self.vs, self.offsets, self.nbr, self.re_n, self.grad_coef, self.d, self.wall_terms,
-                         self.g_dt, self.div)
+        # the divergence pass also gives each row's first moment (the repulsion rows), so it runs for either source
+        np.multiply(self.gravity, dt, out=self.g_dt)
+        K.divergence(self.xs, self.vs, self.offsets, self.nbr, self.re_n, self.grad_coef, self.d, self.wall_terms,
+                     self.g_dt, self.div, self.moment2)
         # Froude-scaled above the reference spacing: at water's alpha a kilometre-wide dam break kept 0.77 of
         # its energy against the metre one's 0.96, the term's weight grown 10,000 x (the fronts agreed)
         alpha = self.p.compressibility * min(1.0, REFERENCE_SPACING / self.l0)
         diag_extra = alpha * rho / dt ** 2
         while True:
+            # self.pr still holds the last step's pressure (the warm start): the repulsion rows' reference
             nnz = K.build_poisson(self.xs, self.offsets, self.nbr, self.re_l, self.lap_coef, self.dirichlet, self.n,
-                                  self.n0, src, self.div, div_coef, diag_extra, self.d, self.wall_terms, self.gravity, rho,
-                                  self.row_counts, self.row_off, self.cols, self.vals, self.diag, self.b)
+                                  self.n0, src, self.div, div_coef, diag_extra, self.moment2, self.pr, self.d,
+                                  self.wall_terms, self.gravity, rho, self.row_counts, self.row_off, self.cols, self.vals,
+                                  self.diag, self.b)
             if nnz >= 0:
                 break
             need = int(self.row_off[-1] * 1.25) + 16
             self.cols = np.zeros(need, np.int32)
             self.vals = np.zeros(need)
-        # self.pr still holds the last step's pressure (the warm start)
-        K.add_repulsion_rows(self.xs, self.pr, self.offsets, self.nbr, self.re_n, self.grad_coef, self.d, self.wall_terms,
-                             self.dirichlet, self.diag, self.b)
         r, z, pd, q = self.cg
         it = K.pcg(self.row_off, self.cols, self.vals, self.diag, self.b, self.pr, r, z, pd, q, self.partial,
                    self.partial2, self.p.cg_tolerance, self.p.cg_max_iterations)

@@ -239,16 +239,21 @@ def number_density(x, offsets, nbr, re_n, d, walls, n):
 
 
 @nb.njit(cache=True, parallel=True)
-def divergence(x, v, offsets, nbr, re_n, grad_coef, d, walls, g_dt, div):
+def divergence(x, v, offsets, nbr, re_n, grad_coef, d, walls, g_dt, div, moment2):
     """MPS divergence <div u>_i = (d / n0) [sum_j (u_j - u_i) . (x_j - x_i) / r_ij^2 w(r_ij)
     - (u_i - g dt) . G(x_i)] (``grad_coef`` = d / n0), G the wall maps' sum (x_w - x_i) / r^2 w over the
     resting walls (u_w = 0). The g dt part of u* into the wall is left out because the hydrostatic wall
     pressure (p_w = p_i + rho g . (x_w - x_i)) already balances it: counted twice, a tank at rest would
     be driven towards twice rho g h at the floor. A moving wall's particles move with it: its term is
-    (u_b - (u_i - g dt)) . G_b, u_b the wall's velocity at the particle."""
+    (u_b - (u_i - g dt)) . G_b, u_b the wall's velocity at the particle.
+    Over the same pairs and walls, ``moment2`` = (d / n0)^2 |m_i|^2, m_i = sum_j (x_j - x_i) / r_ij^2 w(r_ij) + G(x_i)
+    (moving walls included) the first moment of i's neighbourhood: the Poisson rows' repulsion term (_fill_rows)."""
     r2max = re_n * re_n
     for i in nb.prange(x.shape[0]):
         s = 0.0
+        mx = 0.0
+        my = 0.0
+        mz = 0.0
         for k in range(offsets[i], offsets[i + 1]):
             j = nbr[k]
             dx = x[j, 0] - x[i, 0]
@@ -256,16 +261,32 @@ def divergence(x, v, offsets, nbr, re_n, grad_coef, d, walls, g_dt, div):
             dz = x[j, 2] - x[i, 2]
             r2 = dx * dx + dy * dy + dz * dz
             if r2 < r2max and r2 > 1e-24:
+                wr = weight_over_r2(r2, re_n)
                 du = (v[j, 0] - v[i, 0]) * dx + (v[j, 1] - v[i, 1]) * dy + (v[j, 2] - v[i, 2]) * dz
-                s += du * weight_over_r2(r2, re_n)
+                s += du * wr
+                mx += wr * dx
+                my += wr * dy
+                mz += wr * dz
         xi, yi, zi, di = x[i, 0], x[i, 1], x[i, 2], d[i]
         if di < re_n:
-            s -= (v[i, 0] - g_dt[0]) * wall_sum(walls, xi, yi, zi, di, G, FIX_G)
-            s -= (v[i, 1] - g_dt[1]) * wall_sum(walls, xi, yi, zi, di, G + 1, FIX_G)
-            s -= (v[i, 2] - g_dt[2]) * wall_sum(walls, xi, yi, zi, di, G + 2, FIX_G)
+            gx = wall_sum(walls, xi, yi, zi, di, G, FIX_G)
+            gy = wall_sum(walls, xi, yi, zi, di, G + 1, FIX_G)
+            gz = wall_sum(walls, xi, yi, zi, di, G + 2, FIX_G)
+            s -= (v[i, 0] - g_dt[0]) * gx
+            s -= (v[i, 1] - g_dt[1]) * gy
+            s -= (v[i, 2] - g_dt[2]) * gz
+            mx += gx
+            my += gy
+            mz += gz
         if walls.pose.shape[0] > 0:
-            s += bodies_divergence(walls, re_n, xi, yi, zi, v[i, 0] - g_dt[0], v[i, 1] - g_dt[1], v[i, 2] - g_dt[2])
+            sb, bx, by, bz = bodies_divergence(walls, re_n, xi, yi, zi, v[i, 0] - g_dt[0], v[i, 1] - g_dt[1],
+                                               v[i, 2] - g_dt[2])
+            s += sb
+            mx += bx
+            my += by
+            mz += bz
         div[i] = grad_coef * s
+        moment2[i] = grad_coef * grad_coef * (mx * mx + my * my + mz * mz)
 
 
 # -- pressure Poisson equation ----------------------------------------------------------------------
@@ -289,8 +310,8 @@ def _count_rows(x, offsets, nbr, re_l, dirichlet, row_counts):
 
 
 @nb.njit(cache=True, parallel=True)
-def _fill_rows(x, offsets, nbr, re_l, lap_coef, dirichlet, n, n0, src_coef, div, div_coef, diag_extra, d, walls,
-               g_vec, rho, row_off, cols, vals, diag, b):
+def _fill_rows(x, offsets, nbr, re_l, lap_coef, dirichlet, n, n0, src_coef, div, div_coef, diag_extra, moment2, p_last,
+               d, walls, g_vec, rho, row_off, cols, vals, diag, b):
     r2max = re_l * re_l
     for i in nb.prange(x.shape[0]):
         if dirichlet[i]:
@@ -312,7 +333,7 @@ def _fill_rows(x, offsets, nbr, re_l, lap_coef, dirichlet, n, n0, src_coef, div,
                     cols[k_out] = j
                     vals[k_out] = -w
                     k_out += 1
-        diag[i] = s + diag_extra
+        diag[i] = s + diag_extra + moment2[i]
         bi = src_coef * (n[i] - n0) / n0 + div_coef * div[i]
         # the wall's resting pressure p_w = p_i + rho g . (x_w - x_i) (walls/mps.py): the p_i part
         # cancels, the hydrostatic part rho g . M is known and moves to the right-hand side
@@ -324,72 +345,39 @@ def _fill_rows(x, offsets, nbr, re_l, lap_coef, dirichlet, n, n0, src_coef, div,
             bi += lap_coef * rho * gm
         if walls.pose.shape[0] > 0:
             bi += lap_coef * rho * bodies_hydrostatic(walls, re_l, xi, yi, zi, g_vec)
-        b[i] = bi
+        b[i] = bi + moment2[i] * p_last[i]
 
 
 @nb.njit(cache=True)
-def build_poisson(x, offsets, nbr, re_l, lap_coef, dirichlet, n, n0, src_coef, div, div_coef, diag_extra, d, walls,
-                  g_vec, rho, row_counts, row_off, cols, vals, diag, b):
+def build_poisson(x, offsets, nbr, re_l, lap_coef, dirichlet, n, n0, src_coef, div, div_coef, diag_extra, moment2, p_last,
+                  d, walls, g_vec, rho, row_counts, row_off, cols, vals, diag, b):
     """The PPE  -<lap p>_i + (alpha rho / dt^2) p_i = src_coef (n*_i - n0) / n0 + div_coef <div u*>_i  as a CSR
     matrix: off-diagonals -c w(r_ij) between non-Dirichlet particles, diagonal c sum_j w(r_ij) plus
     the compressibility term ``diag_extra``, c = 2 d / (lambda n0). Dirichlet rows (free surface,
     p = 0) are identity rows, so the matrix stays symmetric positive definite. Returns nnz, or -1 when
-    ``cols`` is too small (the caller grows it and calls again)."""
-    _count_rows(x, offsets, nbr, re_l, dirichlet, row_counts)
-    nnz = prefix_sum(row_counts, row_off)
-    if nnz > cols.shape[0]:
-        return -1
-    _fill_rows(x, offsets, nbr, re_l, lap_coef, dirichlet, n, n0, src_coef, div, div_coef, diag_extra, d, walls,
-               g_vec, rho, row_off, cols, vals, diag, b)
-    return nnz
+    ``cols`` is too small (the caller grows it and calls again).
 
-
-@nb.njit(cache=True, parallel=True)
-def add_repulsion_rows(x, p_last, offsets, nbr, re_n, grad_coef, d, walls, dirichlet, diag, b):
-    """Count in the PPE row of each non-free-surface particle what correct()'s p_min gradient does to its
-    own divergence beyond the Laplacian, for the change of its pressure from the last step.
-    The gradient is the difference form sum_j (p_j - p_i) e_j plus a repulsion (p_i - p_min) m_i, where
-    m_i = sum_j e_j + G(x_i) is the first moment of the neighbourhood (walls included; e_j = (x_j - x_i) w / r^2).
-    The Laplacian models the difference form only. A change dp_i of i's pressure changes its divergence
-    through the repulsion by (dt / rho) (d / n0)^2 |m_i|^2 dp_i (the corrective matrix left out), so the row gets
-    c = (d / n0)^2 |m_i|^2 on its diagonal and c p_last_i on its right-hand side.
+    The repulsion rows (issue 17, session 34): each row also counts what correct()'s p_min gradient does to the
+    particle's own divergence beyond the Laplacian, for the change of its pressure from the last step
+    (``p_last``). That gradient is the difference form sum_j (p_j - p_i) e_j plus a repulsion (p_i - p_min) m_i,
+    m_i the first moment of the neighbourhood (walls included; e_j = (x_j - x_i) w / r^2), and the Laplacian
+    models the difference form only. A change dp_i of i's pressure changes its divergence through the repulsion
+    by (dt / rho) (d / n0)^2 |m_i|^2 dp_i (the corrective matrix left out): ``moment2`` = (d / n0)^2 |m_i|^2
+    (divergence()) goes on the diagonal and moment2 p_last_i on the right-hand side.
     - m_i is about 0 in a full neighbourhood (the lattice, walls included) and large where it is lopsided:
       next to the free surface, or in a thin front hitting a wall. There, the Laplacian alone solved for 3-4 x
       the pressure that stops a particle in one step. The repulsion (p_min = 0 beside a free-surface particle)
       then threw single particles out at 2.9 x the scene's ballistic speed, and blew up the thin plate.
-    - Counted for the whole pressure (c p_min on the right), the row also lowered the steady pressure where
-      m_i is the wall maps' error: in a 20 degree wedge's apex the density error reached 271 % (40 % before)."""
-    r2max = re_n * re_n
-    for i in nb.prange(x.shape[0]):
-        if dirichlet[i]:
-            continue
-        xi, yi, zi = x[i, 0], x[i, 1], x[i, 2]
-        mx = 0.0
-        my = 0.0
-        mz = 0.0
-        for k in range(offsets[i], offsets[i + 1]):
-            j = nbr[k]
-            dx = x[j, 0] - xi
-            dy = x[j, 1] - yi
-            dz = x[j, 2] - zi
-            r2 = dx * dx + dy * dy + dz * dz
-            if r2 < r2max and r2 > 1e-24:
-                wr = weight_over_r2(r2, re_n)
-                mx += wr * dx
-                my += wr * dy
-                mz += wr * dz
-        if d[i] < re_n:
-            mx += wall_sum(walls, xi, yi, zi, d[i], G, FIX_G)
-            my += wall_sum(walls, xi, yi, zi, d[i], G + 1, FIX_G)
-            mz += wall_sum(walls, xi, yi, zi, d[i], G + 2, FIX_G)
-        if walls.pose.shape[0] > 0:  # the moving walls' G (dp = 1, no hydrostatic part)
-            bx, by, bz, _, _, _, _, _, _ = bodies_gradient(walls, re_n, xi, yi, zi, 1.0, 0.0, (0.0, 0.0, 0.0))
-            mx += bx
-            my += by
-            mz += bz
-        c = grad_coef * grad_coef * (mx * mx + my * my + mz * mz)
-        diag[i] += c
-        b[i] += c * p_last[i]
+    - Counted for the whole pressure (moment2 p_min on the right), the rows also lowered the steady pressure
+      where m_i is the wall maps' error: in a 20 degree wedge's apex the density error reached 271 % (40 %
+      before)."""
+    _count_rows(x, offsets, nbr, re_l, dirichlet, row_counts)
+    nnz = prefix_sum(row_counts, row_off)
+    if nnz > cols.shape[0]:
+        return -1
+    _fill_rows(x, offsets, nbr, re_l, lap_coef, dirichlet, n, n0, src_coef, div, div_coef, diag_extra, moment2, p_last,
+               d, walls, g_vec, rho, row_off, cols, vals, diag, b)
+    return nnz
 
 
 @nb.njit(cache=True, parallel=True)

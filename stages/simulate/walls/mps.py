@@ -294,16 +294,22 @@ def _body_vector(w, k, lx, ly, lz, db, c, row):
 
 @nb.njit(cache=True)
 def bodies_divergence(w, re, x, y, z, ux, uy, uz):
-    """The moving walls' share of the divergence sum: sum_b (u_b(x) - u) . G_b (``u`` = u* - g dt, as for the
-    static walls)."""
+    """The moving walls' share of the divergence sum, sum_b (u_b(x) - u) . G_b (``u`` = u* - g dt, as for the
+    static walls), and their share of the first moment, sum_b G_b."""
     s = 0.0
+    sx = 0.0
+    sy = 0.0
+    sz = 0.0
     for k in range(w.pose.shape[0]):
         lx, ly, lz, db = _near(w, k, x, y, z)
         if db < re:
             gx, gy, gz = _body_vector(w, k, lx, ly, lz, db, G, FIX_G)
             bx, by, bz = body_velocity(w.pose[k], x, y, z)
             s += (bx - ux) * gx + (by - uy) * gy + (bz - uz) * gz
-    return s
+            sx += gx
+            sy += gy
+            sz += gz
+    return s, sx, sy, sz
 
 
 @nb.njit(cache=True)
