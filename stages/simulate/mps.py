@@ -54,8 +54,8 @@ out: the stability suite's dam break (and its kilometre copy) at 2.9 x the balli
 splash blew up in the tank's top corners (168 m/s). Each row now counts the repulsion's effect on the particle's
 own divergence, (d / n0)^2 |m_i|^2, for the pressure's change from the last step: dam break 1.38 x, kilometres
 1.40 x, thin plate 0.65 x (short suite); in the long suite no case above 1.14 x but the step 10-20 x the stable
-one, which the guard stops (the thin plate 2.03 x before, the overlapping emitters 2.60 x). Sessions 16-17 tried the walls' part alone (|G_i|^2): the paddle's face layer
-then fell to 0.88 U and the long thin plate reached 5.4 x. Counted for the whole pressure (p_min lagged on the
+one, which the guard stops (the thin plate 2.03 x before, the overlapping emitters 2.60 x). Sessions 16-17 tried
+the walls' part alone (|G_i|^2): the paddle's face layer then fell to 0.88 U and the long thin plate reached 5.4 x. Counted for the whole pressure (p_min lagged on the
 right), the rows lowered the steady pressure wherever m_i is the wall maps' error: 271 % density error in the 20
 degree wedge's apex. Cost at rest (bench_rest's tank): the top two layers churn more (99th percentile 0.091 m/s
 at 1.5 s against 0.053; mean 0.0256 against 0.021), the bulk as before, the pressure 2-8 layers down -2.0 % from
