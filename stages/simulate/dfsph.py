@@ -95,9 +95,13 @@ at 1.5 s against our 0.21). What was measured:
   With the rate the density's own (the spline, the wall once in the rate and twice in the force, so not symmetric:
   BiCGSTAB, about 70 iterations a step) from an exact start: 0.008 m/s at 0.1 s, 0.06 at 0.2 s. The exact
   projection with the drift's displacement, from an exact start: 0.08 at 0.1 s, 0.4 by 0.3 s.
-Next: an exact projection whose rate is the density's own still grows from an exact balance, so the step itself
-amplifies something at rest: linearise one step about the rest lattice (a small box) and find the modes it
-amplifies before changing the method again; the tank of the test is the check."""
+- session 35: one step linearised about a small resting tank (benchmarks/bench_rest_modes.py, both solves a fixed 50
+  Jacobi iterations): 95 non-oscillating modes grow faster than 0.5 sqrt(g / l0), the fastest at 37 / s (1.32 sqrt(g /
+  l0)) in the bottom layers by the side walls; but WCSPH, calm, amplifies 40 at up to 21 / s, so the linear growth about
+  the lattice does not explain the churn. Restarted at rest after 3 s of bench_rest's tank (every velocity zeroed),
+  DFSPH is back at 0.26 m/s within 0.1 s: the step keeps the motion up at the states it reaches.
+Next: the energy each step's density solve adds at a churned state (session 32's budget, taken at t = 3 s), term by
+term, with the split pressure (kappa, kappa_v) replaced by one field; the tank of the test is the check."""
 from __future__ import annotations
 
 import math

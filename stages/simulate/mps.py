@@ -61,6 +61,14 @@ degree wedge's apex. Cost at rest (bench_rest's tank): the top two layers churn 
 at 1.5 s against 0.053; mean 0.0256 against 0.021), the bulk as before, the pressure 2-8 layers down -2.0 % from
 rho g h against +6.8 %.
 
+At rest, session 35: one step linearised about a small resting tank (benchmarks/bench_rest_modes.py) amplifies 21
+non-oscillating modes faster than 0.5 sqrt(g / l0), the fastest at 17.7 / s, vertical, in the top two layers (11.8 /
+s with g / 4, 8.9 / s without gravity); WCSPH, calm, amplifies as fast, so this is not what keeps MPS moving.
+Restarted at rest after 3 s (every velocity zeroed) the tank is back at 0.015 m/s within 0.1 s: the step keeps the
+motion up at the disordered packing it reaches. That packing is denser at the same number density (the interior's
+n / n0 within 0.1 % of 1 while the surface sinks 4.3 mm by 1.5 s): n0 is the cubic lattice's 14.42 and FCC of the
+same volume per particle gives 14.31.
+
 Effects: gravity and viscosity (with its no-slip wall term) only; a scene declaring any other effect
 is rejected with a StageError that names them.
 
