@@ -65,9 +65,13 @@ At rest, session 35: one step linearised about a small resting tank (benchmarks/
 non-oscillating modes faster than 0.5 sqrt(g / l0), the fastest at 17.7 / s, vertical, in the top two layers (11.8 /
 s with g / 4, 8.9 / s without gravity); WCSPH, calm, amplifies as fast, so this is not what keeps MPS moving.
 Restarted at rest after 3 s (every velocity zeroed) the tank is back at 0.015 m/s within 0.1 s: the step keeps the
-motion up at the disordered packing it reaches. That packing is denser at the same number density (the interior's
-n / n0 within 0.1 % of 1 while the surface sinks 4.3 mm by 1.5 s): n0 is the cubic lattice's 14.42 and FCC of the
-same volume per particle gives 14.31.
+motion up at the disordered packing it reaches. That packing is denser at the same number density (the interior's n
+/ n0 within 0.1 % of 1 while the surface sinks 4.3 mm by 1.5 s): n0 is the cubic lattice's 14.42 and FCC of the same
+volume per particle gives 14.31. From that state with every velocity zeroed, one step accelerates the particles by
+0.30 g on average, mostly the pressure the number-density source makes of the packing's per-particle n (about 4-5
+rho g l0 above hydrostatic on average; gamma 0.001: 0.155 g, but the tank only 15 % calmer). Zeroing every velocity
+after each step for 3,000 steps leaves 0.03 g (0.12 g in the top two layers) and the released tank is back at
+0.012-0.015 m/s: there is no still state near the packings MPS reaches, most of all under the free surface.
 
 Effects: gravity and viscosity (with its no-slip wall term) only; a scene declaring any other effect
 is rejected with a StageError that names them.
