@@ -1,7 +1,7 @@
 """Which motions a solver's step amplifies at rest (issue 17): one step linearised about a resting tank.
 
 A small tank (0.1 x 0.075 m, water 0.1 m deep at 1.25 cm: 384 particles; bench_rest's walls, start and
-water's viscosity) is first held still (every velocity zeroed after each step, --settle steps), then the step
+water's viscosity) is first held still (every velocity zeroed after each step, for --settle seconds), then the step
 is differentiated by central differences, column by column, in the state (positions, velocities and the
 pressure a solver carries from step to step, matched by particle id) at the step the solver takes at rest.
 The eigenvalues of that Jacobian are the per-step growth factors of small disturbances: a real factor above 1 is a
@@ -17,7 +17,7 @@ for disturbances of 1e-7 l0.
 
     .venv/bin/python benchmarks/bench_rest_modes.py [--solvers sph,dfsph,mps] [--gravity-scale 0.25]
 
-Writes benchmarks/results/rest_modes.json (about 2 minutes on 2 threads)."""
+Writes benchmarks/results/rest_modes.json (about a minute on 2 threads)."""
 from __future__ import annotations
 
 import argparse
@@ -130,8 +130,8 @@ def main() -> None:
     ap.add_argument("--settle", type=float, default=0.35, help="seconds of the solver's steps held still "
                     "before the linearisation")
     ap.add_argument("--eps", type=float, default=1e-7, help="the finite difference, in the scaled state")
-    ap.add_argument("--gravity-scale", type=float, default=1.0, help="gravity times this (0.25: a rate that is "
-                    "gravity's halves)")
+    ap.add_argument("--gravity-scale", type=float, default=1.0, help="gravity times this, once the start is made (a rate "
+                    "that is gravity's halves at 0.25)")
     ap.add_argument("--top", type=int, default=5, help="modes printed per solver")
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "rest_modes.json"))
     a = ap.parse_args()
