@@ -72,7 +72,7 @@ volume per particle gives 14.31. From that state with every velocity zeroed, one
 rho g l0 above hydrostatic on average; gamma 0.001: 0.155 g, but the tank only 15 % calmer). Zeroing every velocity
 after each step for 3,000 steps leaves 0.03 g (0.12 g in the top two layers) and the released tank is back at
 0.012-0.015 m/s: there is no still state near the packings MPS reaches, most of all under the free surface. But the
-surface is not the source: with the top layer held fixed the rest moves at 0.018 m/s at 1.5 s (0.019 with the
+surface is not the main source: with the top layer held fixed the rest moves at 0.018 m/s at 1.5 s (0.019 with the
 side-wall band held), and without gravity the whole fluid only drifts up off the floor (2.6 mm/s, no growth): the
 hydrostatic pressure through the bulk's operators on a disordering packing is.
 
