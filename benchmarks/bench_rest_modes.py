@@ -9,6 +9,8 @@ motion that grows without oscillating (rate ln|lambda| / dt), one at arg pi a st
 solver: the largest rates, in 1/s and in units of sqrt(g / l0) (a particle-scale gravitational rate), the
 number of modes above half that, and where the fastest mode lives (shares of its motion in the top and bottom
 layers and within 1.5 l0 of a side wall, beside those layers' shares of the particles) and its vertical share.
+Also how far the step's forces are from conservative: |K - K^T| / |K + K^T| of K = d v_new / d x (a force that is
+minus an energy's gradient has a symmetric K), over all particles and over the interior.
 
 The derivative needs a smooth step: MPS's CG is solved to 1e-12 (its default 1e-6 gives the same rates),
 DFSPH's two Jacobi solves run a fixed 50 iterations (their default stops at a tolerance, a switch a finite
@@ -119,9 +121,20 @@ def analyse(name: str, settle_seconds: float, eps: float, gravity_scale: float, 
                       "share": {k: float(motion[sel].sum()) for k, sel in where.items()},
                       "largest_particle_share": float(motion.max())})
     fast = int(np.sum(np.log(np.maximum(np.abs(lam), 1e-300)) / dt > 0.5 * unit))
+    # how far the step's forces are from conservative: a force that is minus an energy's gradient has a symmetric
+    # stiffness, so d v_new / d x (equal masses) is symmetric; measured over all particles and the interior
+    # (1.5 l0 or more from the floor and the side walls, below the top two layers)
+    interior = (z > z.min() + 1.5) & (z < z.max() - 2.5) & ~where["side_1.5_l0"]
+    asymmetry = {}
+    for key, sel in (("all", np.ones(n, bool)), ("interior", interior)):
+        rows = (np.flatnonzero(sel)[:, None] * lin.width + np.arange(3)).ravel()
+        k = jac[np.ix_(rows + 3, rows)]
+        asymmetry[key] = float(np.linalg.norm(k - k.T) / np.linalg.norm(k + k.T))
     return {"solver": name, "particles": n, "dt": dt, "gravity_scale": gravity_scale, "settle_steps": settle,
             "settled_max_accel_g": residual, "jacobian_seconds": seconds, "modes_above_half_sqrt_g_l0": fast,
-            "particle_share": {k: float(sel.mean()) for k, sel in where.items()}, "modes": modes}
+            "particle_share": {k: float(sel.mean()) for k, sel in where.items()},
+            "interior_particles": int(interior.sum()),
+            "stiffness_asymmetry": asymmetry, "modes": modes}
 
 
 def main() -> None:
@@ -130,8 +143,8 @@ def main() -> None:
     ap.add_argument("--settle", type=float, default=0.35, help="seconds of the solver's steps held still "
                     "before the linearisation")
     ap.add_argument("--eps", type=float, default=1e-7, help="the finite difference, in the scaled state")
-    ap.add_argument("--gravity-scale", type=float, default=1.0, help="gravity times this, once the start is made (a rate "
-                    "that is gravity's halves at 0.25)")
+    ap.add_argument("--gravity-scale", type=float, default=1.0, help="gravity times this, once the start is "
+                    "made (a rate that is gravity's halves at 0.25)")
     ap.add_argument("--top", type=int, default=5, help="modes printed per solver")
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "rest_modes.json"))
     a = ap.parse_args()
@@ -144,9 +157,11 @@ def main() -> None:
         results.append(r)
         sh = r["particle_share"]
         print(f"{name}: {r['particles']} particles, dt {1e3 * r['dt']:.3f} ms, held still {r['settle_steps']} steps "
-              f"(largest acceleration left {r['settled_max_accel_g']:.3f} g), {r['modes_above_half_sqrt_g_l0']} modes faster "
-              f"than 0.5 sqrt(g / l0); particles' shares: top {sh['top_2_layers']:.2f}, bottom "
-              f"{sh['bottom_2_layers']:.2f}, side {sh['side_1.5_l0']:.2f}", flush=True)
+              f"(largest acceleration left {r['settled_max_accel_g']:.3f} g), {r['modes_above_half_sqrt_g_l0']} modes "
+              f"faster than 0.5 sqrt(g / l0); particles' shares: top {sh['top_2_layers']:.2f}, bottom "
+              f"{sh['bottom_2_layers']:.2f}, side {sh['side_1.5_l0']:.2f}; stiffness |antisymmetric| / |symmetric| "
+              f"{r['stiffness_asymmetry']['all']:.3f}, in the interior ({r['interior_particles']} particles) "
+              f"{r['stiffness_asymmetry']['interior']:.3f} (0 for conservative forces)", flush=True)
         for m in r["modes"]:
             kind = "flip" if abs(abs(m["arg"]) - math.pi) < 0.1 else ("grows" if abs(m["arg"]) < 0.1 else "rings")
             w = m["share"]
