@@ -96,10 +96,12 @@ at 1.5 s against our 0.21). What was measured:
   BiCGSTAB, about 70 iterations a step) from an exact start: 0.008 m/s at 0.1 s, 0.06 at 0.2 s. The exact
   projection with the drift's displacement, from an exact start: 0.08 at 0.1 s, 0.4 by 0.3 s.
 - session 35: one step linearised about a small resting tank (benchmarks/bench_rest_modes.py, both solves a fixed 50
-  Jacobi iterations): 95 non-oscillating modes grow faster than 0.5 sqrt(g / l0), the fastest at 37 / s (1.32 sqrt(g /
-  l0)) in the bottom layers by the side walls; but WCSPH, calm, amplifies 40 at up to 21 / s, so the linear growth about
-  the lattice does not explain the churn. Restarted at rest after 3 s of bench_rest's tank (every velocity zeroed),
-  DFSPH is back at 0.26 m/s within 0.1 s: the step keeps the motion up at the states it reaches.
+  Jacobi iterations): 95 non-oscillating modes grow faster than 0.5 sqrt(g / l0), the fastest at 37 / s (1.32 sqrt(g
+  / l0)) in the bottom layers by the side walls; but WCSPH, calm, amplifies 40 at up to 21 / s, so the linear growth
+  about the lattice does not explain the churn. The step's forces are far from conservative in the interior (|K -
+  K^T| / |K + K^T| of K = d v_new / d x: 0.31, WCSPH 0.007; 0.084 with gradient="spline", which session 33 measured
+  at 0.20 m/s at 1 s). Restarted at rest after 3 s of bench_rest's tank (every velocity zeroed), DFSPH is back at
+  0.26 m/s within 0.1 s: the step keeps the motion up at the states it reaches.
 Next: the energy each step's density solve adds at a churned state (session 32's budget, taken at t = 3 s), term by
 term, with the split pressure (kappa, kappa_v) replaced by one field; the tank of the test is the check."""
 from __future__ import annotations
