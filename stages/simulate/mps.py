@@ -74,7 +74,9 @@ after each step for 3,000 steps leaves 0.03 g (0.12 g in the top two layers) and
 0.012-0.015 m/s: there is no still state near the packings MPS reaches, most of all under the free surface. But the
 surface is not the main source: with the top layer held fixed the rest moves at 0.018 m/s at 1.5 s (0.019 with the
 side-wall band held), and without gravity the whole fluid only drifts up off the floor (2.6 mm/s, no growth): the
-hydrostatic pressure through the bulk's operators on a disordering packing is.
+bulk is, whose forces are nearly conservative (|K - K^T| / |K + K^T| of d v_new / d x: 0.034): the energy is the
+potential energy released as the fluid packs denser at n0 (the centre of mass 1.2 mm down by 3 s, still sinking).
+Next: a number density whose rest value does not depend on the packing.
 
 Effects: gravity and viscosity (with its no-slip wall term) only; a scene declaring any other effect
 is rejected with a StageError that names them.
