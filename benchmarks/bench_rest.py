@@ -88,7 +88,7 @@ def run_one(solver: str, until: float, sets: dict, settle: float = 0.0) -> dict:
     f0 = s.frame()
     z0 = heights(f0)
     x0 = f0.x[np.argsort(f0.id)]  # the band within 3 l0 of a side wall, by id, as it starts
-    band = np.minimum(np.minimum(x0[:, 0], SIZE[0] - x0[:, 0]), np.minimum(x0[:, 1], SIZE[1] - x0[:, 1])) < 3 * L0
+    band = side_distance(x0) < 3 * L0
     times = [t for t in TIMES if t <= until + 1e-9]
     pressure_at = {round(until - 0.3 + 0.03 * k, 9) for k in range(10)}  # the pressure swings with the surface's
     speed_at = {round(AVERAGE_EVERY * k, 9) for k in range(1, int(until / AVERAGE_EVERY + 1e-9) + 1)}  # slow modes
@@ -120,6 +120,11 @@ def heights(f) -> np.ndarray:
     return f.x[np.argsort(f.id), 2]
 
 
+def side_distance(x) -> np.ndarray:
+    """Each particle's distance from the nearest side wall (the tank's walls at x = 0, SIZE[0], y = 0, SIZE[1])."""
+    return np.minimum(np.minimum(x[:, 0], SIZE[0] - x[:, 0]), np.minimum(x[:, 1], SIZE[1] - x[:, 1]))
+
+
 def surface(x) -> float:
     """The free surface: the mean height of the top layer (particles within l0 of the highest) + l0 / 2."""
     z = x[:, 2]
@@ -131,7 +136,7 @@ def hydrostatic_error(f) -> float:
     top = surface(f.x)
     depth = top - z
     sel = (depth > 2 * L0) & (depth < 8 * L0)
-    sel &= np.minimum(np.minimum(f.x[:, 0], SIZE[0] - f.x[:, 0]), np.minimum(f.x[:, 1], SIZE[1] - f.x[:, 1])) > 2 * L0
+    sel &= side_distance(f.x) > 2 * L0
     return float(f.p[sel].mean() / (RHO0 * G * depth[sel]).mean() - 1.0)
 
 

@@ -107,8 +107,7 @@ def analyse(name: str, settle_seconds: float, eps: float, gravity_scale: float, 
     x = z0.reshape(n, lin.width)[:, :3]
     z = x[:, 2]
     where = {"top_2_layers": z > z.max() - 1.5, "bottom_2_layers": z < z.min() + 1.5,
-             "side_1.5_l0": np.minimum.reduce([x[:, 0], B.SIZE[0] / lin.l0 - x[:, 0],
-                                               x[:, 1], B.SIZE[1] / lin.l0 - x[:, 1]]) < 1.5}
+             "side_1.5_l0": B.side_distance(x * lin.l0) < 1.5 * lin.l0}
     modes = []
     for i in order[:top]:
         m = vec[:, i].reshape(n, lin.width)

@@ -154,7 +154,7 @@ def test_tank_with_tap_and_drain_reaches_a_constant_level(solver, tmp_path):
     steady = slice(10, None)  # the frame intervals from t = 1 s on
     inflow, drained = sum(new[steady]), sum(gone[steady])
     assert inflow == pytest.approx(2 * math.pi * TAP["radius"] ** 2 * TAP["speed"] / TANK_L0 ** 3, rel=0.1)
-    print(solver, "drained - inflow", drained - inflow, "of", inflow, "counts", [len(fr) for fr in frames])
+    print(solver, "drained - inflow", drained - inflow, "of", inflow)
     assert abs(drained - inflow) <= 0.05 * inflow, (new, gone)
     counts = [len(fr) for fr in frames[10:]]
     assert max(counts) - min(counts) <= 0.08 * np.mean(counts), counts
