@@ -174,7 +174,7 @@ def test_adhesion_holds_a_film_under_a_ceiling():
     """One layer of water under the box's ceiling, gravity down: with adhesion (240 m/s^2 at contact for
     this 2 mm spacing, water's gamma, well above g) the film stays; without it, it falls (g t^2 / 2 = 9 l0
     by 0.06 s). Measured: 52 of 90 stay, 0 without. The 38 that fall are the film's rim along the side
-    walls: the wall map reads 1 % heavy in edges (issue 17, README Stability), and that pressure pushes
+    walls: the wall map reads 1 % heavy in edges (issue 17, benchmarks/rest_log.md), and that pressure pushes
     them off. (A film on a vertical wall measured nothing once the wall pressure became conservative: a
     pressureless film is no longer pushed off the wall, so it slides down attached with or without.)"""
     l0 = 0.002
