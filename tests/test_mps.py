@@ -111,6 +111,61 @@ def test_a_pair_on_top_of_each_other_stays_finite():
     assert np.all(np.isfinite(s.x)) and np.all(np.isfinite(s.v)) and np.linalg.norm(s.v, axis=1).max() < 5.0
 
 
+def test_pairs_the_projection_stacks_are_parted():
+    """part_stacked: a pair closer than r_sep moves apart to r_sep along its line, half each; an exactly coincident
+    pair (the projection put mirror-image particles of a V's apex on one point) along STACK_AXIS, the lower id to
+    the minus side; each pair's centre stays where it was (no momentum made) and particles with no neighbour that
+    close stay put."""
+    l0 = 0.02
+    r_sep = K.R_MIN * 2.1 * l0
+    sdf = grid_from_function(box_interior_sdf([0, 0, 0], [0.2, 0.2, 0.2]), [0, 0, 0], [0.2, 0.2, 0.2], l0 / 2)
+    walls = MPSSolver(np.array([[0.05, 0.05, 0.05]]), np.zeros((1, 3)), np.arange(1), sdf, spacing=l0, rho0=1000.0,
+                      params=MPSParams(), gravity=(0, 0, -G)).wall_terms
+    c = np.array([0.1, 0.1, 0.1])
+    x = np.array([c, c, c + [0, 0, 2 * l0], c + [0.1 * l0, 0, 2 * l0], c + [0, 0, 4 * l0], c + [0.09, 0.0, 0.0]])
+    ids = np.array([7, 3, 0, 1, 2, 5], np.int32)
+    v = np.zeros_like(x)
+    offsets = np.arange(0, 31, 5)  # every other particle is a neighbour
+    nbr = np.array([j for i in range(6) for j in range(6) if j != i], np.int32)
+    out = np.zeros_like(x)
+    K.part_stacked(x, v, ids, offsets, nbr, r_sep, walls, 0.5 * l0, 0.5 * l0, out)
+    axis = np.array(K.STACK_AXIS)
+    assert np.allclose(out[0], c + 0.5 * r_sep * axis) and np.allclose(out[1], c - 0.5 * r_sep * axis)  # id 7 > 3
+    assert np.isclose(np.linalg.norm(out[3] - out[2]), r_sep) and np.allclose(out[2] + out[3], x[2] + x[3])
+    assert np.allclose(out[2, 1:], x[2, 1:])  # along the pair's own line
+    assert np.array_equal(out[4], x[4]) and np.array_equal(out[5], x[5])
+    assert not v.any()
+
+
+def test_mirror_particles_in_a_v_apex_are_parted():
+    """Two particles at mirror positions in a 20 degree V's apex, falling: the projection puts both on the line
+    r_rep from both walls, at one point. Parted along their own line, into the walls, the projection puts them
+    back together; the next step parts them along the V, and they stay apart (before: 0-0.005 l0 for the rest of
+    the run), outside every wall's r_rep band."""
+    import math
+    l0, half = 0.02, math.radians(10.0)
+    n1, n2 = np.array([math.cos(half), 0, math.sin(half)]), np.array([-math.cos(half), 0, math.sin(half)])
+    apex = np.array([0.15, 0.05, 0.0])
+    box = box_interior_sdf([0, 0, 0], [0.3, 0.1, 0.3])
+
+    def fn(p):
+        q = p - apex
+        return np.minimum(box(p), np.minimum(q @ n1, q @ n2))
+
+    sdf = grid_from_function(fn, [0, 0, 0], [0.3, 0.1, 0.3], l0 / 2)
+    x = apex + np.array([[-0.2 * l0, 0, 2.0 * l0], [0.2 * l0, 0, 2.0 * l0]])
+    s = MPSSolver(x, np.array([[0.3, 0, -1.0], [-0.3, 0, -1.0]]), np.arange(2), sdf, spacing=l0, rho0=1000.0,
+                  params=MPSParams(), gravity=(0, 0, -G))
+    r_sep = K.R_MIN * s.re_n
+    apart = []
+    for _ in range(6):
+        s.step(1.0)
+        apart.append(np.linalg.norm(s.x[0] - s.x[1]) / r_sep)
+        d = sdf.sample(s.x)[0]
+        assert np.all(d >= 0.99 * s.p.r_rep * l0), d / l0
+    assert min(apart[1:]) > 0.5 and min(apart[3:]) > 0.9, apart
+
+
 @pytest.mark.parametrize("frame", [None, 0.001])
 @pytest.mark.parametrize("into", ["floor", "edge", "corner"])
 def test_a_small_block_fired_into_a_wall_is_not_thrown_back(into, frame):

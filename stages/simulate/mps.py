@@ -79,9 +79,17 @@ energy source either: with re_number_density 3.1 (the three lattices' n within 0
 (0.0232 m/s over 1-1.5 s, against 0.0259) while its centre of mass rises 0.78 mm. Per term of the step (over 1-1.5
 s, per kg): gravity's g dt adds 27.3 mJ/kg net of the potential energy and the pressure removes 30.5, cancelling to
 10 % of flows 70 times the tank's kinetic energy (viscosity 0.004, the walls' projection 0.33). The Laplacian is not
-the divergence of the corrected gradient, so a converged solve still leaves a few % of g dt each step; next: an
-exact projection (Laplacian = divergence of the corrected gradient), under which a uniform g dt projects to exactly
-zero.
+the divergence of the corrected gradient, so a converged solve still leaves a few % of g dt each step. Session 36
+(benchmarks/rest_log.md): a projection closer to exact (defect correction, 2-8 passes) did not calm the tank, nor
+did six other levers; the motion starts in the top corners and is kept up by the p_min repulsion under a
+hydrostatic pressure on a disordered packing.
+
+Stacked pairs (session 37). In a V's apex the eq. 16 projection moves every particle closer than r_rep to both
+walls onto the line r_rep from both, so mirror-image particles land on one point (mps_kernels.part_stacked): such
+pairs stayed 0-0.005 l0 apart with n / n0 1.5-1.7 and threw their neighbours faster than the ballistic bound
+allows. Each step now parts pairs closer than R_MIN re after the projection. The fastest particle over every step,
+in 35 runs of the stability suite's V troughs (10-30 degrees, the apex on and off the SDF's nodes, 5-30 frames):
+7 runs above 2 x the bound and up to 9.5 x before, 1.64 x at most after.
 
 Effects: gravity and viscosity (with its no-slip wall term) only; a scene declaring any other effect
 is rejected with a StageError that names them.
@@ -313,6 +321,9 @@ class MPSSolver(SolverBase):
         K.correct(self.xs, self.vs, self.pr, self.offsets, self.nbr, self.re_n, self.grad_coef, self.d, self.wall_terms,
                   self.gravity, self.rho0, self.dirichlet, self.p.gradient_correction, dt, self.x, self.v)
         K.project_out_of_walls(self.x, self.v, self.wall_terms, self.p.r_rep * self.l0, 0.5 * self.l0)
+        K.part_stacked(self.x, self.v, self.id, self.offsets, self.nbr, K.R_MIN * self.re_n, self.wall_terms,
+                       self.p.r_rep * self.l0, 0.5 * self.l0, self.xb)  # xb is free until the next step's collision
+        self.x, self.xb = self.xb, self.x
         self.p_sum += dt * self.pr
         self.p_time += dt
         self.t = t_new
@@ -381,7 +392,9 @@ def check_effects(effects) -> None:
 class MPSSimulate(Stage):
     kind = "simulate"
     name = "mps"
-    version = "5"  # 5: the PPE counts the p_min repulsion (impacts); 4: a frame's pressure is its mean over the frame's steps
+    # 6: pairs the wall projection stacks are parted; 5: the PPE counts the p_min repulsion (impacts); 4: a frame's
+    # pressure is its mean over the frame's steps
+    version = "6"
     Params = MPSParams
     inputs = ("sdf",)
     reads = ("scene.units", "scene.domain", "scene.frames.count", "scene.frames.fps", "fluid", "effects")
