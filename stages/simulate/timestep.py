@@ -26,9 +26,10 @@ def stable_dt(*, l0: float, h: float, v_max: float, a_max: float, cfl: float, so
 
 def step_to(t: float, t_end: float, dt: float) -> float:
     """The step to take from t towards t_end: never past it, and no sliver step at the end (the
-    remainder below 1.5 dt is split in two equal steps)."""
+    remainder below 1.5 dt is split in two equal steps). A remainder within rounding of dt is one step: frames
+    on multiples of a fixed time step left remainders a few ulps above it, and each was split in two."""
     rest = t_end - t
-    if rest <= dt:
+    if rest <= dt * (1.0 + 1e-9):
         return rest
     if rest < 1.5 * dt:
         return 0.5 * rest
