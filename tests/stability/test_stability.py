@@ -3,9 +3,9 @@ prints the table). Every case runs through each solver as a pipeline run would s
 start, the blow-up guard) and must end without a blow-up, a particle inside a wall or through the
 thin plate, an escape, a particle faster than twice the ballistic bound sqrt(2 g H) + emitter speed
 (Ritter's dam-break front runs at 2 sqrt(g H), 1.41 x sqrt(2 g H)) at a sample or 3 x within any step,
-or energy created (kinetic + potential at the end at most 5 % above the start). The case asking for a time step far above the
-stable one must end in the guard's error for WCSPH (explicit); the implicit solvers may survive it
-but then obey the same checks."""
+or energy created (kinetic + potential at the end at most 5 % above the start). The case asking for a
+time step far above the stable one must end in the guard's error for WCSPH (explicit); the implicit
+solvers may survive it but then obey the same checks."""
 from __future__ import annotations
 
 import numba as nb
