@@ -352,7 +352,8 @@ def make_solver(name: str, s: Scene):
 
 class PeakGuard(Guard):
     """The blow-up guard, also keeping the fastest particle's speed over every step: a spike between two samples
-    is a spike (before session 37 the MPS wedge's reached 5-9 x the bound within a step, unseen at the samples)."""
+    is a spike (before session 37 the MPS wedge's reached up to 9.5 x the bound within a step, unseen at the
+    samples)."""
     peak = 0.0
 
     def check(self, solver, dt: float, last_of_frame: bool) -> None:

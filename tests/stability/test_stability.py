@@ -59,7 +59,7 @@ def test_case_stays_stable(case, solver):
     assert r.through_plate == 0
     assert r.speed_ratio < 2.0, r.speed_ratio
     # between the samples too: a single step's spike (the MPS wedge's reached 9.5 x before session 37); WCSPH's wedge
-    # reaches 2.1 x within a step, its particles on the V's apex line
+    # reaches 2.1 x within a step here (2.4 x in the long suite), its particles on the V's apex line
     assert r.peak_ratio < 3.0, r.peak_ratio
     assert r.energy_ratio < 1.05, r.energy_ratio
     if case == "rest":
