@@ -624,27 +624,29 @@ def mark_free_surface(n, threshold, dirichlet):
         dirichlet[i] = n[i] < threshold
 
 
+@nb.njit(cache=True)
+def project_one(i, px, py, pz, v, walls, r_rep, max_corr, x_out):
+    """Particle i at (px, py, pz) out of the static and moving walls (eq. 16): its position into x_out[i], its
+    velocity, less the part into the walls, into v[i]."""
+    vx, vy, vz = v[i, 0], v[i, 1], v[i, 2]
+    px, py, pz, vx, vy, vz = push_out(walls, None, -1, px, py, pz, vx, vy, vz, r_rep, max_corr, False)
+    if walls.pose.shape[0] > 0:
+        px, py, pz, vx, vy, vz = bodies_push_out(walls, walls.pose, px, py, pz, vx, vy, vz, r_rep, max_corr, False)
+    x_out[i, 0] = px
+    x_out[i, 1] = py
+    x_out[i, 2] = pz
+    v[i, 0] = vx
+    v[i, 1] = vy
+    v[i, 2] = vz
+
+
 @nb.njit(cache=True, parallel=True)
 def project_out_of_walls(x, v, walls, r_rep, max_corr):
     """The (16) wall pressure as a position correction: a particle closer than r_rep moves back along
     the SDF normal (capped at max_corr per step; up to three projections for edges and corners) and
     loses its velocity component into the wall (relative to a moving wall's own velocity: it pushes)."""
     for i in nb.prange(x.shape[0]):
-        px = x[i, 0]
-        py = x[i, 1]
-        pz = x[i, 2]
-        vx = v[i, 0]
-        vy = v[i, 1]
-        vz = v[i, 2]
-        px, py, pz, vx, vy, vz = push_out(walls, None, -1, px, py, pz, vx, vy, vz, r_rep, max_corr, False)
-        if walls.pose.shape[0] > 0:
-            px, py, pz, vx, vy, vz = bodies_push_out(walls, walls.pose, px, py, pz, vx, vy, vz, r_rep, max_corr, False)
-        x[i, 0] = px
-        x[i, 1] = py
-        x[i, 2] = pz
-        v[i, 0] = vx
-        v[i, 1] = vy
-        v[i, 2] = vz
+        project_one(i, x[i, 0], x[i, 1], x[i, 2], v, walls, r_rep, max_corr, x)
 
 
 # Pairs the eq. 16 projection stacks. Where two walls meet at an acute angle (a V's apex), the points r_rep from
@@ -698,19 +700,8 @@ def part_stacked(x, v, ids, offsets, nbr, r_sep, walls, r_rep, max_corr, x_out):
             x_out[i, 0] = xi
             x_out[i, 1] = yi
             x_out[i, 2] = zi
-            continue
-        vx = v[i, 0]
-        vy = v[i, 1]
-        vz = v[i, 2]
-        px, py, pz, vx, vy, vz = push_out(walls, None, -1, xi + mx, yi + my, zi + mz, vx, vy, vz, r_rep, max_corr,
-                                          False)
-        px, py, pz, vx, vy, vz = bodies_push_out(walls, walls.pose, px, py, pz, vx, vy, vz, r_rep, max_corr, False)
-        x_out[i, 0] = px
-        x_out[i, 1] = py
-        x_out[i, 2] = pz
-        v[i, 0] = vx
-        v[i, 1] = vy
-        v[i, 2] = vz
+        else:
+            project_one(i, xi + mx, yi + my, zi + mz, v, walls, r_rep, max_corr, x_out)
 
 
 @nb.njit(cache=True, parallel=True)
