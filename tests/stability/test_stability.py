@@ -2,8 +2,9 @@
 prints the table). Every case runs through each solver as a pipeline run would start it (hydrostatic
 start, the blow-up guard) and must end without a blow-up, a particle inside a wall or through the
 thin plate, an escape, a particle faster than twice the ballistic bound sqrt(2 g H) + emitter speed
-(Ritter's dam-break front runs at 2 sqrt(g H), 1.41 x sqrt(2 g H)) at a sample or 3 x within any step,
-or energy created (kinetic + potential at the end at most 5 % above the start). The case asking for a
+(Ritter's dam-break front runs at 2 sqrt(g H), 1.41 x sqrt(2 g H)) at a sample or 3 x within any step
+(not in the cone, where no speed bound holds: FOCUSING), or energy created (kinetic + potential at the end at most
+5 % above the start; in the cone below it). The case asking for a
 time step far above the stable one must end in the guard's error for WCSPH (explicit); the implicit
 solvers may survive it but then obey the same checks."""
 from __future__ import annotations
@@ -35,6 +36,12 @@ KNOWN = {
 }
 
 
+# Cases where pressure focuses the fluid's energy without bound in the continuum: the void closing over a cone's
+# apex throws particles into it at 2-3 x the ballistic bound at 2 cm (WCSPH, DFSPH), 7.5-14 x at 0.7-1 cm
+# (test_blowup.py). No speed bound holds there; what must hold is that the fluid makes no energy.
+FOCUSING = {"cone_40deg"}
+
+
 def _cases():
     for case in CASES:
         for solver in SOLVERS:
@@ -57,6 +64,9 @@ def test_case_stays_stable(case, solver):
     assert r.inside_walls == 0
     assert r.escaped == 0
     assert r.through_plate == 0
+    if case in FOCUSING:
+        assert r.energy_ratio < 1.0, r.energy_ratio
+        return
     assert r.speed_ratio < 2.0, r.speed_ratio
     # between the samples too: a single step's spike (the MPS wedge's reached 9.5 x before session 37); WCSPH's wedge
     # reaches 2.1 x within a step here (2.4 x in the long suite), its particles on the V's apex line
