@@ -12,7 +12,7 @@ from __future__ import annotations
 import numba as nb
 import pytest
 
-from stability_cases import CASES, SOLVERS, rest_summary, run_case
+from stability_cases import CASES, RESTING, SOLVERS, rest_summary, run_case
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -33,6 +33,13 @@ KNOWN = {
                        "compression as kinetic energy)",
     ("rest", "mps"): "decaying but above the floor: 0.024 m/s over 2.5-3 s (particle-scale motion that grows from "
                      "0.004 m/s after 0.2 s: mps.py)",
+    # the same in the curved tanks (session 38; WCSPH's default is at rest there: 0.0031 and 0.0022 m/s)
+    ("rest_cylinder", "sph_poly6"): "decaying but above the floor: 0.0101 m/s over 2.5-3 s against 0.0071",
+    ("rest_cylinder", "dfsph"): "not at rest with water's viscosity: 0.16 m/s over 2.5-3 s (as in the box tank)",
+    ("rest_cylinder", "mps"): "decaying but above the floor: 0.020 m/s over 2.5-3 s (as in the box tank)",
+    ("rest_bowl", "sph_poly6"): "decaying but above the floor: 0.0080 m/s over 2.5-3 s against 0.0071",
+    ("rest_bowl", "dfsph"): "not at rest with water's viscosity: 0.16 m/s over 2.5-3 s (as in the box tank)",
+    ("rest_bowl", "mps"): "decaying but above the floor: 0.021 m/s over 2.5-3 s (as in the box tank)",
 }
 
 
@@ -72,21 +79,24 @@ def test_case_stays_stable(case, solver):
     # reaches 2.1 x within a step here (2.4 x in the long suite), its particles on the V's apex line
     assert r.peak_ratio < 3.0, r.peak_ratio
     assert r.energy_ratio < 1.05, r.energy_ratio
-    if case == "rest":
-        assert_at_rest(r)
+    if case in RESTING:
+        assert_at_rest(r, lattice_fits=case == "rest")
 
 
-def assert_at_rest(r) -> None:
+def assert_at_rest(r, lattice_fits: bool = True) -> None:
     """Issue 17's resting tank, from the pipeline's start (hydrostatic, water's viscosity, no settling): the mean
     speed averaged over the run's last sixth (2.5-3 s) below the goal's floor, Froude-scaled to the spacing
     (stability_cases.rest_floor: 0.0071 m/s at 2.5 cm), and below its average over 1-1.5 s (decaying); the
     free surface still over the run's second half (no creep or leak: within 0.1 l0) and within half a spacing
     of where it started (the top layer settles by about a third of a spacing into its resting packing in the
-    first second: 0.31 l0 for WCSPH at 1 s, 0.345 at 3 s)."""
+    first second: 0.31 l0 for WCSPH at 1 s, 0.345 at 3 s). In the curved tanks (``lattice_fits`` false) the
+    emitted lattice leaves up to half a spacing of water out along the wall (emitters.drop_inside_walls warns of
+    it), so the surface settles 0.7-1.7 spacings at 2.5 cm; only its stillness over the second half is judged."""
     f = rest_summary(r)
     assert f["late"] < f["floor"] and f["late"] < f["early"], (f, r.speeds)
     assert f["drift_second_half"] < 0.1, (f, r.surfaces)
-    assert abs(f["drift"]) < 0.5, (f, r.surfaces)
+    if lattice_fits:
+        assert abs(f["drift"]) < 0.5, (f, r.surfaces)
 
 
 @pytest.mark.parametrize("angle", [10.0, 20.0, 30.0])
