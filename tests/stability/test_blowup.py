@@ -169,3 +169,36 @@ def test_water_poured_into_a_cone_at_a_fine_spacing_is_no_blow_up(solver, monkey
     assert r.blowup is None, r.blowup
     assert r.inside_walls == 0 and r.escaped == 0
     assert r.energy_ratio < 1.0, r.energy_ratio
+
+
+def test_a_cone_run_through_the_cli_reports_the_focusing_and_ends_well(tmp_path):
+    """The same collapse through a pipeline run (a cone model, DFSPH at 0.7 cm, 0.16 s): exit 0, the log says once
+    how many steps had particles above the limit and the fastest, and meta.json's stats keep it. Before the
+    energy test this run ended in exit 1, "blew up during frame 8: speed ... above 10 x the scene's ballistic
+    bound"."""
+    import math
+
+    import trimesh
+
+    from stages.common.formats import ParticleMeta
+
+    cone = trimesh.creation.cone(radius=0.45 * math.tan(math.radians(20.0)), height=0.45, sections=96)
+    cone.apply_transform(trimesh.transformations.rotation_matrix(math.pi, [1, 0, 0]))  # the apex down, at z = 0
+    cone.apply_translation([0.0, 0.0, -cone.bounds[0][2]])
+    cone.export(tmp_path / "cone.ply")
+    cfg = tmp_path / "cone.yaml"
+    cfg.write_text(TANK.replace("""walls:
+  - builtin: box_tank
+    size: [0.3, 0.2, 0.4]
+    center: [0.0, 0.0, 0.0]""", """walls:
+  - file: cone.ply
+    fluid: inside""").replace("fps: 20, count: 4", "fps: 50, count: 9").replace("spacing: 0.025", "spacing: 0.007")
+                   .replace("box: {min: [-0.15, -0.1, 0.0], max: [0.15, 0.1, 0.25]}",
+                            "box: {min: [-0.091, -0.091, 0.25], max: [0.091, 0.091, 0.37]}").replace("SOLVER", "dfsph"))
+    r = CliRunner().invoke(main, ["run", str(cfg), "--until", "simulate", "--cache", str(tmp_path / "cache")])
+    assert r.exit_code == 0, r.output
+    said = " ".join(r.output.split())
+    assert "while the fluid's energy did not rise: pressure focusing it, not a blow-up" in said, r.output
+    meta = ParticleMeta.load(next((tmp_path / "cache" / "simulate").rglob("meta.json")).parent)
+    focused = meta.stats["focused"]
+    assert focused["peak_over_bound"] > 10.0 and focused["steps"] >= 1 and 0.1 < focused["t"] < 0.16, focused
