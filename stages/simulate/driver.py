@@ -72,8 +72,8 @@ class Solver(Protocol):
 # focus energy without bound where a void closes in a sharp concave corner (Rayleigh's collapse; water poured
 # into a cone closed at its apex throws one or two particles into the apex at 6-10 x the bound at 1 cm spacing,
 # 1.5-3 x at 2 cm; DFSPH's and MPS's 0.7 cm runs, 12-14 x, were stopped as blow-ups). So a particle above the
-# limit stops the run only if the fluid's energy (kinetic + gravitational) has risen since the frame's first
-# step by more than half the fast particles' kinetic energy: a solver making energy, not pressure moving it
+# limit stops the run only if the fluid's energy (kinetic + gravitational) has risen since the frame began by
+# more than half the fast particles' kinetic energy: a solver making energy, not pressure moving it
 # (Guard.focused). A step below DT_FLOOR x l0 / v_bound
 # (a particle at the bound crossing a thousandth of the spacing) means an acceleration of about a million
 # g at the default spacing: the adaptive step is collapsing towards zero and the run would never end.
@@ -116,7 +116,9 @@ class Guard:
     base: float = 0.0
     focus_steps: int = 0  # steps with particles above the limit that the energy showed to be pressure focusing
     focus_peak: tuple = (0.0, 0.0, 0)  # the fastest of them: (speed / v_bound, t, particles above the limit)
-    _e_ref: float | None = None  # the fluid's energy after the current frame's first step
+    # the fluid's energy and particle count where the current advance (a frame) began (start_frame)
+    _e_ref: float | None = field(default=None, init=False, repr=False)
+    _n_ref: int = field(default=0, init=False, repr=False)
 
     @property
     def v_limit(self) -> float:
@@ -133,16 +135,12 @@ class Guard:
         bad, fast = count_blown(solver.x, solver.v, self.v_limit ** 2)
         if bad:
             raise BlowUp("non-finite positions or velocities", solver.t, bad, self._cause(solver, dt))
-        if self.gravity is not None and self._e_ref is None:
-            self._e_ref = mechanical_energy(solver, self.gravity, self.base)
         if fast:
             v2 = np.einsum("ij,ij->i", solver.v, solver.v)
             vmax = float(np.sqrt(v2.max()))
             if not self.focused(solver, v2, fast):
                 raise BlowUp(f"speed {vmax:.3g} m/s above {SPEED_LIMIT:g} x the scene's ballistic bound "
                              f"{self.v_bound:.3g} m/s", solver.t, fast, self._cause(solver, dt))
-        if last_of_frame:
-            self._e_ref = None  # the next frame's reference is taken after its first step (past removals and inflow)
         sdf = getattr(solver, "sdf", None)
         if last_of_frame and sdf is not None:
             # a point outside the grid reads its border: a particle through a wall and out of the grid counts too
@@ -151,13 +149,19 @@ class Guard:
                 raise BlowUp(f"particles more than {INSIDE_DEPTH:g} spacings inside a wall or through it", solver.t,
                              deep, self._cause(solver, dt))
 
+    def start_frame(self, solver: "SolverBase") -> None:
+        """The reference for ``focused``: the fluid's energy where an advance to a frame's time begins."""
+        if self.gravity is not None:
+            self._e_ref, self._n_ref = mechanical_energy(solver, self.gravity, self.base), len(solver.x)
+
     def focused(self, solver: "SolverBase", v2: np.ndarray, fast: int) -> bool:
         """Whether the particles above the speed limit are pressure focusing the fluid's energy rather than a
-        blow-up: the fluid's energy has not risen since the frame's first step by more than half their kinetic
-        energy (a solver making energy puts it into them; a closing void takes it from the fluid around it).
-        Energy given by inflows, moving walls, wind or an attractor counts as a rise: those scenes are held to the
-        strict limit unless the rest of the fluid lost as much."""
-        if self.gravity is None:
+        blow-up: the fluid's energy has not risen since the frame began by more than half their kinetic energy
+        (a solver making energy puts it into them; a closing void takes it from the fluid around it). Energy given
+        by inflows, moving walls, wind or an attractor counts as a rise: those scenes are held to the strict
+        limit unless the rest of the fluid lost as much. Particles a sink took since (their energy gone from the
+        sum) or no reference (a check outside an advance) leave the strict limit."""
+        if self.gravity is None or self._e_ref is None or len(solver.x) < self._n_ref:
             return False
         fast_energy = 0.5 * float(v2[v2 > self.v_limit ** 2].sum())
         if mechanical_energy(solver, self.gravity, self.base) - self._e_ref > 0.5 * fast_energy:
@@ -230,6 +234,8 @@ class SolverBase:
 
     def advance_to(self, t_end: float) -> int:
         n = 0
+        if self.guard is not None:
+            self.guard.start_frame(self)
         while self.t < t_end:
             if self.inflows:
                 self.emit_inflow()

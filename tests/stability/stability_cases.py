@@ -205,7 +205,7 @@ def ridge(l0=0.02, angle_deg=20.0, apex_x=0.15):
 
 def cone(l0=0.02, angle_deg=40.0, apex=(0.15, 0.15)):
     """A cone closed at its apex (``angle_deg`` opening, its axis vertical through ``apex`` in x, y, the apex on
-    the floor: an SDF node): water poured into it converges on a sharp concave point."""
+    the floor, on an SDF node at 2 cm): water poured into it converges on a sharp concave point."""
     lo, hi = np.zeros(3), np.array([0.3, 0.3, 0.45])
     half = math.radians(0.5 * angle_deg)
     box = box_interior_sdf(lo, hi)
