@@ -71,7 +71,7 @@ class Solver(Protocol):
 # blow-ups reach 50-350 x, so the limit sits between.) Unless the fluid's energy says otherwise: pressure can
 # focus energy without bound where a void closes in a sharp concave corner (Rayleigh's collapse; water poured
 # into a cone closed at its apex throws one or two particles into the apex at 6-10 x the bound at 1 cm spacing,
-# 1.5-3 x at 2 cm; DFSPH's and MPS's 0.7 cm runs, 12-14 x, were stopped as blow-ups). So a particle above the
+# 1.4-3.2 x at 2 cm; DFSPH's and MPS's 0.7 cm runs, 12-14 x, were stopped as blow-ups). So a particle above the
 # limit stops the run only if the fluid's energy (kinetic + gravitational) has risen since the frame began by
 # more than half the fast particles' kinetic energy: a solver making energy, not pressure moving it
 # (Guard.focused). A step below DT_FLOOR x l0 / v_bound

@@ -163,8 +163,8 @@ def test_a_fast_particle_is_a_blow_up_only_if_the_fluid_energy_rose(others_pay):
 @pytest.mark.parametrize("solver", ["dfsph", "mps"])
 def test_water_poured_into_a_cone_at_a_fine_spacing_is_no_blow_up(solver, monkeypatch):
     """The stability suite's closed cone at 0.7 cm: where the converging water closes over the apex, the void
-    below it collapses and throws one or two particles into the apex at 8-12 x the ballistic bound (Rayleigh's
-    collapse is singular: the peak grows as the spacing shrinks; 2-3 x at 2 cm). The guard stopped both
+    below it collapses and throws one or two particles into the apex at 12-14 x the ballistic bound (Rayleigh's
+    collapse is singular: the peak grows as the spacing shrinks; 1.4-2.1 x at 2 cm). The guard stopped both
     incompressible solvers here as a blow-up, advising a finer spacing. The fluid's energy did not rise (it fell),
     so the guard lets it through: the run ends with nothing inside a wall, none escaped, no energy made."""
     import stability_cases as S

@@ -44,7 +44,7 @@ KNOWN = {
 
 
 # Cases where pressure focuses the fluid's energy without bound in the continuum: the void closing over a cone's
-# apex throws particles into it at 2-3 x the ballistic bound at 2 cm (WCSPH, DFSPH), 7.5-14 x at 0.7-1 cm
+# apex throws particles into it at 2-3.2 x the ballistic bound at 2 cm (WCSPH, DFSPH), 6-14 x at 0.7-1 cm
 # (test_blowup.py). No speed bound holds there; what must hold is that the fluid makes no energy.
 FOCUSING = {"cone_40deg"}
 
