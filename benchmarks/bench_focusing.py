@@ -26,6 +26,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests" / "stability"))
 
 import stability_cases as S  # noqa: E402
+from stages.simulate.driver import mechanical_energy  # noqa: E402
 
 T_END, SAMPLE = 0.3, 0.01
 
@@ -34,9 +35,7 @@ def run(case: str, solver: str, l0: float) -> dict:
     scene = {"cone_40deg": S.cone, "ridge_20deg": S.ridge, "dam_break": S.dam_break}[case](l0=l0)
     sol = S.make_solver(solver, scene)
     vb = scene.v_bound
-    g = scene.gravity
-    energy = lambda: float(0.5 * np.einsum("ij,ij->", sol.v, sol.v) - np.sum(sol.x @ g))  # noqa: E731
-    e0 = energy()
+    e0 = mechanical_energy(sol, scene.gravity, 0.0)  # per kg, the potential from z = 0 (each scene's floor)
     sampled, above, t0, blowup = 0.0, 0, time.perf_counter(), None
     try:
         while sol.t < T_END - 1e-12:
@@ -48,7 +47,7 @@ def run(case: str, solver: str, l0: float) -> dict:
         blowup = str(e)
     return {"case": case, "solver": solver, "spacing": l0, "particles": len(scene.x), "peak": sol.guard.peak / vb,
             "sampled": sampled, "above_1.5": above, "focused_steps": sol.guard.focus_steps,
-            "energy_end_over_start": energy() / e0, "blowup": blowup, "steps": sol.steps,
+            "energy_end_over_start": mechanical_energy(sol, scene.gravity, 0.0) / e0, "blowup": blowup, "steps": sol.steps,
             "wall_seconds": time.perf_counter() - t0}
 
 

@@ -120,6 +120,12 @@ class Guard:
     _e_ref: float | None = field(default=None, init=False, repr=False)
     _n_ref: int = field(default=0, init=False, repr=False)
 
+    @classmethod
+    def with_energy(cls, v_bound: float, l0: float, gravity: np.ndarray, corners: np.ndarray) -> "Guard":
+        """The guard with its energy test, the potential taken from the lowest of the scene box's ``corners``."""
+        g = np.asarray(gravity, np.float64)
+        return cls(v_bound=v_bound, l0=l0, gravity=g, base=float(np.min(-(corners @ g))))
+
     @property
     def v_limit(self) -> float:
         return SPEED_LIMIT * self.v_bound
@@ -138,7 +144,7 @@ class Guard:
         if fast:
             v2 = np.einsum("ij,ij->i", solver.v, solver.v)
             vmax = float(np.sqrt(v2.max()))
-            if not self.focused(solver, v2, fast):
+            if not self.focused(solver, v2, vmax, fast):
                 raise BlowUp(f"speed {vmax:.3g} m/s above {SPEED_LIMIT:g} x the scene's ballistic bound "
                              f"{self.v_bound:.3g} m/s", solver.t, fast, self._cause(solver, dt))
         sdf = getattr(solver, "sdf", None)
@@ -154,7 +160,7 @@ class Guard:
         if self.gravity is not None:
             self._e_ref, self._n_ref = mechanical_energy(solver, self.gravity, self.base), len(solver.x)
 
-    def focused(self, solver: "SolverBase", v2: np.ndarray, fast: int) -> bool:
+    def focused(self, solver: "SolverBase", v2: np.ndarray, vmax: float, fast: int) -> bool:
         """Whether the particles above the speed limit are pressure focusing the fluid's energy rather than a
         blow-up: the fluid's energy has not risen since the frame began by more than half their kinetic energy
         (a solver making energy puts it into them; a closing void takes it from the fluid around it). Energy given
@@ -167,7 +173,7 @@ class Guard:
         if mechanical_energy(solver, self.gravity, self.base) - self._e_ref > 0.5 * fast_energy:
             return False
         self.focus_steps += 1
-        ratio = math.sqrt(float(v2.max())) / self.v_bound
+        ratio = vmax / self.v_bound
         if ratio > self.focus_peak[0]:
             self.focus_peak = (ratio, solver.t, fast)
         return True
@@ -702,9 +708,8 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
         resumed = latest_checkpoint(source, count)
     progress = ctx.progress(f"simulating ({solver_name})", count)
     solver.attach_flows(setup.inflows, setup.sinks, ctx.log)
-    g_vec = np.asarray(setup.gravity, np.float64)
-    solver.guard = Guard(v_bound=ballistic_speed(setup, getattr(solver, "effects", None)), l0=setup.spacing,
-                         gravity=g_vec, base=float(np.min(-(scene_corners(setup) @ g_vec))))
+    solver.guard = Guard.with_energy(ballistic_speed(setup, getattr(solver, "effects", None)), setup.spacing,
+                                     setup.gravity, scene_corners(setup))
     effects = getattr(solver, "effects", None)
     own = ballistic_speed(setup)  # falling, the emitters and the walls: no effect's
     # (surface tension's speed is the scene's own too: a droplet in zero gravity is no misuse)

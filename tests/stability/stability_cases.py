@@ -420,8 +420,8 @@ def make_solver(name: str, s: Scene):
     else:
         raise ValueError(name)
     hydrostatic_start(sol)
-    corners = np.array(_corners(s.sdf))  # the guard as driver.drive sets it (its energy test included)
-    sol.guard = PeakGuard(v_bound=s.v_bound, l0=s.l0, gravity=s.gravity, base=float(np.min(-(corners @ s.gravity))))
+    # the guard as driver.drive sets it (its energy test included)
+    sol.guard = PeakGuard.with_energy(s.v_bound, s.l0, s.gravity, np.array(_corners(s.sdf)))
     return sol
 
 
