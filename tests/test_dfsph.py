@@ -264,4 +264,18 @@ def test_energy_the_method_makes_is_said(tmp_path, caplog):
             out = run_stage(stage, tmp_path / name, scene=scene, params={"threads": 1}, inputs={"sdf": tmp_path / "sdf"})
         assert len(load_particle_frame(out, 0)) == 10
         said[name] = "energy (kinetic + gravitational) is" in caplog.text and "energy the method made" in caplog.text
+        assert ("energy_rise" in ParticleMeta.load(out).stats) == said[name]
     assert said == {"dfsph": True, "sph": False}
+    # a longer shot continues from the shorter one's entry (Stage.extends) and is judged against the shot's start:
+    # the rise stays in its stats, and is not said again against the continuation's first frame
+    rise = ParticleMeta.load(tmp_path / "dfsph").stats["energy_rise"]
+    longer = {**scene, "scene": {**scene["scene"], "frames": {"fps": 10, "count": 12}}}
+    p = DFSPHSimulate.Params.model_validate({"threads": 1})
+    ctx = stage_context(DFSPHSimulate, tmp_path / "longer", scene=longer, resume_from=tmp_path / "dfsph")
+    (tmp_path / "longer").mkdir()
+    caplog.clear()
+    with caplog.at_level(logging.INFO):
+        DFSPHSimulate().run(ctx, {"sdf": Artifact(name="sdf", key="test", path=tmp_path / "sdf")}, p)
+    assert "resumed from the checkpoint at frame 8" in caplog.text and "energy the method made" not in caplog.text
+    stats = ParticleMeta.load(tmp_path / "longer").stats
+    assert len(stats["density_error_mean"]) == 12 and stats["energy_rise"] == rise, stats.get("energy_rise")

@@ -178,6 +178,16 @@ class Guard:
             self.focus_peak = (ratio, solver.t, fast)
         return True
 
+    def state(self) -> dict:
+        """What a resumed run needs to report the whole shot's focusing (checkpoint entries)."""
+        return {"guard_focus_steps": np.int64(self.focus_steps), "guard_focus_peak": np.asarray(self.focus_peak, float)}
+
+    def load_state(self, s: Mapping) -> None:
+        if "guard_focus_steps" in s:  # older checkpoints: none
+            self.focus_steps = int(s["guard_focus_steps"])
+            ratio, t, n = (float(v) for v in s["guard_focus_peak"])
+            self.focus_peak = (ratio, t, int(n))
+
     def _cause(self, solver: "SolverBase", dt: float) -> str:
         """The likeliest parameter to change, from the last step against the scene's scales."""
         c = float(getattr(solver, "c", 0.0) or 0.0)
@@ -737,6 +747,7 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
     if resumed is not None:
         start, state = resumed
         solver.load_state(state)
+        solver.guard.load_state(state)
         stats = _stats_from(state, stats)
         restore_frames(source, ctx.out_dir, start)
         ctx.log.info("resumed from the checkpoint at frame %d", start)
@@ -761,6 +772,8 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
     lo, hi = setup.domain if setup.domain is not None else (setup.sdf.origin, setup.sdf.upper)
     domain_box = (np.asarray(lo) / setup.meters_per_unit, np.asarray(hi) / setup.meters_per_unit)  # scene units
     budget = EnergyBudget(setup, solver)
+    if resumed is not None:
+        budget.load_state(resumed[1])
     t0 = time.perf_counter()
     for f in range(start + 1, count):
         try:
@@ -780,7 +793,8 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
         if ckpt_dir is not None and (f % checkpoint_every == 0) and f < count - 1:
             stats["wall_seconds"] += time.perf_counter() - t0
             t0 = time.perf_counter()
-            save_checkpoint(ckpt_dir, f, {**solver.state(), **_stats_to(stats)})
+            save_checkpoint(ckpt_dir, f, {**solver.state(), **_stats_to(stats), **solver.guard.state(),
+                                           **budget.state()})
         progress.advance()
     stats["wall_seconds"] += time.perf_counter() - t0
     kept = stats["emitted"] - stats["dropped_in_wall"] - stats["dropped_outside_domain"]
@@ -800,6 +814,8 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
                         "at t = %.4g s: a void closing in a sharp concave corner, or a jet); check those frames",
                         guard.focus_steps, SPEED_LIMIT, guard.v_bound, ratio, n_fast, t_peak)
         stats["focused"] = {"steps": guard.focus_steps, "peak_over_bound": ratio, "t": t_peak, "particles": n_fast}
+    if budget.said is not None:
+        stats["energy_rise"] = {"frame": budget.said[0], "rise": budget.said[1]}
     if solver.inflows or solver.sinks or stats["escaped"]:  # the water's budget, in the log as in meta.json
         ctx.log.info("water: %d from the emitters + %d from inflows - %d sunk - %d escaped = %d at the end", kept,
                      solver.inflow_particles, solver.sunk, stats["escaped"], len(solver.x))
@@ -808,7 +824,7 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
             ctx.log.warning("inflow %d: %d of its %d layers were skipped (blocked by the fluid at the nozzle)", i, n,
                             solver.inflow_layers[i])
     # the final state in the entry itself, so a longer shot can continue from it
-    save_checkpoint(ctx.out_dir, count - 1, {**solver.state(), **_stats_to(stats)})
+    save_checkpoint(ctx.out_dir, count - 1, {**solver.state(), **_stats_to(stats), **guard.state(), **budget.state()})
     sim_seconds = (count - 1) / fps
     stats.update(steps=solver.steps, left_domain=solver.left_domain, sound_speed=solver.c,
                  mean_dt=sim_seconds / max(solver.steps, 1), particles=int(len(solver.x)), sunk=solver.sunk,
@@ -858,7 +874,9 @@ class EnergyBudget:
     where nothing else gives or takes energy (no inflow, sink, moving wall, wind, attractor, surface tension or
     adhesion): it can only fall. A rise of more than RISE of the start's is energy the method made, said once
     (DFSPH with one column of particles in a pipe 2.5 spacings wide: +90 %, the top particle above its release
-    height, and nothing said: the blow-up guard's bound is 10 x the ballistic speed)."""
+    height, and nothing said: the blow-up guard's bound is 10 x the ballistic speed) and kept in ``said`` (frame,
+    rise) for meta.json's stats. Both the start and ``said`` go into checkpoints, so a resumed run or a longer
+    shot continuing a shorter one is judged against the shot's start."""
 
     RISE = 0.10
 
@@ -867,25 +885,39 @@ class EnergyBudget:
         driven = (setup.inflows or setup.sinks or setup.bodies or e.wind is not None or e.attractor is not None
                   or e.surface_tension is not None or e.wall_adhesion is not None)
         self.g = np.asarray(setup.gravity, np.float64)
-        self.start = None  # the start's energy; None: nothing to watch (driven, empty, at rest on the floor, said)
+        self.start = None  # the start's energy; None: nothing to watch (driven, empty, at rest on the floor)
+        self.base = 0.0
+        self.said: tuple[int, float] | None = None
         if not driven and len(solver.x):
             self.base = float(np.min(-(solver.x @ self.g)))
             self.start = self.energy(solver) or None
+
+    def state(self) -> dict:
+        """Checkpoint entries (NaN: none)."""
+        frame, rise = self.said or (np.nan, np.nan)
+        return {"budget_start": np.float64(np.nan if self.start is None else self.start),
+                "budget_base": np.float64(self.base), "budget_said": np.asarray([frame, rise], float)}
+
+    def load_state(self, s: Mapping) -> None:
+        if "budget_start" in s:  # older checkpoints: judged from the resumed frame, as before
+            start, (frame, rise) = float(s["budget_start"]), s["budget_said"]
+            self.start, self.base = (None if math.isnan(start) else start), float(s["budget_base"])
+            self.said = None if math.isnan(frame) else (int(frame), float(rise))
 
     def energy(self, solver: "SolverBase") -> float:
         """Per unit mass (J/kg, summed over particles): 1/2 v^2 + g h, h above the lowest start point."""
         return mechanical_energy(solver, self.g, self.base)
 
     def check(self, solver: "SolverBase", frame: int, log) -> None:
-        if self.start is None:
+        if self.start is None or self.said is not None:
             return
         now = self.energy(solver)
         if now > (1.0 + self.RISE) * self.start:
-            rise, self.start = now / self.start - 1.0, None  # said once
+            self.said = (frame, now / self.start - 1.0)
             log.warning("frame %d: the fluid's energy (kinetic + gravitational) is %.0f %% above the start's, with "
                         "nothing in the scene to give it: energy the method made (a passage narrower than about 3 "
                         "spacings, a time step too long?); check the frames, or try a finer spacing or another "
-                        "solver", frame, 100.0 * rise)
+                        "solver", frame, 100.0 * self.said[1])
 
 
 def _blow_up_line(e: BlowUp, frame: int, solver: Solver, solver_name: str, ckpt_dir: Path | None) -> str:

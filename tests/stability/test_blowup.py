@@ -199,16 +199,17 @@ outputs: [frames]
 """
 
 
-def _cone_run(folder: Path, scale: float, up: str) -> tuple:
+def _cone_run(folder: Path, scale: float, up: str, *extra: str) -> tuple:
     """The cone model (0.45 m tall, 40 degrees, apex down) and a block over it, in units of 1 / scale m with the
-    given up axis, through a pipeline run: (the CLI's result, meta.json's stats)."""
+    given up axis, through a pipeline run (``extra``: more CLI options; the folder is reused if it exists): (the
+    CLI's result, the newest meta.json's stats)."""
     import math
 
     import trimesh
 
     from stages.common.formats import ParticleMeta
 
-    folder.mkdir()
+    folder.mkdir(exist_ok=True)
     cone = trimesh.creation.cone(radius=0.45 * math.tan(math.radians(20.0)), height=0.45, sections=96)
     cone.apply_transform(trimesh.transformations.rotation_matrix(math.pi, [1, 0, 0]))  # the apex down, at z = 0
     cone.apply_translation([0.0, 0.0, -cone.bounds[0][2]])
@@ -221,8 +222,8 @@ def _cone_run(folder: Path, scale: float, up: str) -> tuple:
     cfg = folder / "cone.yaml"
     cfg.write_text(CONE.replace("MPU", str(1.0 / scale)).replace("UP", up).replace("SPACING", str(0.007 * scale))
                    .replace("BOX_MIN", str([scale * v for v in lo])).replace("BOX_MAX", str([scale * v for v in hi])))
-    r = CliRunner().invoke(main, ["run", str(cfg), "--until", "simulate", "--cache", str(folder / "cache")])
-    meta = next((folder / "cache" / "simulate").rglob("meta.json"), None)
+    r = CliRunner().invoke(main, ["run", str(cfg), "--until", "simulate", "--cache", str(folder / "cache"), *extra])
+    meta = max((folder / "cache" / "simulate").rglob("meta.json"), key=lambda p: p.stat().st_mtime, default=None)
     return r, (ParticleMeta.load(meta.parent).stats if meta is not None else None)
 
 
@@ -244,3 +245,9 @@ def test_a_cone_run_through_the_cli_reports_the_focusing_and_ends_well(tmp_path)
     m, cm = got
     assert abs(m["peak_over_bound"] - cm["peak_over_bound"]) < 0.05 * m["peak_over_bound"], got
     assert abs(m["t"] - cm["t"]) < 1e-3, got
+    # a longer shot continues from the cached run (Stage.extends) and reports the whole shot's focusing: the
+    # guard's count was the continuation's own, so the two frames after the collapse reported none
+    r, stats = _cone_run(tmp_path / "1Z", 1.0, "Z", "--set", "scene.frames.count=11")
+    assert r.exit_code == 0 and "resumed from the checkpoint at frame 8" in " ".join(r.output.split()), r.output
+    assert len(stats["density_error_mean"]) == 11 and stats["focused"]["steps"] >= m["steps"], stats.get("focused")
+    assert stats["focused"]["peak_over_bound"] >= m["peak_over_bound"] and stats["focused"]["t"] >= m["t"], stats
