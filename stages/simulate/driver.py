@@ -105,6 +105,13 @@ def mechanical_energy(solver: "SolverBase", g: np.ndarray, base: float) -> float
     return float(0.5 * np.einsum("ij,ij->", solver.v, solver.v) + np.sum(-(solver.x @ g) - base))
 
 
+def flowed_energy(solver: "SolverBase", g: np.ndarray, base: float, since: tuple[float, int] = (0.0, 0)) -> float:
+    """What inflows brought minus what sinks and the domain's edge took since ``since`` (an earlier
+    ``solver.flowed``), in ``mechanical_energy``'s terms."""
+    energy, count = solver.flowed
+    return (energy - since[0]) - base * (count - since[1])
+
+
 @dataclass
 class Guard:
     """The blow-up limits of one scene (SI): a speed and a time step floor. With ``gravity`` (and ``base``, -g . x
@@ -116,9 +123,10 @@ class Guard:
     base: float = 0.0
     focus_steps: int = 0  # steps with particles above the limit that the energy showed to be pressure focusing
     focus_peak: tuple = (0.0, 0.0, 0)  # the fastest of them: (speed / v_bound, t, particles above the limit)
-    # the fluid's energy and particle count where the current advance (a frame) began (start_frame)
+    # the fluid's energy and what had flowed in and out (SolverBase.flowed) where the current advance (a frame)
+    # began (start_frame)
     _e_ref: float | None = field(default=None, init=False, repr=False)
-    _n_ref: int = field(default=0, init=False, repr=False)
+    _flowed_ref: tuple = field(default=(0.0, 0), init=False, repr=False)
 
     @classmethod
     def with_energy(cls, v_bound: float, l0: float, gravity: np.ndarray, corners: np.ndarray) -> "Guard":
@@ -158,19 +166,21 @@ class Guard:
     def start_frame(self, solver: "SolverBase") -> None:
         """The reference for ``focused``: the fluid's energy where an advance to a frame's time begins."""
         if self.gravity is not None:
-            self._e_ref, self._n_ref = mechanical_energy(solver, self.gravity, self.base), len(solver.x)
+            self._e_ref, self._flowed_ref = mechanical_energy(solver, self.gravity, self.base), solver.flowed
 
     def focused(self, solver: "SolverBase", v2: np.ndarray, vmax: float, fast: int) -> bool:
         """Whether the particles above the speed limit are pressure focusing the fluid's energy rather than a
         blow-up: the fluid's energy has not risen since the frame began by more than half their kinetic energy
-        (a solver making energy puts it into them; a closing void takes it from the fluid around it). Energy given
-        by inflows, moving walls, wind or an attractor counts as a rise: those scenes are held to the strict
-        limit unless the rest of the fluid lost as much. Particles a sink took since (their energy gone from the
-        sum) or no reference (a check outside an advance) leave the strict limit."""
-        if self.gravity is None or self._e_ref is None or len(solver.x) < self._n_ref:
+        (a solver making energy puts it into them; a closing void takes it from the fluid around it). What inflows
+        brought and sinks took is booked (SolverBase.flowed); energy given by moving walls, wind or an attractor
+        counts as a rise: those scenes are held to the strict limit unless the rest of the fluid lost as much. No
+        reference (a check outside an advance) leaves the strict limit."""
+        if self.gravity is None or self._e_ref is None:
             return False
         fast_energy = 0.5 * float(v2[v2 > self.v_limit ** 2].sum())
-        if mechanical_energy(solver, self.gravity, self.base) - self._e_ref > 0.5 * fast_energy:
+        rise = (mechanical_energy(solver, self.gravity, self.base) - self._e_ref
+                - flowed_energy(solver, self.gravity, self.base, self._flowed_ref))
+        if rise > 0.5 * fast_energy:
             return False
         self.focus_steps += 1
         ratio = vmax / self.v_bound
@@ -226,6 +236,9 @@ class SolverBase:
     inflows: tuple = ()
     sinks: tuple = ()
     sunk = 0  # particles removed by the sinks
+    # what inflows brought minus what sinks and the domain's edge took: (the sum of 1/2 v^2 - g . x over those
+    # particles, their count), J/kg and particles; the energy checks book it (flowed_energy)
+    flowed: tuple[float, int] = (0.0, 0)
     log: logging.Logger | None = None
     # moving walls: their motions (RigidMotion's pose(t), velocity(t), pivot; SI) and reach from the pivot;
     # a solver with them keeps a walls bundle ``wall_terms`` with a ``pose`` array (walls.maps.set_pose)
@@ -281,11 +294,19 @@ class SolverBase:
         self.inflow_skipped = np.zeros(len(self.inflows), np.int64)  # of them, not emitted: blocked
         self.inflow_particles = 0
         self.sunk = 0
+        self.flowed = (0.0, 0)
+
+    def _book(self, x: np.ndarray, v: np.ndarray, sign: int) -> None:
+        """Count particles entering (sign 1) or leaving (-1) the fluid in ``flowed``."""
+        g = np.asarray(getattr(self, "gravity", np.zeros(3)), np.float64)
+        e = 0.5 * np.einsum("ij,ij->", v, v) - float(np.sum(x @ g))
+        self.flowed = (self.flowed[0] + sign * float(e), self.flowed[1] + sign * len(x))
 
     def flow_state(self) -> dict:
         """The inflow and sink counters, for the checkpoints (every solver's ``state``)."""
         next_id = getattr(self, "next_id", int(self.id.max()) + 1 if len(self.id) else 0)
         return {"next_id": np.int64(next_id), "sunk": np.int64(self.sunk),
+                "flowed": np.asarray(self.flowed, np.float64),
                 "inflow_layers": np.asarray(getattr(self, "inflow_layers", ()), np.int64),
                 "inflow_skipped": np.asarray(getattr(self, "inflow_skipped", ()), np.int64),
                 "inflow_particles": np.int64(getattr(self, "inflow_particles", 0))}
@@ -298,6 +319,8 @@ class SolverBase:
         self.inflow_layers = np.array(s["inflow_layers"], np.int64)
         self.inflow_skipped = np.array(s["inflow_skipped"], np.int64)
         self.inflow_particles = int(s["inflow_particles"])
+        if "flowed" in s:  # older checkpoints: booked from the resumed frame on
+            self.flowed = (float(s["flowed"][0]), int(s["flowed"][1]))
 
     def _next_layer_time(self) -> float:
         if not self.inflows:
@@ -328,6 +351,7 @@ class SolverBase:
             return 0
         x, v = np.concatenate(xs), np.concatenate(vs)
         n = len(x)
+        self._book(x, v, 1)
         self.x = np.concatenate([self.x, x])
         self.v = np.concatenate([self.v, v])
         self.id = np.concatenate([self.id, np.arange(self.next_id, self.next_id + n, dtype=self.id.dtype)])
@@ -344,6 +368,7 @@ class SolverBase:
         inside = in_sinks(self.x, self.sinks)
         gone = int(inside.sum())
         if gone:
+            self._book(self.x[inside], self.v[inside], -1)
             self._keep(~inside)
             self.sunk += gone
         return gone
@@ -365,6 +390,8 @@ class SolverBase:
         keep = np.all((self.x >= lo) & (self.x <= hi) & np.isfinite(self.x), axis=1)
         gone = int(len(keep) - keep.sum())
         if gone:
+            out = ~keep & np.all(np.isfinite(self.x) & np.isfinite(self.v), axis=1)
+            self._book(self.x[out], self.v[out], -1)
             self._keep(keep)
             self.left_domain += gone
         return gone
@@ -870,54 +897,60 @@ def _warm_up(solver: SolverBase, fps: float) -> None:
 
 
 class EnergyBudget:
-    """The fluid's energy (kinetic + gravitational above its lowest start point) against its start, in a scene
-    where nothing else gives or takes energy (no inflow, sink, moving wall, wind, attractor, surface tension or
-    adhesion): it can only fall. A rise of more than RISE of the start's is energy the method made, said once
-    (DFSPH with one column of particles in a pipe 2.5 spacings wide: +90 %, the top particle above its release
-    height, and nothing said: the blow-up guard's bound is 10 x the ballistic speed) and kept in ``said`` (frame,
-    rise) for meta.json's stats. Both the start and ``said`` go into checkpoints, so a resumed run or a longer
-    shot continuing a shorter one is judged against the shot's start."""
+    """The fluid's energy (kinetic + gravitational above its lowest start point, with inflows the scene's floor)
+    against its start plus what inflows brought and sinks took (SolverBase.flowed), in a scene where nothing else gives or
+    takes energy (no moving wall, wind, attractor, surface tension or adhesion): it can only fall. A rise of more
+    than RISE of that is energy the method made, said once (DFSPH with one column of particles in a pipe 2.5
+    spacings wide: +90 %, the top particle above its release height, and nothing said: the blow-up guard's bound
+    is 10 x the ballistic speed) and kept in ``said`` (frame, rise) for meta.json's stats. The reference and
+    ``said`` go into checkpoints, so a resumed run or a longer shot continuing a shorter one is judged against
+    the shot's start."""
 
     RISE = 0.10
 
     def __init__(self, setup: Setup, solver: "SolverBase") -> None:
         e = setup.effects
-        driven = (setup.inflows or setup.sinks or setup.bodies or e.wind is not None or e.attractor is not None
-                  or e.surface_tension is not None or e.wall_adhesion is not None)
+        driven = (setup.bodies or e.wind is not None or e.attractor is not None or e.surface_tension is not None
+                  or e.wall_adhesion is not None)
         self.g = np.asarray(setup.gravity, np.float64)
-        self.start = None  # the start's energy; None: nothing to watch (driven, empty, at rest on the floor)
-        self.base = 0.0
+        # the level energy is measured from: the lowest start point, or with inflows the scene box's floor (their
+        # fluid falls to it; from the nozzle, the reference was the jet's kinetic energy alone, and small)
+        heights = -((scene_corners(setup) if setup.inflows else solver.x) @ self.g)
+        self.watch = not driven and len(heights) > 0  # False: nothing to watch (driven, or no fluid at all)
+        self.base = float(heights.min()) if self.watch else 0.0
+        self.start = self.energy(solver) if self.watch else 0.0
+        self.flowed = solver.flowed  # where the shot's booking starts
         self.said: tuple[int, float] | None = None
-        if not driven and len(solver.x):
-            self.base = float(np.min(-(solver.x @ self.g)))
-            self.start = self.energy(solver) or None
 
     def state(self) -> dict:
-        """Checkpoint entries (NaN: none)."""
+        """Checkpoint entries (said: NaN for none)."""
         frame, rise = self.said or (np.nan, np.nan)
-        return {"budget_start": np.float64(np.nan if self.start is None else self.start),
-                "budget_base": np.float64(self.base), "budget_said": np.asarray([frame, rise], float)}
+        return {"budget_ref": np.asarray([self.watch, self.start, self.base, *self.flowed], np.float64),
+                "budget_said": np.asarray([frame, rise], np.float64)}
 
     def load_state(self, s: Mapping) -> None:
-        if "budget_start" in s:  # older checkpoints: judged from the resumed frame, as before
-            start, (frame, rise) = float(s["budget_start"]), s["budget_said"]
-            self.start, self.base = (None if math.isnan(start) else start), float(s["budget_base"])
+        if "budget_ref" in s:  # older checkpoints: judged from the resumed frame, as before
+            watch, self.start, self.base, flowed_e, flowed_n = (float(v) for v in s["budget_ref"])
+            self.watch, self.flowed = bool(watch), (flowed_e, int(flowed_n))
+            frame, rise = s["budget_said"]
             self.said = None if math.isnan(frame) else (int(frame), float(rise))
 
     def energy(self, solver: "SolverBase") -> float:
-        """Per unit mass (J/kg, summed over particles): 1/2 v^2 + g h, h above the lowest start point."""
+        """Per unit mass (J/kg, summed over particles): 1/2 v^2 + g h, h above ``base``."""
         return mechanical_energy(solver, self.g, self.base)
 
     def check(self, solver: "SolverBase", frame: int, log) -> None:
-        if self.start is None or self.said is not None:
+        if not self.watch or self.said is not None:
             return
+        ref = self.start + flowed_energy(solver, self.g, self.base, self.flowed)
         now = self.energy(solver)
-        if now > (1.0 + self.RISE) * self.start:
-            self.said = (frame, now / self.start - 1.0)
-            log.warning("frame %d: the fluid's energy (kinetic + gravitational) is %.0f %% above the start's, with "
+        if ref > 0.0 and now > (1.0 + self.RISE) * ref:
+            self.said = (frame, now / ref - 1.0)
+            log.warning("frame %d: the fluid's energy (kinetic + gravitational) is %.0f %% above the start's%s, with "
                         "nothing in the scene to give it: energy the method made (a passage narrower than about 3 "
                         "spacings, a time step too long?); check the frames, or try a finer spacing or another "
-                        "solver", frame, 100.0 * self.said[1])
+                        "solver", frame, 100.0 * self.said[1],
+                        " and what the inflows brought" if solver.inflows else "")
 
 
 def _blow_up_line(e: BlowUp, frame: int, solver: Solver, solver_name: str, ckpt_dir: Path | None) -> str:
