@@ -242,39 +242,17 @@ def test_hydrostatic_tank_stays_at_rest():
         assert f.p[layer].mean() == pytest.approx(1000.0 * G * (top - z), rel=0.05)
 
 
-def test_energy_the_method_makes_is_said_with_an_inflow_booked(tmp_path, caplog):
-    """The same pipe (7 cm wide) fed by a jet 4 cm across from 15 cm up: what the inflow brings is booked
-    (SolverBase.flowed), measured from the scene's floor. DFSPH's energy rose 17-23 % above the start's and the
-    jet's (0.17 said at frame 2, measured), WCSPH's fell to 0.61 of it; before, no scene with an inflow or a
-    sink was watched at all."""
-    from stages.mesh_import.trimesh_import import TrimeshImport
-    from stages.sdf_bake.open3d_bake import Open3dBake
-    from stages.simulate.sph import SPHSimulate
-
-    scene = {"scene": {"name": "pipe", "frames": {"fps": 10, "count": 5}},
-             "walls": [{"builtin": "cylinder", "size": [0.07, 0.07, 0.4]}],
-             "fluid": {"spacing": 0.02, "inflow": [{"center": [0, 0, 0.15], "direction": [0, 0, -1], "radius": 0.02,
-                                                    "speed": 0.5, "end": 0.3}]},
-             "effects": {"gravity": {}, "viscosity": {"mu": 0.01}}}
-    run_stage(TrimeshImport, tmp_path / "walls", scene=scene)
-    run_stage(Open3dBake, tmp_path / "sdf", scene=scene, inputs={"walls": tmp_path / "walls"})
-    said = {}
-    for name, stage in (("dfsph", DFSPHSimulate), ("sph", SPHSimulate)):
-        caplog.clear()
-        with caplog.at_level(logging.WARNING):
-            out = run_stage(stage, tmp_path / name, scene=scene, params={"threads": 1}, inputs={"sdf": tmp_path / "sdf"})
-        stats = ParticleMeta.load(out).stats
-        assert stats["inflow_particles"] >= 20
-        said[name] = "above the start's and what the inflows brought" in caplog.text
-        assert ("energy_rise" in stats) == said[name]
-    assert said == {"dfsph": True, "sph": False}
-
-
-def test_energy_the_method_makes_is_said(tmp_path, caplog):
-    """One column of particles in a pipe 2.5 spacings wide: DFSPH's energy (kinetic + gravitational) rose by
-    90-200 % and its top particle rose above its release height, with nothing said (the blow-up guard's bound is
-    10 x the ballistic speed). A rise of more than 10 % in a scene where nothing gives energy is now a warning;
-    WCSPH's energy only falls there, and it says nothing."""
+@pytest.mark.parametrize("source", ["block", "jet"])
+def test_dfsph_makes_no_energy_in_a_narrow_pipe(source, tmp_path, caplog):
+    """One column of particles in a pipe 2.5 spacings wide (a block released in it), or a pipe 3.5 spacings wide
+    fed by a jet 2 spacings across from 15 cm up (what the inflow brings booked: SolverBase.flowed). DFSPH's
+    energy (kinetic + gravitational) rose 90-200 % above the start's with the block and 17-23 % above the start's
+    and the jet's, its top particle above its release height: the solves' error counted compression only, so a
+    warm-started pressure that pushed the column apart passed as converged. With the complementarity residual
+    (session 39, dfsph_kernels) it falls as WCSPH's does: the energy budget says nothing, and with the block the
+    energy of every frame is below the start's (at most 0.973 of it, measured, water's viscosity). Before
+    session 39 the budget's warning (a rise above 10 %) was tested on this DFSPH run; EnergyBudget's own test is in
+    tests/stability/test_blowup.py."""
     from stages.mesh_import.trimesh_import import TrimeshImport
     from stages.sdf_bake.open3d_bake import Open3dBake
     from stages.simulate.sph import SPHSimulate
@@ -282,28 +260,26 @@ def test_energy_the_method_makes_is_said(tmp_path, caplog):
     scene = {"scene": {"name": "pipe", "frames": {"fps": 10, "count": 9}},
              "walls": [{"builtin": "cylinder", "size": [0.05, 0.05, 0.4]}],
              "fluid": {"spacing": 0.02, "emitters": [{"box": {"min": [-0.01, -0.01, 0.1], "max": [0.01, 0.01, 0.3]}}]},
-             "effects": {"gravity": {}, "viscosity": {"mu": 0.01}}}
+             "effects": {"gravity": {}, "viscosity": {"mu": 0.001}}}
+    if source == "jet":
+        scene["walls"][0]["size"] = [0.07, 0.07, 0.4]
+        scene["fluid"] = {"spacing": 0.02, "inflow": [{"center": [0, 0, 0.15], "direction": [0, 0, -1],
+                                                       "radius": 0.02, "speed": 0.5, "end": 0.3}]}
     run_stage(TrimeshImport, tmp_path / "walls", scene=scene)
     run_stage(Open3dBake, tmp_path / "sdf", scene=scene, inputs={"walls": tmp_path / "walls"})
-    said = {}
     for name, stage in (("dfsph", DFSPHSimulate), ("sph", SPHSimulate)):
         caplog.clear()
         with caplog.at_level(logging.WARNING):
             out = run_stage(stage, tmp_path / name, scene=scene, params={"threads": 1}, inputs={"sdf": tmp_path / "sdf"})
-        assert len(load_particle_frame(out, 0)) == 10
-        said[name] = "energy (kinetic + gravitational) is" in caplog.text and "energy the method made" in caplog.text
-        assert ("energy_rise" in ParticleMeta.load(out).stats) == said[name]
-    assert said == {"dfsph": True, "sph": False}
-    # a longer shot continues from the shorter one's entry (Stage.extends) and is judged against the shot's start:
-    # the rise stays in its stats, and is not said again against the continuation's first frame
-    rise = ParticleMeta.load(tmp_path / "dfsph").stats["energy_rise"]
-    longer = {**scene, "scene": {**scene["scene"], "frames": {"fps": 10, "count": 12}}}
-    p = DFSPHSimulate.Params.model_validate({"threads": 1})
-    ctx = stage_context(DFSPHSimulate, tmp_path / "longer", scene=longer, resume_from=tmp_path / "dfsph")
-    (tmp_path / "longer").mkdir()
-    caplog.clear()
-    with caplog.at_level(logging.INFO):
-        DFSPHSimulate().run(ctx, {"sdf": Artifact(name="sdf", key="test", path=tmp_path / "sdf")}, p)
-    assert "resumed from the checkpoint at frame 8" in caplog.text and "energy the method made" not in caplog.text
-    stats = ParticleMeta.load(tmp_path / "longer").stats
-    assert len(stats["density_error_mean"]) == 12 and stats["energy_rise"] == rise, stats.get("energy_rise")
+        stats = ParticleMeta.load(out).stats
+        assert "energy the method made" not in caplog.text and "energy_rise" not in stats, (name, caplog.text)
+        if source == "jet":
+            assert stats["inflow_particles"] >= 20
+            continue
+        frames = [load_particle_frame(out, f) for f in range(9)]
+        assert len(frames[0]) == 10
+        base = frames[0].x[:, 2].min()
+        energy = [float(0.5 * np.sum(f.v ** 2) + G * np.sum(f.x[:, 2] - base)) for f in frames]
+        assert max(energy[1:]) < energy[0], (name, [e / energy[0] for e in energy])
+        top = max(float(f.x[:, 2].max()) for f in frames[1:])
+        assert top < frames[0].x[:, 2].max(), (name, top)  # no particle above where the column's top was released

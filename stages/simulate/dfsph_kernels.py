@@ -20,7 +20,11 @@ Notation (SI, arrays in cell order, see neighbours.py):
 - rate of density change D rho_i / Dt = sum_j m (v_i - v_j) . grad_i W_ij + v_i . Psi_i (walls at rest);
 - DFSPH factor alpha_i = rho_i / ((S_i + WALL_MIRROR Psi_i) . (S_i + Psi_i) + sum_j |m grad_i W_ij|^2),
   S_i the fluid part of sum_j m grad_i W_ij: the exact diagonal of the linearised solve;
-- each solve is a projected, relaxed Jacobi iteration on the total kappa (>= 0), warm started.
+- each solve is a projected, relaxed Jacobi iteration on the total kappa (>= 0), warm started, and stops on
+  the complementarity residual (session 39): the compression max(e, 0) where kappa_i = 0, |e| where kappa_i > 0
+  (a pressure may not push the fluid apart). Counting the compression alone, a warm-started pressure that now
+  expanded the fluid passed as converged: each step pushed a narrow column apart and kept the work, +90-185 %
+  energy for one column in a pipe 2.5 spacings wide, +5 % by the end of water poured into a closed cone at 1 cm.
 
 Neighbour lists are built once per step in the density pass (fixed stride ``cap`` per particle; a
 pass that finds more neighbours than ``cap`` reports it and the caller grows ``cap`` and runs the pass
@@ -230,15 +234,16 @@ def jacobi_density(x, u, nbr, fac, count, cap, mass, psi, rho, alpha, rho0, dt, 
     Alg. 3, on the total kappa as in SPlisHSPlasH 2.x, so a warm start can be undone): predicted density
     rho*_i = rho_i + dt D rho_i / Dt at u = v + dt a(kappa); kappa_i += omega alpha_i (rho*_i - rho0) / dt^2,
     clamped at 0 (no tension: a free surface is not pulled together); kr_out_i = kappa_i / rho_i (kr, the
-    field u came from, is left as it is: a solve that has converged keeps it and u). err_i = max(rho*_i -
-    rho0, 0), the compression. The current kappa_i is kr_i rho_i (kr holds the warm start before the
+    field u came from, is left as it is: a solve that has converged keeps it and u). err_i, the complementarity
+    residual: rho*_i - rho0 where kappa_i > 0, else the compression max(rho*_i - rho0, 0). The current kappa_i is kr_i rho_i (kr holds the warm start before the
     first sweep). ``beta`` (<= 1) is the share of the existing error rho_i - rho0 this
     step removes: rho*_i = rho0 + beta (rho_i - rho0) + dt D rho_i / Dt (Baumgarte: see DFSPHSolver.step)."""
     inv_dt2 = 1.0 / (dt * dt)
     for i in nb.prange(x.shape[0]):
         e = beta * (rho[i] - rho0) + dt * _density_rate(i, x, u, nbr, fac, count, cap, mass, psi)
-        err[i] = max(e, 0.0)
-        k = max(kr[i] * rho[i] + omega * e * alpha[i] * inv_dt2, 0.0)
+        k0 = kr[i] * rho[i]
+        err[i] = abs(e) if k0 > 0.0 else max(e, 0.0)
+        k = max(k0 + omega * e * alpha[i] * inv_dt2, 0.0)
         kappa[i] = k
         kr_out[i] = k / rho[i]
 
@@ -246,7 +251,8 @@ def jacobi_density(x, u, nbr, fac, count, cap, mass, psi, rho, alpha, rho0, dt, 
 @nb.njit(cache=True, parallel=True)
 def jacobi_divergence(x, u, nbr, fac, count, cap, mass, psi, rho, alpha, dt, omega, min_rho, kappa, kr, kr_out, err):
     """One projected, relaxed Jacobi sweep of the divergence-free solve (Alg. 2): D rho_i / Dt at u,
-    kappa_i += omega alpha_i (D rho_i / Dt) / dt, clamped at 0 (only compressing flow is corrected).
+    kappa_i += omega alpha_i (D rho_i / Dt) / dt, clamped at 0 (only compressing flow is corrected); err_i,
+    the complementarity residual as in jacobi_density: |D rho_i / Dt| where kappa_i > 0.
     Particles with rho_i < min_rho (a sparse free-surface neighbourhood, SPlisHSPlasH's
     fewer-than-20-neighbours rule) are left alone. The current kappa_i is kr_i rho_i; the new one / rho_i
     goes to kr_out, as in jacobi_density."""
@@ -255,8 +261,9 @@ def jacobi_divergence(x, u, nbr, fac, count, cap, mass, psi, rho, alpha, dt, ome
         e = 0.0
         if rho[i] >= min_rho:
             e = _density_rate(i, x, u, nbr, fac, count, cap, mass, psi)
-        err[i] = max(e, 0.0)
-        k = max(kr[i] * rho[i] + omega * e * alpha[i] * inv_dt, 0.0)
+        k0 = kr[i] * rho[i]
+        err[i] = abs(e) if k0 > 0.0 else max(e, 0.0)
+        k = max(k0 + omega * e * alpha[i] * inv_dt, 0.0)
         kappa[i] = k
         kr_out[i] = k / rho[i]
 
