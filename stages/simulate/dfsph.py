@@ -39,8 +39,8 @@ at 1.5 s against our 0.21). What was measured:
   the bottom corners that is kappa |S + Psi| ~ 0.3 g of spurious force; the fastest particles sit in
   the vertical edges and corners. Without gravity the tank keeps a bounded 0.02-0.05 m/s;
 - the solve's error counted compression only, so a warm-started pressure that now expands the fluid was
-  never undone; counting |e| where kappa > 0 (the complementarity residual, the default since session 39
-  because it stops the energy made in narrow passages: dfsph_kernels) lowered the mean speed (0.13-0.2 ->
+  never undone; counting |e| where kappa > 0 (the complementarity residual; since session 39 each solve counts
+  the expansion at a fifth, dfsph_kernels.EXPANSION_WEIGHT, which stops the energy made in narrow passages) lowered the mean speed (0.13-0.2 ->
   0.11-0.14 m/s), not enough (bench_rest's tank in session 39: 0.17 m/s at 1.5 s, as before).
   A wall density Z phi(d) (spline, phi the flat-wall Z over its rest value: the slope doubled at the
   rest distance, Psi its exact gradient) kept the bottom layer off the clamp (>= 0.4 l0) but the column
@@ -143,11 +143,11 @@ class DFSPHParams(Params):
                                  "default 5 ms at spacings up to 2 cm, Froude-scaled above (5 ms sqrt(l0 / 2 cm)): a "
                                  "scene 10,000 x larger runs the same steps at 100 x their length")
     max_density_error: float = Field(0.001, gt=0, le=0.05, description="constant-density solve: stop when the "
-                                     "average predicted compression (and expansion where the pressure is "
-                                     "positive: the complementarity residual) is below this fraction of rho0")
+                                     "average predicted compression (plus a fifth of the expansion where the "
+                                     "pressure is positive) is below this fraction of rho0")
     max_divergence_error: float = Field(0.001, gt=0, le=0.05, description="divergence solve: stop when the average "
-                                        "dt D rho / Dt (compressing, or expanding where the pressure is positive) "
-                                        "is below this fraction of rho0")
+                                        "dt D rho / Dt (compressing, plus a fifth of it expanding where the "
+                                        "pressure is positive) is below this fraction of rho0")
     min_iterations: int = Field(2, ge=1, description="constant-density solve: at least this many iterations")
     max_iterations: int = Field(100, ge=1, description="iteration cap of each solve")
     relaxation: float = Field(0.5, gt=0, le=1, description="Jacobi relaxation omega (kappa may also decrease, "
