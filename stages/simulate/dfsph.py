@@ -39,9 +39,10 @@ at 1.5 s against our 0.21). What was measured:
   the bottom corners that is kappa |S + Psi| ~ 0.3 g of spurious force; the fastest particles sit in
   the vertical edges and corners. Without gravity the tank keeps a bounded 0.02-0.05 m/s;
 - the solve's error counted compression only, so a warm-started pressure that now expands the fluid was
-  never undone; counting |e| where kappa > 0 (the complementarity residual; since session 39 each solve counts
-  the expansion at a fifth, dfsph_kernels.EXPANSION_WEIGHT, which stops the energy made in narrow passages) lowered the mean speed (0.13-0.2 ->
-  0.11-0.14 m/s), not enough (bench_rest's tank in session 39: 0.17 m/s at 1.5 s, as before).
+  never undone; counting |e| where kappa > 0 (the complementarity residual; since session 39 each solve
+  counts the expansion at a fifth, dfsph_kernels.EXPANSION_WEIGHT, which stops the energy made in narrow
+  passages) lowered the mean speed (0.13-0.2 -> 0.11-0.14 m/s), not enough (bench_rest's tank in session
+  39: 0.17 m/s at 1.5 s, as before).
   A wall density Z phi(d) (spline, phi the flat-wall Z over its rest value: the slope doubled at the
   rest distance, Psi its exact gradient) kept the bottom layer off the clamp (>= 0.4 l0) but the column
   bounced as before, also with both solves converged to 1e-5: the fastest particles then sat in the
