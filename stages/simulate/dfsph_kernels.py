@@ -235,6 +235,13 @@ def _density_rate(i, x, u, nbr, fac, count, cap, mass, psi):
     return -mass * s + uxi * psi[i, 0] + uyi * psi[i, 1] + uzi * psi[i, 2]
 
 
+@nb.njit(cache=True, inline="always")
+def _residual(e, k0):
+    """One particle's share of a solve's error: the compression, plus EXPANSION_WEIGHT x the expansion under a
+    positive pressure k0 (the weighted complementarity residual)."""
+    return max(e, 0.0) + (EXPANSION_WEIGHT * max(-e, 0.0) if k0 > 0.0 else 0.0)
+
+
 @nb.njit(cache=True, parallel=True)
 def jacobi_density(x, u, nbr, fac, count, cap, mass, psi, rho, alpha, rho0, dt, beta, omega, kappa, kr, kr_out, err):
     """One projected, relaxed Jacobi sweep of the constant-density solve (Bender and Koschier 2017,
@@ -250,7 +257,7 @@ def jacobi_density(x, u, nbr, fac, count, cap, mass, psi, rho, alpha, rho0, dt, 
     for i in nb.prange(x.shape[0]):
         e = beta * (rho[i] - rho0) + dt * _density_rate(i, x, u, nbr, fac, count, cap, mass, psi)
         k0 = kr[i] * rho[i]
-        err[i] = max(e, 0.0) + (EXPANSION_WEIGHT * max(-e, 0.0) if k0 > 0.0 else 0.0)
+        err[i] = _residual(e, k0)
         k = max(k0 + omega * e * alpha[i] * inv_dt2, 0.0)
         kappa[i] = k
         kr_out[i] = k / rho[i]
@@ -270,7 +277,7 @@ def jacobi_divergence(x, u, nbr, fac, count, cap, mass, psi, rho, alpha, dt, ome
         if rho[i] >= min_rho:
             e = _density_rate(i, x, u, nbr, fac, count, cap, mass, psi)
         k0 = kr[i] * rho[i]
-        err[i] = max(e, 0.0) + (EXPANSION_WEIGHT * max(-e, 0.0) if k0 > 0.0 else 0.0)
+        err[i] = _residual(e, k0)
         k = max(k0 + omega * e * alpha[i] * inv_dt, 0.0)
         kappa[i] = k
         kr_out[i] = k / rho[i]

@@ -99,10 +99,15 @@ class SimulationDiverged(PipelineError):
     exit_code = 1
 
 
+def specific_energy(x: np.ndarray, v: np.ndarray, g: np.ndarray) -> float:
+    """The sum of 1/2 v^2 - g . x over the particles (J/kg): kinetic + gravitational, from the level x = 0."""
+    return float(0.5 * np.einsum("ij,ij->", v, v) - np.sum(x @ g))
+
+
 def mechanical_energy(solver: "SolverBase", g: np.ndarray, base: float) -> float:
     """The fluid's energy per unit mass (J/kg, summed over particles): 1/2 v^2 + g h, h the height above the
     level where -g . x = ``base``."""
-    return float(0.5 * np.einsum("ij,ij->", solver.v, solver.v) + np.sum(-(solver.x @ g) - base))
+    return specific_energy(solver.x, solver.v, g) - base * len(solver.x)
 
 
 def flowed_energy(solver: "SolverBase", g: np.ndarray, base: float, since: tuple[float, int] = (0.0, 0)) -> float:
@@ -236,8 +241,8 @@ class SolverBase:
     inflows: tuple = ()
     sinks: tuple = ()
     sunk = 0  # particles removed by the sinks
-    # what inflows brought minus what sinks and the domain's edge took: (the sum of 1/2 v^2 - g . x over those
-    # particles, their count), J/kg and particles; the energy checks book it (flowed_energy)
+    # what inflows brought minus what sinks and the domain's edge took: (their specific_energy, their count); the
+    # energy checks book it (flowed_energy)
     flowed: tuple[float, int] = (0.0, 0)
     log: logging.Logger | None = None
     # moving walls: their motions (RigidMotion's pose(t), velocity(t), pivot; SI) and reach from the pivot;
@@ -298,9 +303,8 @@ class SolverBase:
 
     def _book(self, x: np.ndarray, v: np.ndarray, sign: int) -> None:
         """Count particles entering (sign 1) or leaving (-1) the fluid in ``flowed``."""
-        g = np.asarray(getattr(self, "gravity", np.zeros(3)), np.float64)
-        e = 0.5 * np.einsum("ij,ij->", v, v) - float(np.sum(x @ g))
-        self.flowed = (self.flowed[0] + sign * float(e), self.flowed[1] + sign * len(x))
+        e = specific_energy(x, v, self.gravity)
+        self.flowed = (self.flowed[0] + sign * e, self.flowed[1] + sign * len(x))
 
     def flow_state(self) -> dict:
         """The inflow and sink counters, for the checkpoints (every solver's ``state``)."""

@@ -374,7 +374,7 @@ REST_LONG_STEPS = 20000
 REST_LONG_FRAME = 1.0 / 30.0
 SAMPLES = 10  # measurements per run
 # the resting tanks' speed is averaged over windows: sampled every 0.1 s in CI
-SAMPLES_OF = {"rest": 30, "rest_cylinder": 30, "rest_bowl": 30}
+SAMPLES_OF = dict.fromkeys(RESTING, 30)
 # issue 17's goal at bench_rest's spacing: a mean speed below 0.005 m/s at l0 = 1.25 cm; speeds of the same motion
 # scale as sqrt(g l0) (Froude), so a tank at another spacing is held to 0.005 sqrt(l0 / 1.25 cm)
 REST_FLOOR, REST_FLOOR_SPACING = 0.005, 0.0125
