@@ -206,9 +206,10 @@ def test_fluid_thrown_out_of_the_domain_is_counted_and_said_with_the_box(tmp_pat
 def test_a_tank_turned_against_the_lattice_keeps_its_water():
     """The emitter lattice is axis-aligned; a tank turned 45 degrees about the up axis is not. Every lattice
     point nearer its walls than l0 / 2 was dropped: a dam break's column in the turned tank held 0.80 of the
-    water of the same scene unturned (its front 20 % short). Such points now move out to l0 / 2 where they
-    have room (0.8 l0 to every other particle): 0.89 of the water, no particle nearer a wall than l0 / 2 and
-    none closer than 0.8 l0 to another, so the start is not compressed; the warning gives the share lost."""
+    water of the same scene unturned (its front 20 % short); moving them out to l0 / 2 where they had 0.8 l0 of
+    room (sessions 12-39) kept 0.89. Now the band along the turned walls is re-packed with them
+    (emitters._fill_wall_band): 0.98 of the water, no particle nearer a wall than l0 / 2 and no two closer than
+    0.6 l0 (its kernel sums, not a distance, keep the start uncompressed: test_emission.py)."""
     import logging
 
     from scipy.spatial import cKDTree
@@ -232,11 +233,11 @@ def test_a_tank_turned_against_the_lattice_keeps_its_water():
         pts = pts[np.all((local > column[0]) & (local < column[1]), axis=1)]
         x, _, _ = drop_inside_walls(pts, np.zeros_like(pts), sdf, l0, logging.getLogger("t"))
         d, _ = sdf.sample(x)
-        assert d.min() >= 0.499 * l0
-        assert cKDTree(x).query(x, k=2)[0][:, 1].min() >= (1.0 if deg == 0 else 0.8) * l0 - 1e-9
+        assert d.min() >= 0.495 * l0  # moved out to l0 / 2 along the trilinear SDF's normal
+        assert cKDTree(x).query(x, k=2)[0][:, 1].min() >= (1.0 if deg == 0 else 0.6) * l0 - 1e-9
         kept[deg] = len(x)
     assert kept[0.0] == 8 * 10 * 10
-    assert 0.87 < kept[45.0] / kept[0.0] <= 1.0, kept  # was 0.80
+    assert 0.97 < kept[45.0] / kept[0.0] <= 1.02, kept  # was 0.80, then 0.89
 
 
 def test_an_impossible_viscosity_is_refused_before_the_run_and_981_g_is_questioned(tmp_path, caplog):

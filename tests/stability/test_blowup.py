@@ -303,8 +303,9 @@ def test_a_cone_run_through_the_cli_reports_the_focusing_and_ends_well(tmp_path)
     centimetres with Y up: exit 0, the log says once how many steps had particles above the limit and the fastest,
     meta.json's stats keep it, and both units give the same collapse: at the same time within 1 ms (0.14433 and
     0.14432 s measured), above the limit in both (13.95 and 11.12 x). The peak itself is compared within 30 %: the
-    collapse is singular, and 79 of the 10,765 particles start elsewhere in the two (emitters._move_off_walls keeps
-    the earlier of two moved points too close to each other, and the order follows the axes). Before the energy
+    collapse is singular, and the two starts differ (the band along the cone's wall is re-packed, emitters.
+    _fill_wall_band, and its sums run in another order with the other up axis; before session 40, 79 of the
+    10,765 particles). Before the energy
     test this run ended in exit 1, "blew up during frame 8: speed ... above 10 x the scene's ballistic bound".
     (Until session 39 the run was DFSPH's, 13.05 and 13.04 x; the solves' new error, which stops DFSPH making
     energy in the apex, moves its peak: 8.8 x with the full complementarity residual, 13.0 x with the kept

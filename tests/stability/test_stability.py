@@ -33,13 +33,15 @@ KNOWN = {
                        "compression as kinetic energy)",
     ("rest", "mps"): "decaying but above the floor: 0.024 m/s over 2.5-3 s (particle-scale motion that grows from "
                      "0.004 m/s after 0.2 s: mps.py)",
-    # the same in the curved tanks (session 38; WCSPH's default is at rest there: 0.0031 and 0.0022 m/s)
-    ("rest_cylinder", "sph_poly6"): "decaying but above the floor: 0.0101 m/s over 2.5-3 s against 0.0071",
-    ("rest_cylinder", "dfsph"): "not at rest with water's viscosity: 0.16 m/s over 2.5-3 s (as in the box tank)",
-    ("rest_cylinder", "mps"): "decaying but above the floor: 0.020 m/s over 2.5-3 s (as in the box tank)",
-    ("rest_bowl", "sph_poly6"): "decaying but above the floor: 0.0080 m/s over 2.5-3 s against 0.0071",
-    ("rest_bowl", "dfsph"): "not at rest with water's viscosity: 0.16 m/s over 2.5-3 s (as in the box tank)",
-    ("rest_bowl", "mps"): "decaying but above the floor: 0.021 m/s over 2.5-3 s (as in the box tank)",
+    # the same in the curved tanks (session 40, their wall band re-packed; WCSPH's default is at rest there: 0.0025 and
+    # 0.0029 m/s)
+    ("rest_cylinder", "sph_poly6"): "decaying but above the floor: 0.0079 m/s over 2.5-3 s against 0.0071",
+    ("rest_cylinder", "dfsph"): "not at rest with water's viscosity: 0.18 m/s over 2.5-3 s (as in the box tank)",
+    ("rest_cylinder", "mps"): "decaying but above the floor: 0.017 m/s over 2.5-3 s (as in the box tank)",
+    ("rest_bowl", "sph_poly6"): "decaying, at the floor: 0.0070 m/s over 2.5-3 s against 0.0071 (0.0080 before session "
+                                "40's fill of the wall band)",
+    ("rest_bowl", "dfsph"): "not at rest with water's viscosity: 0.17 m/s over 2.5-3 s (as in the box tank)",
+    ("rest_bowl", "mps"): "decaying but above the floor: 0.019 m/s over 2.5-3 s (as in the box tank)",
 }
 
 
@@ -49,12 +51,18 @@ KNOWN = {
 FOCUSING = {"cone_40deg"}
 
 
+# Known defects measured at the floor, not clearly above or below it (0.0070 against 0.0071 m/s): not strict, since
+# round-off on another machine could flip them either way
+AT_THE_FLOOR = {("rest_bowl", "sph_poly6")}
+
+
 def _cases():
     for case in CASES:
         for solver in SOLVERS:
             why = KNOWN.get((case, solver))
+            strict = (case, solver) not in AT_THE_FLOOR
             yield pytest.param(case, solver, id=f"{case}-{solver}",
-                               marks=[pytest.mark.xfail(strict=True, reason=f"issue 17: {why}")] if why else [])
+                               marks=[pytest.mark.xfail(strict=strict, reason=f"issue 17: {why}")] if why else [])
 
 
 @pytest.mark.parametrize("case, solver", list(_cases()))
@@ -80,23 +88,22 @@ def test_case_stays_stable(case, solver):
     assert r.peak_ratio < 3.0, r.peak_ratio
     assert r.energy_ratio < 1.05, r.energy_ratio
     if case in RESTING:
-        assert_at_rest(r, lattice_fits=case == "rest")
+        assert_at_rest(r)
 
 
-def assert_at_rest(r, lattice_fits: bool = True) -> None:
+def assert_at_rest(r) -> None:
     """Issue 17's resting tank, from the pipeline's start (hydrostatic, water's viscosity, no settling): the mean
     speed averaged over the run's last sixth (2.5-3 s) below the goal's floor, Froude-scaled to the spacing
     (stability_cases.rest_floor: 0.0071 m/s at 2.5 cm), and below its average over 1-1.5 s (decaying); the
     free surface still over the run's second half (no creep or leak: within 0.1 l0) and within half a spacing
     of where it started (the top layer settles by about a third of a spacing into its resting packing in the
-    first second: 0.31 l0 for WCSPH at 1 s, 0.345 at 3 s). In the curved tanks (``lattice_fits`` false) the
-    emitted lattice leaves up to half a spacing of water out along the wall (emitters.drop_inside_walls warns of
-    it), so the surface settles 0.7-1.7 spacings at 2.5 cm; only its stillness over the second half is judged."""
+    first second: 0.31 l0 for WCSPH at 1 s, 0.345 at 3 s). The curved tanks too since session 40: the emitted
+    lattice left up to half a spacing of water out along their walls, and their surface settled 0.7-1.7 spacings
+    at 2.5 cm, until emitters._fill_wall_band put it back."""
     f = rest_summary(r)
     assert f["late"] < f["floor"] and f["late"] < f["early"], (f, r.speeds)
     assert f["drift_second_half"] < 0.1, (f, r.surfaces)
-    if lattice_fits:
-        assert abs(f["drift"]) < 0.5, (f, r.surfaces)
+    assert abs(f["drift"]) < 0.5, (f, r.surfaces)
 
 
 @pytest.mark.parametrize("angle", [10.0, 20.0, 30.0])

@@ -1,0 +1,110 @@
+"""Emission along walls the lattice does not line up with (emitters._fill_wall_band): a curved or turned tank holds
+its volume of water, at rest density, in every unit and with either up axis."""
+import logging
+
+import numpy as np
+import pytest
+
+from stages.common.sdf import box_interior_sdf, grid_from_function
+from stages.simulate.emitters import drop_inside_walls, lattice
+from stages.simulate.sph import SPHParams, SPHSolver
+
+LOG = logging.getLogger("test_emission")
+FILL = 0.2  # m: every tank is filled this deep from its floor at z = 0
+
+
+def _cylinder(p):  # radius 0.12 m about (0.15, 0.15), floor z = 0, lid 0.35
+    r = np.hypot(p[:, 0] - 0.15, p[:, 1] - 0.15)
+    return np.minimum(np.minimum(0.12 - r, p[:, 2]), 0.35 - p[:, 2])
+
+
+def _bowl(p):  # a hemisphere of radius 0.15 m centred at (0.15, 0.15, 0.15) under a cylindrical rim
+    q = p - 0.15
+    rim = np.minimum(0.15 - np.hypot(q[:, 0], q[:, 1]), 0.35 - p[:, 2])
+    return np.where(q[:, 2] < 0, 0.15 - np.linalg.norm(q, axis=1), rim)
+
+
+_TURN = np.radians(30.0)
+_ROT = np.array([[np.cos(_TURN), -np.sin(_TURN), 0.0], [np.sin(_TURN), np.cos(_TURN), 0.0], [0.0, 0.0, 1.0]])
+_BOX = box_interior_sdf([-0.1, -0.1, 0.0], [0.1, 0.1, 0.35])
+TANKS = {  # name: (SDF, its box, the volume of water below FILL)
+    "cylinder": (_cylinder, ([0, 0, 0], [0.3, 0.3, 0.35]), np.pi * 0.12 ** 2 * FILL),
+    "bowl": (_bowl, ([0, 0, 0], [0.3, 0.3, 0.35]), 2 / 3 * np.pi * 0.15 ** 3 + np.pi * 0.15 ** 2 * (FILL - 0.15)),
+    "box turned 30 degrees": (lambda p: _BOX(p @ _ROT), ([-0.16, -0.16, 0], [0.16, 0.16, 0.35]), 0.2 * 0.2 * FILL),
+}
+
+
+def _fill(name, l0, scale=1.0, y_up=False):
+    """The tank filled FILL deep as an emitter box over its whole width fills it, in a unit ``scale`` m^-1
+    (100: centimetres) and with Z or Y up; returns (positions in metres with Z up, the SDF in metres)."""
+    fn, (lo, hi), _ = TANKS[name]
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    swap = [0, 2, 1] if y_up else [0, 1, 2]  # Z up -> Y up: (x, y, z) -> (x, z, y)
+    sdf = grid_from_function(lambda p: scale * fn(p[:, swap] / scale), lo[swap] * scale, hi[swap] * scale, 0.5 * l0 * scale)
+    top = hi.copy()
+    top[2] = FILL
+    pts = lattice(lo[swap] * scale, top[swap] * scale, l0 * scale)
+    x, _, _ = drop_inside_walls(pts, np.zeros_like(pts), sdf, l0 * scale, LOG)
+    metric = grid_from_function(fn, lo, hi, 0.5 * l0)
+    return x[:, swap] / scale, metric
+
+
+@pytest.mark.parametrize("name", list(TANKS))
+@pytest.mark.parametrize("across", [9.6, 19.2])  # the cylinder's radius in spacings
+def test_a_curved_or_turned_tank_holds_its_water_at_rest_density(name, across):
+    """Before, the near-wall lattice points were dropped unless they had 0.8 l0 of room once moved off the wall:
+    the cylinder held 0.949 / 0.970 of its water at 9.6 / 19.2 spacings across its radius (0.815 at 4.8), the bowl
+    0.945 / 0.974, the turned box 0.934 / 0.965, and the band along the wall started at 0.93-0.95 of the rest
+    density (the water then slumped towards the wall: the level settled 0.7-1.7 spacings low in the stability
+    suite's tanks). Now: the volume to the lattice's midpoint rule (within 2 %), no particle nearer a wall than
+    l0 / 2 or above the water's top, and WCSPH's density at the start (before the hydrostatic compression) in the
+    band within 3 % of the rest density on average, its 99th percentile within 3.5 % (before: 0.93-0.95 on average,
+    the 95th percentile up to 1.056)."""
+    l0 = 0.12 / across
+    x, sdf = _fill(name, l0)
+    volume = TANKS[name][2]
+    held = len(x) * l0 ** 3 / volume
+    assert 0.975 < held < 1.02, held
+    d, _ = sdf.sample(x)
+    assert d.min() >= 0.495 * l0  # moved out to l0 / 2 along the trilinear SDF's normal
+    assert x[:, 2].max() <= FILL - 0.1 * l0  # the free surface stays inside the filled region (its top layer: FILL - l0 / 2)
+    s = SPHSolver(x, np.zeros_like(x), np.arange(len(x)), sdf, spacing=l0, rho0=1000.0, params=SPHParams(threads=None),
+                  gravity=(0, 0, -9.81), mu=0.001, v_ref=2.0)
+    s.sort_and_density(rebuild=True)
+    rho = s.rho / 1000.0
+    d, _ = sdf.sample(s.x)
+    band = (d < 2.5 * l0) & (s.x[:, 2] < FILL - 2.5 * l0)  # along the walls, below the free surface's deficit
+    print(f"{name}: held {held:.4f}, band density mean {rho[band].mean():.4f} range {rho[band].min():.4f}-"
+          f"{rho[band].max():.4f}, 99th percentile {np.percentile(rho[band], 99):.4f}")
+    assert abs(rho[band].mean() - 1.0) < 0.03
+    assert np.percentile(rho[band], 99) < 1.035 and rho[band].max() < 1.06
+
+
+@pytest.mark.parametrize("unit, y_up", [(100.0, False), (1000.0, True)], ids=["centimetres", "millimetres, Y up"])
+def test_the_fill_is_the_same_in_every_unit_and_up_axis(unit, y_up):
+    """The cylinder at 9.6 spacings across, in metres with Z up against centimetres and millimetres with Y up: the
+    same count and the same packing. (Not the same positions to round-off: the relaxation's sums run in another
+    order with another up axis, and its discrete steps, a step not taken or a point left out, amplify that; the
+    two fills differ by up to 0.2 l0 in half the band.)"""
+    from scipy.spatial import cKDTree
+
+    l0 = 0.0125
+    fills = [_fill("cylinder", l0), _fill("cylinder", l0, scale=unit, y_up=y_up)]
+    (x_m, sdf), (x_u, _) = fills
+    assert len(x_u) == len(x_m)
+    stats = []
+    for x in (x_m, x_u):
+        d, _ = sdf.sample(x)
+        near = cKDTree(x).query(x, k=2)[0][:, 1] / l0
+        stats.append([np.mean(d < 2.5 * l0), near.min(), np.mean(near), x[:, 2].max()])
+    print("band share, closest pair, mean nearest distance (l0), top (m):", np.round(stats, 5))
+    assert np.allclose(stats[0], stats[1], rtol=0.01, atol=0.02)
+
+
+def test_a_tank_on_the_lattice_is_filled_as_the_lattice():
+    """Walls on the lattice's planes leave no point near them: nothing moves, the fill is the lattice."""
+    l0 = 0.02
+    sdf = grid_from_function(box_interior_sdf([0, 0, 0], [0.2, 0.2, 0.3]), [0, 0, 0], [0.2, 0.2, 0.3], l0 / 2)
+    pts = lattice([0, 0, 0], [0.2, 0.2, 0.2], l0)
+    x, _, dropped = drop_inside_walls(pts, np.zeros_like(pts), sdf, l0, LOG)
+    assert dropped == 0 and np.array_equal(x, pts)
