@@ -40,7 +40,8 @@ def _fill(name, l0, scale=1.0, y_up=False):
     fn, (lo, hi), _ = TANKS[name]
     lo, hi = np.asarray(lo, float), np.asarray(hi, float)
     swap = [0, 2, 1] if y_up else [0, 1, 2]  # Z up -> Y up: (x, y, z) -> (x, z, y)
-    sdf = grid_from_function(lambda p: scale * fn(p[:, swap] / scale), lo[swap] * scale, hi[swap] * scale, 0.5 * l0 * scale)
+    sdf = grid_from_function(lambda p: scale * fn(p[:, swap] / scale), lo[swap] * scale, hi[swap] * scale,
+                             0.5 * l0 * scale)
     top = hi.copy()
     top[2] = FILL
     pts = lattice(lo[swap] * scale, top[swap] * scale, l0 * scale)
@@ -67,7 +68,7 @@ def test_a_curved_or_turned_tank_holds_its_water_at_rest_density(name, across):
     assert 0.975 < held < 1.02, held
     d, _ = sdf.sample(x)
     assert d.min() >= 0.495 * l0  # moved out to l0 / 2 along the trilinear SDF's normal
-    assert x[:, 2].max() <= FILL - 0.1 * l0  # the free surface stays inside the filled region (its top layer: FILL - l0 / 2)
+    assert x[:, 2].max() <= FILL - 0.1 * l0  # inside the filled region (the lattice's top layer: FILL - l0 / 2)
     s = SPHSolver(x, np.zeros_like(x), np.arange(len(x)), sdf, spacing=l0, rho0=1000.0, params=SPHParams(threads=None),
                   gravity=(0, 0, -9.81), mu=0.001, v_ref=2.0)
     s.sort_and_density(rebuild=True)

@@ -355,7 +355,8 @@ def _relax(y, fixed, sdf, l0, off_walls, confined, sweeps):
     def sums(y):
         pts[:len(y)] = y
         order = grid.sort(pts)
-        _kernel_sums(y, np.ascontiguousarray(pts[order]), grid.starts, grid.lo, 1.0 / grid.cell, grid.dims, h, rho, grad)
+        _kernel_sums(y, np.ascontiguousarray(pts[order]), grid.starts, grid.lo, 1.0 / grid.cell, grid.dims, h, rho,
+                     grad)
         d, n = sdf.sample(y)
         dc = np.clip(d, 0.0, h)
         grad[:] += np.interp(dc, dt, dzt)[:, None] * n
