@@ -15,7 +15,9 @@ from pipeline.scene import BoxEmitter, MeshEmitter, SphereEmitter, is_usd
 from pipeline.stage import StageError
 from stages.common.wall_hints import box_text
 
+from .kernels import rest_lattice
 from .neighbours import cell_coords
+from .walls.spline import flat_wall_tables, spline_coefs, spline_f, spline_np, spline_w
 
 
 # a size within this many spacings of a whole number of them counts as that number
@@ -170,7 +172,7 @@ def drop_inside_walls(x: np.ndarray, v: np.ndarray, sdf, l0: float, log: logging
     clear = d >= (min_distance - 1e-3) * l0  # float32 SDF round-off
     keep = clear & in_grid
     x = np.array(x, np.float64)
-    moved = _fill_wall_band(x, in_grid & ~clear & (d > 0), keep, sdf, l0, min_distance)
+    moved = _fill_wall_band(x, d, in_grid & ~clear & (d > 0), keep, sdf, l0, min_distance)
     clear |= moved
     keep |= moved
     dropped = int(len(x) - keep.sum())
@@ -206,19 +208,20 @@ SPREAD_SWEEPS = 60
 RELAX_SWEEPS = 200
 CAP_ROUNDS, CAP_SWEEPS = 8, 40
 FILL_DENSITY_SLACK = 0.02  # the band's kernel sum may exceed the lattice's by this before inserted points go
+TABLE_SAMPLES = 256  # the walls' share tabulated over [0, h]
 
 
-def _fill_wall_band(x: np.ndarray, near: np.ndarray, keep: np.ndarray, sdf, l0: float,
+def _fill_wall_band(x: np.ndarray, d_all: np.ndarray, near: np.ndarray, keep: np.ndarray, sdf, l0: float,
                     min_distance: float) -> np.ndarray:
-    """Put back the water a lattice loses along a wall it does not line up with. The lattice points inside the
-    fluid's region but nearer a wall than ``min_distance`` l0 (``near``) move out along the wall's normal to that
-    distance; then they and the kept particles within FILL_BAND l0 of a wall are re-packed: pushed apart where
-    closer than 1.05 l0 (_spread), then moved down the gradient of their kernel sum (_relax: the cubic spline of
-    support 2 l0, a wall counting as the lattice continued beyond a flat wall at the SDF distance), held
-    ``min_distance`` l0 off the walls and FREE_GAP l0 from the empty cells next to the emitted ones, which count
-    as fluid (a free surface stays where the lattice put it). Where the packing still sums above the lattice's
-    (by FILL_DENSITY_SLACK), put-back points go. Positions change in place; returns the mask of the ``near``
-    points kept.
+    """Put back the water a lattice loses along a wall it does not line up with. The lattice points inside the fluid's
+    region but nearer a wall than ``min_distance`` l0 (``near``; ``d_all`` every point's SDF distance) move out
+    along the wall's normal to that distance; then they and the kept particles within FILL_BAND l0 of a wall are
+    re-packed: pushed apart where closer than 1.05 l0 (_spread), then moved down the gradient of their kernel sum
+    (_relax: the cubic spline of support 2 l0, a wall counting as the lattice continued beyond a flat wall at the
+    SDF distance), held ``min_distance`` l0 off the walls and FREE_GAP l0 from the empty cells next to the
+    emitted ones, which count as fluid (a free surface stays where the lattice put it). Where the packing still
+    sums above the lattice's (by FILL_DENSITY_SLACK), put-back points go. Positions change in place; returns the
+    mask of the ``near`` points kept.
 
     Dropping every near point lost half a spacing of water along each such wall: a cylinder of radius 4.8 /
     9.6 / 19 spacings held 0.815 / 0.949 / 0.970 of its water and its level settled 1.7 spacings low; moving
@@ -233,7 +236,6 @@ def _fill_wall_band(x: np.ndarray, near: np.ndarray, keep: np.ndarray, sdf, l0: 
         return out
     from scipy.spatial import cKDTree
 
-    d_all, _ = sdf.sample(x)
     band = keep & (d_all < FILL_BAND * l0)
     movable = np.flatnonzero(band)
     mob = np.concatenate([movable, idx])
@@ -276,12 +278,12 @@ def _fill_wall_band(x: np.ndarray, near: np.ndarray, keep: np.ndarray, sdf, l0: 
     y = off_walls(x[mob].copy())
     y = _spread(y, fixed, l0, off_walls, confined)
     alive = np.ones(len(y), bool)
-    y_alive, dens = _relax(y, fixed, sdf, l0, off_walls, confined, RELAX_SWEEPS)
+    y, dens = _relax(y, fixed, sdf, l0, off_walls, confined, RELAX_SWEEPS)
     for _ in range(CAP_ROUNDS):
         # the lattice's count can exceed the volume (the midpoint rule: a cylinder of radius 4.8 spacings holds 1.05
         # of it) and a packing denser than the lattice starts a weakly compressible fluid under pressure (5 % is 10
         # x the hydrostatic at c = 10 v): the inserted points where the sum is highest (no two within 2 l0) go
-        y[alive] = y_alive
+        y_alive = y[alive]
         over = np.flatnonzero(inserted[alive] & (dens > 1.0 + FILL_DENSITY_SLACK))
         if len(over) == 0:
             break
@@ -293,8 +295,7 @@ def _fill_wall_band(x: np.ndarray, near: np.ndarray, keep: np.ndarray, sdf, l0: 
             if not taken[k]:
                 taken[tree.query_ball_point(y_alive[order[k]], 2.0 * l0)] = True
                 alive[ids[order[k]]] = False
-        y_alive, dens = _relax(y[alive], fixed, sdf, l0, off_walls, confined, CAP_SWEEPS)
-    y[alive] = y_alive
+        y[alive], dens = _relax(y[alive], fixed, sdf, l0, off_walls, confined, CAP_SWEEPS)
     # a moved point still on top of another is left out, nearest pairs first; so is one the walls hold too close
     alive &= ~(inserted & (sdf.sample(y)[0] < (min_distance - 1e-3) * l0))
     pairs = cKDTree(y).query_pairs(FILL_ROOM * l0, output_type="ndarray")
@@ -340,13 +341,18 @@ def _spread(y, fixed, l0, off_walls, confined):
 
 def _relax(y, fixed, sdf, l0, off_walls, confined, sweeps):
     """Each sweep moves every band particle by 0.1 l0^2 times minus the gradient of its kernel sum over the cubic
-    lattice's (at most 0.05 l0): towards an even packing, the walls' share included (_wall_share at the SDF
-    distance). Returns the positions and their kernel sums over the lattice's (1 inside a lattice)."""
+    lattice's (at most 0.05 l0): towards an even packing, the walls' share included (the flat-wall table at the
+    SDF distance). Returns the positions and their kernel sums over the lattice's (1 inside a lattice)."""
     from .neighbours import CellGrid
 
     h = 2.0 * l0
-    dt, zt, dzt = _wall_share(l0, h)
-    ref = _lattice_sum(l0, h)
+    k, l = spline_coefs(h)
+    # the walls' share: the spline's sum over the lattice continued beyond a flat wall (walls/spline.py's flat-wall
+    # table), so a lattice's first two layers on a flat wall read the interior's sum exactly (the kernel's integral
+    # over the half-space read 6 % high at l0 / 2); per unit mass, its derivative along the normal is -z_grad
+    z_rho, z_grad, _ = flat_wall_tables(l0, h, 1.0, 1.0, TABLE_SAMPLES)
+    dt = np.linspace(0.0, h, TABLE_SAMPLES)
+    ref = float(spline_np(rest_lattice(l0, h)[1], h).sum())  # the sum inside a cubic lattice
     pts = np.concatenate([y, fixed])
     grid = CellGrid(pts.min(axis=0) - 2 * h, pts.max(axis=0) + 2 * h, h)
     rho = np.zeros(len(y))
@@ -355,55 +361,27 @@ def _relax(y, fixed, sdf, l0, off_walls, confined, sweeps):
     def sums(y):
         pts[:len(y)] = y
         order = grid.sort(pts)
-        _kernel_sums(y, np.ascontiguousarray(pts[order]), grid.starts, grid.lo, 1.0 / grid.cell, grid.dims, h, rho,
-                     grad)
+        _kernel_sums(y, np.ascontiguousarray(pts[order]), grid.starts, grid.lo, 1.0 / grid.cell, grid.dims, h, k, l,
+                     rho, grad)
         d, n = sdf.sample(y)
         dc = np.clip(d, 0.0, h)
-        grad[:] += np.interp(dc, dt, dzt)[:, None] * n
-        return (rho + np.interp(dc, dt, zt)) / ref
+        grad[:] -= np.interp(dc, dt, z_grad)[:, None] * n
+        return (rho + np.interp(dc, dt, z_rho)) / ref
 
-    for k in range(sweeps):
+    for sweep in range(sweeps):
         sums(y)
         # the last quarter of the sweeps shrinks the step to nothing: the packing settles, so it changes smoothly with
         # the walls (a run of the same tank from a USD prop and from a config box started 1 % of l0 apart without it)
-        step = (-0.1 * l0 * l0 / ref * min(1.0, 4.0 * (1.0 - k / sweeps))) * grad
+        step = (-0.1 * l0 * l0 / ref * min(1.0, 4.0 * (1.0 - sweep / sweeps))) * grad
         step *= np.minimum(1.0, 0.05 * l0 / np.maximum(np.linalg.norm(step, axis=1), 1e-300))[:, None]
         y = confined(off_walls(y + step))
     return y, sums(y)
 
 
-def _wall_share(l0: float, h: float, samples: int = 512):
-    """(d, Z(d), Z'(d)) over [0, h], per l0^3 as the kernel sums are: Z the cubic spline's sum over the lattice
-    continued beyond a flat wall at distance d (its layers at d + l0 / 2, d + 3 l0 / 2, ... below, in line with the
-    particle), so the first two layers of a lattice on a flat wall read the interior's sum exactly. (The kernel's
-    integral over the half-space read 6 % high at l0 / 2: the band's density was capped there.)"""
-    d = np.linspace(0.0, h, samples)
-    g = np.arange(-2, 3) * l0
-    lateral = np.hypot(*np.meshgrid(g, g, indexing="ij")).ravel()
-    z = np.zeros(samples)
-    for m in range(3):
-        depth = d + (m + 0.5) * l0
-        z += _spline_w(np.hypot(lateral[None, :], depth[:, None]) / h).sum(axis=1)
-    z *= 8.0 / (np.pi * h ** 3)
-    return d, z, np.gradient(z, d)
-
-
-def _spline_w(q):
-    return np.where(q <= 0.5, 6 * q ** 3 - 6 * q ** 2 + 1, np.where(q < 1, 2 * (1 - q) ** 3, 0.0))
-
-
-def _lattice_sum(l0: float, h: float) -> float:
-    """The cubic spline's sum over a cubic lattice of spacing l0 (a particle inside the lattice), per volume l0^3."""
-    g = np.arange(-2, 3) * l0
-    p = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
-    return float(_spline_w(np.linalg.norm(p, axis=1) / h).sum() * 8.0 / (np.pi * h ** 3))
-
-
 @nb.njit(cache=True, parallel=True)
-def _kernel_sums(y, pts, starts, lo, inv_cell, dims, h, rho, grad):
-    """The cubic spline's sum (support h) over ``pts`` (cell-sorted, cell size h, y among them) at each y, and its
-    gradient with respect to y."""
-    k = 8.0 / (math.pi * h ** 3)
+def _kernel_sums(y, pts, starts, lo, inv_cell, dims, h, k, l, rho, grad):
+    """The cubic spline's sum (support h, walls/spline.py's coefficients k, l) over ``pts`` (cell-sorted, cell size
+    h, y among them) at each y, and its gradient with respect to y."""
     nx, ny, nz = dims[0], dims[1], dims[2]
     for i in nb.prange(y.shape[0]):
         xi, yi, zi = y[i, 0], y[i, 1], y[i, 2]
@@ -422,22 +400,15 @@ def _kernel_sums(y, pts, starts, lo, inv_cell, dims, h, rho, grad):
                     r2 = dx * dx + dy * dy + dz * dz
                     if r2 < h * h:
                         r = math.sqrt(r2)
-                        q = r / h
-                        if q <= 0.5:
-                            s += 6.0 * q * q * q - 6.0 * q * q + 1.0
-                            dw = 18.0 * q * q - 12.0 * q
-                        else:
-                            s += 2.0 * (1.0 - q) ** 3
-                            dw = -6.0 * (1.0 - q) ** 2
-                        if r > 1e-9 * h:
-                            f = dw / (h * r)
-                            gx += f * dx
-                            gy += f * dy
-                            gz += f * dz
-        rho[i] = k * s
-        grad[i, 0] = k * gx
-        grad[i, 1] = k * gy
-        grad[i, 2] = k * gz
+                        s += spline_w(r, h, k)
+                        f = spline_f(r, h, l)  # -grad_i W = f (x_i - x_j)
+                        gx -= f * dx
+                        gy -= f * dy
+                        gz -= f * dz
+        rho[i] = s
+        grad[i, 0] = gx
+        grad[i, 1] = gy
+        grad[i, 2] = gz
 
 
 def emitter_files(ctx) -> list[Path]:

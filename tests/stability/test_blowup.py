@@ -301,22 +301,22 @@ def _cone_run(folder: Path, scale: float, up: str, *extra: str) -> tuple:
 def test_a_cone_run_through_the_cli_reports_the_focusing_and_ends_well(tmp_path, monkeypatch):
     """The same collapse through a pipeline run (a cone model, MPS at 0.7 cm, 0.16 s), in metres with Z up and in
     centimetres with Y up: exit 0, the log says once how many steps had particles above the limit and the fastest,
-    meta.json's stats keep it, and both units give the same collapse: at the same time within 1 ms (0.14370 and
-    0.14378 s measured), above the limit in both (9.63 and 10.96 x; the test holds the guard's limit at 5 x, since
-    with the re-packed start one run or the other peaked just below 10 x). The peak itself is compared within 30 %: the
-    collapse is singular, and the two starts differ (the band along the cone's wall is re-packed, emitters.
-    _fill_wall_band, and its sums run in another order with the other up axis; before session 40, 79 of the
-    10,765 particles). Before the energy
-    test this run ended in exit 1, "blew up during frame 8: speed ... above 10 x the scene's ballistic bound".
-    (Until session 39 the run was DFSPH's, 13.05 and 13.04 x; the solves' new error, which stops DFSPH making
-    energy in the apex, moves its peak: 8.8 x with the full complementarity residual, 13.0 x with the kept
-    weight, so it is no longer a fixed target.)"""
+    meta.json's stats keep it, and both units give the same flow: the same density errors (mean and largest) in
+    every frame before the collapse within 2 % (1e-4 measured), and the collapse at the same time within 1 ms
+    (0.14377 and 0.14387 s measured), above the limit in both. The test holds the guard's limit at 5 x. The peak itself
+    is not compared: the collapse is singular, and how far above 10 x it goes is set by the last few particles in
+    the apex, which the start's round-off decides (pairs of peaks measured with three versions of the start's
+    packing in session 40: 13.95 / 11.12, 9.63 / 10.96, 11.2 / 15.1 x; one of them fell below the default 10 x).
+    Before the energy test this run ended in exit 1, "blew up during frame 8: speed ... above 10 x the scene's
+    ballistic bound". (Until session 39 the run was DFSPH's, 13.05 and 13.04 x; the solves' new error, which stops
+    DFSPH making energy in the apex, moves its peak: 8.8 x with the full complementarity residual, 13.0 x with the
+    kept weight, so it is no longer a fixed target.)"""
     from stages.simulate import driver
 
     # the guard's limit at 5 x, not 10 x: how far above 10 x the singular collapse goes depends on the start's
     # packing along the cone's wall (a few particles in the apex), and either run crossed it or not
     monkeypatch.setattr(driver, "SPEED_LIMIT", 5.0)
-    got = []
+    got, errors = [], []
     for scale, up in ((1.0, "Z"), (100.0, "Y")):
         r, stats = _cone_run(tmp_path / f"{scale:g}{up}", scale, up)
         assert r.exit_code == 0, r.output
@@ -325,8 +325,9 @@ def test_a_cone_run_through_the_cli_reports_the_focusing_and_ends_well(tmp_path,
         focused = stats["focused"]
         assert focused["peak_over_bound"] > 5.0 and focused["steps"] >= 1 and 0.1 < focused["t"] < 0.16, focused
         got.append(focused)
+        errors.append(np.array([stats["density_error_mean"], stats["density_error_max"]])[:, :7])  # frames to 0.14 s
     m, cm = got
-    assert abs(m["peak_over_bound"] - cm["peak_over_bound"]) < 0.3 * m["peak_over_bound"], got
+    assert np.allclose(errors[0], errors[1], rtol=0.02, atol=0.0), errors
     assert abs(m["t"] - cm["t"]) < 1e-3, got
     # a longer shot continues from the cached run (Stage.extends) and reports the whole shot's focusing: the
     # guard's count was the continuation's own, so the two frames after the collapse reported none
