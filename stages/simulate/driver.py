@@ -601,7 +601,8 @@ def prepare(ctx: Context, inputs: Mapping[str, Artifact], who: str, moving_walls
     # the moving walls where they stand at t = 0 count like the static ones
     emitted, x_emitted = len(x), x
     counts: dict = {}
-    x, v, dropped = drop_inside_walls(x, v, posed_field(sdf, bodies, 0.0), l0, ctx.log, counts=counts)
+    x, v, dropped = drop_inside_walls(x, v, posed_field(sdf, bodies, 0.0), l0, ctx.log, counts=counts,
+                                      progress=ctx.progress)
     if len(x) == 0 and not fluid.inflow:
         if emitted == 0:
             why = f"every emitter is smaller than fluid.spacing ({l0:g}) or empty"
