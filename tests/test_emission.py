@@ -151,3 +151,20 @@ def test_a_thin_layer_on_a_sloped_floor_keeps_its_water_off_the_wall():
     held = len(x) * l0 ** 3 / volume
     assert held > 0.92, held
     assert sdf.sample(x)[0].min() >= 0.495 * l0 and x[:, 2].max() <= -0.1 * l0  # the top layer: -0.5 l0
+
+
+@pytest.mark.parametrize("where", ["floor", "side wall"])
+def test_a_lone_particle_near_a_turned_wall_is_moved_off_it_not_dropped(where):
+    """One particle emitted 0.3 l0 from a wall off the lattice moves out to l0 / 2 and stays (as before the packing,
+    session 39). The packing counts the empty cells around it as fluid (to hold a free surface where the lattice put
+    it), so its kernel sum read 1.1 of the lattice's and the cap dropped it: a point with no particle within l0
+    crowds none, and no longer goes."""
+    l0 = 0.01
+    turn = np.array([[np.cos(0.5), -np.sin(0.5), 0.0], [np.sin(0.5), np.cos(0.5), 0.0], [0.0, 0.0, 1.0]])
+    box = box_interior_sdf([-0.05, -0.05, 0.0], [0.05, 0.05, 0.1])
+    sdf = grid_from_function(lambda p: box(p @ turn), [-0.08, -0.08, 0.0], [0.08, 0.08, 0.1], 0.5 * l0)
+    at = np.array([[0.0, 0.0, 0.3 * l0]]) if where == "floor" else np.array([[0.05 - 0.3 * l0, 0.0, 0.05]]) @ turn.T
+    x, _, dropped = drop_inside_walls(at, np.zeros_like(at), sdf, l0, LOG)
+    assert dropped == 0 and len(x) == 1
+    d = sdf.sample(x)[0][0]
+    assert 0.495 * l0 <= d <= 0.55 * l0, d / l0
