@@ -11,7 +11,7 @@ from pathlib import Path
 
 HERE = Path(__file__).parent
 RESULTS = HERE / "results"
-BENCHES = ["bench_sdf.py", "bench_sph.py", "bench_sph_kernels.py", "bench_dfsph.py", "bench_mps.py", "bench_hydrostatic.py", "bench_effects.py", "bench_walls.py", "bench_wall_maps.py",
+BENCHES = ["bench_sdf.py", "bench_emission.py", "bench_sph.py", "bench_sph_kernels.py", "bench_dfsph.py", "bench_mps.py", "bench_hydrostatic.py", "bench_effects.py", "bench_walls.py", "bench_wall_maps.py",
            "bench_wall_offset.py",
            "bench_surface.py", "bench_render.py", "compare_sph_mps.py", "dragon_snap_figure.py",
            "bench_peers.py", "bench_shot.py", "peers_accuracy_plot.py", "convergence_plot.py --run",
