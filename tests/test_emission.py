@@ -112,7 +112,7 @@ def test_a_tank_on_the_lattice_is_filled_as_the_lattice():
 
 
 def test_the_fill_shows_its_progress_and_says_what_it_did(caplog):
-    """A long packing (a studio scene's band of 200k particles takes about 40 s) shows a progress bar that reaches
+    """A long packing (a studio scene's band of 200k particles takes about 60 s) shows a progress bar that reaches
     its end, and the log says how many particles it re-packed and put back; a tank on the lattice shows none."""
     from pipeline.stage import Progress
 

@@ -240,7 +240,7 @@ def _fill_wall_band(x: np.ndarray, d_all: np.ndarray, near: np.ndarray, keep: np
     from scipy.spatial import cKDTree
 
     started = time.perf_counter()
-    # about 0.2 ms per particle of the band on 2 cores: a studio scene's band of 200k particles takes 40 s
+    # about 0.3 ms per particle of the band on 2 cores (bench_emission.py): a studio scene's band of 200k takes 60 s
     sweeps = SPREAD_SWEEPS + RELAX_SWEEPS + CAP_ROUNDS * CAP_SWEEPS
     bar = progress("packing the water along walls", sweeps) if progress is not None else None
     tick = bar.advance if bar is not None else (lambda amount=1.0: None)
