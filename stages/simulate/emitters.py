@@ -14,6 +14,7 @@ import numpy as np
 
 from pipeline.scene import BoxEmitter, MeshEmitter, SphereEmitter, is_usd
 from pipeline.stage import StageError
+from stages.common.sdf import DEFAULT_SHELL_THICKNESS
 from stages.common.wall_hints import box_text
 
 from .kernels import rest_lattice
@@ -188,7 +189,8 @@ def drop_inside_walls(x: np.ndarray, v: np.ndarray, sdf, l0: float, log: logging
         why = []
         if solid:
             why.append(f"{solid} inside a wall's solid: the emitter reaches into it (an open_box's walls are "
-                       "mesh_import.open_box_thickness x its smaller horizontal size thick, inside its size)")
+                       "mesh_import.open_box_thickness x its smaller horizontal size thick, inside its size; an open "
+                       f"mesh's shell is walls[].shell.thickness thick, {DEFAULT_SHELL_THICKNESS:g} spacings unless set)")
         if close:
             why.append(f"{close} within {min_distance:.2g} l0 of one, with no room in the packing along it" + (
                 " (a finer spacing loses less)" if close >= 0.05 * len(x) else ""))
