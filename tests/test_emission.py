@@ -137,34 +137,44 @@ def test_the_fill_shows_its_progress_and_says_what_it_did(caplog):
     assert len(bars) == 1
 
 
-def test_a_thin_layer_on_a_sloped_floor_keeps_its_water_off_the_wall():
+@pytest.mark.parametrize("scale, y_up", [(1.0, False), (1000.0, True)], ids=["metres", "millimetres, Y up"])
+def test_a_thin_layer_on_a_sloped_floor_keeps_its_water_off_the_wall(scale, y_up):
     """Water 0-3 spacings deep on a floor sloped 1 in 3.3 (off the lattice): the packing's last confinement (the
     empty cells above, FREE_GAP l0 off) pushed points of so thin a layer back towards the floor, and those the walls
     then held too close were dropped: 0.88 of the water held before; now the walls' projection comes last, 0.94.
-    No particle nearer the wall than l0 / 2, none above the water's top."""
+    No particle nearer the wall than l0 / 2, none above the water's top; in metres and in millimetres with Y up."""
     l0 = 0.01
-    sdf = grid_from_function(lambda p: np.minimum(p[:, 2] - 0.3 * p[:, 0], 0.2 - p[:, 2]), [-0.1, -0.1, -0.05],
-                             [0.1, 0.1, 0.2], 0.5 * l0)
-    pts = lattice([-0.1, -0.1, -0.05], [0.1, 0.1, 0.0], l0)
-    x, _, _ = drop_inside_walls(pts, np.zeros_like(pts), sdf, l0, LOG)
+    swap = [0, 2, 1] if y_up else [0, 1, 2]  # Z up -> Y up: (x, y, z) -> (x, z, y)
+    lo, hi, top = np.array([-0.1, -0.1, -0.05]), np.array([0.1, 0.1, 0.2]), np.array([0.1, 0.1, 0.0])
+    sdf = grid_from_function(lambda p: scale * np.minimum(p[:, swap[2]] / scale - 0.3 * p[:, 0] / scale,
+                                                          0.2 - p[:, swap[2]] / scale),
+                             lo[swap] * scale, hi[swap] * scale, 0.5 * l0 * scale)
+    pts = lattice(lo[swap] * scale, top[swap] * scale, l0 * scale)
+    x, _, _ = drop_inside_walls(pts, np.zeros_like(pts), sdf, l0 * scale, LOG)
     volume = 0.2 * 0.3 * 0.1 ** 2 / 2  # the wedge between the slope and z = 0
     held = len(x) * l0 ** 3 / volume
     assert held > 0.92, held
-    assert sdf.sample(x)[0].min() >= 0.495 * l0 and x[:, 2].max() <= -0.1 * l0  # the top layer: -0.5 l0
+    assert sdf.sample(x)[0].min() >= 0.495 * l0 * scale
+    assert x[:, swap[2]].max() <= -0.1 * l0 * scale  # the top layer: -0.5 l0
 
 
+@pytest.mark.parametrize("scale, y_up", [(1.0, False), (100.0, False), (1000.0, True)],
+                         ids=["metres", "centimetres", "millimetres, Y up"])
 @pytest.mark.parametrize("where", ["floor", "side wall"])
-def test_a_lone_particle_near_a_turned_wall_is_moved_off_it_not_dropped(where):
+def test_a_lone_particle_near_a_turned_wall_is_moved_off_it_not_dropped(where, scale, y_up):
     """One particle emitted 0.3 l0 from a wall off the lattice moves out to l0 / 2 and stays (as before the packing,
-    session 39). The packing counts the empty cells around it as fluid (to hold a free surface where the lattice put
-    it), so its kernel sum read 1.1 of the lattice's and the cap dropped it: a point with no particle within l0
-    crowds none, and no longer goes."""
+    session 39), in every unit and with either up axis. The packing counts the empty cells around it as fluid (to
+    hold a free surface where the lattice put it), so its kernel sum read 1.1 of the lattice's and the cap dropped
+    it: a point with no particle within l0 crowds none, and no longer goes."""
     l0 = 0.01
+    swap = [0, 2, 1] if y_up else [0, 1, 2]  # Z up -> Y up: (x, y, z) -> (x, z, y)
     turn = np.array([[np.cos(0.5), -np.sin(0.5), 0.0], [np.sin(0.5), np.cos(0.5), 0.0], [0.0, 0.0, 1.0]])
     box = box_interior_sdf([-0.05, -0.05, 0.0], [0.05, 0.05, 0.1])
-    sdf = grid_from_function(lambda p: box(p @ turn), [-0.08, -0.08, 0.0], [0.08, 0.08, 0.1], 0.5 * l0)
+    lo, hi = np.array([-0.08, -0.08, 0.0]), np.array([0.08, 0.08, 0.1])
+    sdf = grid_from_function(lambda p: scale * box((p[:, swap] / scale) @ turn), lo[swap] * scale, hi[swap] * scale,
+                             0.5 * l0 * scale)
     at = np.array([[0.0, 0.0, 0.3 * l0]]) if where == "floor" else np.array([[0.05 - 0.3 * l0, 0.0, 0.05]]) @ turn.T
-    x, _, dropped = drop_inside_walls(at, np.zeros_like(at), sdf, l0, LOG)
+    x, _, dropped = drop_inside_walls(at[:, swap] * scale, np.zeros_like(at), sdf, l0 * scale, LOG)
     assert dropped == 0 and len(x) == 1
-    d = sdf.sample(x)[0][0]
+    d = sdf.sample(x)[0][0] / scale
     assert 0.495 * l0 <= d <= 0.55 * l0, d / l0
