@@ -315,7 +315,7 @@ def _fill_wall_band(x: np.ndarray, d_all: np.ndarray, near: np.ndarray, keep: np
     tick(left)  # the rounds not needed
     # for the put-back points the walls win over the ghosts (the last sweep's confinement pushes points of a layer
     # thinner than FREE_GAP + dmin back towards the wall, and they were dropped); the kept particles end as the sweeps
-    # left them, within 1e-4 l0 of dmin (projecting them too moved the stability suite's V trough by 4e-6 m and MPS's
+    # left them, within 1e-3 l0 of dmin (projecting them too moved the stability suite's V trough by 4e-6 m and MPS's
     # peak there from 1.4 to 2.3 x the bound at one of three frame rates). A moved point still on top of another is
     # left out, nearest pairs first; so is one the walls hold too close
     y[inserted] = off_walls(y[inserted])
