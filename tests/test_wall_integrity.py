@@ -1,5 +1,6 @@
 """Wall integrity on the real models: fluid poured onto each for 0.4 s never ends up inside a wall
-(SDF < -0.01 l0) and never leaves the domain. CI-sized version of benchmarks/bench_walls.py (20k
+(SDF < -0.01 l0) and never leaves the domain, with each solver (DFSPH and MPS since session 41: their walls are
+the same SDF's maps, sampled through their own kernels). CI-sized version of benchmarks/bench_walls.py (20k
 particles): the seed scenes at twice the spacing (about 2,500 particles)."""
 from __future__ import annotations
 
@@ -21,12 +22,13 @@ MODELS = {
 }
 
 
+@pytest.mark.parametrize("solver", ["sph", "dfsph", "mps"])
 @pytest.mark.parametrize("model", list(MODELS))
-def test_poured_fluid_stays_out_of_the_walls(model, tmp_path):
+def test_poured_fluid_stays_out_of_the_walls(model, solver, tmp_path):
     config, swap = MODELS[model]
     if model == "gargoyle" and not (CONFIGS.parents[1] / "shared" / "assets" / "gargoyle").is_dir():
         pytest.skip("the gargoyle is not redistributable: it is read from ../shared/assets, missing here")
-    sets = ["scene.frames.count=13", "fluid.spacing=0.025"]
+    sets = ["scene.frames.count=13", "fluid.spacing=0.025", f"stages.simulate.use={solver}"]
     if swap:
         sets.append(f"walls.1.file={swap}")
     report = pipeline.run(CONFIGS / config, registry=Registry.from_entry_points(), overrides=tuple(sets),
