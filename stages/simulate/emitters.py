@@ -253,8 +253,7 @@ def _fill_wall_band(x: np.ndarray, d_all: np.ndarray, near: np.ndarray, keep: np
     inserted[len(movable):] = True
     # the particles the band's kernel reaches (2 l0) stay where they are; so do ghosts in the empty cells within
     # 2 l0 of the band that are not in a wall (beyond a free surface, or an emitter's side)
-    fixed = x[keep & ~band & (d_all < (FILL_BAND + 2.0) * l0)]
-    particles = fixed  # the fixed ones without the ghosts below
+    held = x[keep & ~band & (d_all < (FILL_BAND + 2.0) * l0)]
     emitted = cKDTree(x[(d_all > -l0) & (d_all < (FILL_BAND + 2.5) * l0)])  # the emitted cells within 2 l0 of the band
     k = np.arange(-2, 3)
     steps = np.stack(np.meshgrid(k, k, k, indexing="ij"), -1).reshape(-1, 3).astype(float)
@@ -264,7 +263,7 @@ def _fill_wall_band(x: np.ndarray, d_all: np.ndarray, near: np.ndarray, keep: np
     if len(ghosts):
         ghosts = np.unique(np.round(ghosts / (1e-6 * l0)), axis=0) * (1e-6 * l0)
         ghosts = ghosts[sdf.sample(ghosts)[0] > 0]
-    fixed = np.concatenate([fixed, ghosts])
+    fixed = np.concatenate([held, ghosts])
     dmin = min_distance * l0
 
     def off_walls(y):
@@ -298,7 +297,7 @@ def _fill_wall_band(x: np.ndarray, d_all: np.ndarray, near: np.ndarray, keep: np
         y_alive = y[alive]
         over = np.flatnonzero(inserted[alive] & (dens > 1.0 + FILL_DENSITY_SLACK))
         if len(over):  # a point with no particle within l0 crowds none: its sum is the ghosts' and the walls'
-            real = cKDTree(np.concatenate([y_alive, particles]))
+            real = cKDTree(np.concatenate([y_alive, held]))
             over = over[real.query(y_alive[over], k=2, distance_upper_bound=l0)[0][:, 1] <= l0]
         if len(over) == 0:
             break
@@ -328,9 +327,9 @@ def _fill_wall_band(x: np.ndarray, d_all: np.ndarray, near: np.ndarray, keep: np
                 alive[b if inserted[b] else a] = False
     if len(fixed):
         alive &= ~(inserted & (cKDTree(fixed).query(y, distance_upper_bound=FILL_ROOM * l0)[0] < FILL_ROOM * l0))
-    x[mob[~inserted]] = y[~inserted]
     put = inserted & alive
-    x[mob[put]] = y[put]
+    moved = ~inserted | put
+    x[mob[moved]] = y[moved]
     out[mob[put]] = True
     if log is not None:
         log.info("packed the water along walls off the lattice: %d particles re-packed, %d of %d near points put "
@@ -381,14 +380,14 @@ def _relax(y, fixed, sdf, l0, off_walls, confined, sweeps, tick):
     ref = float(spline_np(rest_lattice(l0, h)[1], h).sum())  # the sum inside a cubic lattice
     pts = np.concatenate([y, fixed])
     grid = CellGrid(pts.min(axis=0) - 2 * h, pts.max(axis=0) + 2 * h, h)
+    in_cells = np.empty_like(pts)  # pts in cell order, refilled each sweep
     rho = np.zeros(len(y))
     grad = np.zeros_like(y)
 
     def sums(y):
         pts[:len(y)] = y
-        order = grid.sort(pts)
-        _kernel_sums(y, np.ascontiguousarray(pts[order]), grid.starts, grid.lo, 1.0 / grid.cell, grid.dims, h, k, l,
-                     rho, grad)
+        np.take(pts, grid.sort(pts), axis=0, out=in_cells)
+        _kernel_sums(y, in_cells, grid.starts, grid.lo, 1.0 / grid.cell, grid.dims, h, k, l, rho, grad)
         d, n = sdf.sample(y)
         dc = np.clip(d, 0.0, h)
         grad[:] -= np.interp(dc, dt, z_grad)[:, None] * n
