@@ -115,6 +115,54 @@ def test_predicted_density_rate_matches_the_real_change(gradient):
     assert np.corrcoef(actual[~far], real[~far])[0, 1] > 0.95
 
 
+def _jacobi_run(gradient: str, support: float, omega: float | None, steps: int = 6) -> tuple[float, int]:
+    """The test tank at water's viscosity from rest, ``steps`` steps with the solves relaxed by ``omega`` (None: the
+    default; a value above the limit set past the validator, as a solver's own code could): the fastest particle
+    and the iterations of the last density solve."""
+    sdf = grid_from_function(box_interior_sdf([0, 0, 0], [W, W, 0.3]), [0, 0, 0], [W, W, 0.3], L0 / 2)
+    x = lattice([0, 0, 0], [W, W, H], L0)
+    params = DFSPHParams(gradient=gradient, support=support)
+    if omega is not None:
+        object.__setattr__(params, "relaxation", omega)
+    s = DFSPHSolver(x, np.zeros_like(x), np.arange(len(x)), sdf, spacing=L0, rho0=1000.0, params=params,
+                    gravity=(0, 0, -G), mu=0.001)
+    it = 0
+    for _ in range(steps):
+        before = s.iterations[0]
+        s.step(1.0)
+        it = s.iterations[0] - before
+    return float(np.linalg.norm(s.v, axis=1).max()), it
+
+
+@pytest.mark.parametrize("gradient, support", [("spiky", 2.0), ("spiky", 3.0), ("poly6", 2.25)])
+def test_the_solves_diverge_above_the_jacobi_limit_and_the_default_stays_below_it(gradient, support):
+    """dfsph.jacobi_limit: 2 / the largest eigenvalue of the Jacobi-scaled system on the rest lattice. Relaxed 1.5 x
+    that, the solves diverge on a resting tank (measured here: 1e3-1e21 m/s in 6 steps; from 0.95 x for Spiky at
+    2 l0, 1.3 x at 3 l0, 1.15 x for Poly6 at 2.25 l0: walls and the free surface move the threshold). Spiky at 3 l0
+    and Poly6 at 2.25 l0 diverged with the old fixed omega 0.5, and a step then never ended (sub-steps of a 1e30 m/s
+    move). At the default (0.5, or 0.8 x the limit where that is less) the tank is DFSPH's resting tank (below 1
+    m/s, the solves within their cap)."""
+    from stages.simulate.dfsph import jacobi_limit
+    limit = jacobi_limit(gradient, support)
+    fast, _ = _jacobi_run(gradient, support, 1.5 * limit)
+    assert fast > 20.0, fast
+    fast, it = _jacobi_run(gradient, support, None)
+    assert fast < 1.0 and it < DFSPHParams().max_iterations, (fast, it)
+
+
+def test_a_relaxation_above_the_limit_is_refused_and_the_default_resolves_below_it():
+    from pydantic import ValidationError
+    from stages.simulate.dfsph import jacobi_limit
+    assert jacobi_limit("spiky", 2.0) == pytest.approx(0.710, abs=1e-3)  # the lattice's modes (Fourier), as measured
+    assert DFSPHParams().relaxation == 0.5  # the defaults as before: 0.5 is 0.7 of the limit
+    assert DFSPHParams(gradient="spline").relaxation == 0.5
+    assert DFSPHParams(gradient="poly6").relaxation == pytest.approx(0.8 * jacobi_limit("poly6", 2.0), abs=1e-3)
+    assert DFSPHParams(support=3.0).relaxation == pytest.approx(0.8 * jacobi_limit("spiky", 3.0), abs=1e-3)
+    assert DFSPHParams(relaxation=0.55).relaxation == 0.55
+    with pytest.raises(ValidationError, match=r"relaxation 0\.6 is above 0\.568"):
+        DFSPHParams(relaxation=0.6)
+
+
 def test_dam_break_surge_front_and_density_error():
     """The column of tests/test_sph_dam_break.py (a = 0.1 m, H = 2a, 800 particles): surge front against
     Martin & Moyce up to T = 3, and the density error against the solver's bound."""

@@ -573,3 +573,14 @@ def test_a_particle_pressed_on_walls_keeps_no_velocity_into_them(pressed, along,
         assert max(into) < 1e-12, max(into)
     else:
         assert np.mean(into) < 0.25 * push, (np.mean(into), push)
+
+
+def test_a_move_takes_at_most_max_sub_steps_so_a_diverged_step_returns_to_the_guard():
+    """A move near a wall is split into sub-steps of at most max_move; a diverged solve's velocity (1e21 m/s in
+    test_dfsph's runs beyond the Jacobi limit) made that 1e24 sub-steps, and the step never returned to the guard that
+    reports the blow-up. The count is now bounded; a non-finite move takes one (the guard stops it after the step)."""
+    assert K.sub_steps(0.5, 1.0) == 1
+    assert K.sub_steps(2.5, 1.0) == 3
+    assert K.sub_steps(1e30, 1.0) == K.MAX_SUB_STEPS
+    assert K.sub_steps(math.inf, 1.0) == K.MAX_SUB_STEPS
+    assert K.sub_steps(math.nan, 1.0) == 1

@@ -108,11 +108,12 @@ Next: the energy each step's density solve adds at a churned state (session 32's
 term, with the split pressure (kappa, kappa_v) replaced by one field; the tank of the test is the check."""
 from __future__ import annotations
 
+import functools
 import math
 from typing import Literal, Mapping
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from pipeline.stage import Artifact, Context, Params, Stage, StageError
 from stages.common.formats import ParticleFrame
@@ -124,7 +125,7 @@ from . import sph_kernels as K
 from .driver import SolverBase, drive, moving_wall, prepare, set_threads
 from .emitters import emitter_files
 from .effects import EffectConstants, compile_effects
-from .walls.spline import SplineWallMaps, spline_coefs, spline_lattice_mass
+from .walls.spline import SplineWallMaps, spline_coefs, spline_f_np, spline_lattice_mass
 from .kernels import lattice_mass, poly6_coef, spiky_grad_coef, spiky_lattice_factor, visc_lattice_factor
 from .neighbours import CellGrid
 from .sph import SPHSolver
@@ -134,6 +135,38 @@ from .timestep import REFERENCE_SPACING, stable_dt, step_to
 
 # the default largest step: 5 ms, set for the PEERS dam break at 2 cm spacing; Froude-scaled for coarser ones
 DT_MAX_REF = 0.005
+RELAXATION = 0.5  # the solves' default Jacobi relaxation (Bender and Koschier 2017), where it is below the limit
+RELAXATION_MARGIN = 0.8  # the most a relaxation may be, as a fraction of jacobi_limit (walls and the free surface
+# move the real threshold: Spiky at 2 l0 diverged at 0.95 of it in test_dfsph's tank, ran at 0.9)
+
+
+@functools.lru_cache(maxsize=None)
+def jacobi_limit(gradient: str, support: float, samples: int = 24) -> float:
+    """The relaxation omega above which the solves' Jacobi iterations diverge on the rest lattice: 2 / the
+    largest eigenvalue of D^-1 A, A = J J^T their system (J the density's gradient: the pair force
+    (kappa_i + kappa_j) grad W_ij and its transpose the density rate), D its diagonal (the factor alpha).
+    A mode kappa_j = exp(i k . x_j) of the full cubic lattice has the eigenvalue
+    |sum_j sin(k . x_j) grad W(x_j)|^2 / sum_j |grad W(x_j)|^2, largest inside the Brillouin zone (sampled at
+    samples^3 wave vectors); it grows with the neighbours. The limit is 0.71 for Spiky and the spline at 2 l0
+    and 0.53 for Poly6, 0.52 / 0.48 for Spiky at 2.4 / 2.5 l0, 0.30 at 3 l0, 0.14 at 4 l0. At omega 0.5 the
+    solves on bench_rest's tank diverged (1e4-1e41 m/s in the first steps) from support 2.5 l0 (Spiky), 2.4
+    (spline) and 2.25 (Poly6), and at 2 l0 (Spiky) with omega 0.68, 0.96 of the limit."""
+    g = np.arange(-math.ceil(support), math.ceil(support) + 1, dtype=float)  # the lattice in units of l0
+    offsets = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    r = np.linalg.norm(offsets, axis=1)
+    keep = (r > 0) & (r < support)
+    offsets, r = offsets[keep], r[keep]
+    if gradient == "spiky":
+        slope = (support - r) ** 2
+    elif gradient == "poly6":
+        slope = r * (support * support - r * r) ** 2
+    else:
+        slope = spline_f_np(r, support) * r
+    grad = slope[:, None] * offsets / r[:, None]
+    k = np.linspace(0.0, math.pi, samples + 1)
+    waves = np.stack(np.meshgrid(k, k, k, indexing="ij"), -1).reshape(-1, 3)
+    eig = ((np.sin(waves @ offsets.T) @ grad) ** 2).sum(axis=1) / (grad ** 2).sum()
+    return float(2.0 / eig.max())
 
 
 class DFSPHParams(Params):
@@ -151,8 +184,10 @@ class DFSPHParams(Params):
                                         "pressure is positive) is below this fraction of rho0")
     min_iterations: int = Field(2, ge=1, description="constant-density solve: at least this many iterations")
     max_iterations: int = Field(100, ge=1, description="iteration cap of each solve")
-    relaxation: float = Field(0.5, gt=0, le=1, description="Jacobi relaxation omega (kappa may also decrease, "
-                              "never below 0)")
+    relaxation: float | None = Field(None, gt=0, le=1, description="Jacobi relaxation omega (kappa may also "
+                                     "decrease, never below 0); default 0.5, or 0.8 x the solves' stability limit "
+                                     "where that is lower (Poly6 at 2 l0: 0.43; Spiky at 3 l0: 0.24); beyond the limit "
+                                     "the solves diverge, so more than 0.8 x it is refused (dfsph.jacobi_limit)")
     warm_start: float = Field(1.0, ge=0, le=1, description="start each solve from this fraction of the last "
                               "step's pressure (Bender and Koschier 2017, sec. 4.4)")
     divergence_solve: bool = Field(True, description="run the divergence-free solve (Bender and Koschier 2015)")
@@ -165,6 +200,18 @@ class DFSPHParams(Params):
     checkpoint_every: int = Field(10, ge=1, description="write a checkpoint every this many frames")
     threads: int | None = Field(None, ge=1, description="numba threads (fixed count = reproducible results)")
     table_samples: int = Field(256, ge=16, description="samples of the wall tables over [0, h]")
+
+    @model_validator(mode="after")
+    def _relaxation_below_the_limit(self):
+        # resolved once, so the cache key and every reader see the relaxation that runs
+        most = RELAXATION_MARGIN * jacobi_limit(self.gradient, self.support)
+        if self.relaxation is None:
+            object.__setattr__(self, "relaxation", min(RELAXATION, round(most, 3)))
+        elif self.relaxation > most:
+            raise ValueError(f"relaxation {self.relaxation:g} is above {most:.3f}, 0.8 of the limit "
+                             f"{most / RELAXATION_MARGIN:.3f} beyond which the Jacobi solves diverge for the "
+                             f"{self.gradient} gradient at support {self.support:g} l0: lower it, or leave it out")
+        return self
 
 
 class DFSPHSolver(SolverBase):

@@ -644,14 +644,23 @@ def forces(x, v, rho, d, nrm, starts, lo, inv_cell, dims, h, mass, rho0, walls, 
         acc[i, 2] = az
 
 
+# the most sub-steps a move takes: a move longer than this many max_move in one step (hundreds of spacings) is a
+# blow-up the guard reports after the step, and sub-stepping an unbounded move (a diverged solve's 1e30 m/s, or
+# inf) would never return to it
+MAX_SUB_STEPS = 1024
+
+
 # walls.maps.push_out and move_near_walls are called, not inlined: numba inlines at its own IR level, so each
 # kernel that inlined them typed and compiled their bodies again (integrate's two builds in the demo 27 -> 14 s);
 # LLVM still inlines the machine code, and their callers are not fastmath, so the arithmetic is the same.
 # (_walls_and_pressure above stays inlined: called, numba built it twice, for more than it saved.)
 @nb.njit(cache=True, inline="always")
 def sub_steps(step, max_move):
-    """How many sub-steps a move of length ``step`` takes: moves no longer than ``max_move`` each."""
-    return int(math.ceil(step / max_move)) if step > max_move else 1
+    """How many sub-steps a move of length ``step`` takes: moves no longer than ``max_move`` each (at most
+    MAX_SUB_STEPS; one for a non-finite move, which the guard stops after the step)."""
+    if not step > max_move:  # also NaN
+        return 1
+    return int(math.ceil(min(step / max_move, MAX_SUB_STEPS)))
 
 
 @nb.njit(cache=True)

@@ -61,6 +61,20 @@ def test_time_step_far_above_stable_exits_1_with_one_line(tmp_path):
     assert _run(tmp_path, "sph").exit_code == 0
 
 
+def test_dfsph_at_a_large_support_runs_and_a_relaxation_beyond_its_limit_is_refused_in_one_line(tmp_path):
+    """DFSPH allows a support up to 4 l0; from 2.5 l0 its Jacobi solves diverged at the fixed relaxation 0.5 and the
+    run hung in its first step. The relaxation now defaults below the solves' limit for the kernel and support
+    (dfsph.jacobi_limit), and a value beyond 0.8 of it is a config error naming it."""
+    assert _run(tmp_path, "dfsph", "stages.simulate.support=3").exit_code == 0
+    (tmp_path / "refused").mkdir()
+    r = _run(tmp_path / "refused", "dfsph", "stages.simulate.relaxation=0.9")
+    assert r.exit_code != 0
+    err = [ln for ln in r.output.splitlines() if ln.startswith("error:")]
+    assert len(err) == 1 and "Traceback" not in r.output, r.output
+    assert "tank.yaml" in err[0] and "stages.simulate" in err[0] and "relaxation 0.9 is above 0.568" in err[0]
+    assert not list((tmp_path / "refused").glob("cache/**/*.npz"))
+
+
 @pytest.mark.parametrize("solver", ["sph", "dfsph"])
 @pytest.mark.parametrize("effect, name", [("effects.wall_friction={rate: 1e9}", "effects.wall_friction.rate"),
                                           ("effects.wind={velocity: [1, 0, 0], drag: 1e9}", "effects.wind.drag")])
