@@ -104,6 +104,9 @@ at 1.5 s against our 0.21). What was measured:
   K^T| / |K + K^T| of K = d v_new / d x: 0.31, WCSPH 0.007; 0.084 with gradient="spline", which session 33 measured
   at 0.20 m/s at 1 s). Restarted at rest after 3 s of bench_rest's tank (every velocity zeroed), DFSPH is back at
   0.26 m/s within 0.1 s: the step keeps the motion up at the states it reaches.
+- session 42: both solves really converged (1e-5, 90-130 iterations a step; earlier "to 1e-5" runs stopped at
+  the cap of 100): 0.12 m/s at 1.5 s against 0.17; after the first step the even layers fall at 0.7-0.85 g dt
+  and the odd ones are held (session 13's decoupling: a converged solve keeps it).
 Next: the energy each step's density solve adds at a churned state (session 32's budget, taken at t = 3 s), term by
 term, with the split pressure (kappa, kappa_v) replaced by one field; the tank of the test is the check."""
 from __future__ import annotations
