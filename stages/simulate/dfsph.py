@@ -198,14 +198,17 @@ class DFSPHParams(Params):
                                                           "(eq. 8, normalised as in sph) or the exact Poly6 derivative "
                                                           "of the density; 'spline': the cubic spline for the density and "
                                                           "its gradient, walls as its quadrature (walls/spline.py)")
-    r_rep: float = Field(0.2, gt=0, le=1.0, description="eq. 16 wall clamp distance, in units of l0: a safety net "
-                         "below the first layer's rest distance 0.5 l0, so the solver, not the clamp, holds the fluid")
+    r_rep: float = Field(0.2, gt=0, le=0.5, description="eq. 16 wall clamp distance, in units of l0: a safety net "
+                         "below the first layer's rest distance 0.5 l0, so the solver, not the clamp, holds the fluid "
+                         "(at most 0.5: beyond it the clamp pushes that layer off the walls and makes energy)")
     checkpoint_every: int = Field(10, ge=1, description="write a checkpoint every this many frames")
     threads: int | None = Field(None, ge=1, description="numba threads (fixed count = reproducible results)")
     table_samples: int = Field(256, ge=16, description="samples of the wall tables over [0, h]")
 
     @model_validator(mode="after")
     def _relaxation_below_the_limit(self):
+        if self.min_iterations > self.max_iterations:
+            raise ValueError(f"min_iterations {self.min_iterations} is above max_iterations {self.max_iterations}")
         # resolved once, so the cache key and every reader see the relaxation that runs
         most = RELAXATION_MARGIN * jacobi_limit(self.gradient, self.support)
         if self.relaxation is None:

@@ -776,6 +776,21 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
         # the run would stop at its first step with "the time step fell below the floor": say which setting
         raise StageError(f"simulate.{solver_name}: {effects.dt_limit_by} needs time steps of {effects.dt_limit:.3g} s, "
                          f"below this scene's floor of {solver.guard.dt_floor:.3g} s (a blow-up): lower it")
+    c = getattr(getattr(solver, "p", None), "sound_speed", None)  # a user's (the default is 10 x the expected speed)
+    if c is not None and c < 3.0 * solver.guard.v_bound:
+        # WCSPH's density error grows as (v / c)^2: a column at 0.2 x the default flattened to 0.24 of its height
+        ctx.log.warning("simulate.%s: sound_speed %.3g m/s is %.2g x the scene's ballistic speed bound %.3g m/s: "
+                        "the fluid compresses by about (v / c)^2, %.0f %% at that speed (the default, 10 x the "
+                        "expected speed, keeps it near 1 %%)", solver_name, c, c / solver.guard.v_bound,
+                        solver.guard.v_bound, 100 * min((solver.guard.v_bound / c) ** 2, 99.0))
+    for field in ("time_step", "dt_max"):  # a user's fixed step (sph, mps) or largest step (dfsph)
+        dt = getattr(getattr(solver, "p", None), field, None)
+        if dt is not None and dt < solver.guard.dt_floor:
+            # it stopped at the first step as a blow-up whose advice (a smaller cfl) made it worse
+            raise StageError(f"simulate.{solver_name}: {field} {dt:g} s is below this scene's time-step floor of "
+                             f"{solver.guard.dt_floor:.3g} s (1e-3 spacings at its ballistic speed bound "
+                             f"{solver.guard.v_bound:.3g} m/s), where a run counts as blown up: raise it, or leave it "
+                             f"out for the solver's own step")
     if resumed is not None:
         start, state = resumed
         solver.load_state(state)

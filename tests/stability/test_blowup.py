@@ -61,6 +61,29 @@ def test_time_step_far_above_stable_exits_1_with_one_line(tmp_path):
     assert _run(tmp_path, "sph").exit_code == 0
 
 
+@pytest.mark.parametrize("solver, field", [("sph", "time_step"), ("mps", "time_step"), ("dfsph", "dt_max")])
+def test_a_fixed_step_below_the_floor_is_named_before_the_run(tmp_path, solver, field):
+    """The tank's floor is 1e-3 l0 / its ballistic bound (about 9e-6 s): a fixed step below it stopped the run at its
+    first step as a blow-up, advising a smaller cfl."""
+    r = _run(tmp_path, solver, f"stages.simulate.{field}=1e-6")
+    assert r.exit_code == 2, r.output
+    err = [ln for ln in r.output.splitlines() if ln.startswith("error:")]
+    assert len(err) == 1 and "Traceback" not in r.output and "blew up" not in err[0], r.output
+    assert f"{field} 1e-06 s is below this scene's time-step floor" in err[0]
+    assert not list(tmp_path.glob("cache/simulate/**/*.npz"))  # the stages before it ran and are kept
+
+
+def test_a_sound_speed_near_the_flow_speed_is_warned_of(tmp_path, caplog):
+    """WCSPH compresses by about (v / c)^2: sound_speed 1 m/s flattened a dam break's column to a quarter of its height
+    with densities of 6 rho0 and nothing said."""
+    r = _run(tmp_path, "sph", "stages.simulate.sound_speed=1")
+    said = " ".join((r.output + caplog.text).split())  # the console wraps its lines
+    assert "sound_speed 1 m/s is 0.36 x the scene's ballistic speed bound 2.76 m/s" in said, said
+    (tmp_path / "default").mkdir()
+    r = _run(tmp_path / "default", "sph")
+    assert r.exit_code == 0 and "ballistic speed bound" not in r.output, r.output
+
+
 def test_dfsph_at_a_large_support_runs_and_a_relaxation_beyond_its_limit_is_refused_in_one_line(tmp_path):
     """DFSPH allows a support up to 4 l0; from 2.5 l0 its Jacobi solves diverged at the fixed relaxation 0.5 and the
     run hung in its first step. The relaxation now defaults below the solves' limit for the kernel and support
