@@ -174,8 +174,10 @@ def jacobi_limit(gradient: str, support: float, samples: int = 24) -> float:
 
 class DFSPHParams(Params):
     support: float = Field(2.0, ge=1.5, le=4.0, description="kernel support radius h in units of the spacing l0")
-    cfl: float = Field(0.8, gt=0, le=1.0, description="advective limit dt <= cfl l0 / v_max (0.8: the PEERS dam "
-                       "break keeps a mean density error of 0.08 %, 0.05 % at 0.5, in 25 % fewer steps)")
+    cfl: float = Field(0.8, ge=0.4, le=1.0, description="advective limit dt <= cfl l0 / v_max (0.8: the PEERS dam "
+                       "break keeps a mean density error of 0.08 %, 0.05 % at 0.5, in 25 % fewer steps); at least "
+                       "0.4: at shorter steps the solves make energy (the stability suite's 10 m/s jet blew up at "
+                       "0.2, its dam break at 0.1: an open defect, rest_log session 42)")
     dt_max: float | None = Field(None, gt=0, description="largest time step, s (also capped by the frame interval); "
                                  "default 5 ms at spacings up to 2 cm, Froude-scaled above (5 ms sqrt(l0 / 2 cm)): a "
                                  "scene 10,000 x larger runs the same steps at 100 x their length")
