@@ -138,6 +138,7 @@ from .timestep import REFERENCE_SPACING, stable_dt, step_to
 
 # the default largest step: 5 ms, set for the PEERS dam break at 2 cm spacing; Froude-scaled for coarser ones
 DT_MAX_REF = 0.005
+CFL_REF = 0.8  # the default cfl, which the solves' tolerances and warm start are set for
 RELAXATION = 0.5  # the solves' default Jacobi relaxation (Bender and Koschier 2017), where it is below the limit
 RELAXATION_MARGIN = 0.8  # the most a relaxation may be, as a fraction of jacobi_limit (walls and the free surface
 # move the real threshold: Spiky at 2 l0 diverged at 0.95 of it in test_dfsph's tank, ran at 0.9)
@@ -174,10 +175,9 @@ def jacobi_limit(gradient: str, support: float, samples: int = 24) -> float:
 
 class DFSPHParams(Params):
     support: float = Field(2.0, ge=1.5, le=4.0, description="kernel support radius h in units of the spacing l0")
-    cfl: float = Field(0.8, ge=0.4, le=1.0, description="advective limit dt <= cfl l0 / v_max (0.8: the PEERS dam "
-                       "break keeps a mean density error of 0.08 %, 0.05 % at 0.5, in 25 % fewer steps); at least "
-                       "0.4: at shorter steps the solves make energy (the stability suite's 10 m/s jet blew up at "
-                       "0.2, its dam break at 0.1: an open defect, rest_log session 42)")
+    cfl: float = Field(CFL_REF, gt=0, le=1.0, description="advective limit dt <= cfl l0 / v_max (0.8: the PEERS dam "
+                       "break keeps a mean density error of 0.08 %, 0.05 % at 0.5, in 25 % fewer steps; below 0.8 the "
+                       "warm start is scaled by cfl / 0.8)")
     dt_max: float | None = Field(None, gt=0, description="largest time step, s (also capped by the frame interval); "
                                  "default 5 ms at spacings up to 2 cm, Froude-scaled above (5 ms sqrt(l0 / 2 cm)): a "
                                  "scene 10,000 x larger runs the same steps at 100 x their length")
@@ -194,7 +194,8 @@ class DFSPHParams(Params):
                                      "where that is lower (Poly6 at 2 l0: 0.43; Spiky at 3 l0: 0.24); beyond the limit "
                                      "the solves diverge, so more than 0.8 x it is refused (dfsph.jacobi_limit)")
     warm_start: float = Field(1.0, ge=0, le=1, description="start each solve from this fraction of the last "
-                              "step's pressure (Bender and Koschier 2017, sec. 4.4)")
+                              "step's pressure (Bender and Koschier 2017, sec. 4.4), times cfl / 0.8 and dt_max / "
+                              "its default where those are less than 1 (steps shorter than the defaults')")
     divergence_solve: bool = Field(True, description="run the divergence-free solve (Bender and Koschier 2015)")
     gradient: Literal["spiky", "poly6", "spline"] = Field("spiky", description="pressure kernel gradient: Spiky "
                                                           "(eq. 8, normalised as in sph) or the exact Poly6 derivative "
@@ -242,6 +243,12 @@ class DFSPHSolver(SolverBase):
         # blew up until step() removed the density error over the natural step: test_dfsph_survives_a_step...)
         self.dt_default = DT_MAX_REF * math.sqrt(max(self.l0, REFERENCE_SPACING) / REFERENCE_SPACING)
         self.dt_max = params.dt_max or self.dt_default
+        # the warm start scaled by how much shorter the settings make the steps than the defaults' (cfl 0.8, dt_max
+        # 5 ms Froude-scaled; an effect's step limit): the solves' tolerances bound dt x the error's rate, so at short
+        # steps a warm-started pressure passed as converged and was applied whole every step (the suite's 10 m/s jet
+        # blew up at cfl 0.2, its dam break at 0.1; the jet's energy rose 2.9 x at dt_max 0.2 ms); 1 at the defaults
+        shortest = min(self.dt_max, effects.dt_limit)
+        self.warm_start = params.warm_start * min(1.0, params.cfl / CFL_REF) * min(1.0, shortest / self.dt_default)
         self.rho0 = float(rho0)
         self.mode = {"spiky": D.SPIKY, "poly6": D.POLY6, "spline": D.SPLINE}[params.gradient]
         if self.mode == D.SPLINE:  # one kernel for the density and its gradient, walls included
@@ -323,7 +330,7 @@ class DFSPHSolver(SolverBase):
                 self.x, g.starts, g.lo, 1.0 / g.cell, g.dims, self.h, *self.density_coefs, self.mass,
                 self.rho0, w.wmap, w.origin, 1.0 / w.spacing, w.fix_rho, self.fix_press, 0.25 * self.l0, w.inv_dr, self.sdf.dist,
                 self.sdf.origin, self.sdf_inv, self.wall_mirror, self.mode, self.cap, self.nbr, self.fac, self.count, self.rho, self.alpha,
-                self.d, self.nrm, self.psi, self.p.warm_start, self.kappa, self.kappa_v, self.kr, self.kr_v)
+                self.d, self.nrm, self.psi, self.warm_start, self.kappa, self.kappa_v, self.kr, self.kr_v)
             if most <= self.cap:
                 break
             self.cap = int(most) + 8  # never drop a neighbour: grow and run the pass again

@@ -172,3 +172,27 @@ def test_dfsph_survives_a_step_far_below_the_stable_one(monkeypatch):
     assert abs(fine.energy_ratio - coarse.energy_ratio) < 0.01, (fine.energy_ratio, coarse.energy_ratio)
     assert abs(fine.mean_speed_end / coarse.mean_speed_end - 1.0) < 0.05, (fine.speeds, coarse.speeds)
     assert abs(fine.speed_ratio / coarse.speed_ratio - 1.0) < 0.1, (fine.speed_ratio, coarse.speed_ratio)
+
+
+@pytest.mark.parametrize("case, setting", [("jet_10ms", {"cfl": 0.2}), ("jet_10ms", {"dt_max": 2e-4}),
+                                           ("dam_break", {"cfl": 0.1})])
+def test_dfsph_at_steps_shorter_than_its_own_makes_no_energy(case, setting, monkeypatch):
+    """The solves' tolerances bound dt x the error's rate, so at steps much shorter than the defaults' a warm-started
+    pressure passed as converged and was applied whole every step: the 10 m/s jet blew up at cfl 0.2 (114 m/s) and
+    its energy rose to 2.94 x the start's at dt_max 0.2 ms; the dam break blew up at cfl 0.1. The warm start is now
+    scaled by cfl / 0.8 and dt_max / its default: the flow ends as at the default step (energy within 0.1 of it)."""
+    import stability_cases as S
+    default = S.run_case(case, "dfsph")
+    base = S.CASES[case]
+
+    def shorter():
+        scene = base()
+        scene.params = {**scene.params, "dfsph": {**scene.params.get("dfsph", {}), **setting}}
+        return scene
+
+    monkeypatch.setitem(S.CASES, case, shorter)
+    short = S.run_case(case, "dfsph")
+    assert default.blowup is None and short.blowup is None, short.blowup
+    assert short.steps > 2 * default.steps
+    assert short.energy_ratio < default.energy_ratio + 0.1, (short.energy_ratio, default.energy_ratio)
+    assert short.peak_ratio < 2.0, short.peak_ratio
