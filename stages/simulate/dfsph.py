@@ -209,7 +209,7 @@ class DFSPHParams(Params):
     table_samples: int = Field(256, ge=16, description="samples of the wall tables over [0, h]")
 
     @model_validator(mode="after")
-    def _relaxation_below_the_limit(self):
+    def _solves_that_converge(self):
         if self.min_iterations > self.max_iterations:
             raise ValueError(f"min_iterations {self.min_iterations} is above max_iterations {self.max_iterations}")
         # resolved once, so the cache key and every reader see the relaxation that runs
