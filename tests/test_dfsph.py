@@ -21,13 +21,13 @@ from stages.simulate.kernels import poly6_np
 L0, W, H, G = 0.01, 0.1, 0.2, 9.81
 
 
-def _tank(jitter=0.0, **params):
+def _tank(jitter=0.0, mu=0.01, params: DFSPHParams | None = None, **fields):
     sdf = grid_from_function(box_interior_sdf([0, 0, 0], [W, W, 0.3]), [0, 0, 0], [W, W, 0.3], L0 / 2)
     x = lattice([0, 0, 0], [W, W, H], L0)
     if jitter:
         x = x + np.random.default_rng(0).normal(0, jitter * L0, x.shape)
     return DFSPHSolver(x, np.zeros_like(x), np.arange(len(x)), sdf, spacing=L0, rho0=1000.0,
-                       params=DFSPHParams(threads=None, **params), gravity=(0, 0, -G), mu=0.01)
+                       params=params or DFSPHParams(threads=None, **fields), gravity=(0, 0, -G), mu=mu)
 
 
 @pytest.mark.parametrize("gradient", ["spiky", "spline"])
@@ -119,13 +119,10 @@ def _jacobi_run(gradient: str, support: float, omega: float | None, steps: int =
     """The test tank at water's viscosity from rest, ``steps`` steps with the solves relaxed by ``omega`` (None: the
     default; a value above the limit set past the validator, as a solver's own code could): the fastest particle
     and the iterations of the last density solve."""
-    sdf = grid_from_function(box_interior_sdf([0, 0, 0], [W, W, 0.3]), [0, 0, 0], [W, W, 0.3], L0 / 2)
-    x = lattice([0, 0, 0], [W, W, H], L0)
     params = DFSPHParams(gradient=gradient, support=support)
     if omega is not None:
         object.__setattr__(params, "relaxation", omega)
-    s = DFSPHSolver(x, np.zeros_like(x), np.arange(len(x)), sdf, spacing=L0, rho0=1000.0, params=params,
-                    gravity=(0, 0, -G), mu=0.001)
+    s = _tank(mu=0.001, params=params)
     it = 0
     for _ in range(steps):
         before = s.iterations[0]

@@ -776,7 +776,8 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
         # the run would stop at its first step with "the time step fell below the floor": say which setting
         raise StageError(f"simulate.{solver_name}: {effects.dt_limit_by} needs time steps of {effects.dt_limit:.3g} s, "
                          f"below this scene's floor of {solver.guard.dt_floor:.3g} s (a blow-up): lower it")
-    c = getattr(getattr(solver, "p", None), "sound_speed", None)  # a user's (the default is 10 x the expected speed)
+    params = getattr(solver, "p", None)
+    c = getattr(params, "sound_speed", None)  # a user's (the default is 10 x the expected speed)
     if c is not None and c < 3.0 * solver.guard.v_bound:
         # WCSPH's density error grows as (v / c)^2: a column at 0.2 x the default flattened to 0.24 of its height
         ctx.log.warning("simulate.%s: sound_speed %.3g m/s is %.2g x the scene's ballistic speed bound %.3g m/s: "
@@ -784,7 +785,7 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
                         "expected speed, keeps it near 1 %%)", solver_name, c, c / solver.guard.v_bound,
                         solver.guard.v_bound, 100 * min((solver.guard.v_bound / c) ** 2, 99.0))
     for field in ("time_step", "dt_max"):  # a user's fixed step (sph, mps) or largest step (dfsph)
-        dt = getattr(getattr(solver, "p", None), field, None)
+        dt = getattr(params, field, None)
         if dt is not None and dt < solver.guard.dt_floor:
             # it stopped at the first step as a blow-up whose advice (a smaller cfl) made it worse
             raise StageError(f"simulate.{solver_name}: {field} {dt:g} s is below this scene's time-step floor of "
