@@ -227,6 +227,7 @@ class DFSPHSolver(SolverBase):
     """State (x, v, id, kappa in cell order) plus the per-step kernels; every buffer is reused."""
 
     carried = ("kappa", "kappa_v")
+    stiffness_settings = "lower max_density_error or raise max_iterations"
 
     c = 0.0  # no speed of sound: incompressible
 

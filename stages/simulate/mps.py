@@ -159,6 +159,7 @@ class MPSSolver(SolverBase):
     """State (x, v, id, p in cell order) plus the per-step kernels; buffers are reused and grow only
     when the particle or pair count does."""
 
+    stiffness_settings = "lower compressibility (default 4.5e-10 1/Pa) or leave relaxation out"
     carried = ("pr", "p_sum", "p_time")  # p_sum, p_time: the frame's pressure (frame())
 
     def __init__(self, x, v, ids, sdf: SDFGrid, *, spacing: float, rho0: float, params: MPSParams,

@@ -94,6 +94,7 @@ NEIGHBOUR_SLACK = 8
 class SPHSolver(SolverBase):
     """State (x, v, id in cell order) plus the per-step kernels; every buffer is reused."""
 
+    stiffness_settings = "raise sound_speed, or leave it out (10 x the scene's expected speed)"
     nbr_cap: int | None = None  # neighbour-list slots per particle (None: sized from the rest lattice at the start)
 
     def __init__(self, x, v, ids, sdf: SDFGrid, *, spacing: float, rho0: float, params: SPHParams,
