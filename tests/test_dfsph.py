@@ -328,3 +328,19 @@ def test_dfsph_makes_no_energy_in_a_narrow_pipe(source, tmp_path, caplog):
         assert max(energy[1:]) < energy[0], (name, [e / energy[0] for e in energy])
         top = max(float(f.x[:, 2].max()) for f in frames[1:])
         assert top < frames[0].x[:, 2].max(), (name, top)  # no particle above where the column's top was released
+
+
+def test_a_solve_stopped_at_its_cap_is_named_as_a_blow_ups_likely_cause():
+    """A blow-up whose step was within the time-step limits blamed 'the pressure solve or the spacing' and advised
+    a smaller cfl, whatever the solve had done; a solve that stopped at max_iterations short of its tolerance is
+    now named with its error and the setting to change."""
+    from stages.simulate.driver import Guard
+    capped = _tank(jitter=0.05, max_iterations=1, min_iterations=1, max_divergence_error=1e-9)
+    capped.advance_to(0.002)
+    cause = Guard(v_bound=2.0, l0=L0)._cause(capped, 0.002)
+    assert cause.startswith("the density solve stopped at max_iterations (1) with an average error of "), cause
+    assert "raise max_iterations" in cause
+    solved = _tank(jitter=0.05)
+    solved.advance_to(0.002)
+    assert solved.unconverged() is None
+    assert "the pressure solve" in Guard(v_bound=2.0, l0=L0)._cause(solved, 0.002)

@@ -364,3 +364,20 @@ def test_poured_fluid_stays_out_of_the_dragon(tmp_path):
     assert min(e[2] for e in stats["extent_min"]) < 0.45  # the fluid fell onto the model
     assert max(stats["inside_wall"]) == 0
     assert stats["left_domain"] == 0
+
+
+def test_a_pressure_solve_stopped_at_its_cap_is_named_as_a_blow_ups_likely_cause():
+    """A blow-up within the time-step limits blamed 'the pressure solve or the spacing' whatever the CG had done;
+    a solve stopped at cg_max_iterations is now named with the setting to change."""
+    from stages.simulate.driver import Guard
+    l0 = 0.01
+    sdf = grid_from_function(box_interior_sdf([0, 0, 0], [0.1, 0.1, 0.2]), [0, 0, 0], [0.1, 0.1, 0.2], l0 / 2)
+    x = lattice([0, 0, 0], [0.1, 0.1, 0.1], l0)
+    causes = []
+    for cap in (1, 2000):
+        s = MPSSolver(x, np.zeros_like(x), np.arange(len(x)), sdf, spacing=l0, rho0=1000.0,
+                      params=MPSParams(cg_max_iterations=cap), gravity=(0, 0, -G))
+        s.advance_to(0.002)
+        causes.append(Guard(v_bound=2.0, l0=l0)._cause(s, 0.002))
+    assert causes[0].startswith("the pressure solve stopped at cg_max_iterations (1)"), causes[0]
+    assert "raise cg_max_iterations" in causes[0] and "cg_max_iterations" not in causes[1], causes

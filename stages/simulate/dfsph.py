@@ -291,6 +291,7 @@ class DFSPHSolver(SolverBase):
         self.steps = 0
         self.left_domain = 0
         self.iterations = [0, 0]  # total (density, divergence) iterations, for the statistics
+        self.unsolved: tuple[str, float, float] | None = None  # the last step's solve that stopped at its cap
         self.solve_error = [0.0, 0.0]  # sum over steps of the final average (density, divergence) error / rho0
         self._fresh = False
         self._alloc()
@@ -424,6 +425,7 @@ class DFSPHSolver(SolverBase):
         it, err = self._solve(dt, divergence=False, beta=beta)  # v* = v + dt (a_nonpressure + a_pressure)
         self.iterations[0] += it
         self.solve_error[0] += err
+        self.unsolved = ("density", err, self.p.max_density_error) if err > self.p.max_density_error else None
         # x += dt v*, then the eq. 16 clamp along the SDF normal as a safety net (acceleration already in v);
         # with self.d, the density pass's wall distances at these positions, particles far from the walls skip
         # the SDF (3.4-4.4 -> 1.5-2.2 ms a step at 20k); the refresh below samples every d again
@@ -434,9 +436,18 @@ class DFSPHSolver(SolverBase):
             it, err = self._solve(dt, divergence=True)
             self.iterations[1] += it
             self.solve_error[1] += err
+            if self.unsolved is None and err > self.p.max_divergence_error:
+                self.unsolved = ("divergence", err, self.p.max_divergence_error)
         self.t = t_end if dt >= t_end - self.t else self.t + dt
         self.steps += 1
         return dt
+
+    def unconverged(self) -> str | None:
+        if self.unsolved is None:
+            return None
+        which, err, eta = self.unsolved
+        return (f"the {which} solve stopped at max_iterations ({self.p.max_iterations}) with an average error of "
+                f"{err:.3g} (max_{which}_error {eta:g}): raise max_iterations, or lower the cfl")
 
     def _resized(self) -> None:
         self._alloc()

@@ -225,6 +225,9 @@ class Guard:
         if nu and 0.125 * solver.h ** 2 / nu < 10 * self.dt_floor:
             return (f"the viscosity ({mu:.3g} Pa s) needs steps of {0.125 * solver.h ** 2 / nu:.3g} s at spacing "
                     f"{self.l0:.3g} m: lower it or coarsen the spacing")
+        unsolved = solver.unconverged()
+        if unsolved:
+            return unsolved
         what = f"the stiffness (speed of sound {c:.3g} m/s)" if c > 0 else "the pressure solve"
         return (f"{what} or the spacing ({self.l0:.3g} m) against the walls: particles pushed into each other or "
                 "into a wall faster than the step can follow; try a smaller cfl, a finer spacing or a finer wall "
@@ -254,6 +257,11 @@ class SolverBase:
     # a solver with them keeps a walls bundle ``wall_terms`` with a ``pose`` array (walls.maps.set_pose)
     motions: tuple = ()
     body_reach: tuple = ()
+
+    def unconverged(self) -> str | None:
+        """The last step's pressure solve, where it stopped at its iteration cap short of its tolerance: what the
+        blow-up report names as the likely cause (Guard._cause), with the setting to change; else None."""
+        return None
 
     def set_motions(self, bodies) -> None:
         """The motions of ``bodies`` ((SDFGrid in its rest frame, motion) per moving wall) and their reach."""

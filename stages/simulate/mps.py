@@ -297,6 +297,13 @@ class MPSSolver(SolverBase):
         K.clamp_negative(self.pr)
         return it
 
+    def unconverged(self) -> str | None:
+        cap = self.p.cg_max_iterations
+        if self.last_cg_iterations < cap:
+            return None
+        return (f"the pressure solve stopped at cg_max_iterations ({cap}) short of cg_tolerance "
+                f"({self.p.cg_tolerance:g}): raise cg_max_iterations")
+
     def step(self, t_end: float) -> float:
         """One step towards t_end (never past it); returns dt."""
         self.sort_and_neighbours()
