@@ -2,14 +2,20 @@
 mesh_distance.py; open3d ray casting as the reference and for the rare undecided signs).
 
 Grid: node spacing ``cell * l0`` (l0 = fluid.spacing) covering scene.domain padded by ``margin * l0``,
-or the walls' bounds padded by ``(band + margin) * l0`` when no domain is given.
+or the walls' bounds padded by ``(min(band, GRID_BAND) + margin) * l0`` when no domain is given (the
+grid's box is then the simulation's domain). A band wider than the default 4 l0 does not widen the grid:
+it only makes more of it exact, and beyond the grid's edge consumers read the edge's nodes (band 100 padded
+a 12-triangle box tank 24 l0 wide by 102 l0 a side: 88 M nodes, a 30 s bake, 4.8 GB, the simulation 8.5 x
+slower).
 
 Band: |d| is exact up to ``band`` (4 l0 by default) and clamped to +-band beyond. The widest reach of
 the default consumers sets it: MPS samples the wall distance up to its Laplacian radius r_e = 3.1 l0
 (PHYSICS.md, MPS walls), SPH up to its support h = 2 l0 (eq. 11-16), wall_snap up to its band of
 1 l0; a trilinear sample at distance r reads nodes up to r + sqrt(3) cell (0.87 l0 at cell 0.5), so
 MPS needs 3.1 + 0.87 = 3.97 l0. A scene that runs SPH only can set band 3 (2 + 0.87, rounded up):
-about a quarter fewer band nodes.
+about a quarter fewer band nodes. At most 8 l0: no consumer reads farther at its widest settings (SPH and
+DFSPH support, MPS r_e and surface_extract's radius 4 l0, wall_snap's band 5 l0 and its 0.75 l0 wet probe,
+plus sqrt(3) cell at cell 1: 7.5 l0); beyond a wall's band only the sign is read.
 
 Distance (mesh_distance.band_distance): nodes within ``exact_reach`` grid spacings of a wall are
 measured against every triangle near them (exact); beyond, each node takes the closest of the
@@ -33,7 +39,8 @@ may leave them. Walls are combined by the minimum over walls: a point is fluid o
 allows it.
 
 Moving walls (walls.json "motion"): each is baked alone, in its rest pose, on its own bounds padded
-by band + margin at the same node spacing, into bodies/<k>.npz (listed in bodies.json; loaded with
+by band + margin at the same node spacing (the whole band: beyond its box a body reads its border's nodes,
+and posed_field takes those as at least the band), into bodies/<k>.npz (listed in bodies.json; loaded with
 stages.common.sdf.load_bodies); sdf.npz holds the static walls only, on a box that also covers every
 moving wall's swept bounds when no domain is given (+band everywhere when no wall stands still).
 """
@@ -61,14 +68,17 @@ if TYPE_CHECKING:  # imported where used (about 1.7 s); here for the annotations
     import open3d as o3d
 
 MAX_NODES = 100_000_000  # ~27 bytes per node while baking: beyond this the spacing is surely a mistake
+GRID_BAND = 4.0  # l0: the most of the band that pads the walls' bounds into the grid (the default band)
 
 
 class BakeParams(Params):
     cell: float = Field(0.5, gt=0, le=1.0, description="grid node spacing, in units of the particle spacing l0 (at "
                         "most 1: coarser grids misplace walls off their nodes; a box tank's lattice lost 1.3 % of its "
                         "water at 1.5 l0, 11.7 % at 10, its surface below the floor)")
-    band: float = Field(4.0, ge=2.5, le=100, description="narrow-band half width where the distance is exact, in l0: "
-                        "the widest consumer's reach plus sqrt(3) cell (MPS r_e 3.1 l0: 4; SPH only, support 2 l0: 3)")
+    band: float = Field(4.0, ge=2.5, le=8, description="narrow-band half width where the distance is exact, in l0: "
+                        "the widest consumer's reach plus sqrt(3) cell (MPS r_e 3.1 l0: 4; SPH only, support 2 l0: 3; "
+                        "at most 8: no consumer reads farther at any of its settings); the grid pads the walls by at "
+                        "most 4 of it")
     margin: float = Field(2.0, ge=0, le=100, description="padding of the grid around the domain, in l0")
     exact_reach: float = Field(4.0, ge=1.0, le=100, description="nodes within this many grid spacings of a wall are "
                                "measured against every triangle near them; beyond, closest triangles are handed "
@@ -407,7 +417,8 @@ def wall_thicknesses(wm: WallMesh, l0: float, p: "BakeParams", log=None) -> np.n
 
 def grid_box(wm: WallMesh, domain, l0: float, p: BakeParams, up_axis: str | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The static grid's box: scene.domain padded by the margin; without a domain, the fluid's reach:
-    the static walls' bounds and every moving wall's swept bounds, padded by band + margin. Its low
+    the static walls' bounds and every moving wall's swept bounds, padded by min(band, GRID_BAND) + margin
+    (a wider band would only grow the grid, whose edge consumers read as it is beyond it). Its low
     corner is moved down (less than a node) onto the first moving wall's nodes, or, with ``up_axis``
     and no moving wall, so that the widest wall along each axis is on the wall maps' nodes (_on_wall_nodes)."""
     if domain is not None:
@@ -426,7 +437,7 @@ def grid_box(wm: WallMesh, domain, l0: float, p: BakeParams, up_axis: str | None
         boxes.append(motion.swept_bounds(used.min(axis=0), used.max(axis=0)))
     if not boxes:
         raise StageError("sdf_bake: no walls and no scene.domain: nothing to bound the grid")
-    pad = (p.band + p.margin) * l0
+    pad = (min(p.band, GRID_BAND) + p.margin) * l0
     return _on_nodes(wm, np.min([b[0] for b in boxes], axis=0) - pad, l0, p, up_axis), \
         np.max([b[1] for b in boxes], axis=0) + pad
 
