@@ -337,13 +337,16 @@ def test_thin_parts_and_winding_numbers_do_not_depend_on_place_or_units(scale, o
 
 def test_a_model_in_millimetres_in_a_metre_scene_is_said_beside_the_memory_refusal(tmp_path, monkeypatch):
     """A 400 x 400 x 300 mm tank in a metre scene asked for 1 PB and said only "make fluid.spacing or the
-    scene smaller": the refusal now gives the walls' size in spacings and the wall's meters_per_unit; a metre
-    tank refused for memory is not told about units."""
+    scene smaller": the refusal (the node limit's, and the memory's) now gives the walls' size in spacings and the
+    wall's meters_per_unit; a metre tank refused for memory is not told about units."""
     monkeypatch.setattr("pipeline.memory.available_memory", lambda: 1 << 20)
     trimesh.creation.box(bounds=[[0, 0, 0], [400, 400, 300]]).export(tmp_path / "tank_mm.obj")
-    with pytest.raises(StageError, match=r"would need about .* of memory .*; the walls: 400 x 400 x 300 scene units, "
-                                         r"8,000 spacings across: if the model is in other units than the scene's, "
-                                         r"set meters_per_unit on its walls\[\] entry \(.*0\.001 for millimetres"):
+    hint = (r"; the walls: 400 x 400 x 300 scene units, 8,000 spacings across: if the model is in other units than "
+            r"the scene's, set meters_per_unit on its walls\[\] entry \(.*0\.001 for millimetres")
+    with pytest.raises(StageError, match=r"the SDF grid would have .* nodes .*more than the 100,000,000 .*" + hint):
+        _bake(tmp_path, [{"file": "tank_mm.obj", "fluid": "inside"}])  # past the node limit, said first
+    monkeypatch.setattr("stages.sdf_bake.open3d_bake.MAX_NODES", 10 ** 30)  # the memory's refusal alone
+    with pytest.raises(StageError, match=r"would need about .* of memory .*" + hint):
         _bake(tmp_path, [{"file": "tank_mm.obj", "fluid": "inside"}])
     trimesh.creation.box(bounds=[[0, 0, 0], [40, 40, 30]]).export(tmp_path / "tank_m.obj")
     with pytest.raises(StageError, match=r"would need about") as e:
@@ -457,3 +460,95 @@ def test_a_single_sided_floors_top_surface_is_put_on_the_wall_maps_nodes(tmp_pat
     assert top > face + 0.25 * l0
     steps = (top - g.origin[2]) / (0.5 * l0)
     assert abs(steps - round(steps)) < 1e-4, f"the shell's top is {steps % 1:.3f} of a node off the map's nodes"
+
+
+@pytest.mark.parametrize("mpu", [1.0, 0.001])
+def test_a_band_wider_than_the_default_bakes_the_same_grid_and_the_same_field_near_the_walls(tmp_path, mpu):
+    """A tester's sweep: band 100 padded a 24 l0 box tank (12 triangles, 1,728 particles) by 102 l0 a side, 88 M
+    nodes and 4.8 GB, and its simulation ran 8.5 x slower. The walls' bounds are padded by the band up to the
+    default 4 l0 now (the band is at most 8 l0): band 8 bakes the default's grid, node for node, and the same
+    distances wherever the default's are exact; in metres and in millimetres alike."""
+    s = 1.0 / mpu  # the same scene in scene units of mpu metres
+    scene = {"scene": {"name": "t", "units": {"meters_per_unit": mpu, "up_axis": "Z"}},
+             "walls": [{"builtin": "box_tank", "size": [0.6 * s, 0.3 * s, 0.45 * s]}],
+             "fluid": {"spacing": 0.025 * s, "emitters": [{"box": {"min": [-0.3 * s, -0.15 * s, 0],
+                                                                   "max": [0, 0.15 * s, 0.3 * s]}}]}}
+    walls = run_stage(TrimeshImport, tmp_path / "walls", scene=scene, config_dir=tmp_path)
+    grids = {band: SDFGrid.load(run_stage(Open3dBake, tmp_path / f"sdf{band}", scene=scene, params={"band": band},
+                                          inputs={"walls": walls})) for band in (4.0, 8.0)}
+    wide, default = grids[8.0], grids[4.0]
+    l0 = 0.025 * s
+    assert default.shape == (73, 49, 61)  # (24 + 12) x (12 + 12) x (18 + 12) l0 at cell 0.5, plus one node
+    assert wide.shape == default.shape
+    np.testing.assert_allclose(wide.origin, default.origin, rtol=0, atol=1e-9 * l0)
+    exact = np.abs(default.dist) < default.band - 1e-3 * l0
+    assert exact.mean() > 0.5
+    np.testing.assert_allclose(wide.dist[exact], default.dist[exact], rtol=0, atol=1e-6 * l0)
+    assert wide.band == pytest.approx(8 * l0) and np.abs(wide.dist).max() > 4.5 * l0  # wider where it is exact
+
+
+SMALL_TANK = """\
+config_version: 1
+scene:
+  name: small
+  units: {{meters_per_unit: {mpu}, up_axis: Z}}
+  frames: {{fps: 30, count: 2}}{domain}
+walls:
+  - {wall}
+fluid:
+  spacing: {l0}
+  emitters:
+    - box: {{min: [{lo}, {lo}, 0], max: [0, {hi}, {hi}]}}
+stages:
+  simulate: {{use: sph}}
+outputs: [particles]
+"""
+
+
+def _small_tank(tmp_path: Path, mpu: float, wall: str = "builtin", domain: bool = False) -> Path:
+    """The sweep's dam break (a box tank 24 x 12 x 18 l0, 1,728 particles) in scene units of ``mpu`` metres."""
+    s = 1.0 / mpu
+    if wall == "builtin":
+        text = f"{{builtin: box_tank, size: [{0.6 * s:g}, {0.3 * s:g}, {0.45 * s:g}]}}"
+    else:
+        trimesh.creation.box(bounds=[[-0.3 * s, -0.15 * s, 0], [0.3 * s, 0.15 * s, 0.45 * s]]).export(tmp_path / "tank.obj")
+        text = "{file: tank.obj, fluid: inside}"
+    box = f"\n  domain: {{min: [{-0.3 * s:g}, {-0.15 * s:g}, 0], max: [{0.3 * s:g}, {0.15 * s:g}, {0.45 * s:g}]}}"
+    cfg = tmp_path / "small.yaml"
+    cfg.write_text(SMALL_TANK.format(mpu=mpu, wall=text, domain=box if domain else "", l0=f"{0.025 * s:g}",
+                                     lo=f"{-0.15 * s:g}", hi=f"{0.15 * s:g}"))
+    return cfg
+
+
+@pytest.mark.parametrize("mpu", [1.0, 0.001])
+@pytest.mark.parametrize("wall, domain", [("builtin", False), ("builtin", True), ("file", False)])
+def test_a_grid_past_the_node_limit_is_refused_in_one_line_naming_its_fields_before_it_is_allocated(tmp_path, mpu,
+                                                                                                  wall, domain):
+    """cell 0.04 l0 on the sweep's small tank: 407 M nodes (9.8 GB while baking; 155 M in a domain around the
+    tank), which the machine's memory allowed; the bake refused it only once it had baked any moving wall, naming
+    the grid's shape and "cell or scene.domain". Refused now, exit 2, in one line with the node count, cell, band, margin (or scene.domain)
+    and the spacing: before anything runs for builtin walls or a domain, for walls from a file before sdf_bake
+    allocates anything (no entry of it in the cache); the same in metres and millimetres."""
+    from click.testing import CliRunner
+
+    from pipeline.cli import main
+
+    cfg = _small_tank(tmp_path, mpu, wall, domain)
+    r = CliRunner().invoke(main, ["run", str(cfg), "--set", "stages.sdf_bake.cell=0.04", "--cache",
+                                  str(tmp_path / "cache"), "--out", str(tmp_path / "out"), "-q"])
+    assert r.exit_code == 2, r.output
+    err = r.stderr.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in r.output, err
+    nodes = "154,886,651 nodes (701x401x551;" if domain else "406,667,251 nodes (901x601x751;"
+    assert f"sdf_bake.open3d: the SDF grid would have {nodes}" in err, err
+    assert "more than the 100,000,000 a bake allows" in err and "at stages.sdf_bake.cell 0.04 l0" in err, err
+    if domain:
+        assert "scene.domain padded by stages.sdf_bake.margin 2 l0" in err, err
+    else:
+        assert "the walls' bounds (no scene.domain) padded by stages.sdf_bake.band 4 + margin 2 l0" in err, err
+    cache = tmp_path / "cache"
+    if wall == "builtin":  # the config tells the grid: nothing ran, nothing was made
+        assert err.startswith(f"error: {cfg}:") and not cache.exists() and not (tmp_path / "out").exists(), err
+    else:
+        assert err.startswith("error: stage sdf_bake.open3d: ") and (cache / "mesh_import").is_dir(), err
+        assert not (cache / "sdf_bake").exists() and not list((cache / "tmp").iterdir())

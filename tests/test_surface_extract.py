@@ -310,6 +310,42 @@ def test_settings_that_lose_the_water_are_said_once(tmp_path, caplog):
             assert "with cell 1.5" in lines[0] and "encloses 0." in lines[0]
 
 
+@pytest.mark.parametrize("mpu", [1.0, 0.01])
+def test_a_frame_with_particles_and_no_surface_is_said(tmp_path, caplog, mpu):
+    """A tester's sweep: at iso 0.999 (anisotropic or not) the surface of spray came out empty, exit 0, nothing
+    said when another frame's volume had been said first (one line per process, and the volume's took it). A
+    frame with particles and no surface is said in its own line, with the settings changed from the defaults;
+    a frame without particles is not; the defaults say nothing. In metres and in centimetres alike."""
+    import logging
+
+    from stages.surface_extract import marching_cubes
+
+    s = 1.0 / mpu
+    block = lattice([0.0, 0.0, 0.0], [0.1, 0.1, 0.1], L0) * s
+    drops = lattice([0.0, 0.0, 0.0], [0.2, 0.2, 0.2], 4 * L0)[:8] * s + 1.0 * s  # lone drops 4 l0 apart
+    (tmp_path / "p").mkdir()
+    src = particles(tmp_path / "p", [block, drops, np.zeros((0, 3))], mpu)
+    scene = {"scene": {"name": "t", "frames": {"fps": 10, "count": 3}}}
+    for params, said in (({}, None), ({"anisotropic": True}, None),
+                         ({"iso": 0.999, "anisotropic": True}, "with iso 0.999, anisotropic True (defaults: iso 0.63, "
+                                                               "anisotropic False)"),
+                         ({"iso": 0.999}, "with iso 0.999 (defaults: iso 0.63)")):
+        marching_cubes._SAID.clear()
+        caplog.clear()
+        out = tmp_path / f"s{len(params)}{params.get('anisotropic', False)}"
+        with caplog.at_level(logging.WARNING):  # the block's volume first, then the drops'
+            run_stage(MarchingCubes, out, scene=scene, inputs={"particles": src}, frames=(0, 1, 2), params=params)
+        lines = [r.getMessage() for r in caplog.records if "is empty" in r.getMessage()]
+        if said is None:
+            assert not caplog.records, [r.getMessage() for r in caplog.records]
+            assert len(load_surface(out, 1).faces) > 0
+        else:
+            assert len(lines) == 1 and "frame 1's surface is empty: it encloses 0.00 of the water's volume (8 " \
+                "particles)" in lines[0], lines
+            assert said in lines[0] and "a high iso, a small radius or a large cell" in lines[0], lines[0]
+            assert len(load_surface(out, 1).faces) == 0
+
+
 def test_the_dry_node_test_answers_the_same_without_probing_segments_it_can_bound():
     """cut_by_walls asks, for each wet node near a wall, whether a particle sees it through open space (a segment
     probed every quarter SDF cell). Where the two ends' distances add up to more than the field can change along

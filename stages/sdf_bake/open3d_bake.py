@@ -2,14 +2,22 @@
 mesh_distance.py; open3d ray casting as the reference and for the rare undecided signs).
 
 Grid: node spacing ``cell * l0`` (l0 = fluid.spacing) covering scene.domain padded by ``margin * l0``,
-or the walls' bounds padded by ``(band + margin) * l0`` when no domain is given.
+or the walls' bounds padded by ``(min(band, GRID_BAND) + margin) * l0`` when no domain is given (the
+grid's box is then the simulation's domain). A band wider than the default 4 l0 does not widen the grid:
+it only makes more of it exact, and beyond the grid's edge consumers read the edge's nodes (band 100 padded
+a 12-triangle box tank 24 l0 wide by 102 l0 a side: 88 M nodes, a 30 s bake, 4.8 GB, the simulation 8.5 x
+slower). A grid of more than MAX_NODES nodes, the static and the moving walls' together, is refused in one
+line naming the fields that size it (``grid_refusal``): before anything runs when the config tells its size
+(builtin walls or scene.domain: ``check``), else before anything is allocated.
 
 Band: |d| is exact up to ``band`` (4 l0 by default) and clamped to +-band beyond. The widest reach of
 the default consumers sets it: MPS samples the wall distance up to its Laplacian radius r_e = 3.1 l0
 (PHYSICS.md, MPS walls), SPH up to its support h = 2 l0 (eq. 11-16), wall_snap up to its band of
 1 l0; a trilinear sample at distance r reads nodes up to r + sqrt(3) cell (0.87 l0 at cell 0.5), so
 MPS needs 3.1 + 0.87 = 3.97 l0. A scene that runs SPH only can set band 3 (2 + 0.87, rounded up):
-about a quarter fewer band nodes.
+about a quarter fewer band nodes. At most 8 l0: no consumer reads farther at its widest settings (SPH and
+DFSPH support, MPS r_e and surface_extract's radius 4 l0, wall_snap's band 5 l0 and its 0.75 l0 wet probe,
+plus sqrt(3) cell at cell 1: 7.5 l0); beyond a wall's band only the sign is read.
 
 Distance (mesh_distance.band_distance): nodes within ``exact_reach`` grid spacings of a wall are
 measured against every triangle near them (exact); beyond, each node takes the closest of the
@@ -33,13 +41,15 @@ may leave them. Walls are combined by the minimum over walls: a point is fluid o
 allows it.
 
 Moving walls (walls.json "motion"): each is baked alone, in its rest pose, on its own bounds padded
-by band + margin at the same node spacing, into bodies/<k>.npz (listed in bodies.json; loaded with
+by band + margin at the same node spacing (the whole band: beyond its box a body reads its border's nodes,
+and posed_field takes those as at least the band), into bodies/<k>.npz (listed in bodies.json; loaded with
 stages.common.sdf.load_bodies); sdf.npz holds the static walls only, on a box that also covers every
 moving wall's swept bounds when no domain is given (+band everywhere when no wall stands still).
 """
 from __future__ import annotations
 
 import json
+import math
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal, Mapping
@@ -47,11 +57,12 @@ from typing import TYPE_CHECKING, Literal, Mapping
 import numpy as np
 from pydantic import Field, field_validator
 
+from pipeline.memory import human
 from pipeline.stage import Artifact, Context, Params, Stage, StageError
 from stages.common.formats import WallMesh
 from stages.common.meshes import winding_number
 from stages.common.sdf import BODIES_DIR, BODIES_FILE, DEFAULT_SHELL_THICKNESS, SDFGrid, min_shell_thickness
-from stages.common.sizes import sdf_estimate
+from stages.common.sizes import BYTES_PER_SDF_NODE, sdf_estimate
 from stages.common.wall_hints import spacing_hint, write_wall_boxes
 from stages.mesh_import.builtin import builtin_corners
 
@@ -60,15 +71,20 @@ from .mesh_distance import band_distance, inside_votes
 if TYPE_CHECKING:  # imported where used (about 1.7 s); here for the annotations only
     import open3d as o3d
 
-MAX_NODES = 100_000_000  # ~27 bytes per node while baking: beyond this the spacing is surely a mistake
+# 23-33 bytes per node while baking (the band's work arrays; 33 when the band fills the grid): 2.3-3.3 GB here.
+# Beyond it the spacing is surely a mistake, whatever the memory (--yes does not lift it)
+MAX_NODES = 100_000_000
+GRID_BAND = 4.0  # l0: the most of the band that pads the walls' bounds into the grid (the default band)
 
 
 class BakeParams(Params):
     cell: float = Field(0.5, gt=0, le=1.0, description="grid node spacing, in units of the particle spacing l0 (at "
                         "most 1: coarser grids misplace walls off their nodes; a box tank's lattice lost 1.3 % of its "
                         "water at 1.5 l0, 11.7 % at 10, its surface below the floor)")
-    band: float = Field(4.0, ge=2.5, le=100, description="narrow-band half width where the distance is exact, in l0: "
-                        "the widest consumer's reach plus sqrt(3) cell (MPS r_e 3.1 l0: 4; SPH only, support 2 l0: 3)")
+    band: float = Field(4.0, ge=2.5, le=8, description="narrow-band half width where the distance is exact, in l0: "
+                        "the widest consumer's reach plus sqrt(3) cell (MPS r_e 3.1 l0: 4; SPH only, support 2 l0: 3; "
+                        "at most 8: no consumer reads farther at any of its settings); the grid pads the walls by at "
+                        "most 4 of it")
     margin: float = Field(2.0, ge=0, le=100, description="padding of the grid around the domain, in l0")
     exact_reach: float = Field(4.0, ge=1.0, le=100, description="nodes within this many grid spacings of a wall are "
                                "measured against every triangle near them; beyond, closest triangles are handed "
@@ -407,7 +423,8 @@ def wall_thicknesses(wm: WallMesh, l0: float, p: "BakeParams", log=None) -> np.n
 
 def grid_box(wm: WallMesh, domain, l0: float, p: BakeParams, up_axis: str | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The static grid's box: scene.domain padded by the margin; without a domain, the fluid's reach:
-    the static walls' bounds and every moving wall's swept bounds, padded by band + margin. Its low
+    the static walls' bounds and every moving wall's swept bounds, padded by min(band, GRID_BAND) + margin
+    (a wider band would only grow the grid, whose edge consumers read as it is beyond it). Its low
     corner is moved down (less than a node) onto the first moving wall's nodes, or, with ``up_axis``
     and no moving wall, so that the widest wall along each axis is on the wall maps' nodes (_on_wall_nodes)."""
     if domain is not None:
@@ -426,7 +443,7 @@ def grid_box(wm: WallMesh, domain, l0: float, p: BakeParams, up_axis: str | None
         boxes.append(motion.swept_bounds(used.min(axis=0), used.max(axis=0)))
     if not boxes:
         raise StageError("sdf_bake: no walls and no scene.domain: nothing to bound the grid")
-    pad = (p.band + p.margin) * l0
+    pad = (min(p.band, GRID_BAND) + p.margin) * l0
     return _on_nodes(wm, np.min([b[0] for b in boxes], axis=0) - pad, l0, p, up_axis), \
         np.max([b[1] for b in boxes], axis=0) + pad
 
@@ -536,6 +553,25 @@ def grids_estimate(wm: WallMesh | None, domain, l0: float, p: BakeParams) -> tup
     return [shape for shape, _ in sizes], {k: sum(size[k] for _, size in sizes) for k in sizes[0][1]}
 
 
+def grid_refusal(shapes: list[tuple], domain, l0: float, p: BakeParams) -> str | None:
+    """The one-line refusal of grids (``shapes``, as grids_estimate gives them) of more than MAX_NODES nodes in
+    all, naming what sizes them: the box (scene.domain, or the walls' bounds), its padding (band, margin) and the
+    node spacing (cell, fluid.spacing); None for smaller grids."""
+    nodes = sum(math.prod(int(n) for n in s) for s in shapes)  # exact: 800009^3 as a float ends ...704
+    if nodes <= MAX_NODES:
+        return None
+    if domain is not None:
+        box, smaller = f"scene.domain padded by stages.sdf_bake.margin {p.margin:g} l0", "a smaller scene.domain"
+    else:
+        band = f"{p.band:g}" if p.band <= GRID_BAND else f"{p.band:g} (of which {GRID_BAND:g} pads)"
+        box = f"the walls' bounds (no scene.domain) padded by stages.sdf_bake.band {band} + margin {p.margin:g} l0"
+        smaller = "a scene.domain around the fluid"
+    grids = " + ".join("x".join(map(str, s)) for s in shapes)
+    return (f"the SDF grid would have {nodes:,} nodes ({grids}; about {human(nodes * BYTES_PER_SDF_NODE)} while "
+            f"baking), more than the {MAX_NODES:,} a bake allows: {box} at stages.sdf_bake.cell {p.cell:g} l0 "
+            f"(fluid.spacing {l0:g}); raise cell (at most 1) or fluid.spacing, lower margin, or give {smaller}")
+
+
 def builtin_boxes(corners: np.ndarray, walls: list) -> WallMesh:
     """The builtin walls as their placed boxes' corners (8 per wall, three triangles using all 8) with
     their config motions: enough for grid_box and body_boxes before mesh_import has run."""
@@ -623,7 +659,7 @@ class Open3dBake(Stage):
     default = True
     description = "narrow-band SDF on a grid (exact distance near the walls, sign by grid-line ray votes)"
 
-    def estimate(self, ctx: Context, params: Params) -> dict | None:
+    def _config_grids(self, ctx: Context, params: Params) -> tuple[list[tuple], dict] | None:
         # run's grid_box over scene.domain, or else over the builtin walls' placed boxes
         scene, fluid = ctx.scene["scene"], ctx.scene["fluid"]
         if fluid is None:
@@ -632,11 +668,23 @@ class Open3dBake(Stage):
         corners = builtin_corners(config_walls, scene.units.up_axis)
         if corners is None or not len(corners):
             if scene.domain is None:
-                return None  # walls from files: run checks the memory once they are loaded, before allocating
+                return None  # walls from files: run checks the grid once they are loaded, before allocating
             walls = None  # the moving walls' own grids are checked by run too
         else:
             walls = builtin_boxes(corners, config_walls)
-        return grids_estimate(walls, scene.domain, fluid.spacing, params)[1]
+        return grids_estimate(walls, scene.domain, fluid.spacing, params)
+
+    def check(self, ctx: Context, params: Params) -> None:
+        # before the plan's memory check: a grid past MAX_NODES is refused whatever the memory or --yes
+        grids = self._config_grids(ctx, params)
+        if grids is not None:
+            refused = grid_refusal(grids[0], ctx.scene["scene"].domain, ctx.scene["fluid"].spacing, params)
+            if refused:
+                raise StageError(f"{self.qualname()}: {refused}")
+
+    def estimate(self, ctx: Context, params: Params) -> dict | None:
+        grids = self._config_grids(ctx, params)
+        return None if grids is None else grids[1]
 
     def run(self, ctx: Context, inputs: Mapping[str, Artifact], params: Params) -> None:
         fluid = ctx.scene["fluid"]
@@ -646,7 +694,10 @@ class Open3dBake(Stage):
         wm = WallMesh.load(inputs["walls"].path)
         lo, hi = grid_box(wm, ctx.scene["scene"].domain, l0, params, ctx.scene["scene"].units.up_axis)
         shapes, size = grids_estimate(wm, ctx.scene["scene"].domain, l0, params)
-        try:
+        try:  # both before any grid (a moving wall's either) is allocated
+            refused = grid_refusal(shapes, ctx.scene["scene"].domain, l0, params)
+            if refused:
+                raise StageError(refused)
             ctx.check_memory(size["memory_bytes"], f"{int(size['sdf_nodes']):,} SDF nodes, grid "
                              + " + ".join("x".join(map(str, shape)) for shape in shapes))
         except StageError as e:  # a model in millimetres in a metre scene: say so beside "make the scene smaller"

@@ -379,6 +379,25 @@ def said_volume(log, frame: int, ratio: float, params: MarchingCubesParams) -> N
                 "them", frame, ratio, ", ".join(f"{k} {v}" for k, v in changed.items()))
 
 
+def said_empty(log, frame: int, particles: int, params: MarchingCubesParams) -> None:
+    """Once per process, apart from said_volume's line (a frame far off in volume said first had silenced it): a
+    frame with particles whose surface is empty, with the settings changed from the defaults that likely emptied
+    it (anisotropic or isotropic kernels at iso 0.999 left spray no node above the iso level, cell 1.5 l0 lone
+    drops and a jet). Said at the default settings too."""
+    if "empty" in _SAID:
+        return
+    _SAID.add("empty")
+    fields = MarchingCubesParams.model_fields
+    changed = [k for k in ("iso", "radius", "cell", "anisotropic", "anisotropic_smoothing", "wall_term")
+               if getattr(params, k) != fields[k].default]
+    settings = (f"with {', '.join(f'{k} {getattr(params, k)}' for k in changed)} (defaults: "
+                f"{', '.join(f'{k} {fields[k].default}' for k in changed)})" if changed else
+                "at the default settings (the walls' cut, wall_term, may have taken it)")
+    log.warning("surface_extract: frame %d's surface is empty: it encloses 0.00 of the water's volume (%d particles) "
+                "%s: a high iso, a small radius or a large cell leaves no grid node at the iso level (a lone "
+                "particle's Phi peaks at 1 at its centre); later empty frames are not said", frame, particles, settings)
+
+
 class MarchingCubes(Stage):
     kind = "surface_extract"
     name = "marching_cubes"
@@ -407,6 +426,8 @@ class MarchingCubes(Stage):
         ctx.log.debug("frame %d: %d particles -> %d triangles (volumes %.3f s, phi %.3f s, contour %.3f s, "
                       "finish %.3f s)", frame, len(pf.x), len(mesh.faces), timings["volumes"], timings["phi"],
                       timings["contour"], timings["finish"])
-        if len(pf.x):
+        if len(pf.x) and not len(mesh.faces):  # (a frame without particles has no surface to have)
+            said_empty(ctx.log, frame, len(pf.x), params)
+        elif len(pf.x):
             said_volume(ctx.log, frame, signed_volume(mesh.vertices, mesh.faces) / (len(pf.x) * vol[0]), params)
         save_surface(ctx.out_dir, frame, mesh, meta.spacing)
