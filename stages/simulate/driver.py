@@ -225,7 +225,7 @@ class Guard:
         if nu and 0.125 * solver.h ** 2 / nu < 10 * self.dt_floor:
             return (f"the viscosity ({mu:.3g} Pa s) needs steps of {0.125 * solver.h ** 2 / nu:.3g} s at spacing "
                     f"{self.l0:.3g} m: lower it or coarsen the spacing")
-        unsolved = solver.unconverged()
+        unsolved = getattr(solver, "unconverged", lambda: None)()  # SolverBase's; None from other solvers
         if unsolved:
             return unsolved
         what = f"the stiffness (speed of sound {c:.3g} m/s)" if c > 0 else "the pressure solve"
