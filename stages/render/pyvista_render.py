@@ -153,28 +153,37 @@ def particle_values(p, color_by: str) -> np.ndarray:
 TOP_SHARE = 0.005  # the colour range's top leaves out this share of the shot's values (drawn "above")
 
 
+# run_max's histogram: log10 bins over 1e-9-1e9 (speeds in m/s, pressures in Pa), each 0.12 % wide
+LOG_RANGE, LOG_BINS = (-9.0, 9.0), 36_000
+
+
 @functools.lru_cache(maxsize=8)
 def run_max(folder: Path, color_by: str) -> float:
     """The colour range's top: the 99.5th percentile of the speeds / pressures of every particle in every frame
     together (once per worker process), so a few splash outliers do not wash the colours out; the values above
     it are drawn in the bar's "above" colour. (The largest per-frame percentile let one frame's start-up
-    pressure in the corners set the range of the whole shot: later frames all dark.)"""
+    pressure in the corners set the range of the whole shot: later frames all dark.) Counted in a log histogram,
+    one pass and fixed memory, to within its bin (0.12 %), from above: keeping each frame's own top 0.5 % lost
+    the values of the fast frames (a shot starting at rest ranged to 0.93 m/s while its 99.5th percentile was 3.8;
+    81 % of a mid-shot frame was drawn "above")."""
     meta = ParticleMeta.load(folder)
-    tops, total = [], 0
+    lo, hi = LOG_RANGE
+    counts = np.zeros(LOG_BINS + 1, np.int64)  # [0]: values at or below 10**lo (rest, zero or negative pressure)
     for f in range(meta.frame_count):
         try:
             values = particle_values(load_particle_frame(folder, f), color_by)
         except FileNotFoundError:
             continue
-        k = min(len(values), int(math.ceil(TOP_SHARE * len(values))) + 1)
-        if k:
-            tops.append(np.partition(values, len(values) - k)[len(values) - k:])  # each frame's largest
-            total += len(values)
-    if not tops:
+        positive = values[values > 10.0 ** lo]
+        bins = ((np.log10(positive) - lo) * (LOG_BINS / (hi - lo))).astype(np.int64)
+        counts += np.bincount(np.clip(bins, 0, LOG_BINS - 1) + 1, minlength=LOG_BINS + 1)
+        counts[0] += len(values) - len(positive)
+    total = int(counts.sum())
+    if total == 0:
         return 0.0
-    tops = np.concatenate(tops)
-    k = min(len(tops), max(1, int(math.ceil(TOP_SHARE * total))))
-    return float(np.partition(tops, len(tops) - k)[len(tops) - k])
+    k = max(1, int(math.ceil(TOP_SHARE * total)))
+    b = LOG_BINS - int(np.searchsorted(np.cumsum(counts[::-1]), k))  # the bin holding the k-th largest value
+    return 0.0 if b == 0 else float(10.0 ** (lo + b * (hi - lo) / LOG_BINS))  # its upper edge
 
 
 def polydata(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray | None = None):
