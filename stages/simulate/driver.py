@@ -513,12 +513,25 @@ def ballistic_speed(setup: "Setup", effects=None) -> float:
     height = max(_fluid_top(setup) - float((scene_corners(setup) @ setup.up).min()), setup.spacing)
     bound = v0 + math.sqrt(2.0 * g * height) + 2.0 * wall_speed_bound(setup.bodies)
     if effects is not None:
-        bound += capillary_speed(setup.effects, setup.density, setup.spacing)
-        if getattr(effects, "wind_velocity", None) is not None:
-            bound += float(np.linalg.norm(effects.wind_velocity))
-        if getattr(effects, "attractor_point", None) is not None:
-            bound += math.sqrt(2.0 * abs(effects.attractor_k) / effects.attractor_soft)
+        bound += capillary_speed(setup.effects, setup.density, setup.spacing) + effects_speed(effects, scene_corners(setup))
     return max(bound, math.sqrt(9.81 * setup.spacing))  # a scene without gravity or motion: never zero
+
+
+def effects_speed(effects, corners: np.ndarray) -> float:
+    """The speed wind and an attractor can give a particle within the scene's box (``corners``; m/s): the wind's
+    speed where it has a drag (with drag 0 it moves nothing), plus what the attractor's potential drops across the
+    box, sqrt(2 |k| (1 / r_near' - 1 / r_far')), r' = sqrt(r^2 + s^2) (its escape speed sqrt(2 |k| / s) when the
+    point is in the box; a point far outside gives little: 1e12 at 1,000 km, 1 m/s^2 over a 3 m tank, was taken as 3.5e6
+    m/s, not 2.4)."""
+    speed = 0.0
+    if getattr(effects, "wind_velocity", None) is not None and (effects.wind_drag or 0.0) > 0.0:
+        speed += float(np.linalg.norm(effects.wind_velocity))
+    if getattr(effects, "attractor_point", None) is not None and effects.attractor_k:
+        p, s = effects.attractor_point, effects.attractor_soft
+        near = float(np.linalg.norm(np.clip(p, corners.min(axis=0), corners.max(axis=0)) - p))
+        far = float(np.linalg.norm(corners - p, axis=1).max())
+        speed += math.sqrt(2.0 * abs(effects.attractor_k) * max(1.0 / math.hypot(near, s) - 1.0 / math.hypot(far, s), 0.0))
+    return speed
 
 
 def capillary_speed(effects, rho0: float, l0: float) -> float:

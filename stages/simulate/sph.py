@@ -16,7 +16,7 @@ from stages.common.sdf import SDFGrid, wall_move_limit
 from stages.common.sizes import simulate_estimate
 
 from . import sph_kernels as K
-from .driver import SolverBase, drive, moving_wall, prepare, set_threads
+from .driver import SolverBase, drive, effects_speed, moving_wall, prepare, scene_corners, set_threads
 from .emitters import emitter_files
 from .effects import EffectConstants, compile_effects, cohesion_coef
 from .kernels import (lattice_mass, poly6_coef, rest_lattice, spiky_grad_coef, spiky_lattice_factor, visc_lap_coef,
@@ -342,7 +342,10 @@ class SPHSimulate(Stage):
         h = params.support * setup.spacing
         effects = compile_effects(setup.effects, meters_per_unit=setup.meters_per_unit, rho0=setup.density,
                                   l0=setup.spacing, h=h, table_samples=params.table_samples)
+        # the default sound speed is 10 x the expected speed, wind and an attractor's included (an attractor left it
+        # at falling's 44 m/s while it pulled at 1e3 m/s: the tank's water compressed 280-fold)
+        v_ref = setup.v_ref + effects_speed(effects, scene_corners(setup))
         solver = SPHSolver(setup.x, setup.v, np.arange(len(setup.x), dtype=np.int32), setup.sdf, spacing=setup.spacing,
-                           rho0=setup.density, params=params, gravity=setup.gravity, v_ref=setup.v_ref,
+                           rho0=setup.density, params=params, gravity=setup.gravity, v_ref=v_ref,
                            domain=setup.domain, effects=effects, bodies=setup.bodies)
         drive(ctx, solver, setup, solver_name="sph", checkpoint_every=params.checkpoint_every)

@@ -102,6 +102,39 @@ def test_water_compressed_beyond_a_liquid_is_warned_of_where_the_run_ends(tmp_pa
     assert r.exit_code == 0 and "compressed by" not in r.output + caplog.text, r.output
 
 
+def test_wcsphs_default_sound_speed_counts_the_wind(tmp_path):
+    """The default sound speed (10 x the expected speed) counted falling and the emitters only: a 30 m/s wind
+    (drag 5 1/s) left it at 22 m/s and the tank's water compressed by up to 12.7 % (an attractor in a 1 m tank,
+    28,000 %). It now counts the wind's speed: 322 m/s, at most 2.3 %."""
+    from stages.common.formats import ParticleMeta
+
+    r = _run(tmp_path, "sph", "effects.wind={velocity: [30, 0, 0], drag: 5}", "scene.frames.count=7")
+    assert r.exit_code == 0, r.output
+    stats = ParticleMeta.load(next((tmp_path / "cache").glob("simulate/*/*/meta.json")).parent).stats
+    assert stats["sound_speed"] > 10 * 30.0, stats["sound_speed"]
+    assert max(stats["density_error_max"]) < 0.05, max(stats["density_error_max"])
+
+
+def test_an_effect_counts_in_the_speed_bound_only_by_what_it_can_give():
+    """Wind with drag 0 moves nothing and an attractor of 1e12 1,000 km away pulls at 1 m/s^2 (2.4 m/s across a 3 m
+    tank), but the bound counted the wind's 1,000 m/s and the attractor's escape speed sqrt(2 k / s), 3.5e6 m/s: a false warning
+    of shrinking steps, and a guard so loose that a viscous blow-up (41 m/s in a 3 m tank) ended in exit 0."""
+    from stages.simulate.driver import effects_speed
+    from stages.simulate.effects import EffectConstants
+
+    corners = np.array([[a, b, c] for a in (-1.5, 1.5) for b in (-1.0, 1.0) for c in (-0.6, 0.6)])
+    still = EffectConstants(wind_velocity=np.array([1000.0, 0, 0]), wind_drag=0.0)
+    assert effects_speed(still, corners) == 0.0
+    assert effects_speed(EffectConstants(wind_velocity=np.array([30.0, 40.0, 0]), wind_drag=1.0), corners) == 50.0
+    far = EffectConstants(attractor_point=np.array([1e6, 0, 0]), attractor_k=1e12, attractor_soft=0.17)
+    assert 2.4 < effects_speed(far, corners) < 2.5  # sqrt(2 k (1/r_near - 1/r_far)), as 1 m/s^2 over 3 m
+    inside = EffectConstants(attractor_point=np.zeros(3), attractor_k=1e5, attractor_soft=0.17)
+    escape = np.sqrt(2 * 1e5 / 0.17)
+    assert 0.9 * escape < effects_speed(inside, corners) < escape  # all but the far corners' potential
+    repel = EffectConstants(attractor_point=np.zeros(3), attractor_k=-1e5, attractor_soft=0.17)
+    assert effects_speed(repel, corners) == effects_speed(inside, corners)
+
+
 def test_dfsph_at_a_large_support_runs_and_a_relaxation_beyond_its_limit_is_refused_in_one_line(tmp_path):
     """DFSPH allows a support up to 4 l0; from 2.5 l0 its Jacobi solves diverged at the fixed relaxation 0.5 and the
     run hung in its first step. The relaxation now defaults below the solves' limit for the kernel and support
