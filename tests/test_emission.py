@@ -178,3 +178,33 @@ def test_a_lone_particle_near_a_turned_wall_is_moved_off_it_not_dropped(where, s
     assert dropped == 0 and len(x) == 1
     d = sdf.sample(x)[0][0] / scale
     assert 0.495 * l0 <= d <= 0.55 * l0, d / l0
+
+
+def test_a_sphere_narrower_than_the_spacing_emits_nothing_as_a_box_does(caplog):
+    """A sphere of radius 0.01 at spacing 0.083 emitted its centre point, 5.8e-4 m^3 of water for 4.2e-6 asked
+    (138 x), in silence, where a box that small emits nothing (and alone is refused: "every emitter is smaller than
+    fluid.spacing"); a sphere of few spacings whose lattice is far from its volume is said, as such a box is."""
+    from pipeline.scene import BoxEmitter, SphereEmitter
+    from stages.simulate.emitters import emit
+
+    l0 = 0.0833333
+    tiny = SphereEmitter(sphere={"center": [0.5, 0.5, 0.5], "radius": 0.01})
+    block = BoxEmitter(box={"min": [0, 0, 0], "max": [4 * l0, 4 * l0, 4 * l0]})
+    with caplog.at_level(logging.WARNING):
+        x, _ = emit([tiny], l0, lambda p: p, log=LOG)
+    assert len(x) == 0 and not caplog.records  # alone: simulate's refusal is the one line
+    with caplog.at_level(logging.WARNING):
+        x, _ = emit([block, tiny], l0, lambda p: p, log=LOG)
+    assert len(x) == 64
+    assert caplog.messages == ["fluid.emitters.1: the sphere is smaller than fluid.spacing (0.0833333): it emits no "
+                               "particles"]
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):  # radius 1 spacing: 7 particles for 4.19 spacings^3 of water
+        x, _ = emit([SphereEmitter(sphere={"center": [0.5, 0.5, 0.5], "radius": l0})], l0, lambda p: p, log=LOG)
+    assert len(x) == 7
+    assert caplog.messages == ["fluid.emitters.0: the sphere holds 7 particles, 1.67 of its volume: a radius of 1 "
+                               "spacings is coarse on the lattice; use a finer spacing or a larger radius"]
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):  # 4 spacings: 257 particles for 268: within the box's 10 %
+        x, _ = emit([SphereEmitter(sphere={"center": [0.5, 0.5, 0.5], "radius": 4 * l0})], l0, lambda p: p, log=LOG)
+    assert len(x) == 257 and not caplog.records

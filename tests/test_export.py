@@ -682,3 +682,21 @@ def test_surface_velocities_are_the_kernel_mean_of_the_particles_within_reach_or
     assert far.min() > reach ** 2
     np.testing.assert_array_equal(got[-2], v[np.argmin(far)])
     np.testing.assert_array_equal(got[-1], 0.0)
+
+
+def test_fluid_units_asset_without_a_usd_wall_is_refused_before_anything_runs(tmp_path):
+    """It was refused only by run, after the whole simulation (the corpus's 111 checks the command line: exit 2,
+    nothing in the cache); a USD wall in the config passes the check."""
+    from pipeline.stage import StageError
+    from pipeline.testing import stage_context
+    from stages.export.usd_export import UsdParams
+
+    fluid = {"spacing": 0.1, "emitters": [{"box": {"min": [0, 0, 0], "max": [0.5, 0.5, 0.5]}}]}
+    asset = {"scene": {"name": "t"}, "walls": [{"usd": "set/tank.usda"}], "fluid": fluid}
+    builtin = {**asset, "walls": [{"builtin": "box_tank", "size": [1, 1, 1]}]}
+    check = UsdExport().check
+    ctx = lambda scene: stage_context(UsdExport, tmp_path, scene=scene, extra_reads=UsdExport.estimate_reads)
+    with pytest.raises(StageError, match="fluid_units: asset needs a wall from a USD asset"):
+        check(ctx(builtin), UsdParams(fluid_units="asset"))
+    check(ctx(asset), UsdParams(fluid_units="asset"))
+    check(ctx(builtin), UsdParams())  # auto: the scene's frame

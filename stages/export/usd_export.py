@@ -27,6 +27,7 @@ from typing import Literal, Mapping
 import numpy as np
 from pydantic import Field, field_validator, model_validator
 
+from pipeline.scene import UsdWall
 from pipeline.stage import Artifact, Context, Params, Stage, StageError
 from stages.common.camera import camera_files, fluid_bounds, shot_camera, usd_camera_moves
 from stages.common.formats import ParticleMeta, WallMesh, load_particle_frame, load_surface, local_origin
@@ -94,6 +95,7 @@ def _usd_source(info: dict) -> str | None:
     return source if source.lower().endswith(USD_SUFFIXES) else None
 
 
+ASSET_WITHOUT_USD_WALL = "export.usd: fluid_units: asset needs a wall from a USD asset (walls: - usd: ...)"
 ROOT = "/World"  # every prim the export authors is under it (fluid, particles, walls, camera, Asset_k)
 
 
@@ -180,6 +182,7 @@ class UsdExport(Stage):
     outputs = ("usd",)
     # the USD assets walls came from are in the upstream walls key (mesh_import hashes them)
     reads = ("scene.units", "scene.frames.fps", "scene.frames.count", "camera", "frames")
+    estimate_reads = ("walls",)  # check: fluid_units: asset without a USD wall
     default = True
     description = "scene.usda composing walls, particles, fluid surface and camera layers (usd-core)"
 
@@ -188,6 +191,12 @@ class UsdExport(Stage):
 
     def external_files(self, ctx: Context, params: UsdParams) -> list[Path]:
         return camera_files(ctx)  # the layers a camera.usd composes: the exported camera is read from them
+
+    def check(self, ctx: Context, params: UsdParams) -> None:
+        # the walls are the config's: refused before the simulation, not after it (run keeps its own check for
+        # walls only mesh_import's output shows)
+        if params.fluid_units == "asset" and not any(isinstance(w, UsdWall) for w in ctx.scene["walls"] or []):
+            raise StageError(ASSET_WITHOUT_USD_WALL)
 
     # -- the studio asset's frame -------------------------------------------------------------------
     def _asset_path(self, ctx: Context, info: dict) -> Path:
@@ -225,7 +234,7 @@ class UsdExport(Stage):
             asset_walls.setdefault(path, []).append(info)
         mode = params.fluid_units if params.fluid_units != "auto" else ("asset" if assets else "scene")
         if mode == "asset" and not assets:
-            raise StageError("export.usd: fluid_units: asset needs a wall from a USD asset (walls: - usd: ...)")
+            raise StageError(ASSET_WITHOUT_USD_WALL)
         if mode == "asset":
             if len(assets) > 1 and any(not np.allclose(m, next(iter(assets.values()))) for m in assets.values()):
                 raise StageError("export.usd: fluid_units: asset with several USD assets placed differently; "

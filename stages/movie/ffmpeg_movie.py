@@ -2,6 +2,9 @@
 from __future__ import annotations
 
 import math
+import subprocess
+import tempfile
+from fractions import Fraction
 from pathlib import Path
 from typing import Literal, Mapping
 
@@ -12,6 +15,12 @@ from pipeline.stage import Artifact, Context, Params, Stage, StageError
 from stages.common.formats import skipped_frame_marker
 
 
+# players and H.264's levels stop near 240 fps ("MB rate > level limit" at 10,000); a faster shot is meant as slow
+# motion, which plays at the usual 30
+MAX_FPS = 240.0
+SLOW_MOTION_FPS = 30.0
+
+
 class MovieParams(Params):
     crf: int = Field(18, ge=0, le=51, description="x264 constant rate factor (lower = better, bigger)")
     # veryfast at crf 18 matches medium at crf 20 (PSNR 39.98 against 39.99 dB over the dam break's 60 frames at
@@ -19,11 +28,17 @@ class MovieParams(Params):
     preset: Literal["ultrafast", "superfast", "veryfast", "faster", "fast", "medium", "slow", "slower",
                     "veryslow"] = Field("veryfast", description="x264 speed preset (slower = smaller at the same "
                                                                 "quality)")
-    fps: float | None = Field(None, gt=0, le=240, description="playback rate, frames per second (default: the "
-                              "scene's fps; a 600 fps simulation plays in slow motion at 30)")
+    fps: float | None = Field(None, gt=0, le=MAX_FPS, description="playback rate, frames per second (default: the "
+                              f"scene's fps, or {SLOW_MOTION_FPS} when that is above {MAX_FPS:g}: slow motion)")
     sheet_frames: int = Field(9, ge=1, le=64, description="frames on the contact sheet, evenly spaced")
     sheet_columns: int = Field(3, ge=1, le=8, description="columns of the contact sheet")
     sheet_width: int = Field(1800, ge=200, description="contact sheet width, pixels")
+
+
+def playback_fps(params: MovieParams, scene_fps: float) -> float:
+    if params.fps is not None:
+        return float(params.fps)
+    return float(scene_fps) if scene_fps <= MAX_FPS else SLOW_MOTION_FPS
 
 
 def frame_png(folder: Path, frame: int) -> Path:
@@ -47,6 +62,38 @@ def check_movie(movie: Path, frames: int) -> None:
                          "stopped?)")
 
 
+def encode(movie: Path, size: tuple[int, int], fps: float, params: MovieParams, images) -> list[str]:
+    """H.264 of ``images`` (RGB uint8, ``size`` = (W, H)) into ``movie``; returns what ffmpeg wrote to stderr,
+    which is captured: imageio-ffmpeg let it through to the terminal (a raw x264 line beside the run's own)."""
+    import imageio_ffmpeg
+
+    cmd = [imageio_ffmpeg.get_ffmpeg_exe(), "-y", "-v", "warning", "-f", "rawvideo", "-vcodec", "rawvideo",
+           "-s", f"{size[0]}x{size[1]}", "-pix_fmt", "rgb24", "-r", str(Fraction(fps).limit_denominator()),
+           "-i", "-", "-an", "-vcodec", "libx264", "-pix_fmt", "yuv420p", "-crf", str(params.crf),
+           "-preset", params.preset, "-movflags", "+faststart", str(movie)]
+    with tempfile.TemporaryFile() as err:
+        # its own session: a Ctrl-C reaches the run, which stops ffmpeg, not ffmpeg mid-write
+        p = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=err,
+                             start_new_session=True)
+        try:
+            for img in images:
+                try:
+                    p.stdin.write(img.tobytes())
+                except BrokenPipeError:  # ffmpeg stopped: check_movie says so, with its last line
+                    break
+            try:
+                p.stdin.close()
+            except BrokenPipeError:
+                pass
+            p.wait()
+        except BaseException:
+            p.kill()
+            p.wait()
+            raise
+        err.seek(0)
+        return [line.strip() for line in err.read().decode("utf-8", "replace").splitlines() if line.strip()]
+
+
 def evenly_spaced(items: list[int], count: int) -> list[int]:
     if len(items) <= count:
         return list(items)
@@ -65,9 +112,15 @@ class FfmpegMovie(Stage):
     default = True
     description = "movie.mp4 at the scene's fps (or fps: a playback rate), skipped frames held, and contact_sheet.png"
 
+    def check(self, ctx: Context, params: MovieParams) -> None:
+        scene_fps = ctx.scene["scene"].frames.fps
+        if params.fps is None and scene_fps > MAX_FPS:
+            ctx.log.warning("movie.ffmpeg: scene.frames.fps %g is above a movie's %g; the movie plays at %g fps "
+                            "(%.3g x slow motion): set stages.movie.fps to choose", scene_fps, MAX_FPS,
+                            SLOW_MOTION_FPS, scene_fps / SLOW_MOTION_FPS)
+
     def run(self, ctx: Context, inputs: Mapping[str, Artifact], params: MovieParams) -> None:
         import imageio.v3 as iio
-        import imageio_ffmpeg
 
         every = sorted(ctx.frames)
         frames = []
@@ -86,21 +139,17 @@ class FfmpegMovie(Stage):
         # selection with gaps) the last rendered frame stays on screen, so the movie keeps the shot's time and
         # frame rate (a rate of fps / n made 7 frames every 2 play 0.27 s instead of 0.23, at 15 fps)
         slots = [max(f for f in frames if f <= k) for k in range(frames[0], every[-1] + 1)]
-        fps = float(params.fps or ctx.scene["scene"].frames.fps)
+        fps = playback_fps(params, ctx.scene["scene"].frames.fps)
         paths = {f: frame_png(inputs["frames"].frame(f), f) for f in frames}
         first = iio.imread(paths[frames[0]])[..., :3]
         h, w = first.shape[:2]
         # yuv420p needs even sizes: pad by one pixel rather than rescale
         H, W = h + h % 2, w + w % 2
         movie = Path(ctx.out_dir) / "movie.mp4"
-        writer = imageio_ffmpeg.write_frames(
-            str(movie), (W, H), fps=fps,
-            codec="libx264", pix_fmt_out="yuv420p", macro_block_size=1, quality=None,
-            output_params=["-crf", str(params.crf), "-preset", params.preset, "-movflags", "+faststart"])
-        writer.send(None)
         progress = ctx.progress("encoding movie", len(slots))
-        shown, img = None, None
-        try:
+
+        def images():
+            shown, img = None, None
             for f in slots:
                 if f != shown:
                     img = iio.imread(paths[f])[..., :3]
@@ -109,11 +158,16 @@ class FfmpegMovie(Stage):
                     if (H, W) != (h, w):
                         img = np.pad(img, ((0, H - h), (0, W - w), (0, 0)), mode="edge")
                     img, shown = np.ascontiguousarray(img, np.uint8), f
-                writer.send(img)
+                yield img
                 progress.advance()
-        finally:
-            writer.close()
-        check_movie(movie, len(slots))
+
+        said = encode(movie, (W, H), fps, params, images())
+        if said:  # kept out of the terminal (the run's one-line promise), in the log for whoever looks
+            ctx.log.debug("ffmpeg said: %s", " | ".join(said))
+        try:
+            check_movie(movie, len(slots))
+        except StageError as e:
+            raise StageError(f"{e}; ffmpeg: {said[-1]}" if said else str(e)) from None
         self._contact_sheet(ctx, inputs, params, frames)
 
     @staticmethod
