@@ -300,4 +300,6 @@ def test_an_attractor_far_stronger_than_the_scene_is_warned_about(tmp_path, capl
         caplog.clear()
         with caplog.at_level(logging.WARNING):
             run_stage(SPHSimulate, tmp_path / f"o{strength}", scene=scene, params={"threads": 1}, inputs={"sdf": sdf})
-        assert ("allow speeds up to 4.47e+05 m/s" in caplog.text) == warned, caplog.text
+        # its potential's drop from the tank's farthest corner to the point (driver.effects_speed; 4.47e5 m/s, the
+        # escape speed sqrt(2 k / s), until session 43)
+        assert ("allow speeds up to 4.39e+05 m/s" in caplog.text) == warned, caplog.text

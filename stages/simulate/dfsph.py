@@ -273,6 +273,7 @@ class DFSPHSolver(SolverBase):
         # as SPHSolver: mu over the eq. 9 sum's Laplacian on the rest lattice
         self.mu = (float(effects.mu) / visc_lattice_factor(self.rho0, self.l0, self.h, self.mass)
                    if effects.mu is not None else 0.0)
+        self.nu = float(effects.mu) / self.rho0 if effects.mu is not None else 0.0  # for the viscous step limit
         self.sdf = sdf
         self.sdf_inv = 1.0 / sdf.spacing
         self.wall_terms = make_walls(sdf, self.walls)  # what the shared WCSPH kernels take
@@ -358,9 +359,10 @@ class DFSPHSolver(SolverBase):
         """The CFL, viscous and force limits at this state, uncapped (inf at rest): the step is this under
         the caps (the frame's end, dt_max, effects)."""
         v2, a2 = K.max_speed2_accel2(self.v, self.acc)
-        nu = self.mu / self.rho0 if self.mu > 0 else None
         return stable_dt(l0=self.l0, h=self.h, v_max=math.sqrt(v2), a_max=math.sqrt(a2), cfl=self.p.cfl,
-                         sound_speed=None, nu=nu, dt_max=math.inf)
+                         sound_speed=None, dt_viscous=self.viscous_dt(), dt_max=math.inf)
+
+    viscous_dt = SPHSolver.viscous_dt  # the same eq. 9 sum
 
     def _solve(self, dt: float, divergence: bool, beta: float = 1.0) -> tuple[int, float]:
         """Projected, relaxed Jacobi iterations of the constant-density (or divergence-free) solve from

@@ -82,6 +82,9 @@ class Solver(Protocol):
 # let MPS particles pass the tank's walls with no speed or step limit noticing).
 SPEED_LIMIT = 10.0
 DT_FLOOR = 1e-3
+SLOW_STEPS = 10.0  # an effect or the viscosity needing steps this many times shorter than the flow's is said
+STEP_SPLIT = 2.0  # timestep.step_to may halve a step at a frame's end (no sliver): a limit known before the run
+# must stay this far above the floor
 INSIDE_DEPTH = 0.25
 # A frame whose mean compression (rho / rho0 - 1 where above 1, over its particles) exceeds this is said where the
 # run ends: the defaults keep a dam break's worst frame at 0.2-0.4 % (WCSPH's stiffness is set for about 1 % at
@@ -220,11 +223,10 @@ class Guard:
         effects = getattr(solver, "effects", None)
         if effects is not None and effects.dt_limit < 10 * self.dt_floor:
             return f"{effects.dt_limit_by} needs steps of {effects.dt_limit:.3g} s: lower it"
-        mu = float(getattr(solver, "mu", 0.0) or 0.0)
-        nu = mu / solver.rho0 if mu else 0.0
-        if nu and 0.125 * solver.h ** 2 / nu < 10 * self.dt_floor:
-            return (f"the viscosity ({mu:.3g} Pa s) needs steps of {0.125 * solver.h ** 2 / nu:.3g} s at spacing "
-                    f"{self.l0:.3g} m: lower it or coarsen the spacing")
+        viscous = getattr(solver, "viscous_dt", lambda: math.inf)()  # SolverBase's; inf from other solvers
+        if viscous < 10 * self.dt_floor:
+            return (f"the viscosity (effects.viscosity.mu) needs steps of {viscous:.3g} s at spacing {self.l0:.3g} m: "
+                    "lower it or coarsen the spacing")
         unsolved = getattr(solver, "unconverged", lambda: None)()  # SolverBase's; None from other solvers
         if unsolved:
             return unsolved
@@ -257,6 +259,10 @@ class SolverBase:
     # a solver with them keeps a walls bundle ``wall_terms`` with a ``pose`` array (walls.maps.set_pose)
     motions: tuple = ()
     body_reach: tuple = ()
+
+    def viscous_dt(self) -> float:
+        """The viscosity's step limit (s; inf without viscosity): the explicit viscosity sum's stability limit."""
+        return math.inf
 
     def unconverged(self) -> str | None:
         """The last step's pressure solve, where it stopped at its iteration cap short of its tolerance: what the
@@ -787,21 +793,36 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
         ctx.log.warning("the effects (wind, attractor) allow speeds up to %.3g m/s, %.0f x what falling and the "
                         "emitters give (%.3g m/s): the time steps shrink as much and the run takes that much longer; "
                         "check their strength", solver.guard.v_bound, solver.guard.v_bound / own, own)
+    # the least step a limit known before the run may ask for: step_to splits a frame's last step into halves,
+    # and a half below the floor is a blow-up (DFSPH at mu 1e5 needed 2.8e-5 s against a floor of 1.6e-5 s and
+    # stopped at its first frame's end)
+    least = STEP_SPLIT * solver.guard.dt_floor
+    floor = f"within {STEP_SPLIT:g} x this scene's floor of {solver.guard.dt_floor:.3g} s (a blow-up; a frame's last steps are split)"
     mu = float(setup.effects.viscosity.mu) if setup.effects.viscosity is not None else 0.0
-    viscous_dt = 0.125 * getattr(solver, "h", 2.0 * setup.spacing) ** 2 / (mu / setup.density) if mu > 0 else math.inf
-    if viscous_dt < solver.guard.dt_floor:
-        # the viscous step limit (timestep.stable_dt) is known now: said before the run, not as a blow-up after it
+    viscous_dt = solver.viscous_dt()
+    if viscous_dt < least:
+        # the viscous step limit (solver.viscous_dt) is known now: said before the run, not as a blow-up after it
         raise StageError(f"simulate.{solver_name}: effects.viscosity.mu ({mu:g} Pa s) needs time steps of "
-                         f"{viscous_dt:.3g} s, below this scene's floor of "
-                         f"{solver.guard.dt_floor:.3g} s (a blow-up): lower it (water 0.001, honey about 10)")
+                         f"{viscous_dt:.3g} s, {floor}: lower it (water 0.001, honey about 10) or coarsen the spacing")
     g = float(setup.effects.gravity.g) if setup.effects.gravity is not None else 0.0
     if g > 50.0:  # 981 in a centimetre scene: gravity is in m/s^2 in every unit
         ctx.log.warning("effects.gravity.g is %g m/s^2, %.0f x Earth's: gravity is given in m/s^2 in every unit "
                         "(981 is Earth's in cm/s^2)", g, g / 9.81)
-    if effects is not None and effects.dt_limit < solver.guard.dt_floor:
+    if effects is not None and effects.dt_limit < least:
         # the run would stop at its first step with "the time step fell below the floor": say which setting
         raise StageError(f"simulate.{solver_name}: {effects.dt_limit_by} needs time steps of {effects.dt_limit:.3g} s, "
-                         f"below this scene's floor of {solver.guard.dt_floor:.3g} s (a blow-up): lower it")
+                         f"{floor}: lower it")
+    # a rate that shortens every step far below the flow's own, said before the run: a wall friction of 2e4 1/s
+    # (a unit slip) ran 28 x the steps, the fluid all but frozen, in silence (surface tension's capillary limit is
+    # the physics of a small drop, and its absurd values are refused)
+    flow_dt = 0.4 * setup.spacing / solver.guard.v_bound  # cfl 0.4 at the ballistic bound
+    for need, by in ((viscous_dt, f"effects.viscosity.mu ({mu:g} Pa s)"),
+                     (effects.dt_limit if effects is not None else math.inf, getattr(effects, "dt_limit_by", ""))):
+        if need < flow_dt / SLOW_STEPS and not by.startswith("effects.surface_tension"):
+            ctx.log.warning("simulate.%s: %s needs time steps of %.3g s, %.0f x shorter than the flow's own (about "
+                            "%.3g s at its ballistic speed bound %.3g m/s): the run takes that many more steps; "
+                            "check its value and units", solver_name, by, need, flow_dt / need, flow_dt,
+                            solver.guard.v_bound)
     params = getattr(solver, "p", None)
     c = getattr(params, "sound_speed", None)  # a user's (the default is 10 x the expected speed)
     if c is not None and c < 3.0 * solver.guard.v_bound:
@@ -812,12 +833,13 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
                         solver.guard.v_bound, 100 * min((solver.guard.v_bound / c) ** 2, 99.0))
     for field in ("time_step", "dt_max"):  # a user's fixed step (sph, mps) or largest step (dfsph)
         dt = getattr(params, field, None)
-        if dt is not None and dt < solver.guard.dt_floor:
+        if dt is not None and dt < least:
             # it stopped at the first step as a blow-up whose advice (a smaller cfl) made it worse
-            raise StageError(f"simulate.{solver_name}: {field} {dt:g} s is below this scene's time-step floor of "
+            raise StageError(f"simulate.{solver_name}: {field} {dt:g} s is {'below' if dt < solver.guard.dt_floor else 'within 2 x of'} "
+                             f"this scene's time-step floor of "
                              f"{solver.guard.dt_floor:.3g} s (1e-3 spacings at its ballistic speed bound "
-                             f"{solver.guard.v_bound:.3g} m/s), where a run counts as blown up: raise it, or leave it "
-                             f"out for the solver's own step")
+                             f"{solver.guard.v_bound:.3g} m/s), where a run counts as blown up (a frame's last steps "
+                             f"are split): raise it, or leave it out for the solver's own step")
     if resumed is not None:
         start, state = resumed
         solver.load_state(state)

@@ -24,7 +24,7 @@ from .kernels import (lattice_mass, poly6_coef, rest_lattice, spiky_grad_coef, s
 from .neighbours import CellGrid, neighbour_list, reorder
 from .walls.maps import BrickWallMaps, make_walls
 from .walls.spline import SplineWallMaps, spline_coefs, spline_lattice_mass
-from .timestep import stable_dt, step_to
+from .timestep import stable_dt, step_to, viscous_coefficient
 
 
 class SPHParams(Params):
@@ -145,9 +145,9 @@ class SPHSolver(SolverBase):
         self.stiffness = self.c ** 2 if params.eos == "linear" else self.rho0 * self.c ** 2 / 7.0
         self.eos = K.EOS_LINEAR if params.eos == "linear" else K.EOS_TAIT
         self.gravity = np.asarray(gravity, np.float64)
-        # the eq. 9 sum's coefficient: mu over its Laplacian on the rest lattice (exact there at any support), for
-        # the force and the viscous step limit alike
+        # the eq. 9 sum's coefficient: mu over its Laplacian on the rest lattice (exact there at any support)
         self.mu = float(mu) / visc_lattice_factor(self.rho0, self.l0, self.h, self.mass) if mu is not None else 0.0
+        self.nu = float(mu) / self.rho0 if mu is not None else 0.0  # the fluid's, for the viscous step limit
         self.sdf = sdf
         self.sdf_inv = 1.0 / sdf.spacing
         lo, hi = (sdf.origin, sdf.upper) if domain is None else domain
@@ -246,13 +246,15 @@ class SPHSolver(SolverBase):
                  self.wall_t if self.p.wall_gradient else None,
                  (self.fix_press,) if self.mirrored_wall else None, self._spline_arg)
 
+    def viscous_dt(self) -> float:
+        return viscous_coefficient(self.h / self.l0) * self.l0 ** 2 / self.nu if self.nu > 0 else math.inf
+
     def stable_dt(self, dt_max: float) -> float:
         v2, a2 = K.max_speed2_accel2(self.v, self.acc)
-        nu = self.mu / self.rho0 if self.mu > 0 else None
         # a moving wall must not outrun the fluid's step either (it would tunnel through particles)
         v_max = max(math.sqrt(v2), self.wall_speed(self.t), self.wall_speed(self.t + dt_max))
         return stable_dt(l0=self.l0, h=self.h, v_max=v_max, a_max=math.sqrt(a2), cfl=self.p.cfl,
-                         sound_speed=self.c, nu=nu, dt_max=min(dt_max, self.effects.dt_limit))
+                         sound_speed=self.c, dt_viscous=self.viscous_dt(), dt_max=min(dt_max, self.effects.dt_limit))
 
     def step(self, t_end: float) -> float:
         """One step towards t_end (never past it); returns dt."""

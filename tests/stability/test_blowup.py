@@ -135,6 +135,52 @@ def test_an_effect_counts_in_the_speed_bound_only_by_what_it_can_give():
     assert effects_speed(repel, corners) == effects_speed(inside, corners)
 
 
+@pytest.mark.parametrize("solver, mu", [("sph", 1e4), ("dfsph", 3e4)])
+def test_a_very_viscous_block_flows_without_particles_thrown_out(tmp_path, solver, mu):
+    """The viscous step limit, 0.125 h^2 / nu, was 0.94-0.98 of the viscosity sum's own stability limit on the rest
+    lattice (timestep.viscous_coefficient), and walls and the free surface tipped it over: the dam break's block
+    at 1e4 Pa s (a 1 m block, 1/12 m spacing) threw WCSPH particles out at 4-16 m/s, 3 x the ballistic bound, while
+    the flow moved at 0.05-0.15 m/s, and DFSPH at 3e4 blew up in its first frame. Now at 0.8 of the limit: no
+    particle far above the flow (the Stokes scale rho g H^2 / mu is 1 m/s at 1e4, 0.3 at 3e4)."""
+    root = Path(__file__).resolve().parents[2]
+    args = ["run", str(root / "configs/dam_break.yaml"), "--until", "simulate", "--cache", str(tmp_path / "cache"),
+            "--out", str(tmp_path / "out"), "--set", "fluid.spacing=0.0833333", "--set", "scene.frames.count=10",
+            "--set", f"stages.simulate={{use: {solver}}}", "--set", f"effects.viscosity.mu={mu:g}"]
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code == 0, r.output
+    frames = sorted((tmp_path / "cache").glob("simulate/*/*/frames/*.npz"))
+    speeds = [np.linalg.norm(np.load(f)["v"], axis=1) for f in frames]
+    fastest = max(float(v.max()) for v in speeds)
+    assert fastest < 0.5 and fastest < 2.0 * max(float(np.percentile(v, 99)) for v in speeds), fastest
+
+
+def test_a_viscosity_whose_steps_a_frame_end_would_halve_below_the_floor_is_refused_before_the_run(tmp_path):
+    """MPS at 3e4 Pa s in the dam break needs steps of 2.9e-5 s against a floor of 1.6e-5 s: a frame's last step,
+    split in halves, fell below it and the run stopped as a blow-up after its first frame."""
+    root = Path(__file__).resolve().parents[2]
+    args = ["run", str(root / "configs/dam_break.yaml"), "--until", "simulate", "--cache", str(tmp_path / "cache"),
+            "--out", str(tmp_path / "out"), "--set", "fluid.spacing=0.0833333", "--set", "scene.frames.count=10",
+            "--set", "stages.simulate={use: mps}", "--set", "effects.viscosity.mu=3e4"]
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code == 2, r.output
+    err = [ln for ln in r.output.splitlines() if ln.startswith("error:")]
+    assert len(err) == 1 and "effects.viscosity.mu (30000 Pa s) needs time steps of 2.89e-05 s" in err[0], r.output
+    assert not list((tmp_path / "cache").glob("simulate/**/*.npz"))
+
+
+def test_a_rate_that_shortens_every_step_far_below_the_flows_is_warned_of(tmp_path, caplog):
+    """A wall friction of 2e4 1/s (allowed up to where its step meets the floor) needs steps of 2.5e-5 s: a dam break
+    ran 28 x its steps with the fluid all but frozen, and nothing was said."""
+    r = _run(tmp_path, "sph", "effects.wall_friction={rate: 20000}")
+    said = " ".join((r.output + caplog.text).split())
+    assert r.exit_code == 0, r.output
+    assert "effects.wall_friction.rate (20000 1/s) needs time steps of 2.5e-05 s, 145 x shorter than the flow's" in said
+    (tmp_path / "default").mkdir()
+    caplog.clear()
+    r = _run(tmp_path / "default", "sph", "effects.wall_friction={rate: 5}", "effects.viscosity={mu: 10}")
+    assert r.exit_code == 0 and "shorter than the flow's" not in r.output + caplog.text, r.output
+
+
 def test_dfsph_at_a_large_support_runs_and_a_relaxation_beyond_its_limit_is_refused_in_one_line(tmp_path):
     """DFSPH allows a support up to 4 l0; from 2.5 l0 its Jacobi solves diverged at the fixed relaxation 0.5 and the
     run hung in its first step. The relaxation now defaults below the solves' limit for the kernel and support
