@@ -18,6 +18,10 @@ from .memory import human, refusal
 
 log = logging.getLogger("pipeline")
 
+# a plan estimated at more steps than this is said before it runs (scene.frames.fps 0.01 made a 15-frame shot 1,500 s
+# long: 2.2 M steps, said only in the plan's info line, and the run looked hung)
+LONG_RUN_STEPS = 1e6
+
 
 def check_stages(config: Any, graph: Any) -> None:
     """ConfigError naming the config file and the stage's ``use`` line when a stage's ``check`` refuses the
@@ -68,4 +72,10 @@ def check_size(p: Any, *, allow_large: bool = False) -> dict[str, dict[str, floa
     if refused:
         raise ConfigError(f"{p.config.path}: stage {peak_kind} {refused}")
     log.info("plan size: %s", "; ".join(parts))  # a refusal carries the numbers in its one line
+    frames = p.config.scene.scene.frames
+    for kind, est in sizes.items():
+        if est.get("steps", 0.0) > LONG_RUN_STEPS:
+            log.warning("stage %s: about %s time steps for %g s of shot (scene.frames: %d at %g fps): hours of work; "
+                        "check scene.frames, fluid.spacing and the emitters' speeds", kind, f"{int(est['steps']):,}",
+                        frames.count / frames.fps, frames.count, frames.fps)
     return sizes

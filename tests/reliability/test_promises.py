@@ -447,6 +447,34 @@ def test_plan_size_names_particles_sdf_nodes_steps_and_memory(tmp_path, caplog):
     assert not (tmp_path / "c").exists()  # nothing written before the plan is accepted
 
 
+@pytest.mark.parametrize("fps, said", [(0.01, True), (30, False)])
+def test_a_plan_of_millions_of_steps_is_said_before_it_runs(tmp_path, caplog, fps, said):
+    """scene.frames.fps 0.01 made 15 frames a 1,500 s shot, about 2 M steps of a dam break: said only in the plan's
+    info line, and the run looked hung until a timeout killed it."""
+    import logging
+
+    from pipeline.config import load_config
+    from pipeline.estimate import check_size
+    from pipeline.graph import build_graph
+    from pipeline.keys import plan
+
+    cfg = tmp_path / "tank.yaml"
+    cfg.write_text("config_version: 1\n"
+                   f"scene: {{name: tank, frames: {{fps: {fps}, count: 15}}, domain: {{min: [0, 0, 0], max: [2, 1, 1]}}}}\n"
+                   "fluid: {spacing: 0.05, emitters: [{box: {min: [0, 0, 0], max: [0.5, 0.5, 0.5]}}]}\n"
+                   "effects: {gravity: {g: 9.81}}\nstages: {simulate: {use: sph}}\noutputs: [particles]\n")
+    config = load_config(cfg, Registry.from_entry_points())
+    p = plan(config, build_graph(config), Cache(tmp_path / "c"))
+    with caplog.at_level(logging.INFO, logger="pipeline"):
+        check_size(p)
+    warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    if said:
+        assert len(warned) == 1 and warned[0].startswith("stage simulate: about ") and "1500 s of shot" in warned[0]
+        assert "(scene.frames: 15 at 0.01 fps)" in warned[0], warned
+    else:
+        assert not warned, warned
+
+
 @pytest.mark.parametrize("name", ["30_alias_bomb", "31_deep_nesting", "32_deep_block_nesting"])
 def test_hostile_yaml_is_refused_well_under_a_second(name):
     """Issue 15: an alias bomb or deep nesting is exit 2 'in well under a second' (measured ~10 ms to
