@@ -208,3 +208,26 @@ def test_a_sphere_narrower_than_the_spacing_emits_nothing_as_a_box_does(caplog):
     with caplog.at_level(logging.WARNING):  # 4 spacings: 257 particles for 268: within the box's 10 %
         x, _ = emit([SphereEmitter(sphere={"center": [0.5, 0.5, 0.5], "radius": 4 * l0})], l0, lambda p: p, log=LOG)
     assert len(x) == 257 and not caplog.records
+
+
+def test_a_mesh_emitter_scaled_past_any_fluid_is_refused_in_one_line_before_it_is_filled(tmp_path):
+    """The bunny at scale 1000 in a 3 m tank asked numpy for 35.8 TiB of lattice points after the import and the
+    bake, and ended in a MemoryError; the placed mesh's lattice is counted before it is allocated."""
+    from pathlib import Path
+
+    from click.testing import CliRunner
+
+    from pipeline.cli import main
+
+    bunny = Path(__file__).resolve().parents[1] / "configs/assets/bunny_closed_6k.obj"
+    cfg = tmp_path / "tank.yaml"
+    cfg.write_text("config_version: 1\n"
+                   "scene: {name: tank, frames: {fps: 20, count: 2}}\n"
+                   "walls: [{builtin: box_tank, size: [0.4, 0.4, 0.4], center: [0, 0, 0]}]\n"
+                   f"fluid: {{spacing: 0.025, emitters: [{{mesh: {bunny}, scale: 1000}}]}}\n"
+                   "effects: {gravity: {}}\nstages: {simulate: {use: sph}}\noutputs: [frames]\n")
+    r = CliRunner().invoke(main, ["run", str(cfg), "--until", "simulate", "--cache", str(tmp_path / "cache")])
+    assert r.exit_code == 2, r.output
+    err = [ln for ln in r.output.splitlines() if ln.startswith("error:")]
+    assert len(err) == 1 and "bunny_closed_6k.obj: placed, it spans" in err[0] and "check its scale" in err[0], r.output
+    assert "MemoryError" not in r.output and not list((tmp_path / "cache").glob("simulate/**/*.npz"))

@@ -26,6 +26,9 @@ from .walls.spline import flat_wall_tables, spline_coefs, spline_f, spline_np, s
 LATTICE_SLACK = 1e-4
 
 
+MAX_MESH_LATTICE = 1e8  # a mesh emitter's box tested point by point (2.4 GB of points): beyond, surely a scale slip
+
+
 def lattice_counts(lo, hi, l0: float) -> np.ndarray:
     """Lattice points per axis in the box [lo, hi): its size in whole spacings."""
     lo = np.asarray(lo, float)
@@ -97,6 +100,12 @@ def _mesh_points(em: MeshEmitter, l0: float, resolve: Callable[[str], Path], met
     path = resolve(em.mesh)
     v, faces, closed = _read_mesh(em, path, meters_per_unit, up_axis, log)
     v = apply_placement(v, em)
+    points = int(np.prod(lattice_counts(v.min(axis=0), v.max(axis=0), l0).astype(float)))
+    if points > MAX_MESH_LATTICE:
+        # before allocating: a scale of 1000 asked for 35.8 TiB and ended in a MemoryError after the bake
+        raise StageError(f"fluid emitter mesh {path}: placed, it spans {box_text(v.min(axis=0), v.max(axis=0))}: "
+                         f"{points:,} lattice points at fluid.spacing {l0:g} to test, more than {MAX_MESH_LATTICE:,.0f}; "
+                         "check its scale and units")
     pts = lattice(v.min(axis=0), v.max(axis=0), l0)  # centred in the mesh's box, l0 / 2 inside a box mesh's faces
     if not closed:
         log.warning("fluid emitter mesh %s is not closed: filled where its winding number exceeds 1/2 (an open "
