@@ -519,7 +519,8 @@ def ballistic_speed(setup: "Setup", effects=None) -> float:
     height = max(_fluid_top(setup) - float((scene_corners(setup) @ setup.up).min()), setup.spacing)
     bound = v0 + math.sqrt(2.0 * g * height) + 2.0 * wall_speed_bound(setup.bodies)
     if effects is not None:
-        bound += capillary_speed(setup.effects, setup.density, setup.spacing) + effects_speed(effects, scene_corners(setup))
+        bound += (capillary_speed(setup.effects, setup.density, setup.spacing)
+                  + effects_speed(effects, scene_corners(setup)))
     return max(bound, math.sqrt(9.81 * setup.spacing))  # a scene without gravity or motion: never zero
 
 
@@ -536,7 +537,8 @@ def effects_speed(effects, corners: np.ndarray) -> float:
         p, s = effects.attractor_point, effects.attractor_soft
         near = float(np.linalg.norm(np.clip(p, corners.min(axis=0), corners.max(axis=0)) - p))
         far = float(np.linalg.norm(corners - p, axis=1).max())
-        speed += math.sqrt(2.0 * abs(effects.attractor_k) * max(1.0 / math.hypot(near, s) - 1.0 / math.hypot(far, s), 0.0))
+        drop = abs(effects.attractor_k) * max(1.0 / math.hypot(near, s) - 1.0 / math.hypot(far, s), 0.0)
+        speed += math.sqrt(2.0 * drop)
     return speed
 
 
@@ -797,13 +799,15 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
     # and a half below the floor is a blow-up (DFSPH at mu 1e5 needed 2.8e-5 s against a floor of 1.6e-5 s and
     # stopped at its first frame's end)
     least = STEP_SPLIT * solver.guard.dt_floor
-    floor = f"within {STEP_SPLIT:g} x this scene's floor of {solver.guard.dt_floor:.3g} s (a blow-up; a frame's last steps are split)"
+    near_floor = (f"within {STEP_SPLIT:g} x this scene's floor of {solver.guard.dt_floor:.3g} s (a blow-up; a frame's "
+                  "last steps are split)")
     mu = float(setup.effects.viscosity.mu) if setup.effects.viscosity is not None else 0.0
     viscous_dt = solver.viscous_dt()
     if viscous_dt < least:
         # the viscous step limit (solver.viscous_dt) is known now: said before the run, not as a blow-up after it
         raise StageError(f"simulate.{solver_name}: effects.viscosity.mu ({mu:g} Pa s) needs time steps of "
-                         f"{viscous_dt:.3g} s, {floor}: lower it (water 0.001, honey about 10) or coarsen the spacing")
+                         f"{viscous_dt:.3g} s, {near_floor}: lower it (water 0.001, honey about 10) or coarsen the "
+                         "spacing")
     g = float(setup.effects.gravity.g) if setup.effects.gravity is not None else 0.0
     if g > 50.0:  # 981 in a centimetre scene: gravity is in m/s^2 in every unit
         ctx.log.warning("effects.gravity.g is %g m/s^2, %.0f x Earth's: gravity is given in m/s^2 in every unit "
@@ -811,7 +815,7 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
     if effects is not None and effects.dt_limit < least:
         # the run would stop at its first step with "the time step fell below the floor": say which setting
         raise StageError(f"simulate.{solver_name}: {effects.dt_limit_by} needs time steps of {effects.dt_limit:.3g} s, "
-                         f"{floor}: lower it")
+                         f"{near_floor}: lower it")
     # a rate that shortens every step far below the flow's own, said before the run: a wall friction of 2e4 1/s
     # (a unit slip) ran 28 x the steps, the fluid all but frozen, in silence (surface tension's capillary limit is
     # the physics of a small drop, and its absurd values are refused)
@@ -835,8 +839,8 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
         dt = getattr(params, field, None)
         if dt is not None and dt < least:
             # it stopped at the first step as a blow-up whose advice (a smaller cfl) made it worse
-            raise StageError(f"simulate.{solver_name}: {field} {dt:g} s is {'below' if dt < solver.guard.dt_floor else 'within 2 x of'} "
-                             f"this scene's time-step floor of "
+            where = "below" if dt < solver.guard.dt_floor else f"within {STEP_SPLIT:g} x of"
+            raise StageError(f"simulate.{solver_name}: {field} {dt:g} s is {where} this scene's time-step floor of "
                              f"{solver.guard.dt_floor:.3g} s (1e-3 spacings at its ballistic speed bound "
                              f"{solver.guard.v_bound:.3g} m/s), where a run counts as blown up (a frame's last steps "
                              f"are split): raise it, or leave it out for the solver's own step")

@@ -104,8 +104,8 @@ def _mesh_points(em: MeshEmitter, l0: float, resolve: Callable[[str], Path], met
     if points > MAX_MESH_LATTICE:
         # before allocating: a scale of 1000 asked for 35.8 TiB and ended in a MemoryError after the bake
         raise StageError(f"fluid emitter mesh {path}: placed, it spans {box_text(v.min(axis=0), v.max(axis=0))}: "
-                         f"{points:,} lattice points at fluid.spacing {l0:g} to test, more than {MAX_MESH_LATTICE:,.0f}; "
-                         "check its scale and units")
+                         f"{points:,} lattice points at fluid.spacing {l0:g} to test, more than "
+                         f"{MAX_MESH_LATTICE:,.0f}; check its scale and units")
     pts = lattice(v.min(axis=0), v.max(axis=0), l0)  # centred in the mesh's box, l0 / 2 inside a box mesh's faces
     if not closed:
         log.warning("fluid emitter mesh %s is not closed: filled where its winding number exceeds 1/2 (an open "
