@@ -799,15 +799,19 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
     # and a half below the floor is a blow-up (DFSPH at mu 1e5 needed 2.8e-5 s against a floor of 1.6e-5 s and
     # stopped at its first frame's end)
     least = STEP_SPLIT * solver.guard.dt_floor
-    near_floor = (f"within {STEP_SPLIT:g} x this scene's floor of {solver.guard.dt_floor:.3g} s (a blow-up; a frame's "
-                  "last steps are split)")
+
+    def near_floor(dt: float) -> str:
+        where = "below" if dt < solver.guard.dt_floor else f"within {STEP_SPLIT:g} x of"
+        return (f"{where} this scene's floor of {solver.guard.dt_floor:.3g} s (a blow-up; a frame's last steps are "
+                "split)")
+
     mu = float(setup.effects.viscosity.mu) if setup.effects.viscosity is not None else 0.0
     viscous_dt = solver.viscous_dt()
     if viscous_dt < least:
         # the viscous step limit (solver.viscous_dt) is known now: said before the run, not as a blow-up after it
         raise StageError(f"simulate.{solver_name}: effects.viscosity.mu ({mu:g} Pa s) needs time steps of "
-                         f"{viscous_dt:.3g} s, {near_floor}: lower it (water 0.001, honey about 10) or coarsen the "
-                         "spacing")
+                         f"{viscous_dt:.3g} s, {near_floor(viscous_dt)}: lower it (water 0.001, honey about 10) or "
+                         "coarsen the spacing")
     g = float(setup.effects.gravity.g) if setup.effects.gravity is not None else 0.0
     if g > 50.0:  # 981 in a centimetre scene: gravity is in m/s^2 in every unit
         ctx.log.warning("effects.gravity.g is %g m/s^2, %.0f x Earth's: gravity is given in m/s^2 in every unit "
@@ -815,7 +819,7 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
     if effects is not None and effects.dt_limit < least:
         # the run would stop at its first step with "the time step fell below the floor": say which setting
         raise StageError(f"simulate.{solver_name}: {effects.dt_limit_by} needs time steps of {effects.dt_limit:.3g} s, "
-                         f"{near_floor}: lower it")
+                         f"{near_floor(effects.dt_limit)}: lower it")
     # a rate that shortens every step far below the flow's own, said before the run: a wall friction of 2e4 1/s
     # (a unit slip) ran 28 x the steps, the fluid all but frozen, in silence (surface tension's capillary limit is
     # the physics of a small drop, and its absurd values are refused)
