@@ -129,7 +129,7 @@ from .driver import SolverBase, drive, moving_wall, prepare, set_threads
 from .emitters import emitter_files
 from .effects import EffectConstants, compile_effects
 from .walls.spline import SplineWallMaps, spline_coefs, spline_f_np, spline_lattice_mass
-from .kernels import lattice_mass, poly6_coef, spiky_grad_coef, spiky_lattice_factor, visc_lattice_factor
+from .kernels import lattice_mass, lattice_modes, poly6_coef, spiky_grad_coef, spiky_lattice_factor, visc_lattice_factor
 from .neighbours import CellGrid
 from .sph import SPHSolver
 from .walls.maps import BrickWallMaps, make_walls
@@ -155,11 +155,7 @@ def jacobi_limit(gradient: str, support: float, samples: int = 24) -> float:
     and 0.53 for Poly6, 0.52 / 0.48 for Spiky at 2.4 / 2.5 l0, 0.30 at 3 l0, 0.14 at 4 l0. At omega 0.5 the
     solves on bench_rest's tank diverged (1e4-1e41 m/s in the first steps) from support 2.5 l0 (Spiky), 2.4
     (spline) and 2.25 (Poly6), and at 2 l0 (Spiky) with omega 0.68, 0.96 of the limit."""
-    g = np.arange(-math.ceil(support), math.ceil(support) + 1, dtype=float)  # the lattice in units of l0
-    offsets = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
-    r = np.linalg.norm(offsets, axis=1)
-    keep = (r > 0) & (r < support)
-    offsets, r = offsets[keep], r[keep]
+    offsets, r, waves = lattice_modes(support, samples)
     if gradient == "spiky":
         slope = (support - r) ** 2
     elif gradient == "poly6":
@@ -167,8 +163,6 @@ def jacobi_limit(gradient: str, support: float, samples: int = 24) -> float:
     else:
         slope = spline_f_np(r, support) * r
     grad = slope[:, None] * offsets / r[:, None]
-    k = np.linspace(0.0, math.pi, samples + 1)
-    waves = np.stack(np.meshgrid(k, k, k, indexing="ij"), -1).reshape(-1, 3)
     eig = ((np.sin(waves @ offsets.T) @ grad) ** 2).sum(axis=1) / (grad ** 2).sum()
     return float(2.0 / eig.max())
 

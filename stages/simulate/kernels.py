@@ -55,6 +55,20 @@ def visc_lap_np(r, h):
     return np.where(r < h, visc_lap_coef(h) * np.clip(h - r, 0, None), 0.0)
 
 
+def lattice_modes(support: float, samples: int = 24):
+    """(offsets, r, waves): the cubic lattice's neighbours within ``support`` (in units of l0, the particle itself
+    left out) and wave vectors sampling the Brillouin zone's octant, [0, pi]^3 at ``samples``^3 + points: what the
+    largest eigenvalue of a lattice sum's operator is taken over (dfsph.jacobi_limit, timestep.viscous_coefficient)."""
+    import numpy as np
+    g = np.arange(-math.ceil(support), math.ceil(support) + 1, dtype=float)
+    offsets = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    r = np.linalg.norm(offsets, axis=1)
+    keep = (r > 0) & (r < support)
+    k = np.linspace(0.0, math.pi, samples + 1)
+    waves = np.stack(np.meshgrid(k, k, k, indexing="ij"), -1).reshape(-1, 3)
+    return offsets[keep], r[keep], waves
+
+
 def rest_lattice(l0: float, reach: float):
     """(z, r): the height and distance of every point of the full cubic lattice of spacing l0 within a cube
     reaching past ``reach`` around a particle at the origin (itself included, r = 0), as (n, n, n) arrays: the

@@ -36,17 +36,11 @@ def viscous_coefficient(support: float, samples: int = 24) -> float:
     over the lattice factor) was 0.98 / 0.94 of it at 2 / 2.25 l0: walls and the free surface tipped it over (a
     dam break's block at mu 1e4 Pa s threw particles at 4 m/s with WCSPH, DFSPH blew up at 3e4; at 0.86 of it
     both ran calm up to 1e5)."""
-    from .kernels import visc_lap_np
+    from .kernels import lattice_modes, visc_lap_np
     import numpy as np
-    g = np.arange(-math.ceil(support), math.ceil(support) + 1, dtype=float)  # the lattice in units of l0
-    offsets = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
-    r = np.linalg.norm(offsets, axis=1)
-    keep = (r > 0) & (r < support)
-    offsets, r = offsets[keep], r[keep]
+    offsets, r, waves = lattice_modes(support, samples)
     w = visc_lap_np(r, support)
     w = w / (0.5 * (w * offsets[:, 2] ** 2).sum())  # the sum's Laplacian of z^2 / 2 made 1, as the solvers do
-    k = np.linspace(0.0, math.pi, samples + 1)
-    waves = np.stack(np.meshgrid(k, k, k, indexing="ij"), -1).reshape(-1, 3)
     largest = float(((1.0 - np.cos(waves @ offsets.T)) * w).sum(axis=1).max())
     return VISCOUS_MARGIN * 2.0 / largest
 
