@@ -66,3 +66,32 @@ def test_ffmpeg_lines_stay_off_the_terminal(tmp_path, frames_dir, monkeypatch, c
     assert raw not in [line.strip() for line in capfd.readouterr().err.splitlines()]
     assert "MB rate > level limit" in caplog.text
     assert imageio_ffmpeg.count_frames_and_secs(str(out / "movie.mp4"))[0] == 6
+
+
+def test_a_contact_sheet_of_tall_frames_stays_within_its_largest_side(tmp_path):
+    """Tiles are scaled to the sheet's width: a 16 x 8192 frame (render's resolution allows it) at 600 px a tile
+    asked PIL for a 1800 x 921,000 sheet (5 GB). The sheet's height now bounds the tiles; the frames keep their
+    shape."""
+    import imageio.v3 as iio
+    from PIL import Image
+    from stages.movie.ffmpeg_movie import MAX_SHEET
+
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for f in range(3):
+        iio.imwrite(folder / f"frame_{f:05d}.png", np.full((8192, 16, 3), 80 * f, np.uint8))
+    out = run_stage(FfmpegMovie, tmp_path / "tall", scene={"scene": {"name": "t", "frames": {"fps": 30, "count": 3}}},
+                    inputs={"frames": folder})
+    with Image.open(out / "contact_sheet.png") as sheet:
+        w, h = sheet.size
+    assert h <= MAX_SHEET and w < 200, (w, h)
+    assert h > 0.9 * MAX_SHEET  # the tiles as large as the bound lets them be
+
+
+@pytest.mark.parametrize("width, columns, ok", [(1800, 3, True), (800, 8, True), (799, 8, False), (200, 3, False)])
+def test_a_contact_sheets_tiles_are_large_enough_to_read(width, columns, ok):
+    if ok:
+        MovieParams(sheet_width=width, sheet_columns=columns)
+    else:
+        with pytest.raises(ValueError, match="px a tile"):
+            MovieParams(sheet_width=width, sheet_columns=columns)

@@ -70,7 +70,9 @@ class UsdParams(Params):
         None, description="also write the fluid layer alone to this path inside the published usd folder "
         "(relative, e.g. layers/fluid.usdc; the pipeline writes only inside its cache and output folder)")
     usdz: bool = Field(False, description="also package everything as scene.usdz")
-    camera_aspect: float | None = Field(None, gt=0, description="the USD camera's image width / height; default: "
+    # 0.1-10 holds every film and phone format (1e-9 wrote a camera whose film back is a line)
+    camera_aspect: float | None = Field(None, ge=0.1, le=10, description="the USD camera's image width / height, 0.1 "
+                                        "to 10; default: "
                                         "camera.resolution's (the shot's, which render draws), else 16 / 9 (the view "
                                         "itself is the scene's camera section)")
 
@@ -80,6 +82,9 @@ class UsdParams(Params):
     def _layer_needs_surface(self):
         if self.fluid_layer_path and not self.surface:  # it was skipped without a word
             raise ValueError("fluid_layer_path is the surface's layer: it needs surface: true")
+        if not (self.surface or self.particles):  # a USD of walls and a camera, published as the shot's fluid
+            raise ValueError("surface and particles are both false: the USD would hold no fluid; set one true, or "
+                             "leave usd out of outputs")
         return self
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Literal, Mapping
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from pipeline.stage import Artifact, Context, Params, Stage, StageError
 from stages.common.formats import skipped_frame_marker
@@ -19,6 +19,10 @@ from stages.common.formats import skipped_frame_marker
 # motion, which plays at the usual 30
 MAX_FPS = 240.0
 SLOW_MOTION_FPS = 30.0
+# a contact sheet's tiles at least 100 px wide (8 columns of a 200 px sheet were 25 px thumbnails nobody can read),
+# the sheet at most 16384 px a side (a tall frame's tiles scaled to the width asked for gigapixel sheets)
+MIN_TILE = 100
+MAX_SHEET = 16384
 
 
 class MovieParams(Params):
@@ -32,7 +36,16 @@ class MovieParams(Params):
                               f"scene's fps, or {SLOW_MOTION_FPS} when that is above {MAX_FPS:g}: slow motion)")
     sheet_frames: int = Field(9, ge=1, le=64, description="frames on the contact sheet, evenly spaced")
     sheet_columns: int = Field(3, ge=1, le=8, description="columns of the contact sheet")
-    sheet_width: int = Field(1800, ge=200, description="contact sheet width, pixels")
+    sheet_width: int = Field(1800, ge=200, le=MAX_SHEET, description="contact sheet width, pixels (at least "
+                             f"{MIN_TILE} a column; a sheet of tall frames is narrowed to {MAX_SHEET} px high)")
+
+    @model_validator(mode="after")
+    def _readable_tiles(self) -> "MovieParams":
+        if self.sheet_width // self.sheet_columns < MIN_TILE:
+            raise ValueError(f"sheet_width {self.sheet_width} over {self.sheet_columns} columns gives "
+                             f"{self.sheet_width // self.sheet_columns} px tiles: at least {MIN_TILE} px a tile "
+                             f"(sheet_width {MIN_TILE * self.sheet_columns} or more, or fewer columns)")
+        return self
 
 
 def playback_fps(params: MovieParams, scene_fps: float) -> float:
@@ -178,9 +191,12 @@ class FfmpegMovie(Stage):
         cols = min(params.sheet_columns, len(picks))
         rows = math.ceil(len(picks) / cols)
         tiles = [Image.open(frame_png(inputs["frames"].frame(f), f)).convert("RGB") for f in picks]
+        pad = 4
         tw = params.sheet_width // cols
         th = round(tiles[0].height * tw / tiles[0].width)
-        pad = 4
+        if rows * (th + pad) + pad > MAX_SHEET:  # tall frames: the sheet's height bounds the tiles
+            th = (MAX_SHEET - pad) // rows - pad
+            tw = max(1, round(tiles[0].width * th / tiles[0].height))
         sheet = Image.new("RGB", (cols * (tw + pad) + pad, rows * (th + pad) + pad), (12, 12, 14))
         for k, tile in enumerate(tiles):  # the frames carry their own time label (render's `label`)
             x, y = pad + (k % cols) * (tw + pad), pad + (k // cols) * (th + pad)

@@ -62,8 +62,9 @@ class RenderParams(Params):
     color_range: tuple[float, float] | None = Field(
         None, description="colour map range (units/s or Pa); default: 0 to the 99.5th percentile of all frames' "
         "values, so colours mean the same in every frame; faster ones are drawn pink, the bar's 'above' swatch")
-    point_size: float = Field(6.0, gt=0, description="particle sphere size on screen, pixels of a 720-line frame, "
-                              "scaled with the resolution (show: particles)")
+    # at most 100 px of 720 lines: 1e6 drew every particle as a disc over the whole frame, in silence
+    point_size: float = Field(6.0, gt=0, le=100, description="particle sphere size on screen, pixels of a 720-line "
+                              "frame (at most 100), scaled with the resolution (show: particles)")
     every: int = Field(1, ge=1, description="render every n-th frame; the others are marked skipped and the "
                        "movie holds each rendered frame until the next")
     background: str = Field("#20242c", description="background colour (name or #rrggbb)")
