@@ -231,3 +231,31 @@ def test_a_mesh_emitter_scaled_past_any_fluid_is_refused_in_one_line_before_it_i
     err = [ln for ln in r.output.splitlines() if ln.startswith("error:")]
     assert len(err) == 1 and "bunny_closed_6k.obj: placed, it spans" in err[0] and "check its scale" in err[0], r.output
     assert "MemoryError" not in r.output and not list((tmp_path / "cache").glob("simulate/**/*.npz"))
+
+
+@pytest.mark.parametrize("solver", ["sph", "dfsph", "mps"])
+def test_a_fluid_of_emitters_narrower_than_a_spacing_is_refused_before_anything_runs(tmp_path, solver):
+    """Every box and sphere narrower than a spacing and no inflow: each solver's check refuses it (it was refused
+    when simulate started, after the import and the bake); one emitter that fills, a mesh emitter (its size is
+    known only once read) or an inflow lets the scene through."""
+    from pipeline.stage import StageError
+    from pipeline.testing import stage_context
+    from stages.simulate.dfsph import DFSPHSimulate
+    from stages.simulate.mps import MPSSimulate
+    from stages.simulate.sph import SPHSimulate
+
+    stage = {"sph": SPHSimulate, "dfsph": DFSPHSimulate, "mps": MPSSimulate}[solver]
+    tiny = [{"box": {"min": [0, 0, 0], "max": [0.05, 1, 1]}}, {"sphere": {"center": [0.5, 0.5, 0.5], "radius": 0.04}}]
+
+    def check(emitters, **fluid):
+        scene = {"scene": {"name": "t"}, "walls": [{"builtin": "box_tank"}],
+                 "fluid": {"spacing": 0.1, "emitters": emitters, **fluid}}
+        stage().check(stage_context(stage, tmp_path, scene=scene, extra_reads=stage.estimate_reads), stage.Params())
+
+    with pytest.raises(StageError, match=rf"simulate.{solver}: the emitters produced no particles in the fluid "
+                                         r"region: every emitter is smaller than fluid.spacing \(0.1\)"):
+        check(tiny)
+    check(tiny + [{"box": {"min": [0, 0, 0], "max": [0.1, 0.1, 0.1]}}])  # one spacing: one particle
+    check(tiny[1:] + [{"sphere": {"center": [0.5, 0.5, 0.5], "radius": 0.05}}])
+    check(tiny + [{"mesh": "emitter.obj"}])
+    check(tiny, inflow=[{"center": [0.5, 0.5, 0.9], "direction": [0, 0, -1], "radius": 0.2, "speed": 1}])

@@ -126,7 +126,7 @@ from stages.common.sizes import simulate_estimate
 from . import dfsph_kernels as D
 from . import sph_kernels as K
 from .driver import SolverBase, drive, moving_wall, prepare, set_threads
-from .emitters import emitter_files
+from .emitters import check_emitters, emitter_files
 from .effects import EffectConstants, compile_effects
 from .walls.spline import SplineWallMaps, spline_coefs, spline_f_np, spline_lattice_mass
 from .kernels import lattice_mass, lattice_modes, poly6_coef, spiky_grad_coef, spiky_lattice_factor, visc_lattice_factor
@@ -504,6 +504,7 @@ class DFSPHSimulate(Stage):
         return emitter_files(ctx)  # the layers a USD mesh emitter composes
 
     def check(self, ctx: Context, params: Params) -> None:
+        check_emitters(ctx, "simulate.dfsph")
         moving = moving_wall(ctx)
         if moving is not None:
             raise StageError(f"simulate.dfsph: walls.{moving} moves (motion); only simulate: {{use: sph}} and "

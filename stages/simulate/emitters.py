@@ -469,3 +469,22 @@ def emitter_files(ctx) -> list[Path]:
     fluid = ctx.scene["fluid"]
     return [f for em in (fluid.emitters if fluid is not None else ()) if isinstance(em, MeshEmitter)
             for f in (usd_dependencies if is_usd(em.mesh) else mesh_file_dependencies)(ctx.resolve(em.mesh))]
+
+
+def check_emitters(ctx, who: str) -> None:
+    """The simulate stages' ``check``: a fluid of boxes and spheres all narrower than a spacing, with no inflow,
+    is refused before anything runs (it was refused when simulate started, after the import and the bake).
+    Their sizes are in the config; a mesh emitter's is known only once it is read."""
+    fluid = ctx.scene["fluid"]
+    if fluid is None or not fluid.emitters or fluid.inflow:
+        return
+    l0 = fluid.spacing
+    for em in fluid.emitters:
+        if isinstance(em, BoxEmitter) and np.all(lattice_counts(em.box.min, em.box.max, l0) > 0):
+            return
+        if isinstance(em, SphereEmitter) and 2 * em.sphere.radius >= l0 * (1 - LATTICE_SLACK):
+            return
+        if not isinstance(em, (BoxEmitter, SphereEmitter)):
+            return
+    raise StageError(f"{who}: the emitters produced no particles in the fluid region: every emitter is smaller than "
+                     f"fluid.spacing ({l0:g}) or empty")

@@ -113,7 +113,7 @@ from stages.common.sizes import simulate_estimate
 
 from . import mps_kernels as K
 from .driver import SolverBase, drive, prepare, set_threads
-from .emitters import emitter_files
+from .emitters import check_emitters, emitter_files
 from .kernels import lattice_mass
 from .walls.mps import MPSWallMaps, build_tables, lattice_constants, make_mps_walls
 from .neighbours import CellGrid, reorder
@@ -423,6 +423,7 @@ class MPSSimulate(Stage):
         return emitter_files(ctx)  # the layers a USD mesh emitter composes
 
     def check(self, ctx: Context, params: Params) -> None:
+        check_emitters(ctx, "simulate.mps")
         check_effects(ctx.scene["effects"])
 
     def estimate(self, ctx: Context, params: Params) -> dict | None:

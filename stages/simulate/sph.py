@@ -17,7 +17,7 @@ from stages.common.sizes import simulate_estimate
 
 from . import sph_kernels as K
 from .driver import SolverBase, drive, effects_speed, moving_wall, prepare, scene_corners, set_threads
-from .emitters import emitter_files
+from .emitters import check_emitters, emitter_files
 from .effects import EffectConstants, compile_effects, cohesion_coef
 from .kernels import (lattice_mass, poly6_coef, rest_lattice, spiky_grad_coef, spiky_lattice_factor, visc_lap_coef,
                       visc_lattice_factor, wall_gradient_tables)
@@ -333,6 +333,7 @@ class SPHSimulate(Stage):
         return simulate_estimate(ctx, params.cfl, 10.0, params.support)
 
     def check(self, ctx: Context, params: SPHParams) -> None:
+        check_emitters(ctx, "simulate.sph")
         if moving_wall(ctx) is not None:
             conservative_walls(params)
 
