@@ -26,8 +26,8 @@ from .errors import CacheMissError, CodeChanged, ConfigError, FrameError, Pipeli
 from .estimate import check_size, check_stages
 from .executors import Executor, make_executor
 from .graph import Graph, Node, build_graph
-from .keys import (Plan, changed_since_loaded, check_inputs_unchanged, context, frame_key, plan, record_resume,
-                   resume_source)
+from .keys import (Plan, call_hook, changed_since_loaded, check_inputs_unchanged, context, frame_key, plan,
+                   record_resume, resume_source)
 from .publish import check_out_dir, drop_stale, publish, read_record_keys, write_run_json
 from .registry import Registry
 from .reads import FRAMES, SceneReads
@@ -574,7 +574,10 @@ def _run_per_frame(p: Plan, node: Node, key: str, inputs: dict[str, Artifact], r
             raise
         raise _fail(node, key, config, exc, cache) from exc
     sr.status = "forced" if forced else "ran"
-    return sr, dict(sorted(frames.items()))
+    frames = dict(sorted(frames.items()))
+    if sr.frames_ran:  # each worker saw only its own frames: the stage's word on all of them, once, here
+        call_hook(node, "summarise", context(config, node, None, p.frames), node.params, frames)
+    return sr, frames
 
 
 # -- library entry points ------------------------------------------------------------------------

@@ -108,11 +108,22 @@ class ToySurface(Stage):
 
     class Params(Params):
         iso: float = 0.5
+        fail: str | None = Field(None, description="'frame' fails frame 2 (StageError), 'summary' summarise (a bug)")
 
     def run_frame(self, ctx, inputs, params, frame):
         _bump(ctx, "surface_extract")
+        if params.fail == "frame" and frame == 2:
+            raise StageError("frame 2 has no particles")
         src = (inputs["particles"].frame(frame) / "particles.txt").read_text()
         (ctx.out_dir / f"surface_{frame:05d}.txt").write_text(f"{src} | surface {frame} iso {params.iso}")
+
+    def summarise(self, ctx, params, frames):
+        """Records each call beside the config: the process, the frames and whether each entry is there."""
+        if params.fail == "summary":
+            raise RuntimeError("summary boom")
+        with open(ctx.config_dir / "summarised.log", "a") as fh:
+            fh.write(f"{os.getpid()} {' '.join(str(f) for f in frames if (frames[f] / f'surface_{f:05d}.txt').is_file())}"
+                     f" out_dir={ctx.out_dir}\n")
 
 
 class ToyRender(Stage):
