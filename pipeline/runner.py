@@ -26,8 +26,8 @@ from .errors import CacheMissError, CodeChanged, ConfigError, FrameError, Pipeli
 from .estimate import check_size, check_stages
 from .executors import Executor, make_executor
 from .graph import Graph, Node, build_graph
-from .keys import (Plan, call_hook, changed_since_loaded, check_inputs_unchanged, context, frame_key, plan,
-                   record_resume, resume_source)
+from .keys import (Plan, changed_since_loaded, check_inputs_unchanged, context, frame_key, plan, record_resume,
+                   resume_source)
 from .publish import check_out_dir, drop_stale, publish, read_record_keys, write_run_json
 from .registry import Registry
 from .reads import FRAMES, SceneReads
@@ -576,7 +576,15 @@ def _run_per_frame(p: Plan, node: Node, key: str, inputs: dict[str, Artifact], r
     sr.status = "forced" if forced else "ran"
     frames = dict(sorted(frames.items()))
     if sr.frames_ran:  # each worker saw only its own frames: the stage's word on all of them, once, here
-        call_hook(node, "summarise", context(config, node, None, p.frames), node.params, frames)
+        try:
+            node.cls().summarise(context(config, node, None, p.frames), node.params, frames)
+        except KeyboardInterrupt:
+            raise
+        except BaseException as exc:  # noqa: BLE001 - a failed summary is a failed stage, with its traceback saved
+            if isinstance(exc, SystemExit):
+                exc = StageFailed(f"its summarise() called sys.exit({exc.code!r})", user_error=False).with_traceback(
+                    exc.__traceback__)
+            raise _fail(node, key, config, exc, cache) from exc
     return sr, frames
 
 

@@ -361,7 +361,7 @@ def test_a_per_frame_stage_sums_up_all_of_a_runs_frames_once_in_this_process(toy
     """Stage.summarise: a per-frame stage whose frames run in worker processes says what only all of them tell
     (surface_extract: how many frames came out empty) once per run, in the process driving it, over every frame
     of the run (cached ones too) once they are all in the cache; not when the whole stage came from the cache,
-    nor when a frame failed; a failing summary is said as the stage's, naming the hook."""
+    nor when a frame failed; a failing summary fails the stage as any failure does (its traceback saved)."""
     from pipeline.executors import ProcessExecutor
 
     log = toy_config.parent / "summarised.log"
@@ -384,9 +384,10 @@ def test_a_per_frame_stage_sums_up_all_of_a_runs_frames_once_in_this_process(toy
     with pytest.raises(StageFailed, match="frame 2 has no particles"):
         run(toy_config, overrides=("surface_extract.fail=frame",))
     assert len(calls()) == 3
-    with pytest.raises(StageFailed, match=r"stage surface_extract.toy: its summarise\(\) failed: RuntimeError: "
-                                          r"summary boom \(at .*toy_stages.py:\d+\)"):
+    with pytest.raises(StageFailed, match=r"stage surface_extract.toy failed .*RuntimeError: summary boom "
+                                          r"\(traceback in .*\.log\)") as e:
         run(toy_config, overrides=("surface_extract.fail=summary",))
+    assert "in summarise" in Path(str(e.value).rsplit("traceback in ", 1)[1].rstrip(")")).read_text()
 
 
 def test_independent_branches_run_concurrently_with_a_pool(toy_config):
