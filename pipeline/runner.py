@@ -574,7 +574,18 @@ def _run_per_frame(p: Plan, node: Node, key: str, inputs: dict[str, Artifact], r
             raise
         raise _fail(node, key, config, exc, cache) from exc
     sr.status = "forced" if forced else "ran"
-    return sr, dict(sorted(frames.items()))
+    frames = dict(sorted(frames.items()))
+    if sr.frames_ran:  # each worker saw only its own frames: the stage's word on all of them, once, here
+        try:
+            node.cls().summarise(context(config, node, None, p.frames), node.params, frames)
+        except KeyboardInterrupt:
+            raise
+        except BaseException as exc:  # noqa: BLE001 - a failed summary is a failed stage, with its traceback saved
+            if isinstance(exc, SystemExit):
+                exc = StageFailed(f"its summarise() called sys.exit({exc.code!r})", user_error=False).with_traceback(
+                    exc.__traceback__)
+            raise _fail(node, key, config, exc, cache) from exc
+    return sr, frames
 
 
 # -- library entry points ------------------------------------------------------------------------

@@ -3,7 +3,7 @@
 A stage is a small class: its kind (the DAG node it can fill, e.g. ``simulate``), its implementation
 name (chosen in the config with ``use:``), a hand-bumped code ``version``, a typed ``Params`` model,
 the artifacts it consumes and produces, the config fields it reads, and ``run`` (or ``run_frame`` for
-per-frame stages). The engine checks the contract when the stage is registered; pipeline.keys says
+per-frame stages, and optionally ``summarise`` over all of a run's frames). The engine checks the contract when the stage is registered; pipeline.keys says
 what goes into the cache key.
 """
 from __future__ import annotations
@@ -79,12 +79,12 @@ class Context:
     (paths in the config are relative to it), the frame selection (only if it declared "frames"), a
     logger and a progress factory. Reading anything undeclared raises UndeclaredRead."""
 
-    def __init__(self, out_dir: Path, scene: Mapping[str, Any], config_dir: Path,
+    def __init__(self, out_dir: Path | None, scene: Mapping[str, Any], config_dir: Path,
                  frames: tuple[int, ...] | None, log: logging.Logger,
                  make_progress: Callable[[str, float], Progress] | None = None, threads: int | None = None,
                  checkpoint_dir: Path | None = None, resume_from: Path | None = None,
                  allow_large: bool = False) -> None:
-        self.out_dir = out_dir
+        self.out_dir = out_dir  # None for Stage.summarise, which writes nothing
         self.scene = scene
         self.config_dir = config_dir
         self._frames = None if frames is None else tuple(frames)
@@ -102,7 +102,7 @@ class Context:
         self.allow_large = allow_large  # --yes / config allow_large: true (check_memory lets anything pass)
 
     @classmethod
-    def for_stage(cls, stage_cls: type["Stage"], sections: Mapping[str, Any], *, out_dir: Path, config_dir: Path,
+    def for_stage(cls, stage_cls: type["Stage"], sections: Mapping[str, Any], *, out_dir: Path | None, config_dir: Path,
                   frames: tuple[int, ...], extra_reads: tuple[str, ...] = (), **kw: Any) -> "Context":
         """The context the engine gives ``stage_cls``: only its declared reads (and ``extra_reads``) are visible."""
         return cls(out_dir=out_dir, scene=SceneReads(sections, stage_cls.reads + extra_reads), config_dir=config_dir,
@@ -199,6 +199,15 @@ class Stage:
 
     def run_frame(self, ctx: Context, inputs: Mapping[str, Artifact], params: Params, frame: int) -> None:
         raise NotImplementedError
+
+    def summarise(self, ctx: Context, params: Params, frames: Mapping[int, Path]) -> None:
+        """Per-frame stages: say what only the frames together tell (how many came out empty), once per run.
+        Frames may run in worker processes, each seeing only its own, so ``run_frame`` records what the summary
+        needs in the frame's folder and the engine calls this in the process driving the run, once every frame
+        of the run is in the cache and at least one was computed by this run (not when all came from the cache,
+        a frame failed or the run was stopped). ``frames`` maps each of the run's frames to its entry folder,
+        cached frames included (an entry another run made may lack what this code records). Read only:
+        ``ctx.out_dir`` is None."""
 
     # -- helpers -----------------------------------------------------------------------------
     @classmethod

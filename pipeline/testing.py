@@ -28,7 +28,8 @@ def run_stage(stage_cls: type[Stage], out_dir: Path, *, scene: Mapping[str, Any]
               params: Mapping[str, Any] | None = None, inputs: Mapping[str, Path] | None = None,
               frames: tuple[int, ...] | None = None, config_dir: Path | None = None) -> Path:
     """Validate ``params`` with the stage's model and run it into ``out_dir``; whole-run inputs are
-    given as folders. Per-frame stages run every frame in ``frames`` (default: all scene frames)."""
+    given as folders. Per-frame stages run every frame in ``frames`` (default: all scene frames), then
+    ``summarise`` over them."""
     stage_cls.check_contract()
     sections = scene_sections(scene)
     p = stage_cls.Params.model_validate(dict(params or {}))
@@ -42,6 +43,9 @@ def run_stage(stage_cls: type[Stage], out_dir: Path, *, scene: Mapping[str, Any]
     if stage_cls.per_frame:
         for f in frames:
             stage.run_frame(ctx, arts, p, f)
+        # as the engine: once all frames are done, read only (out_dir None)
+        stage.summarise(Context.for_stage(stage_cls, sections, out_dir=None, config_dir=config_dir or Path.cwd(),
+                                          frames=tuple(frames)), p, {f: out_dir for f in frames})
     else:
         stage.run(ctx, arts, p)
     return out_dir

@@ -357,6 +357,39 @@ def test_unknown_force_and_frames_are_errors(toy_config):
         run(toy_config, only="export")
 
 
+def test_a_per_frame_stage_sums_up_all_of_a_runs_frames_once_in_this_process(toy_config):
+    """Stage.summarise: a per-frame stage whose frames run in worker processes says what only all of them tell
+    (surface_extract: how many frames came out empty) once per run, in the process driving it, over every frame
+    of the run (cached ones too) once they are all in the cache; not when the whole stage came from the cache,
+    nor when a frame failed; a failing summary fails the stage as any failure does (its traceback saved)."""
+    from pipeline.executors import ProcessExecutor
+
+    log = toy_config.parent / "summarised.log"
+
+    def calls():
+        return log.read_text().splitlines() if log.exists() else []
+
+    ex = ProcessExecutor(2)
+    try:
+        assert run(toy_config, executor=ex).stage("surface_extract").frames_ran == 4
+    finally:
+        ex.close()
+    assert calls() == [f"{os.getpid()} 0 1 2 3 out_dir=None"]
+    run(toy_config)
+    run(toy_config, frames=(1, 2))
+    assert len(calls()) == 1  # all from the cache
+    run(toy_config, overrides=("surface_extract.iso=0.4",), frames=(1, 2))
+    run(toy_config, overrides=("surface_extract.iso=0.4",))  # 0 and 3 run, 1 and 2 from the cache
+    assert calls()[1:] == [f"{os.getpid()} 1 2 out_dir=None", f"{os.getpid()} 0 1 2 3 out_dir=None"]
+    with pytest.raises(StageFailed, match="frame 2 has no particles"):
+        run(toy_config, overrides=("surface_extract.fail=frame",))
+    assert len(calls()) == 3
+    with pytest.raises(StageFailed, match=r"stage surface_extract.toy failed .*RuntimeError: summary boom "
+                                          r"\(traceback in .*\.log\)") as e:
+        run(toy_config, overrides=("surface_extract.fail=summary",))
+    assert "in summarise" in Path(str(e.value).rsplit("traceback in ", 1)[1].rstrip(")")).read_text()
+
+
 def test_independent_branches_run_concurrently_with_a_pool(toy_config):
     """render (per-frame, in worker processes) and export (whole-run) only share upstream: with a pool
     they overlap in time; inline they run one after the other. Same outputs either way."""

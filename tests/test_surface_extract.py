@@ -289,61 +289,129 @@ def test_a_surface_grid_the_machine_cannot_hold_is_refused_with_the_cell_named(t
 
 def test_settings_that_lose_the_water_are_said_once(tmp_path, caplog):
     """At cell 1.5 l0 lone drops and a jet vanished (exit 0, nothing said); the stage says how much of the
-    water's volume the surface holds when changed settings take it far off, once; the defaults say nothing."""
+    water's volume the surface holds when changed settings take it far off, in one line for the run counting and
+    listing the frames (here two drops and a jet, 0.41 at cell 1 l0, 6.7 at radius 4 l0; the block between them
+    keeps 0.88 and 1.12); the defaults say nothing."""
     import logging
-
-    from stages.surface_extract import marching_cubes
 
     x = np.concatenate([np.array([[0.0, 0.0, 0.0], [0.3, 0.0, 0.0]]), np.stack([np.full(20, 0.6), np.zeros(20),
                                                                                  np.arange(20) * L0], axis=1)])
+    block = lattice([0.0, 0.0, 0.0], [0.1, 0.1, 0.1], L0)
     (tmp_path / "p").mkdir()
-    src = particles(tmp_path / "p", [x, x])
-    for cell, said in ((0.5, False), (1.5, True)):
-        marching_cubes._SAID.clear()
+    src = particles(tmp_path / "p", [x, block, x])
+    scene = {"scene": {"name": "t", "frames": {"fps": 10, "count": 3}}}
+    for i, (params, said) in enumerate((({}, None), ({"cell": 1.0}, "2 of 3 frames (0, 2) enclose 0.4"),
+                                        ({"radius": 4.0}, "2 of 3 frames (0, 2) enclose 6."))):
         caplog.clear()
         with caplog.at_level(logging.WARNING):
-            run_stage(MarchingCubes, tmp_path / f"s{cell}", scene=SCENE, inputs={"particles": src}, frames=(0, 1),
-                      params={"cell": cell})
-        lines = [r.getMessage() for r in caplog.records if "of the water's volume" in r.getMessage()]
-        assert len(lines) == (1 if said else 0), lines
-        if said:
-            assert "with cell 1.5" in lines[0] and "encloses 0." in lines[0]
+            run_stage(MarchingCubes, tmp_path / f"s{i}", scene=scene, inputs={"particles": src}, params=params)
+        lines = [r.getMessage() for r in caplog.records]
+        if said is None:
+            assert not lines, lines
+        else:
+            assert len(lines) == 1 and said in lines[0] and f"of the water's volume with {next(iter(params))} " \
+                f"{next(iter(params.values()))} (the defaults keep" in lines[0], lines
+
+
+EMPTY_SCENE = {"scene": {"name": "t", "frames": {"fps": 10, "count": 6}}}
+
+
+def empty_frames_source(folder, mpu: float = 1.0):
+    """Frames 0 and 5 a block, 1, 2 and 4 lone drops 4 l0 apart (no surface at iso 0.999), 3 no particle."""
+    s = 1.0 / mpu
+    block = lattice([0.0, 0.0, 0.0], [0.1, 0.1, 0.1], L0) * s
+    drops = lattice([0.0, 0.0, 0.0], [0.2, 0.2, 0.2], 4 * L0)[:8] * s + 1.0 * s
+    folder.mkdir()
+    return particles(folder, [block, drops, drops[:5], np.zeros((0, 3)), drops, block], mpu)
 
 
 @pytest.mark.parametrize("mpu", [1.0, 0.01])
-def test_a_frame_with_particles_and_no_surface_is_said(tmp_path, caplog, mpu):
+def test_frames_with_particles_and_no_surface_are_said_in_one_line(tmp_path, caplog, mpu):
     """A tester's sweep: at iso 0.999 (anisotropic or not) the surface of spray came out empty, exit 0, nothing
-    said when another frame's volume had been said first (one line per process, and the volume's took it). A
-    frame with particles and no surface is said in its own line, with the settings changed from the defaults;
-    a frame without particles is not; the defaults say nothing. In metres and in centimetres alike."""
+    said when another frame's volume had been said first (one line per process, and the volume's took it). The
+    frames with particles and no surface are said in one line for the run, counted and listed, with the
+    settings changed from the defaults; a frame without particles is not; the defaults say nothing. In metres
+    and in centimetres alike."""
     import logging
 
-    from stages.surface_extract import marching_cubes
-
-    s = 1.0 / mpu
-    block = lattice([0.0, 0.0, 0.0], [0.1, 0.1, 0.1], L0) * s
-    drops = lattice([0.0, 0.0, 0.0], [0.2, 0.2, 0.2], 4 * L0)[:8] * s + 1.0 * s  # lone drops 4 l0 apart
-    (tmp_path / "p").mkdir()
-    src = particles(tmp_path / "p", [block, drops, np.zeros((0, 3))], mpu)
-    scene = {"scene": {"name": "t", "frames": {"fps": 10, "count": 3}}}
+    src = empty_frames_source(tmp_path / "p", mpu)
     for params, said in (({}, None), ({"anisotropic": True}, None),
                          ({"iso": 0.999, "anisotropic": True}, "with iso 0.999, anisotropic True (defaults: iso 0.63, "
                                                                "anisotropic False)"),
                          ({"iso": 0.999}, "with iso 0.999 (defaults: iso 0.63)")):
-        marching_cubes._SAID.clear()
         caplog.clear()
         out = tmp_path / f"s{len(params)}{params.get('anisotropic', False)}"
-        with caplog.at_level(logging.WARNING):  # the block's volume first, then the drops'
-            run_stage(MarchingCubes, out, scene=scene, inputs={"particles": src}, frames=(0, 1, 2), params=params)
-        lines = [r.getMessage() for r in caplog.records if "is empty" in r.getMessage()]
+        with caplog.at_level(logging.WARNING):
+            run_stage(MarchingCubes, out, scene=EMPTY_SCENE, inputs={"particles": src}, params=params)
+        lines = [r.getMessage() for r in caplog.records if "empty surface" in r.getMessage()]
         if said is None:
             assert not caplog.records, [r.getMessage() for r in caplog.records]
             assert len(load_surface(out, 1).faces) > 0
         else:
-            assert len(lines) == 1 and "frame 1's surface is empty: it encloses 0.00 of the water's volume (8 " \
-                "particles)" in lines[0], lines
+            assert len(lines) == 1 and "3 of 6 frames (1-2, 4) have an empty surface, enclosing 0.00 of the " \
+                "water's volume, though they hold 5-8 particles" in lines[0], lines
             assert said in lines[0] and "a high iso, a small radius or a large cell" in lines[0], lines[0]
             assert len(load_surface(out, 1).faces) == 0
+
+
+def test_a_second_run_in_the_process_says_its_own_frames(tmp_path, caplog):
+    """Said once per process, the first run's line silenced every later run's (tests, a study running its variants
+    inline): each run says its own."""
+    import logging
+
+    src = empty_frames_source(tmp_path / "p")
+    for i, frames in enumerate([(0, 1, 2), (3, 4, 5)]):
+        caplog.clear()
+        with caplog.at_level(logging.WARNING):
+            run_stage(MarchingCubes, tmp_path / f"s{i}", scene=EMPTY_SCENE, inputs={"particles": src}, frames=frames,
+                      params={"iso": 0.999})
+        lines = [r.getMessage() for r in caplog.records if "empty surface" in r.getMessage()]
+        expected = "2 of 3 frames (1-2) have" if i == 0 else "1 of 3 frames (4) has"
+        assert len(lines) == 1 and expected in lines[0], lines
+
+
+def test_the_frame_list_is_ranges_and_capped():
+    from stages.surface_extract.marching_cubes import frame_list
+
+    assert frame_list([31, 3, 7, 8, 9]) == "3, 7-9, 31"
+    assert frame_list(range(0, 40, 2)) == "0, 2, 4, 6, 8, 10, ..."
+
+
+def test_frames_run_in_worker_processes_are_said_once_in_the_run(tmp_path, caplog):
+    """With --workers 2 each worker said the first empty frame it made, once per worker, and the user never
+    learned how many there were: the run says one line, in this process, counting every frame."""
+    import logging
+
+    import pipeline
+    from pipeline import Registry
+    from toy_stages import ToyParticles
+
+    registry = Registry.from_entry_points()
+    registry.add(ToyParticles)
+    config = tmp_path / "mc.yaml"
+    config.write_text(f"""\
+config_version: 1
+scene:
+  name: mc
+  frames: {{fps: 10, count: 6}}
+fluid:
+  spacing: {L0}
+  emitters:
+    - box: {{min: [0, 0, 0], max: [0.1, 0.1, 0.1]}}
+stages:
+  simulate: {{use: toy_particles, frames: bddedb}}
+  surface_extract: {{use: marching_cubes, iso: 0.999}}
+outputs: [raw_surface]
+""")
+    with caplog.at_level(logging.WARNING):
+        report = pipeline.run(config, registry=registry, cache_dir=tmp_path / "c", out_dir=tmp_path / "o", workers=2)
+    assert report.stage("surface_extract").frames_ran == 6
+    lines = [r.getMessage() for r in caplog.records if "empty surface" in r.getMessage()]
+    assert len(lines) == 1 and "3 of 6 frames (1-2, 4) have an empty surface" in lines[0], lines
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):  # all from the cache: nothing ran, nothing said
+        pipeline.run(config, registry=registry, cache_dir=tmp_path / "c", out_dir=tmp_path / "o")
+    assert not [r for r in caplog.records if "empty surface" in r.getMessage()]
 
 
 def test_the_dry_node_test_answers_the_same_without_probing_segments_it_can_bound():

@@ -108,11 +108,22 @@ class ToySurface(Stage):
 
     class Params(Params):
         iso: float = 0.5
+        fail: str | None = Field(None, description="'frame' fails frame 2 (StageError), 'summary' summarise (a bug)")
 
     def run_frame(self, ctx, inputs, params, frame):
         _bump(ctx, "surface_extract")
+        if params.fail == "frame" and frame == 2:
+            raise StageError("frame 2 has no particles")
         src = (inputs["particles"].frame(frame) / "particles.txt").read_text()
         (ctx.out_dir / f"surface_{frame:05d}.txt").write_text(f"{src} | surface {frame} iso {params.iso}")
+
+    def summarise(self, ctx, params, frames):
+        """Records each call beside the config: the process, the frames and whether each entry is there."""
+        if params.fail == "summary":
+            raise RuntimeError("summary boom")
+        with open(ctx.config_dir / "summarised.log", "a") as fh:
+            fh.write(f"{os.getpid()} {' '.join(str(f) for f in frames if (frames[f] / f'surface_{f:05d}.txt').is_file())}"
+                     f" out_dir={ctx.out_dir}\n")
 
 
 class ToyRender(Stage):
@@ -170,6 +181,34 @@ class ToyExport(Stage):
         _bump(ctx, "export")
         _span(ctx, "export", params.sleep, params.wait_for)
         (ctx.out_dir / "scene.txt").write_text((inputs["particles"].path / "particles.txt").read_text())
+
+
+class ToyParticles(Stage):
+    """Particle frames in the real format for the real surface stage (not in the toy plugin: a test adds it)."""
+
+    kind, name, version = "simulate", "toy_particles", "1"
+    outputs = ("particles",)
+
+    class Params(Params):
+        frames: str = Field("b", description="per frame: b a block, d lone drops 4 l0 apart, e no particle")
+
+    def run(self, ctx, inputs, params):
+        import numpy as np
+
+        from stages.common.formats import ParticleFrame, ParticleMeta, save_particle_frame
+        from stages.simulate.emitters import lattice
+        from stages.simulate.kernels import lattice_mass
+
+        l0 = 0.02
+        ParticleMeta(spacing=l0, mass=lattice_mass(1000.0, l0, 2 * l0), density=1000.0, support=2 * l0, fps=10,
+                     frame_count=len(params.frames), up_axis="Z", meters_per_unit=1.0, solver="toy").save(ctx.out_dir)
+        shapes = {"b": lattice([0.0, 0.0, 0.0], [0.1, 0.1, 0.1], l0),
+                  "d": lattice([0.0, 0.0, 0.0], [0.2, 0.2, 0.2], 4 * l0)[:8] + 1.0, "e": np.zeros((0, 3))}
+        for i, c in enumerate(params.frames):
+            x = shapes[c]
+            n = len(x)
+            save_particle_frame(ctx.out_dir, i, ParticleFrame(x=x, v=np.zeros((n, 3)), rho=np.full(n, 1000.0),
+                                                              p=np.zeros(n), id=np.arange(n)))
 
 
 TOY_STAGES = (ToyImport, ToyBake, ToySimulate, ToySurface, ToyRender, ToyExport)

@@ -38,8 +38,10 @@ same scene set up Y-up was sampled at other points (2836 against 2842 vertices o
 from __future__ import annotations
 
 import dataclasses
+import json
 import threading
 import time
+from pathlib import Path
 from typing import Mapping
 
 import numba as nb
@@ -362,40 +364,64 @@ def extract(x: np.ndarray, vol: np.ndarray, l0: float, params: MarchingCubesPara
     return SurfaceMesh(verts.astype(position_dtype(verts, l0), copy=False), faces, normals.astype(np.float32, copy=False))
 
 
-_SAID: set[str] = set()
+def diagnostics_file(frame: int) -> str:
+    """What ``run_frame`` found in a frame (particles, empty, volume_ratio), beside its surface: the frames may run
+    in several worker processes, and only ``summarise`` sees them all."""
+    return f"surface_{frame:05d}.json"
 
 
-def said_volume(log, frame: int, ratio: float, params: MarchingCubesParams) -> None:
-    """Once per process: a surface far from the water's volume under settings changed from the defaults (at cell
-    1.5 l0 lone drops and jets vanished, at radius 4 a drop became 13 l0^3, without a word). The defaults keep
-    0.96-1.01 on a splash (a few lone drops 0.7-0.9: not said)."""
+def frame_list(frames, most: int = 6) -> str:
+    """``[3, 7, 8, 9, 31]`` -> ``"3, 7-9, 31"``; past ``most`` ranges the first ones and "..."."""
+    runs: list[list[int]] = []
+    for f in sorted(frames):
+        if runs and f == runs[-1][1] + 1:
+            runs[-1][1] = f
+        else:
+            runs.append([f, f])
+    text = [str(a) if a == b else f"{a}-{b}" for a, b in runs]
+    return ", ".join(text[:most]) + (", ..." if len(text) > most else "")
+
+
+def _span(values, fmt: str) -> str:
+    lo, hi = fmt % min(values), fmt % max(values)
+    return lo if lo == hi else f"{lo}-{hi}"
+
+
+def said_volume(log, ratios: dict[int, float], total: int, params: MarchingCubesParams) -> None:
+    """One line for the run: the frames whose surface is far from the water's volume (``ratios``: frame -> enclosed
+    / N l0^3, of ``total`` frames) under settings changed from the defaults (at cell 1.5 l0 lone drops and jets
+    vanished, at radius 4 a drop became 13 l0^3, without a word). The defaults keep 0.96-1.01 on a splash (a few
+    lone drops 0.7-0.9: not said)."""
     changed = {k: getattr(params, k) for k in ("cell", "radius", "iso", "anisotropic_smoothing")
                if getattr(params, k) != MarchingCubesParams.model_fields[k].default}
-    if not changed or 0.8 <= ratio <= 1.25 or "volume" in _SAID:
+    off = {f: r for f, r in ratios.items() if not 0.8 <= r <= 1.25}
+    if not changed or not off:
         return
-    _SAID.add("volume")
-    log.warning("surface_extract: frame %d's surface encloses %.2f of the water's volume with %s (the defaults keep "
+    log.warning("surface_extract: %d of %d frames (%s) enclose%s %s of the water's volume with %s (the defaults keep "
                 "0.96-1.01 on a splash): a large cell or iso loses drops, jets and thin sheets, a large radius swells "
-                "them", frame, ratio, ", ".join(f"{k} {v}" for k, v in changed.items()))
+                "them", len(off), total, frame_list(off), "s" if len(off) == 1 else "", _span(off.values(), "%.2f"),
+                ", ".join(f"{k} {v}" for k, v in changed.items()))
 
 
-def said_empty(log, frame: int, particles: int, params: MarchingCubesParams) -> None:
-    """Once per process, apart from said_volume's line (a frame far off in volume said first had silenced it): a
-    frame with particles whose surface is empty, with the settings changed from the defaults that likely emptied
-    it (anisotropic or isotropic kernels at iso 0.999 left spray no node above the iso level, cell 1.5 l0 lone
-    drops and a jet). Said at the default settings too."""
-    if "empty" in _SAID:
+def said_empty(log, particles: dict[int, int], total: int, params: MarchingCubesParams) -> None:
+    """One line for the run: the frames with particles whose surface is empty (``particles``: frame -> its
+    particles, of ``total`` frames), with the settings changed from the defaults that likely emptied them
+    (anisotropic or isotropic kernels at iso 0.999 left spray no node above the iso level, cell 1.5 l0 lone drops
+    and a jet). Said at the default settings too."""
+    if not particles:
         return
-    _SAID.add("empty")
     fields = MarchingCubesParams.model_fields
     changed = [k for k in ("iso", "radius", "cell", "anisotropic", "anisotropic_smoothing", "wall_term")
                if getattr(params, k) != fields[k].default]
     settings = (f"with {', '.join(f'{k} {getattr(params, k)}' for k in changed)} (defaults: "
                 f"{', '.join(f'{k} {fields[k].default}' for k in changed)})" if changed else
                 "at the default settings (the walls' cut, wall_term, may have taken it)")
-    log.warning("surface_extract: frame %d's surface is empty: it encloses 0.00 of the water's volume (%d particles) "
-                "%s: a high iso, a small radius or a large cell leaves no grid node at the iso level (a lone "
-                "particle's Phi peaks at 1 at its centre); later empty frames are not said", frame, particles, settings)
+    one = len(particles) == 1
+    log.warning("surface_extract: %d of %d frames (%s) %s an empty surface, enclosing 0.00 of the water's volume, "
+                "though %s %s particles %s: a high iso, a small radius or a large cell leaves no grid node at the "
+                "iso level (a lone particle's Phi peaks at 1 at its centre)", len(particles), total,
+                frame_list(particles), "has" if one else "have", "it holds" if one else "they hold",
+                _span(particles.values(), "%d"), settings)
 
 
 class MarchingCubes(Stage):
@@ -426,8 +452,20 @@ class MarchingCubes(Stage):
         ctx.log.debug("frame %d: %d particles -> %d triangles (volumes %.3f s, phi %.3f s, contour %.3f s, "
                       "finish %.3f s)", frame, len(pf.x), len(mesh.faces), timings["volumes"], timings["phi"],
                       timings["contour"], timings["finish"])
-        if len(pf.x) and not len(mesh.faces):  # (a frame without particles has no surface to have)
-            said_empty(ctx.log, frame, len(pf.x), params)
-        elif len(pf.x):
-            said_volume(ctx.log, frame, signed_volume(mesh.vertices, mesh.faces) / (len(pf.x) * vol[0]), params)
+        ratio = signed_volume(mesh.vertices, mesh.faces) / (len(pf.x) * vol[0]) if len(mesh.faces) else 0.0
+        (ctx.out_dir / diagnostics_file(frame)).write_text(json.dumps(
+            {"particles": len(pf.x), "empty": not len(mesh.faces), "volume_ratio": ratio if len(pf.x) else None}))
         save_surface(ctx.out_dir, frame, mesh, meta.spacing)
+
+    def summarise(self, ctx: Context, params: MarchingCubesParams, frames: Mapping[int, Path]) -> None:
+        """The frames far off in volume, and those with particles and no surface, each in one line for the run."""
+        seen = {}
+        for f, folder in frames.items():
+            path = Path(folder) / diagnostics_file(f)
+            if path.is_file():  # (the code is keyed: only a damaged entry lacks it; not worth failing the run)
+                seen[f] = json.loads(path.read_text())
+        said_volume(ctx.log, {f: d["volume_ratio"] for f, d in seen.items() if d["particles"] and not d["empty"]},
+                    len(seen), params)
+        # (a frame without particles has no surface to have)
+        said_empty(ctx.log, {f: d["particles"] for f, d in seen.items() if d["particles"] and d["empty"]},
+                   len(seen), params)
