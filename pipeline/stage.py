@@ -3,8 +3,8 @@
 A stage is a small class: its kind (the DAG node it can fill, e.g. ``simulate``), its implementation
 name (chosen in the config with ``use:``), a hand-bumped code ``version``, a typed ``Params`` model,
 the artifacts it consumes and produces, the config fields it reads, and ``run`` (or ``run_frame`` for
-per-frame stages, and optionally ``summarise`` over all of a run's frames). The engine checks the contract when the stage is registered; pipeline.keys says
-what goes into the cache key.
+per-frame stages, and optionally ``summarise`` over all of a run's frames). The engine checks the
+contract when the stage is registered; pipeline.keys says what goes into the cache key.
 """
 from __future__ import annotations
 
