@@ -545,17 +545,24 @@ def test_a_render_resolution_of_another_aspect_than_the_shot_camera_is_said(tmp_
     exported USD camera stayed 16:9 and closer (a user's sweep), without a word."""
     import logging
 
-    from stages.render import pyvista_render
+    from pipeline.testing import stage_context
+    from stages.render.pyvista_render import RenderParams
 
-    pyvista_render._WARNED.clear()
-    with caplog.at_level(logging.WARNING):
-        run_stage(PyvistaRender, tmp_path / "p", scene=SCENE, inputs=inputs, frames=(0, 1),
-                  params={"resolution": [90, 160]})
-    assert caplog.text.count("render.resolution 90x160 is not the shot camera's aspect (1280x720, the default)") == 1
+    def check(resolution):
+        PyvistaRender().check(stage_context(PyvistaRender, tmp_path, scene=SCENE), RenderParams(resolution=resolution))
+
+    for k in range(2):  # said by every run's check (it was once per process: a second run said nothing)
+        caplog.clear()
+        with caplog.at_level(logging.WARNING):
+            check([90, 160])
+        assert caplog.text.count("render.resolution 90x160 is not the shot camera's aspect (1280x720, the "
+                                 "default)") == 1, k
     caplog.clear()
     with caplog.at_level(logging.WARNING):
-        run_stage(PyvistaRender, tmp_path / "q", scene=SCENE, inputs=inputs, frames=(0,), params={"resolution": [320, 180]})
-    assert "shot camera's aspect" not in caplog.text
+        check([320, 180])
+        run_stage(PyvistaRender, tmp_path / "p", scene=SCENE, inputs=inputs, frames=(0, 1),
+                  params={"resolution": [90, 160]})
+    assert "shot camera's aspect" not in caplog.text  # the frames themselves say nothing
 
 
 def test_the_colour_range_of_a_shot_starting_at_rest_is_its_fast_frames_percentile(tmp_path):

@@ -257,6 +257,17 @@ class PyvistaRender(Stage):
     def external_files(self, ctx: Context, params: RenderParams) -> list[Path]:
         return camera_files(ctx)  # the layers a camera.usd composes
 
+    def check(self, ctx: Context, params: RenderParams) -> None:
+        """Said once before the run (said from run_frame, once per process, each pool worker said it again and a
+        second run in the same process not at all)."""
+        shot = ctx.scene["camera"].resolution or DEFAULT_RESOLUTION
+        if params.resolution and abs(params.resolution[0] / params.resolution[1] / (shot[0] / shot[1]) - 1) > 0.01:
+            ctx.log.warning(f"render.resolution {params.resolution[0]}x{params.resolution[1]} is not the shot "
+                            f"camera's aspect ({shot[0]}x{shot[1]}"
+                            f"{'' if ctx.scene['camera'].resolution else ', the default'}): the frames are framed "
+                            "for it, a USD export's camera (if one is written) is not; set camera.resolution to it so "
+                            "both agree")
+
     def run_frame(self, ctx: Context, inputs: Mapping[str, Artifact], params: RenderParams, frame: int) -> None:
         if frame % params.every:
             # a marker, not a missing file: the movie tells a skipped frame from a lost one
@@ -264,13 +275,7 @@ class PyvistaRender(Stage):
             return
         choose_offscreen_backend()
         # the frame size: the stage's own, else the shot camera's (export's USD camera follows that one)
-        shot = ctx.scene["camera"].resolution or DEFAULT_RESOLUTION
-        if params.resolution and abs(params.resolution[0] / params.resolution[1] / (shot[0] / shot[1]) - 1) > 0.01:
-            _warn_once(ctx.log, f"render.resolution {params.resolution[0]}x{params.resolution[1]} is not the shot "
-                       f"camera's aspect ({shot[0]}x{shot[1]}{'' if ctx.scene['camera'].resolution else ', the default'}"
-                       "): the frames are framed for it, a USD export's camera (if one is written) is not; set "
-                       "camera.resolution to it so both agree")
-        size = params.resolution or shot
+        size = params.resolution or ctx.scene["camera"].resolution or DEFAULT_RESOLUTION
         params = params.model_copy(update={"resolution": tuple(size)})
         scene = ctx.scene["scene"]
         walls = load_walls(Path(inputs["walls"].path))
@@ -349,16 +354,6 @@ class PyvistaRender(Stage):
             size = max(6, round(0.5 * bar["label_font_size"]))
             plotter.add_text("pink: above", position=(w - 0.02 * w - 13 * size, 0.012 * h), color=ABOVE_RGB,
                              font_size=size, render=False)
-
-
-_WARNED: set[str] = set()
-
-
-def _warn_once(log, text: str) -> None:
-    """A warning about the whole shot, said once per process, not for every frame."""
-    if text not in _WARNED:
-        _WARNED.add(text)
-        log.warning(text)
 
 
 def time_label(frame: int, fps: float) -> str:
