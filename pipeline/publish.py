@@ -4,7 +4,9 @@ The output folder keeps a record of what the pipeline published, ``.pipeline-pub
 published name (``frames``, ``usd``, ``run.json``...) with the files it held. A name is replaced only
 when the record lists it and it holds no file the record does not list; anything else in the folder
 (a user's ``walls/`` folder, notes, renders) is never replaced or removed: the run stops with exit 2
-instead, before any stage runs. Every write goes to a ``.pipeline-tmp.*`` name first and is renamed
+instead, before any stage runs. The record also keeps each published file's size and modification time: a
+published file changed since (a lighter's edit to scene.usda, a retouched frame) is the user's, and the run stops
+the same way (it was replaced by the cache's copy without a word). Every write goes to a ``.pipeline-tmp.*`` name first and is renamed
 into place; the record lists the union of old and new files while a replacement is under way, so a
 run killed at any point leaves a folder the next run can still replace. ``.pipeline-tmp.*`` entries
 left by a killed run are removed when their process is provably dead (see ``cache.owner_is_dead``).
@@ -81,11 +83,45 @@ def read_shot(out_dir: Path) -> dict[str, str] | None:
         return None
 
 
+def read_record_stats(out_dir: Path) -> dict[str, dict[str, list[int]]]:
+    """Each published name's files as published: ``{name: {file: [size, mtime_ns]}}``; empty for a record
+    written before these were kept, or a name being replaced (its files then are not checked)."""
+    try:
+        stats = json.loads((out_dir / RECORD).read_text()).get("stats", {})
+        return {str(n): {str(f): [int(a), int(b)] for f, (a, b) in fs.items()} for n, fs in stats.items()}
+    except (OSError, ValueError, AttributeError, TypeError):
+        return {}
+
+
+def _stats(target: Path) -> dict[str, list[int]]:
+    out = {}
+    for f in _files(target):
+        st = (target / f if target.is_dir() else target).lstat()
+        out[f] = [st.st_size, st.st_mtime_ns]
+    return out
+
+
+def changed_file(out_dir: Path, name: str, stats: dict[str, dict[str, list[int]]]) -> str | None:
+    """The first file of published ``name`` whose size or modification time is not what the pipeline published
+    (a hand edit), else None."""
+    target = out_dir / name
+    for f, was in sorted(stats.get(name, {}).items()):
+        path = target / f if target.is_dir() else target
+        try:
+            st = path.lstat()
+        except OSError:
+            continue  # removed: nothing of the user's to keep
+        if [st.st_size, st.st_mtime_ns] != was:
+            return f
+    return None
+
+
 def _write_record(out_dir: Path, published: dict[str, list[str]], keys: dict[str, dict] | None = None,
-                  shot: dict[str, str] | None = None) -> None:
+                  shot: dict[str, str] | None = None, stats: dict[str, dict] | None = None) -> None:
     keys = {n: k for n, k in {**read_record_keys(out_dir), **(keys or {})}.items() if n in published}
+    stats = {n: s for n, s in {**read_record_stats(out_dir), **(stats or {})}.items() if n in published and s}
     shot = shot or read_shot(out_dir)
-    _atomic_write(out_dir / RECORD, json.dumps({"version": 1, "published": published, "keys": keys,
+    _atomic_write(out_dir / RECORD, json.dumps({"version": 1, "published": published, "keys": keys, "stats": stats,
                                                 **({"shot": shot} if shot else {})}, indent=1, sort_keys=True))
 
 
@@ -126,7 +162,7 @@ def check_out_dir(out_dir: Path, names: Iterable[str], files: Iterable[str] = ("
                             f"or choose another --out (nothing was changed)")
     if not out_dir.is_dir():
         return
-    record = read_record(out_dir)
+    record, stats = read_record(out_dir), read_record_stats(out_dir)
     was = read_shot(out_dir)
     if shot is not None and was is not None and was["scene"] != shot["scene"] and any(n in record for n in names):
         raise OutputRefused(f"output folder {out_dir} holds the outputs of scene {was['scene']!r} ({was['config']}); "
@@ -146,6 +182,11 @@ def check_out_dir(out_dir: Path, names: Iterable[str], files: Iterable[str] = ("
         if foreign:
             raise OutputRefused(f"{target / foreign[0]}: a file the pipeline did not publish is inside output {name!r}; "
                                 f"move it away (nothing was changed)")
+        edited = changed_file(out_dir, name, stats)
+        if edited is not None:
+            where = target / edited if target.is_dir() else target
+            raise OutputRefused(f"{where}: changed since the pipeline published it (edited by hand?): it is yours now; "
+                                f"move output {name!r} away or choose another --out (nothing was changed)")
         if target.is_dir() and (not os.access(target, os.W_OK) or not target.stat().st_mode & 0o200):
             # a folder someone locked (chmod a-w: an approved movie) is theirs to unlock, not ours to replace (it was
             # swapped anyway, and its old files, undeletable, stayed behind as a hidden folder)
@@ -230,8 +271,10 @@ def publish(graph: Graph, artifacts: dict[str, Artifact], out_dir: Path, frames:
                     if f.is_file() and f.name != "manifest.json" and not f.name.startswith("."):
                         _clone_or_copy(f, staging / f.relative_to(src_dir))
         new = {name: _files(staging) for name, staging in staged.items()}
-        # while replacing, the record lists old and new files: a kill here leaves a folder we still own
-        _write_record(out_dir, {**record, **{n: sorted(set(record.get(n, [])) | set(fs)) for n, fs in new.items()}})
+        # while replacing, the record lists old and new files and no sizes for them: a kill here leaves a folder we
+        # still own, whichever of the two it holds
+        _write_record(out_dir, {**record, **{n: sorted(set(record.get(n, [])) | set(fs)) for n, fs in new.items()}},
+                      stats={n: {} for n in new})
         for name, staging in staged.items():
             target = out_dir / name
             if target.exists():
@@ -245,7 +288,8 @@ def publish(graph: Graph, artifacts: dict[str, Artifact], out_dir: Path, frames:
                 shutil.rmtree(trash, ignore_errors=True)
             else:
                 os.replace(staging, target)
-        _write_record(out_dir, {**record, **new}, {n: k for n, k in keys.items() if n in new}, shot)
+        _write_record(out_dir, {**record, **new}, {n: k for n, k in keys.items() if n in new}, shot,
+                      {n: _stats(out_dir / n) for n in new})
     finally:
         for staging in staged.values():
             if staging.exists():
@@ -265,9 +309,9 @@ def publish_file(out_dir: Path, name: str, data: str | bytes) -> None:
     check_out_dir(out_dir, [name], files=[name])
     out_dir.mkdir(parents=True, exist_ok=True)
     record = read_record(out_dir)
-    if name not in record:
-        _write_record(out_dir, {**record, name: [name]})
+    _write_record(out_dir, {**record, name: [name]}, stats={name: {}})
     _atomic_write(out_dir / name, data)
+    _write_record(out_dir, {**record, name: [name]}, stats={name: _stats(out_dir / name)})
 
 
 def drop_stale(out_dir: Path, current: dict[str, str | None]) -> list[str]:
@@ -276,9 +320,11 @@ def drop_stale(out_dir: Path, current: dict[str, str | None]) -> list[str]:
     a run with ``--until simulate`` or fewer outputs after an edit left the old movie beside the new
     particles. Only what the record lists and the folder holds nothing else of; returns the names removed."""
     out_dir = Path(out_dir)
-    record, was = read_record(out_dir), read_record_keys(out_dir)
+    record, was, stats = read_record(out_dir), read_record_keys(out_dir), read_record_stats(out_dir)
+    # (a name holding a file edited by hand is the user's: kept, and the next run that would replace it stops)
     stale = [n for n, key in current.items() if key is not None and n in record and n in was and key != was[n]["key"]
-             and (out_dir / n).is_dir() and not (out_dir / n).is_symlink() and set(_files(out_dir / n)) <= set(record[n])]
+             and (out_dir / n).is_dir() and not (out_dir / n).is_symlink() and set(_files(out_dir / n)) <= set(record[n])
+             and changed_file(out_dir, n, stats) is None]
     for name in stale:
         trash = out_dir / f"{TMP_PREFIX}old-{name}.{owner_tag()}.{uuid.uuid4().hex[:8]}"
         os.replace(out_dir / name, trash)

@@ -141,6 +141,36 @@ def test_a_published_file_edited_in_place_changes_nothing_else(tmp_path, toy_reg
         (b / "frames" / "frame_00001.txt").read_text() == made
 
 
+@pytest.mark.parametrize("edited", ["usd/scene.txt", "frames/frame_00002.txt", "run.json"])
+def test_a_published_file_edited_by_hand_is_the_users_and_stops_the_next_run(tmp_path, toy_registry, edited):
+    """A lighter's line added to the published scene, a retouched frame: the next run, every stage cached, copied
+    the cache's files over them without a word (the record listed names only). The run now stops in one line naming
+    the file, before anything runs, with the edit kept; a partial run does not remove it as stale either; moved
+    away, the output is published again."""
+    cfg = write_config(tmp_path, count=3)
+    out, cache = tmp_path / "o", tmp_path / "c"
+    assert _run(cfg, "--out", out, "--cache", cache).exit_code == 0
+    target = out / edited
+    if not target.exists():  # the toy usd's file name
+        target = next((out / edited.split("/")[0]).iterdir())
+    with open(target, "a") as fh:
+        fh.write("# my light rig\n")
+    mine = target.read_text()
+    for extra in ([], ["--set", "render.width=16"]):
+        err = _one_line_exit(_run(cfg, "--out", out, "--cache", cache, *extra), 2)
+        assert str(target) in err and "changed since the pipeline published it" in err and "nothing was changed" in err
+        assert target.read_text() == mine
+    if edited != "run.json":  # a run that makes the edited output stale keeps it, whole
+        assert _run(cfg, "--out", out, "--cache", cache, "--until", "simulate", "--set", "simulate.steps=5").exit_code \
+            == 0
+        assert target.read_text() == mine
+    # untouched outputs are published again as before; moved away, the edited one too
+    shutil.move(str(out / edited.split("/")[0]), str(tmp_path / "kept"))
+    assert _run(cfg, "--out", out, "--cache", cache).exit_code == 0
+    assert_consistent(cache, out)
+    assert _run(cfg, "--out", out, "--cache", cache).exit_code == 0  # its own files, unchanged: replaced again
+
+
 def test_outputs_made_with_other_settings_are_removed_by_a_partial_run(tmp_path, toy_registry):
     """After an edit, a run that stops early (--until simulate) or asks for fewer outputs does not leave
     the old frames/ and usd/ beside its new results (they were made with other settings); with the config
