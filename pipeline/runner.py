@@ -260,6 +260,19 @@ def write_log(cache: Cache, name: str, text: str) -> str:
     return f"traceback in {log_file}"
 
 
+def interrupt_in(exc: BaseException) -> KeyboardInterrupt | None:
+    """The Ctrl-C (or SIGTERM) behind ``exc``, if one is in its chain: one arriving inside numba's dispatcher (its
+    unpickler) comes out as "SystemError: ... returned a result with an exception set", and the run was said as a
+    failed stage (exit 1) instead of interrupted (130)."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
 def _fail(node: Node, key: str, config: Config, exc: BaseException, cache: Cache) -> StageFailed:
     if isinstance(exc, FrameError):
         where = f"stage {node.label} frame {exc.frame}"
@@ -519,6 +532,8 @@ def _run_whole(p: Plan, node: Node, key: str, inputs: dict[str, Artifact], runna
             cache.discard(tmp)
             if isinstance(exc, KeyboardInterrupt):
                 raise
+            if interrupt_in(exc) is not None:
+                raise interrupt_in(exc) from None
             if isinstance(exc, SystemExit):  # the stage's own sys.exit(): a failed stage, said as one
                 exc = StageFailed(f"the stage called sys.exit({exc.code!r})", user_error=False).with_traceback(
                     exc.__traceback__)
@@ -572,6 +587,8 @@ def _run_per_frame(p: Plan, node: Node, key: str, inputs: dict[str, Artifact], r
     except BaseException as exc:
         if isinstance(exc, (KeyboardInterrupt, SystemExit)):
             raise
+        if interrupt_in(exc) is not None:
+            raise interrupt_in(exc) from None
         raise _fail(node, key, config, exc, cache) from exc
     sr.status = "forced" if forced else "ran"
     frames = dict(sorted(frames.items()))

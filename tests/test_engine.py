@@ -261,6 +261,17 @@ def test_a_failed_run_that_exits_1_saves_its_traceback(toy_config):
     assert e.value.exit_code == 2 and not list(logs.glob("simulate-*.log"))
 
 
+def test_a_ctrl_c_wrapped_by_a_library_is_an_interrupt_not_a_failed_stage(toy_config):
+    """A Ctrl-C arriving inside numba's dispatcher came out of a stage as a SystemError ("returned a result with an
+    exception set"), and the run was said as a failed stage, exit 1, with a log (a tester's sweep)."""
+    logs = toy_config.parent / ".pipeline" / "logs"
+    with pytest.raises(KeyboardInterrupt):
+        run(toy_config, overrides=("simulate.fail=interrupted",))
+    assert not list(logs.glob("simulate-*.log"))
+    cache = Cache(toy_config.parent / ".pipeline")
+    assert not list((cache.root / "simulate").glob("*/*/manifest.json"))
+
+
 def test_clean_removes_entries(toy_config):
     run(toy_config)
     n = pipeline.clean(toy_config, registry=Registry.from_entry_points(), stage="render")

@@ -69,7 +69,8 @@ class ToySimulate(Stage):
         steps: int = Field(3, ge=1)
         sleep: float = Field(0.0, ge=0, description="seconds to sleep mid-write (kill tests)")
         fail: str | None = Field(None, description="'user' raises StageError, 'bug' raises RuntimeError, "
-                                                   "'diverged' an exit-1 PipelineError (as a blow-up)")
+                                                   "'diverged' an exit-1 PipelineError (as a blow-up), "
+                                                   "'interrupted' a Ctrl-C wrapped in a SystemError")
         warm_up: float = Field(0.0, ge=0, description="seconds of one-off warm-up (Context.warm_up), as a JIT compile")
 
     def run(self, ctx, inputs, params):
@@ -82,6 +83,11 @@ class ToySimulate(Stage):
             raise RuntimeError("boom")
         if params.fail == "diverged":
             raise Diverged("the toy run blew up during frame 1")
+        if params.fail == "interrupted":  # a Ctrl-C as numba's dispatcher lets it out
+            try:
+                raise KeyboardInterrupt
+            except KeyboardInterrupt:
+                raise SystemError("CPUDispatcher(<function _cells>) returned a result with an exception set")
         sdf = (inputs["sdf"].path / "sdf.txt").read_text()
         part = ctx.out_dir / "particles.txt"
         with open(part, "w") as fh:
