@@ -62,8 +62,16 @@ def run_cli(*args: str, timeout: float = 120, cwd: Path | None = None,
 
 
 def tree(folder: Path, skip: tuple[str, ...] = ()) -> dict[str, bytes]:
-    """Every file under ``folder`` (relative path -> bytes), leaving out names in ``skip``."""
-    return {f.relative_to(folder).as_posix(): f.read_bytes() for f in sorted(folder.rglob("*"))
+    """Every file under ``folder`` (relative path -> bytes), leaving out names in ``skip``; the publish record
+    without its files' sizes and times (the times are when the files were made, so two runs differ there)."""
+    def content(f: Path) -> bytes:
+        if f.name != ".pipeline-published.json":
+            return f.read_bytes()
+        record = json.loads(f.read_text())
+        record.pop("stats", None)
+        return json.dumps(record, sort_keys=True).encode()
+
+    return {f.relative_to(folder).as_posix(): content(f) for f in sorted(folder.rglob("*"))
             if f.is_file() and f.name not in skip}
 
 
