@@ -38,7 +38,7 @@ effects:
   gravity: {}
 stages:
   simulate: {use: sph, threads: 1, checkpoint_every: 1}
-  render: {use: pyvista, show: surface, resolution: [32, 24], label: false}
+  render: {use: pyvista, show: surface, resolution: [32, 18], label: false}
 outputs: OUTPUTS
 """
 
