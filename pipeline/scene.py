@@ -9,9 +9,11 @@ from __future__ import annotations
 import math
 import posixpath
 import re
-from typing import Annotated, Literal, Union
+from types import UnionType
+from typing import Annotated, Any, Literal, Union, get_args, get_origin
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Discriminator, Field, Tag, field_validator, model_validator
+from pydantic import (AfterValidator, BaseModel, ConfigDict, Discriminator, Field, Tag, ValidationInfo, field_validator,
+                      model_validator)
 from pydantic_core import InitErrorDetails, PydanticCustomError, ValidationError
 
 Vec3 = tuple[float, float, float]
@@ -39,9 +41,58 @@ InputFile = Annotated[str, AfterValidator(_normal_path), INPUT_FILE]
 OptionalInputFile = Annotated[Union[str, None], AfterValidator(_normal_path), INPUT_FILE]
 
 
+def _admits_bool(tp: Any) -> bool:
+    if tp is bool or tp is Any:
+        return True
+    if get_origin(tp) is Literal:
+        return any(isinstance(a, bool) for a in get_args(tp))
+    if get_origin(tp) is Annotated:
+        return _admits_bool(get_args(tp)[0])
+    if get_origin(tp) in (Union, UnionType):
+        return any(_admits_bool(a) for a in get_args(tp))
+    return tp not in (int, float, type(None))
+
+
+def _sequence_of(tp: Any) -> Any:
+    """The list or tuple type inside an optional or annotated field type, else None."""
+    if get_origin(tp) in (list, tuple):
+        return tp
+    if get_origin(tp) is Annotated:
+        return _sequence_of(get_args(tp)[0])
+    if get_origin(tp) in (Union, UnionType):
+        return next((q for q in map(_sequence_of, get_args(tp)) if q is not None), None)
+    return None
+
+
+def _element(seq: Any, k: int) -> Any:
+    args = get_args(seq)
+    if not args:
+        return Any
+    if get_origin(seq) is list or (len(args) == 2 and args[1] is Ellipsis):
+        return args[0]
+    return args[k] if k < len(args) else Any
+
+
+def bool_for_a_number(tp: Any, v: Any) -> bool:
+    """Whether ``v`` puts a true/false where field type ``tp`` wants a number (pydantic reads True as 1: a
+    ``count: true`` ran one frame), in a list or tuple of numbers too."""
+    if isinstance(v, bool):
+        return not _admits_bool(tp)
+    seq = _sequence_of(tp) if isinstance(v, (list, tuple)) else None
+    return seq is not None and any(isinstance(x, bool) and not _admits_bool(_element(seq, k)) for k, x in enumerate(v))
+
+
+def no_bool_for_a_number(cls, v: Any, info: ValidationInfo) -> Any:
+    """The config models' before-validator of every field (``field_validator("*", mode="before")``)."""
+    if info.field_name is not None and bool_for_a_number(cls.model_fields[info.field_name].annotation, v):
+        raise ValueError("expected a number, not true/false")
+    return v
+
+
 class Model(BaseModel):
     # NaN/inf are never a valid placement, velocity, centre, size or spacing: one line naming the field
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    _no_bool_for_a_number = field_validator("*", mode="before")(classmethod(no_bool_for_a_number))
 
 
 def _finite(v: Vec3) -> Vec3:

@@ -14,10 +14,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, ClassVar, Mapping
 
-from pydantic import BaseModel, ValidationError, ConfigDict
+from pydantic import BaseModel, ConfigDict, ValidationError, field_validator
 
 from .memory import refusal
 from .reads import FRAMES, SceneReads, UndeclaredRead, check_read
+from .scene import no_bool_for_a_number
 
 # The stage kinds of the DAG, in dependency order, and the artifact each one produces. The engine
 # knows these names (they are the vocabulary of configs), never the implementations.
@@ -30,10 +31,11 @@ SCENE_SECTIONS: tuple[str, ...] = ("scene", "walls", "fluid", "effects", "camera
 
 
 class Params(BaseModel):
-    """Base of every stage's parameter model: unknown keys are errors, NaN/inf are errors, values
-    validated on assignment."""
+    """Base of every stage's parameter model: unknown keys are errors, NaN/inf are errors, a true/false for a
+    number is an error, values validated on assignment."""
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
+    _no_bool_for_a_number = field_validator("*", mode="before")(classmethod(no_bool_for_a_number))
 
 
 class StageError(Exception):
