@@ -144,7 +144,9 @@ class MPSParams(Params):
     restitution: float = Field(0.2, ge=0, le=1.0, description="restitution of the close-pair collision")
     cfl: float = Field(0.2, gt=0, le=0.3, description="dt <= cfl l0 / max(v_max, v_ref)")
     time_step: float | None = Field(None, gt=0, description="a fixed time step, s, instead of the adaptive one "
-                                    "(stability studies: a step above the stable one stops the run with a blow-up error)")
+                                    "(stability studies: a step above the stable one stops the run with a blow-up error); a frame's last two "
+                                    "steps share what is left of it when that is under 1.5 steps (frames land on their "
+                                    "times, no sliver step)")
     r_rep: float = Field(0.5, gt=0, le=1.0, description="eq. 16 wall projection distance, in units of l0")
     cg_tolerance: float = Field(1e-6, gt=0, lt=1, description="CG stops at |r| <= tol |b|")
     cg_max_iterations: int = Field(2000, ge=1, description="CG iteration cap per step")

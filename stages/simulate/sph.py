@@ -44,7 +44,9 @@ class SPHParams(Params):
                                       "top speed (sqrt(2 g H) of the fluid column, or the emitters' speed)")
     cfl: float = Field(0.4, gt=0, le=1.0, description="advective limit dt <= cfl l0 / v_max")
     time_step: float | None = Field(None, gt=0, description="a fixed time step, s, instead of the adaptive one "
-                                    "(stability studies: a step above the stable one stops the run with a blow-up error)")
+                                    "(stability studies: a step above the stable one stops the run with a blow-up error); a frame's last two "
+                                    "steps share what is left of it when that is under 1.5 steps (frames land on their "
+                                    "times, no sliver step)")
     r_rep: float = Field(0.5, gt=0, le=0.5, description="eq. 16 wall repulsion distance, in units of l0; at most "
                          "0.5, where the first layer rests (1.0 pushed that layer off the walls: 4.7 x the energy)")
     clamp_pressure: bool = Field(True, description="clamp negative pressure to 0 (avoids free-surface clumping)")
