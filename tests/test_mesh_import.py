@@ -501,3 +501,16 @@ def test_a_binary_stl_whose_header_count_is_off_is_read_from_its_size(tmp_path, 
     assert len(mesh.faces) == 12
     np.testing.assert_allclose(np.ptp(mesh.vertices, axis=0), [0.4, 0.4, 0.3], atol=1e-6)
     assert f"header says {stated} triangles and whose size holds 12" in caplog.text
+
+
+def test_a_binary_stl_cut_off_inside_a_record_is_refused_naming_the_file(tmp_path):
+    """A binary STL stating 12 triangles that ends 20 bytes into its fifth (a copy that stopped) was read as its
+    4 whole records, a tank missing most walls, with a warning and exit 0. Refused now; a file ending on a
+    record boundary short of its count (a stale count) is still read (the test above)."""
+    box = trimesh.creation.box(extents=(0.4, 0.4, 0.3))
+    data = trimesh.exchange.stl.export_stl(box)
+    (tmp_path / "cut.stl").write_bytes(data[:84 + 4 * 50 + 20])
+    with pytest.raises(StageError, match=r"cut\.stl: binary STL cut off: its header says 12 triangles and the file "
+                                         r"ends 20 bytes into triangle 5") as err:
+        _import(tmp_path, [{"file": "cut.stl", "fluid": "inside"}])
+    assert "\n" not in str(err.value)

@@ -82,7 +82,9 @@ def to_scene_frame(v: np.ndarray, path: Path, meters_per_unit: float | None, up_
 def _stl_with_a_wrong_count(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
     """A binary STL whose header's triangle count disagrees with its size (0 or a stale count from an exporter
     that streams, or trailing bytes): read as many whole 50-byte records as the file holds, and say so; None for
-    any other file (trimesh refused these as 'not a valid STL file')."""
+    any other file (trimesh refused these as 'not a valid STL file'). A file that ends inside a record short of
+    the count it states is cut off (a download or copy that stopped): refused, not read as the records it kept
+    (a tank with most of its walls missing)."""
     import logging
 
     data = path.read_bytes()
@@ -93,15 +95,19 @@ def _stl_with_a_wrong_count(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
         return None  # ASCII
     stated = int(np.frombuffer(data, "<u4", 1, 80)[0])
     held = (len(data) - 84) // 50
-    if stated == held and (len(data) - 84) % 50 == 0:
+    partial = (len(data) - 84) % 50
+    if stated == held and partial == 0:
         return None
+    if stated > held and partial:
+        raise StageError(f"{path}: binary STL cut off: its header says {stated} triangles and the file ends "
+                         f"{partial} bytes into triangle {held + 1} (an interrupted download or copy?)")
     record = np.dtype([("n", "<f4", 3), ("v", "<f4", (3, 3)), ("attr", "<u2")])
     tri = np.frombuffer(data, record, held, 84)["v"].astype(np.float64)
     if not np.isfinite(tri).all():
         return None
     logging.getLogger("stage.mesh_import.trimesh").warning(
         "%s: binary STL whose header says %d triangles and whose size holds %d%s: read %d", path, stated, held,
-        f" and {(len(data) - 84) % 50} bytes more" if (len(data) - 84) % 50 else "", held)
+        f" and {partial} bytes more" if partial else "", held)
     return tri.reshape(-1, 3), np.arange(3 * held, dtype=np.int64).reshape(-1, 3)
 
 
