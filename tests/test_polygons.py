@@ -272,3 +272,25 @@ def test_off_face_index_out_of_range_is_one_line(tmp_path):
     (tmp_path / "bad.off").write_text("OFF\n4 1 0\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n4 0 1 2 9\n")
     with pytest.raises(StageError, match=r"bad\.off: cannot read as OFF \(face index 9 out of range \(only 4 vertices\)\)"):
         read_mesh_file(tmp_path / "bad.off")
+
+
+@pytest.mark.parametrize("eol", ["\n", "\r\n"])
+def test_obj_faces_continued_by_a_backslash_are_read_and_a_stray_token_names_its_line(tmp_path, eol):
+    """The OBJ spec continues a line ending in a backslash: `f 1 20 4 19 \\` then `3 18 2 17` gave exit 1 from an
+    int() of the backslash. Joined, the L-prism reads as unwrapped; a token that is still no face vertex is
+    refused in one line naming the file and the line it is on."""
+    pts, faces = _l_prism(2)
+    lines = _obj(pts, faces).splitlines()
+    wrapped = [f"{line[:line.index(' ', 2)]} \\{eol}   {line[line.index(' ', 2) + 1:]}" if line.startswith("f ") else line
+               for line in lines]
+    (tmp_path / "l.obj").write_bytes((eol.join(wrapped) + eol).encode())
+    assert b"\\" + eol.encode() + b"   " in (tmp_path / "l.obj").read_bytes()
+    v, f = read_mesh_file(tmp_path / "l.obj")
+    m = trimesh.Trimesh(v, f, process=False)
+    assert len(f) == 20 and m.area == pytest.approx(L_AREA) and m.is_watertight and m.volume == pytest.approx(L_VOLUME)
+    # a backslash inside a face (no continuation), and a word: named with the file and line (12 vertices first)
+    for bad in ("f 1 2 \\ 3", "f 1 2 x"):
+        (tmp_path / "bad.obj").write_text("\n".join(lines[:12] + ["f 1 2 3", bad, "f 4 5 6"]) + "\n")
+        with pytest.raises(StageError, match=r"bad\.obj: line 14: '.' is not a face vertex") as err:
+            read_mesh_file(tmp_path / "bad.obj")
+        assert "\n" not in str(err.value)

@@ -186,23 +186,53 @@ _OBJ_NGON = re.compile(rb"^[ \t]*f[ \t]+\S+[ \t]+\S+[ \t]+\S+[ \t]+\S", re.M)  #
 
 
 class ObjIndexError(ValueError):
-    """A face index the OBJ file cannot mean (0, or past the vertices read so far): the message names the
-    line and is said as it is."""
+    """A face index the OBJ file cannot mean (0, past the vertices read so far, or no number at all): the
+    message names the line and is said as it is."""
+
+
+def obj_lines(data: bytes):
+    """(number, line) of an OBJ file's bytes, a line ending in ``\\`` joined to the next one (the OBJ spec's
+    continuation: exporters wrap long faces so) and numbered as the first of the lines it joins."""
+    pending, first = b"", 0
+    for number, line in enumerate(data.splitlines(), 1):
+        stripped = line.rstrip(b" \t")
+        if stripped.endswith(b"\\"):
+            if not pending:
+                first = number
+            pending += stripped[:-1] + b" "
+            continue
+        if pending:
+            yield first, pending + line
+            pending = b""
+        else:
+            yield number, line
+    if pending:  # a continuation on the last line: nothing follows
+        yield first, pending
+
+
+def obj_index(token: bytes, number: int) -> int:
+    """The vertex number of a face vertex ``a``, ``a/t``, ``a//n`` or ``a/t/n`` on line ``number``; anything
+    else (a stray backslash, a word) is refused naming the line, not an int() error without one."""
+    try:
+        return int(token.split(b"/", 1)[0])
+    except ValueError:
+        raise ObjIndexError(f"line {number}: '{token.decode('utf-8', 'replace')[:40]}' is not a face vertex "
+                            "(a vertex number counted from 1, as in 7, 7/2, 7//3 or 7/2/3)") from None
 
 
 def obj_polygons(data: bytes, triangles_too: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """(vertices, counts, indices) of the faces of an OBJ file's bytes, every object and group alike; None
     when every face is a triangle (unless ``triangles_too``). Only ``v`` and ``f`` lines count, tokens split at
-    any white space, ``#`` starting a comment anywhere; a face vertex ``a``, ``a/t``, ``a//n`` or ``a/t/n`` is
-    vertex ``a``, counted from 1, or when negative back from the last vertex read so far (the OBJ spec:
-    streaming exporters repeat ``f -4 -3 -2 -1`` after each quad's vertices). Raises ObjIndexError on an
-    index 0 or out of range, naming the line."""
+    any white space, ``#`` starting a comment anywhere, a line ending in ``\\`` continued on the next; a face
+    vertex ``a``, ``a/t``, ``a//n`` or ``a/t/n`` is vertex ``a``, counted from 1, or when negative back from the
+    last vertex read so far (the OBJ spec: streaming exporters repeat ``f -4 -3 -2 -1`` after each quad's
+    vertices). Raises ObjIndexError on an index 0, out of range or not a number, naming the line."""
     if not triangles_too and _OBJ_NGON.search(data) is None:
         return None
     verts: list[list[bytes]] = []
     counts: list[int] = []
     indices: list[int] = []
-    for number, line in enumerate(data.splitlines(), 1):
+    for number, line in obj_lines(data):
         tok = line.split(b"#", 1)[0].split()
         if not tok:
             continue
@@ -210,7 +240,7 @@ def obj_polygons(data: bytes, triangles_too: bool = False) -> tuple[np.ndarray, 
             verts.append(tok[1:4])
         elif tok[0] == b"f" and len(tok) > 3:
             n_v = len(verts)
-            face = [int(t.split(b"/", 1)[0]) for t in tok[1:]]
+            face = [obj_index(t, number) for t in tok[1:]]
             if 0 in face:
                 raise ObjIndexError(f"line {number}: face index 0 is not valid in OBJ (indices start at 1)")
             face = [i - 1 if i > 0 else n_v + i for i in face]

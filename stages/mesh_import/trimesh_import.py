@@ -31,16 +31,19 @@ USD_FILE = "walls.usdc"
 # OBJ that trimesh misreads (valid OBJ all the same): a relative (negative) index, which trimesh resolves against
 # the file's last vertex rather than the last one read so far (plain ``f -4 -3 -2 -1`` after each quad put every
 # face on the last quad; with /vt or /vn an IndexError), tabs or indented lines (no faces read), a comment after a
-# face (ValueError); and index 0, which is no OBJ index (trimesh took the last vertex). Read by
-# polygons.obj_polygons, which names the line of a bad index.
+# face (ValueError); index 0, which is no OBJ index (trimesh took the last vertex); and a line continued by a
+# final backslash (the spec's; trimesh read the backslash as a vertex). Read by polygons.obj_polygons, which
+# names the line of a bad index.
 _OBJ_RELATIVE_OR_ZERO = re.compile(rb"(?m)^f[ \t](?:[^\n]*?[ \t])?(?:-\d|0+(?![\d.]))")
 _OBJ_TRAILING_COMMENT = re.compile(rb"(?:^|\n)[vf][ \t][^#\n]*#")
+_OBJ_CONTINUED = re.compile(rb"\\[ \t]*\r?(?:\n|$)")
 
 
 def _obj_trimesh_misreads(data: bytes) -> bool:
     # plain byte tests first: one regex of all four cost 80 ms on a 1.7 MB OBJ, these 12 ms
     return (b"\t" in data or data[:1] == b" " or b"\n " in data or _OBJ_RELATIVE_OR_ZERO.search(data) is not None
-            or _OBJ_TRAILING_COMMENT.search(data) is not None)
+            or _OBJ_TRAILING_COMMENT.search(data) is not None
+            or (b"\\" in data and _OBJ_CONTINUED.search(data) is not None))
 
 
 class ImportParams(Params):
@@ -152,6 +155,14 @@ def read_mesh_file(path: Path) -> tuple[np.ndarray, np.ndarray]:
     try:
         loaded = trimesh.load(source, force="mesh", process=False, maintain_order=True, **kwargs)
     except Exception as e:
+        if suffix == ".obj":  # a token that is no face vertex: trimesh's error names no line, ours does
+            from .polygons import ObjIndexError, obj_polygons
+            try:
+                obj_polygons(path.read_bytes(), triangles_too=True)
+            except ObjIndexError as bad:
+                raise StageError(f"{path}: {bad}") from None
+            except ValueError:
+                pass
         if isinstance(e, IndexError) or "range" in str(e):
             raise StageError(f"{path}: face index out of range ({str(e)[:120]})") from None
         raise StageError(f"{path}: cannot read as {suffix[1:].upper()} ({type(e).__name__}: {str(e)[:120]})") from None
@@ -188,6 +199,8 @@ def read_mesh_file(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 def _check_obj_indices(path: Path, n_vertices: int, n_faces: int) -> None:
     """trimesh silently drops OBJ faces whose index is out of range; find them ourselves."""
+    from .polygons import ObjIndexError, obj_index
+
     n_v = 0
     with open(path, "rb") as fh:
         for number, line in enumerate(fh, 1):
@@ -195,7 +208,10 @@ def _check_obj_indices(path: Path, n_vertices: int, n_faces: int) -> None:
                 n_v += 1
             elif line.startswith(b"f "):
                 for tok in line.split()[1:]:
-                    i = int(tok.split(b"/")[0])
+                    try:
+                        i = obj_index(tok, number)
+                    except ObjIndexError as e:
+                        raise StageError(f"{path}: {e}") from None
                     if i > n_v if i > 0 else -i > n_v:
                         raise StageError(f"{path}: line {number}: face index {i} out of range "
                                          f"(only {n_v} vertices defined before it)")
