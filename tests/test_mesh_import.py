@@ -514,3 +514,26 @@ def test_a_binary_stl_cut_off_inside_a_record_is_refused_naming_the_file(tmp_pat
                                          r"ends 20 bytes into triangle 5") as err:
         _import(tmp_path, [{"file": "cut.stl", "fluid": "inside"}])
     assert "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize("ext", ["obj", "ply", "stl", "off"])
+def test_a_utf8_byte_order_mark_is_no_part_of_a_text_mesh_file(tmp_path, ext):
+    """A UTF-8 BOM (Windows editors) before an OBJ's first `v` hid that vertex: every index one off, a tetrahedron
+    came in with a loose vertex as a corner (exit 0); an ASCII STL with one was read as binary. Each text format
+    with a BOM now reads as without it."""
+    from stages.mesh_import.trimesh_import import read_mesh_file
+
+    tet = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nv 5 5 5\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n"  # vertex 5 is loose
+    text = tet.encode() if ext == "obj" else trimesh.Trimesh(
+        [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]).export(
+        file_type={"ply": "ply", "stl": "stl_ascii", "off": "off"}[ext], **({"encoding": "ascii"} if ext == "ply" else {}))
+    text = text.encode() if isinstance(text, str) else text
+    (tmp_path / f"plain.{ext}").write_bytes(text)
+    (tmp_path / f"bom.{ext}").write_bytes(b"\xef\xbb\xbf" + text)
+    v0, f0 = read_mesh_file(tmp_path / f"plain.{ext}")
+    v, f = read_mesh_file(tmp_path / f"bom.{ext}")
+    np.testing.assert_array_equal(v, v0)
+    np.testing.assert_array_equal(f, f0)
+    assert v[np.unique(f)].max() == 1.0  # the loose (5, 5, 5) is no corner
+    wm = _import(tmp_path, [{"file": f"bom.{ext}"}])
+    assert wm.walls[0]["report"]["watertight"] and _signed_volume(wm.vertices, wm.faces) == pytest.approx(1 / 6)

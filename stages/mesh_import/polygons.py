@@ -185,6 +185,9 @@ def _ear_clip(xy, starts, counts):
 _OBJ_NGON = re.compile(rb"^[ \t]*f[ \t]+\S+[ \t]+\S+[ \t]+\S+[ \t]+\S", re.M)  # a face of 4 or more vertices
 
 
+UTF8_BOM = b"\xef\xbb\xbf"
+
+
 class ObjIndexError(ValueError):
     """A face index the OBJ file cannot mean (0, past the vertices read so far, or no number at all): the
     message names the line and is said as it is."""
@@ -192,9 +195,10 @@ class ObjIndexError(ValueError):
 
 def obj_lines(data: bytes):
     """(number, line) of an OBJ file's bytes, a line ending in ``\\`` joined to the next one (the OBJ spec's
-    continuation: exporters wrap long faces so) and numbered as the first of the lines it joins."""
+    continuation: exporters wrap long faces so) and numbered as the first of the lines it joins. A UTF-8 byte
+    order mark (Windows editors write one) is no part of the first line: left on, it hid that line's ``v``."""
     pending, first = b"", 0
-    for number, line in enumerate(data.splitlines(), 1):
+    for number, line in enumerate(data.removeprefix(UTF8_BOM).splitlines(), 1):
         stripped = line.rstrip(b" \t")
         if stripped.endswith(b"\\"):
             if not pending:

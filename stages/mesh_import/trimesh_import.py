@@ -24,6 +24,7 @@ from stages.common.sdf import DEFAULT_SHELL_THICKNESS
 
 from .builtin import builtin_mesh
 from .cleanup import clean_mesh
+from .polygons import UTF8_BOM
 from stages.common.placement import apply_placement, placement_matrix, up_axis_matrix
 
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
@@ -40,8 +41,10 @@ _OBJ_CONTINUED = re.compile(rb"\\[ \t]*\r?(?:\n|$)")
 
 
 def _obj_trimesh_misreads(data: bytes) -> bool:
-    # plain byte tests first: one regex of all four cost 80 ms on a 1.7 MB OBJ, these 12 ms
-    return (b"\t" in data or data[:1] == b" " or b"\n " in data or _OBJ_RELATIVE_OR_ZERO.search(data) is not None
+    # plain byte tests first: one regex of all four cost 80 ms on a 1.7 MB OBJ, these 12 ms. A byte order mark:
+    # trimesh took the first line for a word of its own (a file's first vertex dropped, every index one off)
+    return (b"\t" in data or data[:1] == b" " or data.startswith(UTF8_BOM) or b"\n " in data
+            or _OBJ_RELATIVE_OR_ZERO.search(data) is not None
             or _OBJ_TRAILING_COMMENT.search(data) is not None
             or (b"\\" in data and _OBJ_CONTINUED.search(data) is not None))
 
@@ -82,6 +85,15 @@ def to_scene_frame(v: np.ndarray, path: Path, meters_per_unit: float | None, up_
     return v
 
 
+def _text_with_a_bom(data: bytes, suffix: str) -> bool:
+    """A text mesh file (OBJ, ASCII PLY / STL, OFF) that starts with a UTF-8 byte order mark: trimesh takes the
+    mark for part of the first word (an OBJ's first vertex, an STL's 'solid'). A binary STL's 80-byte header is
+    free bytes that may start so: only an ASCII one ('solid' after the mark) counts."""
+    if not data.startswith(UTF8_BOM):
+        return False
+    return suffix != ".stl" or data[3:].lstrip()[:5].lower() == b"solid"
+
+
 def _stl_with_a_wrong_count(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
     """A binary STL whose header's triangle count disagrees with its size (0 or a stale count from an exporter
     that streams, or trailing bytes): read as many whole 50-byte records as the file holds, and say so; None for
@@ -93,7 +105,7 @@ def _stl_with_a_wrong_count(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
     data = path.read_bytes()
     if len(data) < 84 + 50:
         return None
-    head = data[:1024].lstrip().lower()
+    head = data[:1024].removeprefix(UTF8_BOM).lstrip().lower()
     if head.startswith(b"solid") and b"facet" in head:
         return None  # ASCII
     stated = int(np.frombuffer(data, "<u4", 1, 80)[0])
@@ -145,6 +157,12 @@ def read_mesh_file(path: Path) -> tuple[np.ndarray, np.ndarray]:
                 raise StageError(f"{path}: cannot read as OBJ ({str(e)[:160]})") from None
             return polygons[0], triangulate(*polygons)[0]
     source, kwargs = str(path), {}
+    if suffix in (".ply", ".stl"):
+        with open(path, "rb") as fh:
+            head = fh.read(64)
+        if _text_with_a_bom(head, suffix):
+            import io
+            source, kwargs = io.BytesIO(path.read_bytes()[len(UTF8_BOM):]), {"file_type": suffix[1:]}
     if suffix in (".gltf", ".glb"):
         from .gltf import prepare
 
