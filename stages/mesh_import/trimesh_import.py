@@ -145,6 +145,14 @@ def read_mesh_file(path: Path) -> tuple[np.ndarray, np.ndarray]:
             raise StageError(f"{path}: cannot read as OFF ({str(e)[:160]})") from None
         if polygons is not None:
             return polygons[0], triangulate(*polygons)[0]
+    if suffix == ".ply":
+        from .polygons import ply_binary_polygons, triangulate
+        try:
+            polygons = ply_binary_polygons(path.read_bytes())  # None: ASCII, or faces trimesh reads
+        except ValueError as e:
+            raise StageError(f"{path}: cannot read as PLY ({str(e)[:160]})") from None
+        if polygons is not None:
+            return polygons[0], triangulate(*polygons)[0]
     if suffix == ".obj":
         data = path.read_bytes()
         if _obj_trimesh_misreads(data):
