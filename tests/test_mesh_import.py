@@ -537,3 +537,16 @@ def test_a_utf8_byte_order_mark_is_no_part_of_a_text_mesh_file(tmp_path, ext):
     assert v[np.unique(f)].max() == 1.0  # the loose (5, 5, 5) is no corner
     wm = _import(tmp_path, [{"file": f"bom.{ext}"}])
     assert wm.walls[0]["report"]["watertight"] and _signed_volume(wm.vertices, wm.faces) == pytest.approx(1 / 6)
+
+
+def test_a_nan_in_a_vertex_no_face_uses_is_left_out_and_in_a_used_one_refused(tmp_path):
+    """A NaN in a vertex no face refers to (a leftover of an exporter) refused the whole file; such a vertex
+    shapes nothing and is left out now. A NaN in a vertex a face uses is still refused in one line."""
+    tet = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n"
+    _write(tmp_path, "unused.obj", "v nan nan nan\n" + tet.replace("f 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4",
+                                                                  "f 2 4 3\nf 2 3 5\nf 2 5 4\nf 3 4 5"))
+    wm = _import(tmp_path, [{"file": "unused.obj"}])
+    assert wm.walls[0]["report"]["watertight"] and _signed_volume(wm.vertices, wm.faces) == pytest.approx(1 / 6)
+    _write(tmp_path, "used.obj", tet.replace("v 0 0 1", "v 0 0 nan"))
+    with pytest.raises(StageError, match=r"used\.obj: vertex coordinates contain NaN or Inf"):
+        _import(tmp_path, [{"file": "used.obj"}])

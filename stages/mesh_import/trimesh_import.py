@@ -285,10 +285,16 @@ class TrimeshImport(Stage):
             where = source
             if len(v) == 0 or len(f) == 0:
                 raise StageError(f"{where}: {_why_no_faces(where)}")
-            if not np.isfinite(v).all():
-                raise StageError(f"{where}: vertex coordinates contain NaN or Inf")
             if f.min() < 0 or f.max() >= len(v):
                 raise StageError(f"{where}: face index {int(f.max())} out of range (mesh has {len(v)} vertices)")
+            if not np.isfinite(v).all():
+                # a vertex no face uses shapes nothing (the clean-up drops it): only a used one refuses the file
+                used, inverse = np.unique(f, return_inverse=True)
+                if not np.isfinite(v[used]).all():
+                    raise StageError(f"{where}: vertex coordinates contain NaN or Inf")
+                ctx.log.info("%s: %d vertices no face uses left out (%d with NaN or Inf coordinates)", where,
+                             len(v) - len(used), int((~np.isfinite(v).all(axis=1)).sum()))
+                v, f = v[used], inverse.reshape(-1, 3)
             v = apply_placement(v, w)
             motion = self._motion(w, v, extra.pop("animation", None), f"{where}:{extra['prims'][0]}" if "prims" in extra else where)
             diag = float(np.linalg.norm(v.max(axis=0) - v.min(axis=0))) or 1.0
