@@ -550,3 +550,36 @@ def test_a_nan_in_a_vertex_no_face_uses_is_left_out_and_in_a_used_one_refused(tm
     _write(tmp_path, "used.obj", tet.replace("v 0 0 1", "v 0 0 nan"))
     with pytest.raises(StageError, match=r"used\.obj: vertex coordinates contain NaN or Inf"):
         _import(tmp_path, [{"file": "used.obj"}])
+
+
+def test_a_tiny_part_far_from_the_rest_of_a_wall_is_said_and_kept_in_the_report(tmp_path, caplog):
+    """A 1 mm triangle left 50 m from a 1 m tank widened the wall's box (and the SDF grid: 1254 x 83 x 54 instead
+    of 83 x 83 x 54) without a word. It is said now, with its box, triangle count and how much it widens the
+    wall's box, and kept in the report (for a refusal of the grid's size to name it); a small part near the rest
+    (a baffle in the tank) or a big one far away (a second tank) is no stray."""
+    import logging
+
+    tank = trimesh.creation.box(extents=(1.0, 1.0, 0.6))
+    stray = trimesh.Trimesh([[50, 0, 0], [50.001, 0, 0], [50, 0.001, 0]], [[0, 1, 2]])
+    baffle = trimesh.creation.box(extents=(0.05, 0.05, 0.05))
+    baffle.apply_translation((0.3, 0.3, 0.2))
+    other = tank.copy()
+    other.apply_translation((50, 0, 0))
+    trimesh.util.concatenate([tank, stray, baffle]).export(tmp_path / "stray.obj")
+    trimesh.util.concatenate([tank, baffle]).export(tmp_path / "baffle.obj")
+    trimesh.util.concatenate([tank, other]).export(tmp_path / "two.obj")
+    with caplog.at_level(logging.WARNING):
+        wm = _import(tmp_path, [{"file": "stray.obj", "fluid": "inside"}])
+    found = wm.walls[0]["report"]["stray_part"]
+    assert found["triangles"] == 1 and found["axis"] == "x" and found["widens"] == pytest.approx(50.501)
+    np.testing.assert_allclose(found["min"], [50, 0, 0]) and np.testing.assert_allclose(found["max"], [50.001, 0.001, 0])
+    np.testing.assert_allclose(found["rest_min"], [-0.5, -0.5, -0.3]) and np.testing.assert_allclose(found["rest_max"], [0.5, 0.5, 0.3])
+    said = [r.getMessage() for r in caplog.records if "stray part" in r.getMessage()]
+    assert len(said) == 1 and "stray.obj: a stray part of 1 triangle (under 0.01 % of the area)" in said[0], caplog.text
+    assert "at x 50..50, y 0..0.001, z 0..0" in said[0] and "widening the wall's box 50.5x along x" in said[0]
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        for name in ("baffle.obj", "two.obj"):
+            wm = _import(tmp_path, [{"file": name, "fluid": "inside"}])
+            assert "stray_part" not in wm.walls[0]["report"]
+    assert "stray" not in caplog.text
