@@ -583,3 +583,17 @@ def test_a_tiny_part_far_from_the_rest_of_a_wall_is_said_and_kept_in_the_report(
             wm = _import(tmp_path, [{"file": name, "fluid": "inside"}])
             assert "stray_part" not in wm.walls[0]["report"]
     assert "stray" not in caplog.text
+
+
+def test_an_ascii_stl_with_a_long_solid_line_is_not_taken_for_a_binary_one(tmp_path):
+    """An ASCII STL was told from a binary one by 'facet' in its first 1024 bytes: one whose 'solid' line holds a
+    long name was read as binary, its text as triangles (or refused as cut off). No NUL byte there (a binary's
+    records hold some) says ASCII too."""
+    from stages.mesh_import.trimesh_import import read_mesh_file
+
+    text = trimesh.creation.box(extents=(0.4, 0.4, 0.3)).export(file_type="stl_ascii")
+    first, rest = text.split("\n", 1)
+    (tmp_path / "long.stl").write_text(f"{first} {'tank_' * 300}\n{rest}")
+    v, f = read_mesh_file(tmp_path / "long.stl")
+    assert len(f) == 12
+    np.testing.assert_allclose(np.ptp(v, axis=0), [0.4, 0.4, 0.3], atol=1e-6)

@@ -106,8 +106,8 @@ def _stl_with_a_wrong_count(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
     if len(data) < 84 + 50:
         return None
     head = data[:1024].removeprefix(UTF8_BOM).lstrip().lower()
-    if head.startswith(b"solid") and b"facet" in head:
-        return None  # ASCII
+    if head.startswith(b"solid") and (b"facet" in head or b"\0" not in head):
+        return None  # ASCII (a long name on its 'solid' line: no facet yet, and no NUL a binary's records hold)
     stated = int(np.frombuffer(data, "<u4", 1, 80)[0])
     held = (len(data) - 84) // 50
     partial = (len(data) - 84) % 50
