@@ -348,8 +348,17 @@ def ply_binary_polygons(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray
     found: dict[str, dict[str, tuple]] = {}
     pos = body
     for name, n, props in elements:
-        offsets, pos = _ply_offsets(data, buf, pos, n, props, name)
-        found[name] = {p[0]: (o, p) for p, o in zip(props, offsets)}
+        if any(p[2] is not None for p in props):
+            offsets, end = _ply_offsets(data, buf, pos, n, props, name)
+            found[name] = {p[0]: (o, p) for p, o in zip(props, offsets)}
+        else:  # a record of scalars: a view of the bytes (no offsets per property of a 10M-vertex file)
+            record = np.dtype([(p[0], p[1]) for p in props]) if props else np.dtype([])
+            end = pos + n * record.itemsize
+            if end > len(data):
+                raise _ply_cut(n, name)
+            table = np.frombuffer(data, record, n, pos) if record.itemsize else None
+            found[name] = {p[0]: (table, p) for p in props}
+        pos = end
     vertex, face = found.get("vertex", {}), found.get("face", {})
     lists = [k for k in ("vertex_indices", "vertex_index") if k in face and face[k][1][2] is not None]
     if not all(k in vertex and vertex[k][1][2] is None for k in "xyz") or not lists:
@@ -363,7 +372,8 @@ def ply_binary_polygons(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray
     ends = np.cumsum(counts)
     items = np.repeat(counts_at, counts) + size * (np.arange(ends[-1]) - np.repeat(ends - counts, counts))
     indices = _gather(buf, items, item_type).astype(np.int64)
-    verts = np.stack([_gather(buf, vertex[k][0], vertex[k][1][1]) for k in "xyz"], axis=1).astype(np.float64)
+    verts = np.stack([vertex[k][0][k] if isinstance(vertex[k][0], np.ndarray) and vertex[k][0].dtype.names
+                      else _gather(buf, vertex[k][0], vertex[k][1][1]) for k in "xyz"], axis=1).astype(np.float64)
     keep = counts >= 3  # a "face" of one or two vertices (a point or an edge) has no area: left out
     if not keep.all():
         indices, counts = indices[np.repeat(keep, counts)], counts[keep]
@@ -380,13 +390,12 @@ def _gather(buf: np.ndarray, offsets: np.ndarray, dtype: str) -> np.ndarray:
 
 
 def _ply_offsets(data: bytes, buf: np.ndarray, pos: int, n: int, props: list, name: str) -> tuple[list, int]:
-    """The byte offset of each property (a list's: of its count) in each of the ``n`` records of an element
-    starting at ``pos``, and where the element ends. Records of an element with lists differ in length: a
-    pass over them in Python, unless every list has the length of the first record's (vectorised)."""
+    """The byte offset of each property (a list's: of its count) in each of the ``n`` records of an element with
+    lists starting at ``pos``, and where the element ends. Its records differ in length: a pass over them in
+    Python, unless every list has the length of the first record's (vectorised)."""
     import struct
 
-    cut = ValueError(f"binary PLY cut off: the file ends inside its {n:,} {name} records (an interrupted "
-                     "download or copy?)")
+    cut = _ply_cut(n, name)
     sizes = [np.dtype(p[1]).itemsize for p in props]
     items = [np.dtype(p[2]).itemsize if p[2] is not None else 0 for p in props]
     counts = [struct.Struct(p[1][0] + _STRUCT[p[1][1:]]).unpack_from if p[2] is not None else None for p in props]
@@ -407,8 +416,6 @@ def _ply_offsets(data: bytes, buf: np.ndarray, pos: int, n: int, props: list, na
     if end <= len(data) and all((_gather(buf, offsets[k], props[k][1]) == _gather(buf, offsets[k][:1], props[k][1])).all()
                                 for k in lists):
         return offsets, end
-    if not lists:
-        raise cut
     out = [[0] * n for _ in props]
     at = pos
     try:
@@ -421,6 +428,11 @@ def _ply_offsets(data: bytes, buf: np.ndarray, pos: int, n: int, props: list, na
     if at > len(data):
         raise cut
     return [np.array(o, np.int64) for o in out], at
+
+
+def _ply_cut(n: int, name: str) -> ValueError:
+    return ValueError(f"binary PLY cut off: the file ends inside its {n:,} {name} records (an interrupted download "
+                      "or copy?)")
 
 
 _STRUCT = {"i1": "b", "u1": "B", "i2": "h", "u2": "H", "i4": "i", "u4": "I", "f4": "f", "f8": "d"}
