@@ -501,3 +501,99 @@ def test_a_binary_stl_whose_header_count_is_off_is_read_from_its_size(tmp_path, 
     assert len(mesh.faces) == 12
     np.testing.assert_allclose(np.ptp(mesh.vertices, axis=0), [0.4, 0.4, 0.3], atol=1e-6)
     assert f"header says {stated} triangles and whose size holds 12" in caplog.text
+
+
+def test_a_binary_stl_cut_off_inside_a_record_is_refused_naming_the_file(tmp_path):
+    """A binary STL stating 12 triangles that ends 20 bytes into its fifth (a copy that stopped) was read as its
+    4 whole records, a tank missing most walls, with a warning and exit 0. Refused now; a file ending on a
+    record boundary short of its count (a stale count) is still read (the test above)."""
+    box = trimesh.creation.box(extents=(0.4, 0.4, 0.3))
+    data = trimesh.exchange.stl.export_stl(box)
+    (tmp_path / "cut.stl").write_bytes(data[:84 + 4 * 50 + 20])
+    with pytest.raises(StageError, match=r"cut\.stl: binary STL cut off: its header says 12 triangles and the file "
+                                         r"ends 20 bytes into triangle 5") as err:
+        _import(tmp_path, [{"file": "cut.stl", "fluid": "inside"}])
+    assert "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize("ext", ["obj", "ply", "stl", "off"])
+def test_a_utf8_byte_order_mark_is_no_part_of_a_text_mesh_file(tmp_path, ext):
+    """A UTF-8 BOM (Windows editors) before an OBJ's first `v` hid that vertex: every index one off, a tetrahedron
+    came in with a loose vertex as a corner (exit 0); an ASCII STL with one was read as binary. Each text format
+    with a BOM now reads as without it."""
+    from stages.mesh_import.trimesh_import import read_mesh_file
+
+    tet = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nv 5 5 5\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n"  # vertex 5 is loose
+    text = tet.encode() if ext == "obj" else trimesh.Trimesh(
+        [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]).export(
+        file_type={"ply": "ply", "stl": "stl_ascii", "off": "off"}[ext], **({"encoding": "ascii"} if ext == "ply" else {}))
+    text = text.encode() if isinstance(text, str) else text
+    (tmp_path / f"plain.{ext}").write_bytes(text)
+    (tmp_path / f"bom.{ext}").write_bytes(b"\xef\xbb\xbf" + text)
+    v0, f0 = read_mesh_file(tmp_path / f"plain.{ext}")
+    v, f = read_mesh_file(tmp_path / f"bom.{ext}")
+    np.testing.assert_array_equal(v, v0)
+    np.testing.assert_array_equal(f, f0)
+    assert v[np.unique(f)].max() == 1.0  # the loose (5, 5, 5) is no corner
+    wm = _import(tmp_path, [{"file": f"bom.{ext}"}])
+    assert wm.walls[0]["report"]["watertight"] and _signed_volume(wm.vertices, wm.faces) == pytest.approx(1 / 6)
+
+
+def test_a_nan_in_a_vertex_no_face_uses_is_left_out_and_in_a_used_one_refused(tmp_path):
+    """A NaN in a vertex no face refers to (a leftover of an exporter) refused the whole file; such a vertex
+    shapes nothing and is left out now. A NaN in a vertex a face uses is still refused in one line."""
+    tet = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n"
+    _write(tmp_path, "unused.obj", "v nan nan nan\n" + tet.replace("f 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4",
+                                                                  "f 2 4 3\nf 2 3 5\nf 2 5 4\nf 3 4 5"))
+    wm = _import(tmp_path, [{"file": "unused.obj"}])
+    assert wm.walls[0]["report"]["watertight"] and _signed_volume(wm.vertices, wm.faces) == pytest.approx(1 / 6)
+    _write(tmp_path, "used.obj", tet.replace("v 0 0 1", "v 0 0 nan"))
+    with pytest.raises(StageError, match=r"used\.obj: vertex coordinates contain NaN or Inf"):
+        _import(tmp_path, [{"file": "used.obj"}])
+
+
+def test_a_tiny_part_far_from_the_rest_of_a_wall_is_said_and_kept_in_the_report(tmp_path, caplog):
+    """A 1 mm triangle left 50 m from a 1 m tank widened the wall's box (and the SDF grid: 1254 x 83 x 54 instead
+    of 83 x 83 x 54) without a word. It is said now, with its box, triangle count and how much it widens the
+    wall's box, and kept in the report (for a refusal of the grid's size to name it); a small part near the rest
+    (a baffle in the tank) or a big one far away (a second tank) is no stray."""
+    import logging
+
+    tank = trimesh.creation.box(extents=(1.0, 1.0, 0.6))
+    stray = trimesh.Trimesh([[50, 0, 0], [50.001, 0, 0], [50, 0.001, 0]], [[0, 1, 2]])
+    baffle = trimesh.creation.box(extents=(0.05, 0.05, 0.05))
+    baffle.apply_translation((0.3, 0.3, 0.2))
+    other = tank.copy()
+    other.apply_translation((50, 0, 0))
+    trimesh.util.concatenate([tank, stray, baffle]).export(tmp_path / "stray.obj")
+    trimesh.util.concatenate([tank, baffle]).export(tmp_path / "baffle.obj")
+    trimesh.util.concatenate([tank, other]).export(tmp_path / "two.obj")
+    with caplog.at_level(logging.WARNING):
+        wm = _import(tmp_path, [{"file": "stray.obj", "fluid": "inside"}])
+    found = wm.walls[0]["report"]["stray_part"]
+    assert found["triangles"] == 1 and found["axis"] == "x" and found["widens"] == pytest.approx(50.501)
+    np.testing.assert_allclose(found["min"], [50, 0, 0]) and np.testing.assert_allclose(found["max"], [50.001, 0.001, 0])
+    np.testing.assert_allclose(found["rest_min"], [-0.5, -0.5, -0.3]) and np.testing.assert_allclose(found["rest_max"], [0.5, 0.5, 0.3])
+    said = [r.getMessage() for r in caplog.records if "stray part" in r.getMessage()]
+    assert len(said) == 1 and "stray.obj: a stray part of 1 triangle (under 0.01 % of the area)" in said[0], caplog.text
+    assert "at x 50..50, y 0..0.001, z 0..0" in said[0] and "widening the wall's box 50.5x along x" in said[0]
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        for name in ("baffle.obj", "two.obj"):
+            wm = _import(tmp_path, [{"file": name, "fluid": "inside"}])
+            assert "stray_part" not in wm.walls[0]["report"]
+    assert "stray" not in caplog.text
+
+
+def test_an_ascii_stl_with_a_long_solid_line_is_not_taken_for_a_binary_one(tmp_path):
+    """An ASCII STL was told from a binary one by 'facet' in its first 1024 bytes: one whose 'solid' line holds a
+    long name was read as binary, its text as triangles (or refused as cut off). No NUL byte there (a binary's
+    records hold some) says ASCII too."""
+    from stages.mesh_import.trimesh_import import read_mesh_file
+
+    text = trimesh.creation.box(extents=(0.4, 0.4, 0.3)).export(file_type="stl_ascii")
+    first, rest = text.split("\n", 1)
+    (tmp_path / "long.stl").write_text(f"{first} {'tank_' * 300}\n{rest}")
+    v, f = read_mesh_file(tmp_path / "long.stl")
+    assert len(f) == 12
+    np.testing.assert_allclose(np.ptp(v, axis=0), [0.4, 0.4, 0.3], atol=1e-6)

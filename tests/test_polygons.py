@@ -272,3 +272,83 @@ def test_off_face_index_out_of_range_is_one_line(tmp_path):
     (tmp_path / "bad.off").write_text("OFF\n4 1 0\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n4 0 1 2 9\n")
     with pytest.raises(StageError, match=r"bad\.off: cannot read as OFF \(face index 9 out of range \(only 4 vertices\)\)"):
         read_mesh_file(tmp_path / "bad.off")
+
+
+@pytest.mark.parametrize("eol", ["\n", "\r\n"])
+def test_obj_faces_continued_by_a_backslash_are_read_and_a_stray_token_names_its_line(tmp_path, eol):
+    """The OBJ spec continues a line ending in a backslash: `f 1 20 4 19 \\` then `3 18 2 17` gave exit 1 from an
+    int() of the backslash. Joined, the L-prism reads as unwrapped; a token that is still no face vertex is
+    refused in one line naming the file and the line it is on."""
+    pts, faces = _l_prism(2)
+    lines = _obj(pts, faces).splitlines()
+    wrapped = [f"{line[:line.index(' ', 2)]} \\{eol}   {line[line.index(' ', 2) + 1:]}" if line.startswith("f ") else line
+               for line in lines]
+    (tmp_path / "l.obj").write_bytes((eol.join(wrapped) + eol).encode())
+    assert b"\\" + eol.encode() + b"   " in (tmp_path / "l.obj").read_bytes()
+    v, f = read_mesh_file(tmp_path / "l.obj")
+    m = trimesh.Trimesh(v, f, process=False)
+    assert len(f) == 20 and m.area == pytest.approx(L_AREA) and m.is_watertight and m.volume == pytest.approx(L_VOLUME)
+    # a backslash inside a face (no continuation), and a word: named with the file and line (12 vertices first)
+    for bad in ("f 1 2 \\ 3", "f 1 2 x"):
+        (tmp_path / "bad.obj").write_text("\n".join(lines[:12] + ["f 1 2 3", bad, "f 4 5 6"]) + "\n")
+        with pytest.raises(StageError, match=r"bad\.obj: line 14: '.' is not a face vertex") as err:
+            read_mesh_file(tmp_path / "bad.obj")
+        assert "\n" not in str(err.value)
+
+
+_PLY_NP = {"uchar": "u1", "ushort": "u2", "int": "i4", "uint": "u4", "float": "f4", "double": "f8"}
+
+
+def _ply_binary(pts, faces, endian, count="uchar", index="uint", xyz="float", before=(), after=(), face_flags=False):
+    """A binary PLY of the polygons, with vertex properties ``before`` and ``after`` x y z (name, type) and,
+    with ``face_flags``, a ushort per face around its index list (as some exporters write)."""
+    e = "<" if endian == "little" else ">"
+    props = list(before) + [(k, xyz) for k in "xyz"] + list(after)
+    vert = np.zeros(len(pts), [(k, e + _PLY_NP[t]) for k, t in props])
+    for k, c in zip("xyz", np.asarray(pts).T):
+        vert[k] = c
+    for k, _ in list(before) + list(after):
+        vert[k] = 7
+    head = (f"ply\nformat binary_{endian}_endian 1.0\ncomment made by a test\nelement vertex {len(pts)}\n"
+            + "".join(f"property {t} {k}\n" for k, t in props) + f"element face {len(faces)}\n"
+            + ("property ushort flags\n" if face_flags else "")
+            + f"property list {count} {index} vertex_indices\n" + ("property uchar tag\n" if face_flags else "")
+            + "end_header\n")
+    body = b"".join((np.array([1], e + "u2").tobytes() if face_flags else b"")
+                    + np.array([len(f)], e + _PLY_NP[count]).tobytes() + np.array(f, e + _PLY_NP[index]).tobytes()
+                    + (b"\x05" if face_flags else b"") for f in faces)
+    return head.encode() + vert.tobytes() + body
+
+
+@pytest.mark.parametrize("endian, count, index, xyz, before, after, flags", [
+    ("little", "uchar", "uint", "float", (), (), False),  # Blender's
+    ("big", "uchar", "int", "float", (), (), False),
+    ("little", "ushort", "int", "double", [("nx", "float"), ("ny", "float"), ("nz", "float")],
+     [("red", "uchar"), ("green", "uchar"), ("blue", "uchar"), ("alpha", "uchar")], True),
+    ("big", "int", "uint", "float", [("red", "uchar")], [("nx", "double"), ("s", "float")], True),
+], ids=["blender", "big_endian", "normals_colours_flags", "big_endian_int_counts"])
+def test_binary_ply_of_quads_and_hexagons_reads_as_the_ascii_one(tmp_path, endian, count, index, xyz, before, after,
+                                                                flags):
+    """trimesh's binary PLY reader takes every face list to be as long as the first: Blender's binary export of
+    quads and triangles was refused as damaged ('PLY is unexpected length!'), though the ASCII file of the same
+    mesh loaded. Mixed sizes are read here now, polygons triangulated as any others: the L-prism of quads and
+    concave hexagons comes in closed, without a wall across its notch, as its ASCII PLY does; cut short, the
+    file is refused in one line naming it."""
+    pts, faces = _l_prism(1)
+    data = _ply_binary(pts, faces, endian, count, index, xyz, before, after, flags)
+    (tmp_path / "l.ply").write_bytes(data)
+    (tmp_path / "ascii.ply").write_text(_ply(pts, faces))
+    v, f = read_mesh_file(tmp_path / "l.ply")
+    va, fa = read_mesh_file(tmp_path / "ascii.ply")
+    np.testing.assert_allclose(v, va, atol=1e-7)  # float32 in the binary file
+    assert _canonical(f) == _canonical(fa)
+    m = trimesh.Trimesh(v, f, process=False)
+    assert m.is_watertight and m.is_winding_consistent and m.volume == pytest.approx(L_VOLUME, rel=1e-6)
+    wm = _import(tmp_path, {"file": "l.ply"})
+    c = trimesh.Trimesh(wm.vertices, wm.faces, process=False).triangles_center
+    assert not ((c[:, 0] > 1e-9) & (c[:, 1] > 1e-9)).any()
+    for cut in (len(data) - 3, len(data) - 40, len(data) - 200):  # in the faces, and in the vertices
+        (tmp_path / "cut.ply").write_bytes(data[:cut])
+        with pytest.raises(StageError, match=r"cut\.ply: cannot read as PLY \(binary PLY cut off") as err:
+            read_mesh_file(tmp_path / "cut.ply")
+        assert "\n" not in str(err.value)

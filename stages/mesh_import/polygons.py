@@ -185,24 +185,58 @@ def _ear_clip(xy, starts, counts):
 _OBJ_NGON = re.compile(rb"^[ \t]*f[ \t]+\S+[ \t]+\S+[ \t]+\S+[ \t]+\S", re.M)  # a face of 4 or more vertices
 
 
+UTF8_BOM = b"\xef\xbb\xbf"
+
+
 class ObjIndexError(ValueError):
-    """A face index the OBJ file cannot mean (0, or past the vertices read so far): the message names the
-    line and is said as it is."""
+    """A face index the OBJ file cannot mean (0, past the vertices read so far, or no number at all): the
+    message names the line and is said as it is."""
+
+
+def obj_lines(data: bytes):
+    """(number, line) of an OBJ file's bytes, a line ending in ``\\`` joined to the next one (the OBJ spec's
+    continuation: exporters wrap long faces so) and numbered as the first of the lines it joins. A UTF-8 byte
+    order mark (Windows editors write one) is no part of the first line: left on, it hid that line's ``v``."""
+    pending, first = b"", 0
+    for number, line in enumerate(data.removeprefix(UTF8_BOM).splitlines(), 1):
+        stripped = line.rstrip(b" \t")
+        if stripped.endswith(b"\\"):
+            if not pending:
+                first = number
+            pending += stripped[:-1] + b" "
+            continue
+        if pending:
+            yield first, pending + line
+            pending = b""
+        else:
+            yield number, line
+    if pending:  # a continuation on the last line: nothing follows
+        yield first, pending
+
+
+def obj_index(token: bytes, number: int) -> int:
+    """The vertex number of a face vertex ``a``, ``a/t``, ``a//n`` or ``a/t/n`` on line ``number``; anything
+    else (a stray backslash, a word) is refused naming the line, not an int() error without one."""
+    try:
+        return int(token.split(b"/", 1)[0])
+    except ValueError:
+        raise ObjIndexError(f"line {number}: '{token.decode('utf-8', 'replace')[:40]}' is not a face vertex "
+                            "(a vertex number counted from 1, as in 7, 7/2, 7//3 or 7/2/3)") from None
 
 
 def obj_polygons(data: bytes, triangles_too: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """(vertices, counts, indices) of the faces of an OBJ file's bytes, every object and group alike; None
     when every face is a triangle (unless ``triangles_too``). Only ``v`` and ``f`` lines count, tokens split at
-    any white space, ``#`` starting a comment anywhere; a face vertex ``a``, ``a/t``, ``a//n`` or ``a/t/n`` is
-    vertex ``a``, counted from 1, or when negative back from the last vertex read so far (the OBJ spec:
-    streaming exporters repeat ``f -4 -3 -2 -1`` after each quad's vertices). Raises ObjIndexError on an
-    index 0 or out of range, naming the line."""
+    any white space, ``#`` starting a comment anywhere, a line ending in ``\\`` continued on the next; a face
+    vertex ``a``, ``a/t``, ``a//n`` or ``a/t/n`` is vertex ``a``, counted from 1, or when negative back from the
+    last vertex read so far (the OBJ spec: streaming exporters repeat ``f -4 -3 -2 -1`` after each quad's
+    vertices). Raises ObjIndexError on an index 0, out of range or not a number, naming the line."""
     if not triangles_too and _OBJ_NGON.search(data) is None:
         return None
     verts: list[list[bytes]] = []
     counts: list[int] = []
     indices: list[int] = []
-    for number, line in enumerate(data.splitlines(), 1):
+    for number, line in obj_lines(data):
         tok = line.split(b"#", 1)[0].split()
         if not tok:
             continue
@@ -210,7 +244,7 @@ def obj_polygons(data: bytes, triangles_too: bool = False) -> tuple[np.ndarray, 
             verts.append(tok[1:4])
         elif tok[0] == b"f" and len(tok) > 3:
             n_v = len(verts)
-            face = [int(t.split(b"/", 1)[0]) for t in tok[1:]]
+            face = [obj_index(t, number) for t in tok[1:]]
             if 0 in face:
                 raise ObjIndexError(f"line {number}: face index 0 is not valid in OBJ (indices start at 1)")
             face = [i - 1 if i > 0 else n_v + i for i in face]
@@ -272,3 +306,133 @@ def ply_polygons(raw: dict) -> tuple[np.ndarray, np.ndarray] | None:
     if (counts == 3).all():
         return None
     return counts, np.concatenate(faces)
+
+
+_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+              "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+              "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
+
+
+def ply_binary_polygons(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """(vertices, counts, indices) of a binary PLY whose faces are not all of one size (Blender's quads and
+    triangles: trimesh's binary reader takes every list to be as long as the first and refused the file as
+    'unexpected length'); None for ASCII PLY, a header not understood here, or faces all of one size (trimesh
+    reads those as before). Other vertex and face properties, before or after, and any list count type are
+    skipped. Raises ValueError when the file ends before the data its header promises (a truncated copy),
+    or on a face index out of range."""
+    data = data.removeprefix(UTF8_BOM)
+    end = data.find(b"end_header", 0, 1 << 16)
+    if not data.startswith(b"ply") or end < 0:
+        return None
+    body = data.index(b"\n", end) + 1 if b"\n" in data[end:end + 16] else end + len(b"end_header")
+    endian = None
+    elements: list[tuple[str, int, list]] = []
+    try:
+        for line in data[:end].decode("ascii", "replace").splitlines()[1:]:
+            w = line.split()
+            if not w or w[0] in ("comment", "obj_info"):
+                continue
+            if w[0] == "format":
+                endian = {"binary_little_endian": "<", "binary_big_endian": ">"}.get(w[1])
+            elif w[0] == "element":
+                elements.append((w[1], int(w[2]), []))
+            elif w[0] == "property" and w[1] == "list":
+                elements[-1][2].append((w[4], endian + _PLY_TYPES[w[2]], endian + _PLY_TYPES[w[3]]))
+            elif w[0] == "property":
+                elements[-1][2].append((w[2], endian + _PLY_TYPES[w[1]], None))
+    except (IndexError, KeyError, ValueError, TypeError):  # TypeError: a property before 'format'
+        return None
+    if endian is None or not elements:
+        return None
+    buf = np.frombuffer(data, np.uint8)
+    found: dict[str, dict[str, tuple]] = {}
+    pos = body
+    for name, n, props in elements:
+        if any(p[2] is not None for p in props):
+            offsets, end = _ply_offsets(data, buf, pos, n, props, name)
+            found[name] = {p[0]: (o, p) for p, o in zip(props, offsets)}
+        else:  # a record of scalars: a view of the bytes (no offsets per property of a 10M-vertex file)
+            record = np.dtype([(p[0], p[1]) for p in props]) if props else np.dtype([])
+            end = pos + n * record.itemsize
+            if end > len(data):
+                raise _ply_cut(n, name)
+            table = np.frombuffer(data, record, n, pos) if record.itemsize else None
+            found[name] = {p[0]: (table, p) for p in props}
+        pos = end
+    vertex, face = found.get("vertex", {}), found.get("face", {})
+    lists = [k for k in ("vertex_indices", "vertex_index") if k in face and face[k][1][2] is not None]
+    if not all(k in vertex and vertex[k][1][2] is None for k in "xyz") or not lists:
+        return None
+    where, (_, count_type, item_type) = face[lists[0]]
+    counts = _gather(buf, where, count_type).astype(np.int64)
+    if len(counts) == 0 or (counts == counts[0]).all():
+        return None
+    counts_at = where + np.dtype(count_type).itemsize
+    size = np.dtype(item_type).itemsize
+    ends = np.cumsum(counts)
+    items = np.repeat(counts_at, counts) + size * (np.arange(ends[-1]) - np.repeat(ends - counts, counts))
+    indices = _gather(buf, items, item_type).astype(np.int64)
+    verts = np.stack([vertex[k][0][k] if isinstance(vertex[k][0], np.ndarray) and vertex[k][0].dtype.names
+                      else _gather(buf, vertex[k][0], vertex[k][1][1]) for k in "xyz"], axis=1).astype(np.float64)
+    keep = counts >= 3  # a "face" of one or two vertices (a point or an edge) has no area: left out
+    if not keep.all():
+        indices, counts = indices[np.repeat(keep, counts)], counts[keep]
+    if len(indices) and (indices.min() < 0 or indices.max() >= len(verts)):
+        bad = int(indices[(indices < 0) | (indices >= len(verts))][0])
+        raise ValueError(f"face index {bad} out of range (only {len(verts)} vertices)")
+    return verts, counts, indices
+
+
+def _gather(buf: np.ndarray, offsets: np.ndarray, dtype: str) -> np.ndarray:
+    """The values of ``dtype`` starting at byte ``offsets`` of ``buf``."""
+    dt = np.dtype(dtype)
+    return np.ascontiguousarray(buf[offsets[:, None] + np.arange(dt.itemsize)]).view(dt).reshape(-1)
+
+
+def _ply_offsets(data: bytes, buf: np.ndarray, pos: int, n: int, props: list, name: str) -> tuple[list, int]:
+    """The byte offset of each property (a list's: of its count) in each of the ``n`` records of an element with
+    lists starting at ``pos``, and where the element ends. Its records differ in length: a pass over them in
+    Python, unless every list has the length of the first record's (vectorised)."""
+    import struct
+
+    cut = _ply_cut(n, name)
+    sizes = [np.dtype(p[1]).itemsize for p in props]
+    items = [np.dtype(p[2]).itemsize if p[2] is not None else 0 for p in props]
+    counts = [struct.Struct(p[1][0] + _STRUCT[p[1][1:]]).unpack_from if p[2] is not None else None for p in props]
+    if n == 0:
+        return [np.zeros(0, np.int64) for _ in props], pos
+    # the first record's layout, and every record's were they all like it
+    fixed, at = [], pos
+    try:
+        for s, item, count in zip(sizes, items, counts):
+            fixed.append(at - pos)
+            at += s + item * int(count(data, at)[0]) if item else s
+    except struct.error:
+        raise cut from None
+    stride = at - pos
+    end = pos + n * stride
+    offsets = [pos + stride * np.arange(n, dtype=np.int64) + o for o in fixed]
+    lists = [k for k, item in enumerate(items) if item]
+    if end <= len(data) and all((_gather(buf, offsets[k], props[k][1]) == _gather(buf, offsets[k][:1], props[k][1])).all()
+                                for k in lists):
+        return offsets, end
+    out = [[0] * n for _ in props]
+    at = pos
+    try:
+        for r in range(n):
+            for k, (s, item, count) in enumerate(zip(sizes, items, counts)):
+                out[k][r] = at
+                at += s + item * int(count(data, at)[0]) if item else s
+    except struct.error:
+        raise cut from None
+    if at > len(data):
+        raise cut
+    return [np.array(o, np.int64) for o in out], at
+
+
+def _ply_cut(n: int, name: str) -> ValueError:
+    return ValueError(f"binary PLY cut off: the file ends inside its {n:,} {name} records (an interrupted download "
+                      "or copy?)")
+
+
+_STRUCT = {"i1": "b", "u1": "B", "i2": "h", "u2": "H", "i4": "i", "u4": "I", "f4": "f", "f8": "d"}

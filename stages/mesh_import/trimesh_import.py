@@ -24,6 +24,7 @@ from stages.common.sdf import DEFAULT_SHELL_THICKNESS
 
 from .builtin import builtin_mesh
 from .cleanup import clean_mesh
+from .polygons import UTF8_BOM
 from stages.common.placement import apply_placement, placement_matrix, up_axis_matrix
 
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
@@ -31,16 +32,21 @@ USD_FILE = "walls.usdc"
 # OBJ that trimesh misreads (valid OBJ all the same): a relative (negative) index, which trimesh resolves against
 # the file's last vertex rather than the last one read so far (plain ``f -4 -3 -2 -1`` after each quad put every
 # face on the last quad; with /vt or /vn an IndexError), tabs or indented lines (no faces read), a comment after a
-# face (ValueError); and index 0, which is no OBJ index (trimesh took the last vertex). Read by
-# polygons.obj_polygons, which names the line of a bad index.
+# face (ValueError); index 0, which is no OBJ index (trimesh took the last vertex); and a line continued by a
+# final backslash (the spec's; trimesh read the backslash as a vertex). Read by polygons.obj_polygons, which
+# names the line of a bad index.
 _OBJ_RELATIVE_OR_ZERO = re.compile(rb"(?m)^f[ \t](?:[^\n]*?[ \t])?(?:-\d|0+(?![\d.]))")
 _OBJ_TRAILING_COMMENT = re.compile(rb"(?:^|\n)[vf][ \t][^#\n]*#")
+_OBJ_CONTINUED = re.compile(rb"\\[ \t]*\r?(?:\n|$)")
 
 
 def _obj_trimesh_misreads(data: bytes) -> bool:
-    # plain byte tests first: one regex of all four cost 80 ms on a 1.7 MB OBJ, these 12 ms
-    return (b"\t" in data or data[:1] == b" " or b"\n " in data or _OBJ_RELATIVE_OR_ZERO.search(data) is not None
-            or _OBJ_TRAILING_COMMENT.search(data) is not None)
+    # plain byte tests first: one regex of all four cost 80 ms on a 1.7 MB OBJ, these 12 ms. A byte order mark:
+    # trimesh took the first line for a word of its own (a file's first vertex dropped, every index one off)
+    return (b"\t" in data or data[:1] == b" " or data.startswith(UTF8_BOM) or b"\n " in data
+            or _OBJ_RELATIVE_OR_ZERO.search(data) is not None
+            or _OBJ_TRAILING_COMMENT.search(data) is not None
+            or (b"\\" in data and _OBJ_CONTINUED.search(data) is not None))
 
 
 class ImportParams(Params):
@@ -79,29 +85,44 @@ def to_scene_frame(v: np.ndarray, path: Path, meters_per_unit: float | None, up_
     return v
 
 
+def _text_with_a_bom(data: bytes, suffix: str) -> bool:
+    """A text mesh file (OBJ, ASCII PLY / STL, OFF) that starts with a UTF-8 byte order mark: trimesh takes the
+    mark for part of the first word (an OBJ's first vertex, an STL's 'solid'). A binary STL's 80-byte header is
+    free bytes that may start so: only an ASCII one ('solid' after the mark) counts."""
+    if not data.startswith(UTF8_BOM):
+        return False
+    return suffix != ".stl" or data[3:].lstrip()[:5].lower() == b"solid"
+
+
 def _stl_with_a_wrong_count(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
     """A binary STL whose header's triangle count disagrees with its size (0 or a stale count from an exporter
     that streams, or trailing bytes): read as many whole 50-byte records as the file holds, and say so; None for
-    any other file (trimesh refused these as 'not a valid STL file')."""
+    any other file (trimesh refused these as 'not a valid STL file'). A file that ends inside a record short of
+    the count it states is cut off (a download or copy that stopped): refused, not read as the records it kept
+    (a tank with most of its walls missing)."""
     import logging
 
     data = path.read_bytes()
     if len(data) < 84 + 50:
         return None
-    head = data[:1024].lstrip().lower()
-    if head.startswith(b"solid") and b"facet" in head:
-        return None  # ASCII
+    head = data[:1024].removeprefix(UTF8_BOM).lstrip().lower()
+    if head.startswith(b"solid") and (b"facet" in head or b"\0" not in head):
+        return None  # ASCII (a long name on its 'solid' line: no facet yet, and no NUL a binary's records hold)
     stated = int(np.frombuffer(data, "<u4", 1, 80)[0])
     held = (len(data) - 84) // 50
-    if stated == held and (len(data) - 84) % 50 == 0:
+    partial = (len(data) - 84) % 50
+    if stated == held and partial == 0:
         return None
+    if stated > held and partial:
+        raise StageError(f"{path}: binary STL cut off: its header says {stated} triangles and the file ends "
+                         f"{partial} bytes into triangle {held + 1} (an interrupted download or copy?)")
     record = np.dtype([("n", "<f4", 3), ("v", "<f4", (3, 3)), ("attr", "<u2")])
     tri = np.frombuffer(data, record, held, 84)["v"].astype(np.float64)
     if not np.isfinite(tri).all():
         return None
     logging.getLogger("stage.mesh_import.trimesh").warning(
         "%s: binary STL whose header says %d triangles and whose size holds %d%s: read %d", path, stated, held,
-        f" and {(len(data) - 84) % 50} bytes more" if (len(data) - 84) % 50 else "", held)
+        f" and {partial} bytes more" if partial else "", held)
     return tri.reshape(-1, 3), np.arange(3 * held, dtype=np.int64).reshape(-1, 3)
 
 
@@ -124,6 +145,14 @@ def read_mesh_file(path: Path) -> tuple[np.ndarray, np.ndarray]:
             raise StageError(f"{path}: cannot read as OFF ({str(e)[:160]})") from None
         if polygons is not None:
             return polygons[0], triangulate(*polygons)[0]
+    if suffix == ".ply":
+        from .polygons import ply_binary_polygons, triangulate
+        try:
+            polygons = ply_binary_polygons(path.read_bytes())  # None: ASCII, or faces trimesh reads
+        except ValueError as e:
+            raise StageError(f"{path}: cannot read as PLY ({str(e)[:160]})") from None
+        if polygons is not None:
+            return polygons[0], triangulate(*polygons)[0]
     if suffix == ".obj":
         data = path.read_bytes()
         if _obj_trimesh_misreads(data):
@@ -136,6 +165,12 @@ def read_mesh_file(path: Path) -> tuple[np.ndarray, np.ndarray]:
                 raise StageError(f"{path}: cannot read as OBJ ({str(e)[:160]})") from None
             return polygons[0], triangulate(*polygons)[0]
     source, kwargs = str(path), {}
+    if suffix in (".ply", ".stl"):
+        with open(path, "rb") as fh:
+            head = fh.read(64)
+        if _text_with_a_bom(head, suffix):
+            import io
+            source, kwargs = io.BytesIO(path.read_bytes()[len(UTF8_BOM):]), {"file_type": suffix[1:]}
     if suffix in (".gltf", ".glb"):
         from .gltf import prepare
 
@@ -146,6 +181,14 @@ def read_mesh_file(path: Path) -> tuple[np.ndarray, np.ndarray]:
     try:
         loaded = trimesh.load(source, force="mesh", process=False, maintain_order=True, **kwargs)
     except Exception as e:
+        if suffix == ".obj":  # a token that is no face vertex: trimesh's error names no line, ours does
+            from .polygons import ObjIndexError, obj_polygons
+            try:
+                obj_polygons(path.read_bytes(), triangles_too=True)
+            except ObjIndexError as bad:
+                raise StageError(f"{path}: {bad}") from None
+            except ValueError:
+                pass
         if isinstance(e, IndexError) or "range" in str(e):
             raise StageError(f"{path}: face index out of range ({str(e)[:120]})") from None
         raise StageError(f"{path}: cannot read as {suffix[1:].upper()} ({type(e).__name__}: {str(e)[:120]})") from None
@@ -182,6 +225,8 @@ def read_mesh_file(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 def _check_obj_indices(path: Path, n_vertices: int, n_faces: int) -> None:
     """trimesh silently drops OBJ faces whose index is out of range; find them ourselves."""
+    from .polygons import ObjIndexError, obj_index
+
     n_v = 0
     with open(path, "rb") as fh:
         for number, line in enumerate(fh, 1):
@@ -189,7 +234,10 @@ def _check_obj_indices(path: Path, n_vertices: int, n_faces: int) -> None:
                 n_v += 1
             elif line.startswith(b"f "):
                 for tok in line.split()[1:]:
-                    i = int(tok.split(b"/")[0])
+                    try:
+                        i = obj_index(tok, number)
+                    except ObjIndexError as e:
+                        raise StageError(f"{path}: {e}") from None
                     if i > n_v if i > 0 else -i > n_v:
                         raise StageError(f"{path}: line {number}: face index {i} out of range "
                                          f"(only {n_v} vertices defined before it)")
@@ -197,6 +245,80 @@ def _check_obj_indices(path: Path, n_vertices: int, n_faces: int) -> None:
 
 def _wall_name(i: int, label: str) -> str:
     return f"wall{i}_" + re.sub(r"[^A-Za-z0-9_]", "_", label)[:40]
+
+
+# A stray part: connected pieces holding less than STRAY_AREA of a wall's area whose box lies more than the rest's
+# diagonal away from the rest's box, widening the wall's box more than STRAY_WIDENS times along some axis (a 1 mm
+# triangle left 50 m away made the SDF grid 1254 x 83 x 54 instead of 83 x 83 x 54). Scale-free: no length in it.
+STRAY_AREA = 0.01
+STRAY_WIDENS = 2.0
+
+
+def stray_part(v: np.ndarray, f: np.ndarray) -> dict | None:
+    """The stray part of a cleaned wall (scene units): its triangles and pieces, area share, box, the rest's box,
+    its distance from it, and how many times it widens the wall's box along its worst axis; None when there is
+    none. Pieces are vertex-connected; a tiny piece near the rest counts as the rest."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    if len(f) < 2:
+        return None
+    edges = np.concatenate([f[:, [0, 1]], f[:, [1, 2]]])
+    graph = coo_matrix((np.ones(len(edges), np.int8), (edges[:, 0], edges[:, 1])), shape=(len(v), len(v)))
+    k, label = connected_components(graph, directed=False)
+    if k < 2:
+        return None
+    piece = label[f[:, 0]]
+    a, b = v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]
+    cross = np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+                      a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)  # np.cross: 3x slower on a 1M-face wall
+    area = 0.5 * np.sqrt(np.einsum("ij,ij->i", cross, cross))
+    total = float(area.sum())
+    share = np.bincount(piece, area, k) / (total or 1.0)
+    used = np.zeros(len(v), bool)
+    used[f.ravel()] = True  # a vertex no face uses is no piece (the caller's mesh is cleaned: belt and braces)
+    lo = np.full((k, 3), np.inf)
+    hi = np.full((k, 3), -np.inf)
+    np.minimum.at(lo, label[used], v[used])
+    np.maximum.at(hi, label[used], v[used])
+    has = np.isfinite(lo).all(axis=1)
+    tiny = has & (share < STRAY_AREA)
+    if total <= 0 or not tiny.any() or not (has & ~tiny).any():
+        return None
+    far = tiny
+    while True:  # the rest grows by the tiny pieces near it until none is left to join
+        rest_lo, rest_hi = lo[has & ~far].min(axis=0), hi[has & ~far].max(axis=0)
+        gap = np.linalg.norm(np.maximum(0.0, np.maximum(rest_lo - hi, lo - rest_hi)), axis=1)
+        diag = float(np.linalg.norm(rest_hi - rest_lo))
+        now = tiny & (gap > diag)
+        if (now == far).all():
+            break
+        far = now
+    if not far.any():
+        return None
+    wall = hi[has].max(axis=0) - lo[has].min(axis=0)
+    widens = wall / np.maximum(rest_hi - rest_lo, 1e-3 * diag)  # a flat wall (a plane): no 0 to divide by
+    axis = int(np.argmax(widens))
+    if widens[axis] <= STRAY_WIDENS:
+        return None
+    faces = far[piece]
+    return {"triangles": int(faces.sum()), "pieces": int(far.sum()), "area_share": float(share[far].sum()),
+            "min": lo[far].min(axis=0).tolist(), "max": hi[far].max(axis=0).tolist(),
+            "rest_min": rest_lo.tolist(), "rest_max": rest_hi.tolist(), "distance": float(gap[far].min()),
+            "widens": float(widens[axis]), "axis": "xyz"[axis]}
+
+
+def stray_text(stray: dict) -> str:
+    """A stray part for a message: "a stray part of 1 triangle (under 0.01 % of the area) at x 50..50, ... 49.5
+    scene units from the rest (x -0.5..0.5, ...), widening the wall's box 50.5x along x"."""
+    from stages.common.wall_hints import box_text
+
+    n = stray["triangles"]
+    pieces = f" in {stray['pieces']} pieces" if stray["pieces"] > 1 else ""
+    share = "under 0.01 %" if stray["area_share"] < 1e-4 else f"{100 * stray['area_share']:.2g} %"
+    return (f"a stray part of {n} triangle{'s' if n != 1 else ''}{pieces} ({share} of the area) at {box_text(stray['min'], stray['max'])}, {stray['distance']:.4g} scene units from the rest "
+            f"({box_text(stray['rest_min'], stray['rest_max'])}), widening the wall's box {stray['widens']:.4g}x "
+            f"along {stray['axis']}")
 
 
 # An opening no wider than this many particle spacings does not make a mesh a shell: a shell's wall
@@ -237,16 +359,28 @@ class TrimeshImport(Stage):
             where = source
             if len(v) == 0 or len(f) == 0:
                 raise StageError(f"{where}: {_why_no_faces(where)}")
-            if not np.isfinite(v).all():
-                raise StageError(f"{where}: vertex coordinates contain NaN or Inf")
             if f.min() < 0 or f.max() >= len(v):
                 raise StageError(f"{where}: face index {int(f.max())} out of range (mesh has {len(v)} vertices)")
+            if not np.isfinite(v).all():
+                # a vertex no face uses shapes nothing (the clean-up drops it): only a used one refuses the file
+                used, inverse = np.unique(f, return_inverse=True)
+                if not np.isfinite(v[used]).all():
+                    raise StageError(f"{where}: vertex coordinates contain NaN or Inf")
+                ctx.log.info("%s: %d vertices no face uses left out (%d with NaN or Inf coordinates)", where,
+                             len(v) - len(used), int((~np.isfinite(v).all(axis=1)).sum()))
+                v, f = v[used], inverse.reshape(-1, 3)
             v = apply_placement(v, w)
             motion = self._motion(w, v, extra.pop("animation", None), f"{where}:{extra['prims'][0]}" if "prims" in extra else where)
             diag = float(np.linalg.norm(v.max(axis=0) - v.min(axis=0))) or 1.0
             mesh, report = clean_mesh(trimesh.Trimesh(v, f, process=False), params.weld_tolerance * diag)
             if len(mesh.faces) == 0:
                 raise StageError(f"{where}: empty mesh after removing degenerate faces")
+            stray = stray_part(np.asarray(mesh.vertices), np.asarray(mesh.faces))
+            if stray is not None:
+                # said here, and kept in the report: the SDF grid covers it (a refusal of its size can name it)
+                report["stray_part"] = stray
+                ctx.log.warning("%s: %s (and the SDF grid with it): delete it from the file if it is not meant to "
+                                "be there", where, stray_text(stray))
             label = Path(source).stem if not isinstance(w, BuiltinWall) else w.builtin
             fluid, shell = self._solid_or_shell(ctx, i, label, w, fluid, report)
             if fluid == "inside":
