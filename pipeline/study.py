@@ -28,9 +28,11 @@ variant finds its kernels compiled; a stage's own ``Context.warm_up`` is left ou
 ``<time>_cpu_seconds`` beside it is the CPU time of the process that ran the stage (all its threads),
 which variants running at the same time on shared cores inflate much less than wall time (but numba
 threads spinning at barriers on an oversubscribed machine do count). A cached variant keeps the times of
-the run that computed it.
+the run that computed it. A stage that keeps its own account of its work over a resumed or extended shot
+(simulate: ``meta.json`` ``stats.wall_seconds``) is charged that instead, fresh or resumed
+(``_whole_shot_cost``).
 
-``--executor dask`` runs each variant as a task on Dask worker processes (pipeline.cluster); variants
+ runs each variant as a task on Dask worker processes (pipeline.cluster); variants
 sharing upstream stages compute them once (the cache's per-key lock).
 """
 from __future__ import annotations
@@ -228,9 +230,28 @@ def _run_variant(args: tuple, executor=None, events=None) -> VariantResult:
     except ConfigError as e:
         raise ConfigError(f"variant {name}: {e}") from None
     stage = next((s for s in report.stages if s.kind == study.time), None)
-    return VariantResult(overrides=overrides, seconds=stage.cost_seconds if stage else 0.0,
-                         metrics={m.name: None for m in study.metrics}, out=str(out),
-                         cpu_seconds=stage.cpu_seconds if stage else 0.0)
+    seconds, cpu = _whole_shot_cost(stage, cache_dir) if stage else (0.0, 0.0)
+    return VariantResult(overrides=overrides, seconds=seconds, metrics={m.name: None for m in study.metrics},
+                         out=str(out), cpu_seconds=cpu)
+
+
+def _whole_shot_cost(stage, cache_dir: str) -> tuple[float, float | None]:
+    """The time stage's cost for the whole shot, and its CPU seconds. A resumed run (the simulate stage continues
+    from its checkpoints after a kill, or from a shorter shot's entry when the shot is extended) reports only
+    this process's part in cost_seconds: an extended shot cost half a fresh one's, a killed one a tenth. A stage
+    that keeps its own account of its work loop's wall time over every part, JIT warm-up left out as in
+    cost_seconds (simulate: meta.json ``stats.wall_seconds``), is charged that, resumed or not, so resumed and
+    fresh variants are measured alike; its CPU seconds are the run's CPU-to-wall ratio times that wall time."""
+    from .cache import Cache
+
+    try:
+        hit = Cache(Path(cache_dir)).lookup(stage.kind, stage.key)
+        wall = json.loads((hit.path / "meta.json").read_text())["stats"]["wall_seconds"] if hit else None
+    except (OSError, ValueError, KeyError, TypeError):
+        wall = None
+    if not isinstance(wall, (int, float)) or isinstance(wall, bool):
+        return stage.cost_seconds, stage.cpu_seconds
+    return float(wall), (stage.cpu_seconds * wall / stage.cost_seconds if stage.cost_seconds > 0 else None)
 
 
 def _measure(study: StudyConfig, result: VariantResult, study_dir: Path) -> VariantResult:

@@ -172,3 +172,52 @@ def test_a_failing_variant_does_not_stop_the_others(toy_config):
         run_study(path)
     rows = list(csv.reader(open(out / "study.csv")))
     assert [r[3] for r in rows[1:]] == ["1.0", "0.5", ""] and rows[3][1] != ""  # its run did cost time
+
+
+RECORDED = '''\
+from pipeline.stage import Params, Stage
+
+
+class Recorded(Stage):
+    """A simulate stage keeping its own account of its work over every run of a resumed shot, as the SPH driver
+    does in meta.json stats.wall_seconds: here a made-up one."""
+    kind, name, version = "simulate", "recorded", "1"
+    inputs = ("sdf",)
+    outputs = ("particles",)
+    reads = ("scene", "fluid")
+
+    class Params(Params):
+        steps: int = 3
+        time_step: float | None = None  # the error, when given
+        wall_seconds: float = 40.0
+
+    def run(self, ctx, inputs, params):
+        error = params.time_step if params.time_step is not None else 1.0 / params.steps
+        (ctx.out_dir / "stats.json").write_text('{"stats": {"error": %s}}' % error)
+        (ctx.out_dir / "meta.json").write_text('{"stats": {"wall_seconds": %s}}' % params.wall_seconds)
+'''
+
+
+@pytest.fixture
+def recorded(tmp_path, monkeypatch):
+    """The stage above, installed as simulate.recorded."""
+    plugin = tmp_path / "recorded_plugin"
+    (plugin / "recorded-0.1.dist-info").mkdir(parents=True)
+    (plugin / "recorded-0.1.dist-info" / "METADATA").write_text("Metadata-Version: 2.1\nName: recorded\nVersion: 0.1\n")
+    (plugin / "recorded-0.1.dist-info" / "entry_points.txt").write_text(
+        "[pipeline.stages]\nsimulate.recorded = recorded_stage:Recorded\n")
+    (plugin / "recorded_stage.py").write_text(RECORDED)
+    monkeypatch.syspath_prepend(str(plugin))
+
+
+def test_a_resumed_shot_is_charged_its_whole_work(toy_config, recorded):
+    """A resumed or extended simulation's cost_seconds covers only the process that finished it (an extended shot
+    cost half a fresh one's, a killed and resumed one a tenth). A stage that records its work's wall time over
+    every part (simulate: meta.json stats.wall_seconds) is charged that, fresh or resumed alike."""
+    path = toy_config.parent / "study.yaml"
+    path.write_text(STUDY.replace("[1, 2, 4]", "[1, 2]") + "set: ['stages.simulate.use=recorded']\n")
+    results, out = run_study(path)
+    assert [r.seconds for r in results] == [40.0, 40.0]
+    assert [row[1] for row in csv.reader(open(out / "study.csv"))][1:] == ["40.0", "40.0"]
+    results, _ = run_study(path)  # cached: the same account
+    assert [r.seconds for r in results] == [40.0, 40.0]
