@@ -32,17 +32,19 @@ the run that computed it. A stage that keeps its own account of its work over a 
 (simulate: ``meta.json`` ``stats.wall_seconds``) is charged that instead, fresh or resumed
 (``_whole_shot_cost``).
 
- runs each variant as a task on Dask worker processes (pipeline.cluster); variants
+``--executor dask`` runs each variant as a task on Dask worker processes (pipeline.cluster); variants
 sharing upstream stages compute them once (the cache's per-key lock).
 """
 from __future__ import annotations
 
 import csv
+import hashlib
 import importlib
 import io
 import itertools
 import json
 import os
+import re
 import tempfile
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, replace
@@ -163,8 +165,33 @@ def _lookup(data: Any, dotted: str) -> Any:
     return data
 
 
+_PLAIN = re.compile(r"^[A-Za-z0-9_.+-]{1,40}$")  # a value written into a folder name as it is
+_NAME_MAX = 120  # a folder name's length at most (filesystems allow 255 bytes)
+
+
+def _short_hash(value: Any) -> str:
+    return hashlib.sha1(json.dumps(value, sort_keys=True, default=str).encode()).hexdigest()[:8]
+
+
+def _value_name(value: Any) -> str:
+    """A swept value in a folder name: a number or a plain word as written (spacing-0.05, use-sph); anything
+    else (a list of emitters, a path, spaces, quotes) a readable prefix and a hash of the whole value
+    (str() of an emitter list made a name too long to create, with brackets and quotes in it)."""
+    text = str(value) if isinstance(value, (int, float, str, bool)) or value is None else \
+        json.dumps(value, sort_keys=True, separators=(",", ":"))
+    if (isinstance(value, (int, float)) or _PLAIN.match(text)) and text not in (".", ".."):
+        return text
+    prefix = re.sub(r"[^A-Za-z0-9.+-]+", "-", text).strip("-.")[:24].rstrip("-.")
+    return f"{prefix}-{_short_hash(value)}" if prefix else _short_hash(value)
+
+
 def variant_name(overrides: dict[str, Any]) -> str:
-    return "_".join(f"{k.split('.')[-1]}-{v}" for k, v in overrides.items()).replace("/", "-")
+    """The variant's folder under variants/: short, filesystem-safe and deterministic; the full values are in
+    the report (study.json)."""
+    name = "_".join(f"{k.split('.')[-1]}-{_value_name(v)}" for k, v in overrides.items())
+    if len(name) > _NAME_MAX:  # many swept keys: cut, and told apart by a hash of every value
+        name = f"{name[:_NAME_MAX - 9]}-{_short_hash(overrides)}"
+    return name
 
 
 def _sets(study: StudyConfig, overrides: dict[str, Any]) -> tuple[str, ...]:
@@ -362,7 +389,12 @@ def _check_variants(study: StudyConfig, path: Path, base: Path) -> None:
     from .registry import Registry
 
     registry = Registry.from_entry_points()
+    names: dict[str, dict] = {}
     for v in variants(study):
+        if variant_name(v) in names:  # (1 and True, or a value given twice): one folder for two variants
+            raise ConfigError(f"{path}: sweep: variants {names[variant_name(v)]} and {v} would share the folder "
+                              f"{variant_name(v)}: give each value once")
+        names[variant_name(v)] = v
         try:
             config = load_config(base, registry, _sets(study, v))
             graph = build_graph(config)
@@ -406,15 +438,28 @@ def write_report(study: StudyConfig, results: list[VariantResult], out_root: Pat
     table = io.StringIO(newline="")
     w = csv.writer(table)
     w.writerow(header)
-    w.writerows(rows)
+    w.writerows([[_text(v) for v in row[:len(keys)]] + row[len(keys):] for row in rows])
     publish_file(out_root, "study.csv", table.getvalue())
     publish_file(out_root, "study.json", json.dumps({"study": study.model_dump(), "results": [r.__dict__ for r in results]},
                                                     indent=1))
     md = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    md += ["| " + " | ".join("" if v is None else (f"{v:.4g}" if isinstance(v, float) else str(v)) for v in row) + " |"
-           for row in rows]
+    n = len(keys)  # the swept values as written (0.04 and 0.0400001 were both 0.04); costs and metrics to 4 figures
+    md += ["| " + " | ".join(_cell(v, i < n) for i, v in enumerate(row)) + " |" for row in rows]
     publish_file(out_root, "study.md", f"# Study {study.name}\n\n" + "\n".join(md) + "\n")
     _plot(study, results, out_root)
+
+
+def _text(value: Any) -> str:
+    """A swept value as text (lists and mappings as JSON)."""
+    return str(value) if isinstance(value, (int, float, str, bool)) or value is None else \
+        json.dumps(value, sort_keys=True)
+
+
+def _cell(value: Any, swept: bool) -> str:
+    if value is None:
+        return ""
+    text = _text(value) if swept or not isinstance(value, float) else f"{value:.4g}"
+    return text.replace("|", "\\|")
 
 
 def _rounded(seconds: float | None) -> float | None:
@@ -431,14 +476,15 @@ def _plot(study: StudyConfig, results: list[VariantResult], out_root: Path) -> N
         fig, ax = plt.subplots(figsize=(6, 4), dpi=120)
         groups: dict[Any, list[VariantResult]] = {}
         for r in results:
-            groups.setdefault(r.overrides[series_key] if series_key else m.name, []).append(r)
+            # by the value's short name, as its folder's: a list value (emitters, a box corner) is no dict key
+            groups.setdefault(_value_name(r.overrides[series_key]) if series_key else m.name, []).append(r)
         for label, rs in groups.items():
             pts = [(r.seconds, r.metrics[m.name], r) for r in rs if r.metrics[m.name] is not None]
             if not pts:
                 continue
             ax.plot([p[0] for p in pts], [p[1] for p in pts], "o-", label=str(label))
             for s, v, r in pts:
-                tag = ", ".join(f"{k.split('.')[-1]}={r.overrides[k]}" for k in keys if k != series_key)
+                tag = ", ".join(f"{k.split('.')[-1]}={_value_name(r.overrides[k])}" for k in keys if k != series_key)
                 ax.annotate(tag, (s, v), textcoords="offset points", xytext=(4, 4), fontsize=7)
         ax.set_xlabel(f"{study.time} wall time without JIT warm-up (s)")
         ax.set_ylabel(m.label or m.name)

@@ -174,6 +174,42 @@ def test_a_failing_variant_does_not_stop_the_others(toy_config):
     assert [r[3] for r in rows[1:]] == ["1.0", "0.5", ""] and rows[3][1] != ""  # its run did cost time
 
 
+def test_variant_folder_names_are_short_safe_and_unique():
+    """A swept list of emitters made a folder name of its str(): too long to create (OSError, after the variant
+    had run), with brackets, quotes and spaces in it. Plain numbers and words stay as they were."""
+    from pipeline.study import variant_name
+
+    assert variant_name({"fluid.spacing": 0.05, "simulate.use": "sph"}) == "spacing-0.05_use-sph"
+    assert variant_name({"simulate.steps": 2, "simulate.fail": None}) == "steps-2_fail-None"
+    emitters = [{"box": {"min": [-0.5, -0.25, 0.0], "max": [-0.2, 0.05, 0.4]}, "velocity": [0.0, 0.0, 0.0]}] * 9
+    names = [variant_name({"fluid.emitters": e}) for e in (emitters, emitters[:8], "a b", "it's", "x/y", "")]
+    assert len(set(names)) == len(names) and names[0] == variant_name({"fluid.emitters": list(emitters)})
+    for name in names + [variant_name({f"k{i}.value": "v" * 40 for i in range(9)})]:
+        assert len(name) <= 120 and all(c.isalnum() or c in "_.+-" for c in name), name
+
+
+def test_a_study_sweeping_lists_runs_and_plots(toy_config):
+    """The last swept key with list values: the plot grouped by the value itself (TypeError: unhashable type:
+    'list', exit 1, no plots) and its folder was named by str() of the list."""
+    path = toy_config.parent / "study.yaml"
+    path.write_text(STUDY.replace("sweep:\n  simulate.steps: [1, 2, 4]",
+                                  "sweep:\n  simulate.steps: [1, 2]\n  fluid.emitters.0.box.max: [[1, 1, 1], [1, 1, 2]]"))
+    results, out = run_study(path)
+    assert len(results) == 4 and (out / "error_vs_time.png").stat().st_size > 1000
+    assert sorted(p.name for p in (out / "variants").iterdir()) == sorted(r.out.split("/")[-1] for r in results)
+    rows = list(csv.reader(open(out / "study.csv")))
+    assert [r[1] for r in rows[1:3]] == ["[1, 1, 1]", "[1, 1, 2]"]  # the full value in the report
+
+
+def test_study_md_tells_the_swept_values_apart(toy_config):
+    """study.md printed the swept values to 4 figures: 0.1 and 0.1000001 looked the same."""
+    path = toy_config.parent / "study.yaml"
+    path.write_text(STUDY.replace("sweep:\n  simulate.steps: [1, 2, 4]", "sweep:\n  fluid.spacing: [0.1, 0.1000001]"))
+    _, out = run_study(path)
+    md = (out / "study.md").read_text()
+    assert "| 0.1 |" in md and "| 0.1000001 |" in md
+
+
 RECORDED = '''\
 from pipeline.stage import Params, Stage
 
