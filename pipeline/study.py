@@ -45,8 +45,11 @@ import itertools
 import json
 import os
 import re
+import shutil
 import tempfile
+import uuid
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from contextvars import ContextVar
 from dataclasses import dataclass, replace
 from multiprocessing import get_context
 from pathlib import Path
@@ -55,9 +58,11 @@ from typing import Any, Callable, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from .config import OUTPUT_NAMES
+from .cache import owner_tag
 from .errors import ConfigError, StageFailed
 from .executors import exit_with_parent
-from .publish import check_out_dir, publish_file
+from .publish import (RECORD, TMP_PREFIX, OutputRefused, changed_file, check_out_dir, publish_file, read_record,
+                      read_record_stats, sweep_out_dir)
 from .stage import STAGE_KINDS
 
 
@@ -281,6 +286,18 @@ def _whole_shot_cost(stage, cache_dir: str) -> tuple[float, float | None]:
     return float(wall), (stage.cpu_seconds * wall / stage.cost_seconds if stage.cost_seconds > 0 else None)
 
 
+# the running study's variants (overrides, output folder) while its metrics are measured: a metric that reads
+# another variant (stages.simulate.validation.finest_variant) finds it here by the sweep's keys and values, not
+# by parsing folder names (a key with '_' in it matched nothing, and the variant was compared with itself) or
+# by what lies in variants/ (a folder an earlier config of the study left)
+_variants: ContextVar[tuple[tuple[dict[str, Any], Path], ...] | None] = ContextVar("study_variants", default=None)
+
+
+def study_variants() -> tuple[tuple[dict[str, Any], Path], ...] | None:
+    """While a study measures its metrics: each of its current variants' overrides and output folder; else None."""
+    return _variants.get()
+
+
 def _measure(study: StudyConfig, result: VariantResult, study_dir: Path) -> VariantResult:
     """The variant's metrics, once every variant has run: a metric may read another variant's outputs (the
     distance to the finest run), which variants running side by side had not written yet, or had written
@@ -343,6 +360,7 @@ def run_study(path: str | Path, *, cache_dir: Path | None = None, out_dir: Path 
         if m.function is not None:
             _metric_function(m.function, path)  # a typo is a config error before anything runs
     _check_variants(study, path, base)
+    _drop_old_variants(out_root / "variants", {variant_name(v) for v in variants(study)})
     jobs = [(study.model_dump(), str(base), v, str(cache), str(out_root), str(path.parent)) for v in variants(study)]
     results: list[VariantResult] = []
     if executor == "dask":
@@ -368,7 +386,11 @@ def run_study(path: str | Path, *, cache_dir: Path | None = None, out_dir: Path 
                     missing = m.function is None and _file_metric(study, m, Path(results[-1].out), label)[1]
                     if missing:
                         raise ConfigError(f"{path}: {missing}; the other variants were not run")
-    results = [_measure(study, r, path.parent) for r in results]
+    token = _variants.set(tuple((r.overrides, Path(r.out)) for r in results))
+    try:
+        results = [_measure(study, r, path.parent) for r in results]
+    finally:
+        _variants.reset(token)
     write_report(study, results, out_root)
     failed = [r for r in results if r.error]
     if failed:
@@ -404,6 +426,33 @@ def _check_variants(study: StudyConfig, path: Path, base: Path) -> None:
         if study.time not in graph.nodes:
             raise ConfigError(f"{path}: time: {study.time} is not a stage the outputs {study.outputs} run "
                               f"(they run {', '.join(graph.order())}): its cost would read 0 s")
+
+
+def _drop_old_variants(folder: Path, current: set[str]) -> list[str]:
+    """Remove the variant folders an earlier run of the study published that the sweep no longer makes (a metric
+    read one made with other settings): only a folder whose record says the pipeline published everything in
+    it, unchanged since (publish.drop_stale's rule); anything else in variants/ is left alone."""
+    if not folder.is_dir():
+        return []
+    sweep_out_dir(folder)  # a killed removal's leftovers
+    dropped = []
+    for d in sorted(folder.iterdir()):
+        if d.name in current or d.name.startswith(".") or d.is_symlink() or not d.is_dir():
+            continue
+        sweep_out_dir(d)
+        try:
+            record, stats = read_record(d), read_record_stats(d)
+        except OutputRefused:
+            continue
+        published = {RECORD} | {f"{n}/{f}" if (d / n).is_dir() else n for n, files in record.items() for f in files}
+        held = {f.relative_to(d).as_posix() for f in d.rglob("*") if f.is_symlink() or not f.is_dir()}
+        if not record or not held <= published or any(changed_file(d, n, stats) for n in record):
+            continue
+        trash = folder / f"{TMP_PREFIX}old-{d.name}.{owner_tag()}.{uuid.uuid4().hex[:8]}"
+        os.replace(d, trash)
+        shutil.rmtree(trash, ignore_errors=True)
+        dropped.append(d.name)
+    return dropped
 
 
 def _run_on_dask(study: StudyConfig, jobs: list[tuple], base: Path, cache: Path, scheduler: str | None,

@@ -210,6 +210,31 @@ def test_study_md_tells_the_swept_values_apart(toy_config):
     assert "| 0.1 |" in md and "| 0.1000001 |" in md
 
 
+FINEST = STUDY.replace("file: particles/stats.json, key: stats.error",
+                       "function: 'toy_stages:minus_reference', args: {reference: {%s}}")
+
+
+def test_the_finest_run_is_this_sweeps_and_dropped_variants_are_removed(toy_config):
+    """With 4 dropped from the sweep, the metric read the folder variants/steps-4 an earlier config had left (exit 0,
+    distances to a run of other settings). The finest run is looked up among this sweep's variants only, and
+    the folders of variants the sweep no longer makes are removed when the pipeline published all they hold."""
+    from pipeline import StageFailed
+
+    path = toy_config.parent / "study.yaml"
+    path.write_text(FINEST % "steps: 4")
+    _, out = run_study(path)
+    variants = out / "variants"
+    (variants / "mine").mkdir()  # a user's folder, and a user's note inside a published variant: kept
+    (variants / "steps-2" / "notes.txt").write_text("keep")
+    path.write_text((FINEST % "steps: 4").replace("[1, 2, 4]", "[1, 2]"))
+    with pytest.raises(StageFailed, match="2 of 2 variant.*no finest run"):
+        run_study(path)
+    assert sorted(p.name for p in variants.iterdir()) == ["mine", "steps-1", "steps-2"]
+    path.write_text((FINEST % "steps: 4").replace("[1, 2, 4]", "[4]"))
+    run_study(path)
+    assert sorted(p.name for p in variants.iterdir()) == ["mine", "steps-2", "steps-4"]
+
+
 RECORDED = '''\
 from pipeline.stage import Params, Stage
 
@@ -257,3 +282,20 @@ def test_a_resumed_shot_is_charged_its_whole_work(toy_config, recorded):
     assert [row[1] for row in csv.reader(open(out / "study.csv"))][1:] == ["40.0", "40.0"]
     results, _ = run_study(path)  # cached: the same account
     assert [r.seconds for r in results] == [40.0, 40.0]
+
+
+def test_the_finest_run_is_found_by_the_sweeps_key_and_value(toy_config, recorded):
+    """finest_variant split the folder name on '_': with a swept key such as time_step nothing matched and every
+    variant was compared with itself (0.0 for all, exit 0). It is looked up by the sweep's key and value."""
+    from pipeline import StageFailed
+
+    path = toy_config.parent / "study.yaml"
+    study = (FINEST % "time_step: 0.25").replace("simulate.steps: [1, 2, 4]", "simulate.time_step: [0.25, 0.5, 1.0]") \
+        + "set: ['stages.simulate.use=recorded']\n"
+    path.write_text(study)
+    results, _ = run_study(path)
+    assert [r.metrics["error"] for r in results] == [0.0, 0.25, 0.75]
+    # a finest value no variant has: said in each row, never the variant against itself
+    path.write_text(study.replace("time_step: 0.25}", "time_step: 0.125}"))
+    with pytest.raises(StageFailed, match="3 of 3 variant.*no finest run: no variant of the study has"):
+        run_study(path)
