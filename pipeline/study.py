@@ -28,7 +28,9 @@ variant finds its kernels compiled; a stage's own ``Context.warm_up`` is left ou
 ``<time>_cpu_seconds`` beside it is the CPU time of the process that ran the stage (all its threads),
 which variants running at the same time on shared cores inflate much less than wall time (but numba
 threads spinning at barriers on an oversubscribed machine do count). A cached variant keeps the times of
-the run that computed it.
+the run that computed it. A stage that keeps its own account of its work over a resumed or extended shot
+(simulate: ``meta.json`` ``stats.wall_seconds``) is charged that instead, fresh or resumed
+(``_whole_shot_cost``).
 
 ``--executor dask`` runs each variant as a task on Dask worker processes (pipeline.cluster); variants
 sharing upstream stages compute them once (the cache's per-key lock).
@@ -36,13 +38,18 @@ sharing upstream stages compute them once (the cache's per-key lock).
 from __future__ import annotations
 
 import csv
+import hashlib
 import importlib
 import io
 import itertools
 import json
 import os
+import re
+import shutil
 import tempfile
+import uuid
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from contextvars import ContextVar
 from dataclasses import dataclass, replace
 from multiprocessing import get_context
 from pathlib import Path
@@ -51,9 +58,11 @@ from typing import Any, Callable, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from .config import OUTPUT_NAMES
+from .cache import owner_tag
 from .errors import ConfigError, StageFailed
 from .executors import exit_with_parent
-from .publish import check_out_dir, publish_file
+from .publish import (RECORD, TMP_PREFIX, OutputRefused, changed_file, check_out_dir, publish_file, read_record,
+                      read_record_stats, sweep_out_dir)
 from .stage import STAGE_KINDS
 
 
@@ -161,8 +170,33 @@ def _lookup(data: Any, dotted: str) -> Any:
     return data
 
 
+_PLAIN = re.compile(r"^[A-Za-z0-9_.+-]{1,40}$")  # a value written into a folder name as it is
+_NAME_MAX = 120  # a folder name's length at most (filesystems allow 255 bytes)
+
+
+def _short_hash(value: Any) -> str:
+    return hashlib.sha1(json.dumps(value, sort_keys=True, default=str).encode()).hexdigest()[:8]
+
+
+def _value_name(value: Any) -> str:
+    """A swept value in a folder name: a number or a plain word as written (spacing-0.05, use-sph); anything
+    else (a list of emitters, a path, spaces, quotes) a readable prefix and a hash of the whole value
+    (str() of an emitter list made a name too long to create, with brackets and quotes in it)."""
+    text = str(value) if isinstance(value, (int, float, str, bool)) or value is None else \
+        json.dumps(value, sort_keys=True, separators=(",", ":"))
+    if (isinstance(value, (int, float)) or _PLAIN.match(text)) and text not in (".", ".."):
+        return text
+    prefix = re.sub(r"[^A-Za-z0-9.+-]+", "-", text).strip("-.")[:24].rstrip("-.")
+    return f"{prefix}-{_short_hash(value)}" if prefix else _short_hash(value)
+
+
 def variant_name(overrides: dict[str, Any]) -> str:
-    return "_".join(f"{k.split('.')[-1]}-{v}" for k, v in overrides.items()).replace("/", "-")
+    """The variant's folder under variants/: short, filesystem-safe and deterministic; the full values are in
+    the report (study.json)."""
+    name = "_".join(f"{k.split('.')[-1]}-{_value_name(v)}" for k, v in overrides.items())
+    if len(name) > _NAME_MAX:  # many swept keys: cut, and told apart by a hash of every value
+        name = f"{name[:_NAME_MAX - 9]}-{_short_hash(overrides)}"
+    return name
 
 
 def _sets(study: StudyConfig, overrides: dict[str, Any]) -> tuple[str, ...]:
@@ -228,9 +262,40 @@ def _run_variant(args: tuple, executor=None, events=None) -> VariantResult:
     except ConfigError as e:
         raise ConfigError(f"variant {name}: {e}") from None
     stage = next((s for s in report.stages if s.kind == study.time), None)
-    return VariantResult(overrides=overrides, seconds=stage.cost_seconds if stage else 0.0,
-                         metrics={m.name: None for m in study.metrics}, out=str(out),
-                         cpu_seconds=stage.cpu_seconds if stage else 0.0)
+    seconds, cpu = _whole_shot_cost(stage, cache_dir) if stage else (0.0, 0.0)
+    return VariantResult(overrides=overrides, seconds=seconds, metrics={m.name: None for m in study.metrics},
+                         out=str(out), cpu_seconds=cpu)
+
+
+def _whole_shot_cost(stage, cache_dir: str) -> tuple[float, float | None]:
+    """The time stage's cost for the whole shot, and its CPU seconds. A resumed run (the simulate stage continues
+    from its checkpoints after a kill, or from a shorter shot's entry when the shot is extended) reports only
+    this process's part in cost_seconds: an extended shot cost half a fresh one's, a killed one a tenth. A stage
+    that keeps its own account of its work loop's wall time over every part, JIT warm-up left out as in
+    cost_seconds (simulate: meta.json ``stats.wall_seconds``), is charged that, resumed or not, so resumed and
+    fresh variants are measured alike; its CPU seconds are the run's CPU-to-wall ratio times that wall time."""
+    from .cache import Cache
+
+    try:
+        hit = Cache(Path(cache_dir)).lookup(stage.kind, stage.key)
+        wall = json.loads((hit.path / "meta.json").read_text())["stats"]["wall_seconds"] if hit else None
+    except (OSError, ValueError, KeyError, TypeError):
+        wall = None
+    if not isinstance(wall, (int, float)) or isinstance(wall, bool):
+        return stage.cost_seconds, stage.cpu_seconds
+    return float(wall), (stage.cpu_seconds * wall / stage.cost_seconds if stage.cost_seconds > 0 else None)
+
+
+# the running study's variants (overrides, output folder) while its metrics are measured: a metric that reads
+# another variant (stages.simulate.validation.finest_variant) finds it here by the sweep's keys and values, not
+# by parsing folder names (a key with '_' in it matched nothing, and the variant was compared with itself) or
+# by what lies in variants/ (a folder an earlier config of the study left)
+_variants: ContextVar[tuple[tuple[dict[str, Any], Path], ...] | None] = ContextVar("study_variants", default=None)
+
+
+def study_variants() -> tuple[tuple[dict[str, Any], Path], ...] | None:
+    """While a study measures its metrics: each of its current variants' overrides and output folder; else None."""
+    return _variants.get()
 
 
 def _measure(study: StudyConfig, result: VariantResult, study_dir: Path) -> VariantResult:
@@ -295,6 +360,7 @@ def run_study(path: str | Path, *, cache_dir: Path | None = None, out_dir: Path 
         if m.function is not None:
             _metric_function(m.function, path)  # a typo is a config error before anything runs
     _check_variants(study, path, base)
+    _drop_old_variants(out_root / "variants", {variant_name(v) for v in variants(study)})
     jobs = [(study.model_dump(), str(base), v, str(cache), str(out_root), str(path.parent)) for v in variants(study)]
     results: list[VariantResult] = []
     if executor == "dask":
@@ -320,7 +386,11 @@ def run_study(path: str | Path, *, cache_dir: Path | None = None, out_dir: Path 
                     missing = m.function is None and _file_metric(study, m, Path(results[-1].out), label)[1]
                     if missing:
                         raise ConfigError(f"{path}: {missing}; the other variants were not run")
-    results = [_measure(study, r, path.parent) for r in results]
+    token = _variants.set(tuple((r.overrides, Path(r.out)) for r in results))
+    try:
+        results = [_measure(study, r, path.parent) for r in results]
+    finally:
+        _variants.reset(token)
     write_report(study, results, out_root)
     failed = [r for r in results if r.error]
     if failed:
@@ -341,7 +411,12 @@ def _check_variants(study: StudyConfig, path: Path, base: Path) -> None:
     from .registry import Registry
 
     registry = Registry.from_entry_points()
+    names: dict[str, dict] = {}
     for v in variants(study):
+        if variant_name(v) in names:  # (1 and True, or a value given twice): one folder for two variants
+            raise ConfigError(f"{path}: sweep: variants {names[variant_name(v)]} and {v} would share the folder "
+                              f"{variant_name(v)}: give each value once")
+        names[variant_name(v)] = v
         try:
             config = load_config(base, registry, _sets(study, v))
             graph = build_graph(config)
@@ -351,6 +426,33 @@ def _check_variants(study: StudyConfig, path: Path, base: Path) -> None:
         if study.time not in graph.nodes:
             raise ConfigError(f"{path}: time: {study.time} is not a stage the outputs {study.outputs} run "
                               f"(they run {', '.join(graph.order())}): its cost would read 0 s")
+
+
+def _drop_old_variants(folder: Path, current: set[str]) -> list[str]:
+    """Remove the variant folders an earlier run of the study published that the sweep no longer makes (a metric
+    read one made with other settings): only a folder whose record says the pipeline published everything in
+    it, unchanged since (publish.drop_stale's rule); anything else in variants/ is left alone."""
+    if not folder.is_dir():
+        return []
+    sweep_out_dir(folder)  # a killed removal's leftovers
+    dropped = []
+    for d in sorted(folder.iterdir()):
+        if d.name in current or d.name.startswith(".") or d.is_symlink() or not d.is_dir():
+            continue
+        sweep_out_dir(d)
+        try:
+            record, stats = read_record(d), read_record_stats(d)
+        except OutputRefused:
+            continue
+        published = {RECORD} | {f"{n}/{f}" if (d / n).is_dir() else n for n, files in record.items() for f in files}
+        held = {f.relative_to(d).as_posix() for f in d.rglob("*") if f.is_symlink() or not f.is_dir()}
+        if not record or not held <= published or any(changed_file(d, n, stats) for n in record):
+            continue
+        trash = folder / f"{TMP_PREFIX}old-{d.name}.{owner_tag()}.{uuid.uuid4().hex[:8]}"
+        os.replace(d, trash)
+        shutil.rmtree(trash, ignore_errors=True)
+        dropped.append(d.name)
+    return dropped
 
 
 def _run_on_dask(study: StudyConfig, jobs: list[tuple], base: Path, cache: Path, scheduler: str | None,
@@ -385,15 +487,28 @@ def write_report(study: StudyConfig, results: list[VariantResult], out_root: Pat
     table = io.StringIO(newline="")
     w = csv.writer(table)
     w.writerow(header)
-    w.writerows(rows)
+    w.writerows([[_text(v) for v in row[:len(keys)]] + row[len(keys):] for row in rows])
     publish_file(out_root, "study.csv", table.getvalue())
     publish_file(out_root, "study.json", json.dumps({"study": study.model_dump(), "results": [r.__dict__ for r in results]},
                                                     indent=1))
     md = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    md += ["| " + " | ".join("" if v is None else (f"{v:.4g}" if isinstance(v, float) else str(v)) for v in row) + " |"
-           for row in rows]
+    n = len(keys)  # the swept values as written (0.04 and 0.0400001 were both 0.04); costs and metrics to 4 figures
+    md += ["| " + " | ".join(_cell(v, i < n) for i, v in enumerate(row)) + " |" for row in rows]
     publish_file(out_root, "study.md", f"# Study {study.name}\n\n" + "\n".join(md) + "\n")
     _plot(study, results, out_root)
+
+
+def _text(value: Any) -> str:
+    """A swept value as text (lists and mappings as JSON)."""
+    return str(value) if isinstance(value, (int, float, str, bool)) or value is None else \
+        json.dumps(value, sort_keys=True)
+
+
+def _cell(value: Any, swept: bool) -> str:
+    if value is None:
+        return ""
+    text = _text(value) if swept or not isinstance(value, float) else f"{value:.4g}"
+    return text.replace("|", "\\|")
 
 
 def _rounded(seconds: float | None) -> float | None:
@@ -410,14 +525,15 @@ def _plot(study: StudyConfig, results: list[VariantResult], out_root: Path) -> N
         fig, ax = plt.subplots(figsize=(6, 4), dpi=120)
         groups: dict[Any, list[VariantResult]] = {}
         for r in results:
-            groups.setdefault(r.overrides[series_key] if series_key else m.name, []).append(r)
+            # by the value's short name, as its folder's: a list value (emitters, a box corner) is no dict key
+            groups.setdefault(_value_name(r.overrides[series_key]) if series_key else m.name, []).append(r)
         for label, rs in groups.items():
             pts = [(r.seconds, r.metrics[m.name], r) for r in rs if r.metrics[m.name] is not None]
             if not pts:
                 continue
             ax.plot([p[0] for p in pts], [p[1] for p in pts], "o-", label=str(label))
             for s, v, r in pts:
-                tag = ", ".join(f"{k.split('.')[-1]}={r.overrides[k]}" for k in keys if k != series_key)
+                tag = ", ".join(f"{k.split('.')[-1]}={_value_name(r.overrides[k])}" for k in keys if k != series_key)
                 ax.annotate(tag, (s, v), textcoords="offset points", xytext=(4, 4), fontsize=7)
         ax.set_xlabel(f"{study.time} wall time without JIT warm-up (s)")
         ax.set_ylabel(m.label or m.name)

@@ -172,3 +172,130 @@ def test_a_failing_variant_does_not_stop_the_others(toy_config):
         run_study(path)
     rows = list(csv.reader(open(out / "study.csv")))
     assert [r[3] for r in rows[1:]] == ["1.0", "0.5", ""] and rows[3][1] != ""  # its run did cost time
+
+
+def test_variant_folder_names_are_short_safe_and_unique():
+    """A swept list of emitters made a folder name of its str(): too long to create (OSError, after the variant
+    had run), with brackets, quotes and spaces in it. Plain numbers and words stay as they were."""
+    from pipeline.study import variant_name
+
+    assert variant_name({"fluid.spacing": 0.05, "simulate.use": "sph"}) == "spacing-0.05_use-sph"
+    assert variant_name({"simulate.steps": 2, "simulate.fail": None}) == "steps-2_fail-None"
+    emitters = [{"box": {"min": [-0.5, -0.25, 0.0], "max": [-0.2, 0.05, 0.4]}, "velocity": [0.0, 0.0, 0.0]}] * 9
+    names = [variant_name({"fluid.emitters": e}) for e in (emitters, emitters[:8], "a b", "it's", "x/y", "")]
+    assert len(set(names)) == len(names) and names[0] == variant_name({"fluid.emitters": list(emitters)})
+    for name in names + [variant_name({f"k{i}.value": "v" * 40 for i in range(9)})]:
+        assert len(name) <= 120 and all(c.isalnum() or c in "_.+-" for c in name), name
+
+
+def test_a_study_sweeping_lists_runs_and_plots(toy_config):
+    """The last swept key with list values: the plot grouped by the value itself (TypeError: unhashable type:
+    'list', exit 1, no plots) and its folder was named by str() of the list."""
+    path = toy_config.parent / "study.yaml"
+    path.write_text(STUDY.replace("sweep:\n  simulate.steps: [1, 2, 4]",
+                                  "sweep:\n  simulate.steps: [1, 2]\n  fluid.emitters.0.box.max: [[1, 1, 1], [1, 1, 2]]"))
+    results, out = run_study(path)
+    assert len(results) == 4 and (out / "error_vs_time.png").stat().st_size > 1000
+    assert sorted(p.name for p in (out / "variants").iterdir()) == sorted(r.out.split("/")[-1] for r in results)
+    rows = list(csv.reader(open(out / "study.csv")))
+    assert [r[1] for r in rows[1:3]] == ["[1, 1, 1]", "[1, 1, 2]"]  # the full value in the report
+
+
+def test_study_md_tells_the_swept_values_apart(toy_config):
+    """study.md printed the swept values to 4 figures: 0.1 and 0.1000001 looked the same."""
+    path = toy_config.parent / "study.yaml"
+    path.write_text(STUDY.replace("sweep:\n  simulate.steps: [1, 2, 4]", "sweep:\n  fluid.spacing: [0.1, 0.1000001]"))
+    _, out = run_study(path)
+    md = (out / "study.md").read_text()
+    assert "| 0.1 |" in md and "| 0.1000001 |" in md
+
+
+FINEST = STUDY.replace("file: particles/stats.json, key: stats.error",
+                       "function: 'toy_stages:minus_reference', args: {reference: {%s}}")
+
+
+def test_the_finest_run_is_this_sweeps_and_dropped_variants_are_removed(toy_config):
+    """With 4 dropped from the sweep, the metric read the folder variants/steps-4 an earlier config had left (exit 0,
+    distances to a run of other settings). The finest run is looked up among this sweep's variants only, and
+    the folders of variants the sweep no longer makes are removed when the pipeline published all they hold."""
+    from pipeline import StageFailed
+
+    path = toy_config.parent / "study.yaml"
+    path.write_text(FINEST % "steps: 4")
+    _, out = run_study(path)
+    variants = out / "variants"
+    (variants / "mine").mkdir()  # a user's folder, and a user's note inside a published variant: kept
+    (variants / "steps-2" / "notes.txt").write_text("keep")
+    path.write_text((FINEST % "steps: 4").replace("[1, 2, 4]", "[1, 2]"))
+    with pytest.raises(StageFailed, match="2 of 2 variant.*no finest run"):
+        run_study(path)
+    assert sorted(p.name for p in variants.iterdir()) == ["mine", "steps-1", "steps-2"]
+    path.write_text((FINEST % "steps: 4").replace("[1, 2, 4]", "[4]"))
+    run_study(path)
+    assert sorted(p.name for p in variants.iterdir()) == ["mine", "steps-2", "steps-4"]
+
+
+RECORDED = '''\
+from pipeline.stage import Params, Stage
+
+
+class Recorded(Stage):
+    """A simulate stage keeping its own account of its work over every run of a resumed shot, as the SPH driver
+    does in meta.json stats.wall_seconds: here a made-up one."""
+    kind, name, version = "simulate", "recorded", "1"
+    inputs = ("sdf",)
+    outputs = ("particles",)
+    reads = ("scene", "fluid")
+
+    class Params(Params):
+        steps: int = 3
+        time_step: float | None = None  # the error, when given
+        wall_seconds: float = 40.0
+
+    def run(self, ctx, inputs, params):
+        error = params.time_step if params.time_step is not None else 1.0 / params.steps
+        (ctx.out_dir / "stats.json").write_text('{"stats": {"error": %s}}' % error)
+        (ctx.out_dir / "meta.json").write_text('{"stats": {"wall_seconds": %s}}' % params.wall_seconds)
+'''
+
+
+@pytest.fixture
+def recorded(tmp_path, monkeypatch):
+    """The stage above, installed as simulate.recorded."""
+    plugin = tmp_path / "recorded_plugin"
+    (plugin / "recorded-0.1.dist-info").mkdir(parents=True)
+    (plugin / "recorded-0.1.dist-info" / "METADATA").write_text("Metadata-Version: 2.1\nName: recorded\nVersion: 0.1\n")
+    (plugin / "recorded-0.1.dist-info" / "entry_points.txt").write_text(
+        "[pipeline.stages]\nsimulate.recorded = recorded_stage:Recorded\n")
+    (plugin / "recorded_stage.py").write_text(RECORDED)
+    monkeypatch.syspath_prepend(str(plugin))
+
+
+def test_a_resumed_shot_is_charged_its_whole_work(toy_config, recorded):
+    """A resumed or extended simulation's cost_seconds covers only the process that finished it (an extended shot
+    cost half a fresh one's, a killed and resumed one a tenth). A stage that records its work's wall time over
+    every part (simulate: meta.json stats.wall_seconds) is charged that, fresh or resumed alike."""
+    path = toy_config.parent / "study.yaml"
+    path.write_text(STUDY.replace("[1, 2, 4]", "[1, 2]") + "set: ['stages.simulate.use=recorded']\n")
+    results, out = run_study(path)
+    assert [r.seconds for r in results] == [40.0, 40.0]
+    assert [row[1] for row in csv.reader(open(out / "study.csv"))][1:] == ["40.0", "40.0"]
+    results, _ = run_study(path)  # cached: the same account
+    assert [r.seconds for r in results] == [40.0, 40.0]
+
+
+def test_the_finest_run_is_found_by_the_sweeps_key_and_value(toy_config, recorded):
+    """finest_variant split the folder name on '_': with a swept key such as time_step nothing matched and every
+    variant was compared with itself (0.0 for all, exit 0). It is looked up by the sweep's key and value."""
+    from pipeline import StageFailed
+
+    path = toy_config.parent / "study.yaml"
+    study = (FINEST % "time_step: 0.25").replace("simulate.steps: [1, 2, 4]", "simulate.time_step: [0.25, 0.5, 1.0]") \
+        + "set: ['stages.simulate.use=recorded']\n"
+    path.write_text(study)
+    results, _ = run_study(path)
+    assert [r.metrics["error"] for r in results] == [0.0, 0.25, 0.75]
+    # a finest value no variant has: said in each row, never the variant against itself
+    path.write_text(study.replace("time_step: 0.25}", "time_step: 0.125}"))
+    with pytest.raises(StageFailed, match="3 of 3 variant.*no finest run: no variant of the study has"):
+        run_study(path)

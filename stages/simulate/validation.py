@@ -232,12 +232,48 @@ def sloshing_viscous_damping(length: float, width: float, depth: float, nu: floa
     return gamma / w
 
 
-def finest_variant(out_dir: Path, finest: dict) -> Path:
-    """The study variant folder beside ``out_dir`` whose swept values ``finest`` (last part of the override
-    path -> value, e.g. {spacing: 0.015625}) replace this one's: names are "key-value" joined by "_"."""
+def finest_variant(out_dir: Path, finest: dict, variants=None) -> Path:
+    """The study variant to compare ``out_dir`` with: the one whose swept values are this one's with those of
+    ``finest`` (an override path or its last part -> value, e.g. {spacing: 0.015625}) in their place.
+    ``variants``: (overrides, output folder) of each of the study's variants, by default those of the study
+    measuring now (pipeline.study.study_variants): matched by key and value, never by folder names or by what
+    else lies beside them (a folder an earlier config of the study left). Outside a study, by folder name
+    ("key-value" joined by "_"). ValueError "no finest run" when no variant matches."""
     out_dir = Path(out_dir)
+    if variants is None:
+        from pipeline.study import study_variants
+        variants = study_variants()
+    if variants is None:
+        return _finest_by_name(out_dir, finest)
+    mine = next((o for o, p in variants if Path(p).resolve() == out_dir.resolve()), None)
+    if mine is None:
+        raise ValueError(f"no finest run: {out_dir} is not one of the study's variants")
+    want = dict(mine)
+    for key, value in finest.items():
+        keys = [k for k in mine if k == key] or [k for k in mine if k.split(".")[-1] == key]
+        if len(keys) != 1:
+            raise ValueError(f"no finest run: finest: {key!r} is {'none' if not keys else 'more than one'} of the "
+                             f"swept keys ({', '.join(mine)})")
+        want[keys[0]] = value
+    for overrides, path in variants:
+        if all(_same(overrides.get(k), v) for k, v in want.items()):
+            return Path(path)
+    raise ValueError(f"no finest run: no variant of the study has {', '.join(f'{k}={v}' for k, v in want.items())}"
+                     f" (is {finest} one of the sweep's values?)")
+
+
+def _same(a, b) -> bool:
+    """Swept values equal: numbers by value (0.04 and 4e-2), the rest as given."""
+    numbers = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (a, b))
+    return float(a) == float(b) if numbers else a == b
+
+
+def _finest_by_name(out_dir: Path, finest: dict) -> Path:
     parts = out_dir.name.split("_")
     for key, value in finest.items():
+        key = str(key).split(".")[-1]
+        if not any(p.startswith(f"{key}-") for p in parts):  # (a key with '_' in it): not this one in disguise
+            raise ValueError(f"no finest run: {out_dir.name} has no value of {key}")
         parts = [f"{key}-{value}" if p.startswith(f"{key}-") else p for p in parts]
     return out_dir.parent / "_".join(parts)
 
@@ -246,10 +282,14 @@ def distance_to_finest(out_dir: Path, *, study_dir: Path | None = None, finest: 
                        axis: str = "x") -> float:
     """RMS over frames of the surge-front position's distance to the same solver's finest run of the study,
     over the column width a: the self-convergence error (0 for the finest run itself). The study measures
-    once every variant has run, so the finest run is this study's."""
-    ref = finest_variant(out_dir, finest)
+    once every variant has run, so the finest run is this study's (finest_variant)."""
+    try:
+        ref = finest_variant(out_dir, finest)
+    except ValueError as e:
+        raise ValueError(f"distance_to_finest: {e}") from None
     if not (ref / "particles" / "meta.json").is_file():
-        raise ValueError(f"distance_to_finest: no finest run {ref}: is {finest} one of the study's sweep values?")
+        raise ValueError(f"distance_to_finest: no finest run {ref}: is {finest} one of the study's sweep values "
+                         "(and did it run)?")
     t0, f0, _ = front_history(out_dir, axis=axis)
     t1, f1, _ = front_history(ref, axis=axis)
     if len(f0) != len(f1) or not np.allclose(t0, t1):
