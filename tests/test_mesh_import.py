@@ -585,6 +585,25 @@ def test_a_tiny_part_far_from_the_rest_of_a_wall_is_said_and_kept_in_the_report(
     assert "stray" not in caplog.text
 
 
+def test_a_grid_too_large_for_a_stray_part_names_the_part_not_the_units(tmp_path):
+    """A 1 mm triangle 2 km from a 1 m tank made the SDF grid too large, and the refusal advised checking
+    meters_per_unit; it names the stray part and where it lies."""
+    from pipeline.stage import StageError
+    from stages.sdf_bake.open3d_bake import Open3dBake
+
+    tank = trimesh.creation.box(extents=(1.0, 1.0, 0.6))
+    stray = trimesh.Trimesh([[2000, 0, 0], [2000.001, 0, 0], [2000, 0.001, 0]], [[0, 1, 2]])
+    trimesh.util.concatenate([tank, stray]).export(tmp_path / "stray.obj")
+    walls = [{"file": "stray.obj", "fluid": "inside"}]
+    out = run_stage(TrimeshImport, tmp_path / "walls", scene={"scene": SCENE, "walls": walls}, config_dir=tmp_path)
+    scene = {"scene": SCENE, "walls": walls, "fluid": {"spacing": 0.02, "emitters": [{"box": {
+        "min": [-0.4, -0.4, -0.2], "max": [0.4, 0.4, 0.2]}}]}}
+    with pytest.raises(StageError, match=r"; wall 0 \(.*stray\.obj\) has a stray part of 1 triangle .* at x "
+                                         r"2000\.\.2000.*: delete it from the file, or give a scene\.domain") as e:
+        run_stage(Open3dBake, tmp_path / "sdf", scene=scene, inputs={"walls": out})
+    assert "meters_per_unit" not in str(e.value)
+
+
 def test_an_ascii_stl_with_a_long_solid_line_is_not_taken_for_a_binary_one(tmp_path):
     """An ASCII STL was told from a binary one by 'facet' in its first 1024 bytes: one whose 'solid' line holds a
     long name was read as binary, its text as triangles (or refused as cut off). No NUL byte there (a binary's

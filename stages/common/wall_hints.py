@@ -96,3 +96,15 @@ def no_fluid_hint(boxes: list[dict] | None, points: np.ndarray) -> str:
 def box_text(lo, hi) -> str:
     """"x -0.2..0.2, y -0.2..0.2, z -0.12..0.52": a box for a message, in the caller's units."""
     return ", ".join(f"{a} {float(l):.4g}..{float(h):.4g}" for a, l, h in zip("xyz", lo, hi))
+
+
+def stray_text(stray: dict) -> str:
+    """A stray part for a message: "a stray part of 1 triangle (under 0.01 % of the area) at x 50..50, ... 49.5
+    scene units from the rest (x -0.5..0.5, ...), widening the wall's box 50.5x along x"."""
+    n = stray["triangles"]
+    pieces = f" in {stray['pieces']} pieces" if stray["pieces"] > 1 else ""
+    share = "under 0.01 %" if stray["area_share"] < 1e-4 else f"{100 * stray['area_share']:.2g} %"
+    return (f"a stray part of {n} triangle{'s' if n != 1 else ''}{pieces} ({share} of the area) at "
+            f"{box_text(stray['min'], stray['max'])}, {stray['distance']:.4g} scene units from the rest "
+            f"({box_text(stray['rest_min'], stray['rest_max'])}), widening the wall's box {stray['widens']:.4g}x "
+            f"along {stray['axis']}")

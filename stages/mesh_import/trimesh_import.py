@@ -21,6 +21,7 @@ from pipeline.stage import Artifact, Context, Params, Stage, StageError
 from stages.common.formats import WallMesh
 from stages.common.motion import RigidMotion, config_motion
 from stages.common.sdf import DEFAULT_SHELL_THICKNESS
+from stages.common.wall_hints import stray_text
 
 from .builtin import builtin_mesh
 from .cleanup import clean_mesh
@@ -306,19 +307,6 @@ def stray_part(v: np.ndarray, f: np.ndarray) -> dict | None:
             "min": lo[far].min(axis=0).tolist(), "max": hi[far].max(axis=0).tolist(),
             "rest_min": rest_lo.tolist(), "rest_max": rest_hi.tolist(), "distance": float(gap[far].min()),
             "widens": float(widens[axis]), "axis": "xyz"[axis]}
-
-
-def stray_text(stray: dict) -> str:
-    """A stray part for a message: "a stray part of 1 triangle (under 0.01 % of the area) at x 50..50, ... 49.5
-    scene units from the rest (x -0.5..0.5, ...), widening the wall's box 50.5x along x"."""
-    from stages.common.wall_hints import box_text
-
-    n = stray["triangles"]
-    pieces = f" in {stray['pieces']} pieces" if stray["pieces"] > 1 else ""
-    share = "under 0.01 %" if stray["area_share"] < 1e-4 else f"{100 * stray['area_share']:.2g} %"
-    return (f"a stray part of {n} triangle{'s' if n != 1 else ''}{pieces} ({share} of the area) at {box_text(stray['min'], stray['max'])}, {stray['distance']:.4g} scene units from the rest "
-            f"({box_text(stray['rest_min'], stray['rest_max'])}), widening the wall's box {stray['widens']:.4g}x "
-            f"along {stray['axis']}")
 
 
 # An opening no wider than this many particle spacings does not make a mesh a shell: a shell's wall

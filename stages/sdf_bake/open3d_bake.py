@@ -63,7 +63,7 @@ from stages.common.formats import WallMesh
 from stages.common.meshes import winding_number
 from stages.common.sdf import BODIES_DIR, BODIES_FILE, DEFAULT_SHELL_THICKNESS, SDFGrid, min_shell_thickness
 from stages.common.sizes import BYTES_PER_SDF_NODE, sdf_estimate
-from stages.common.wall_hints import spacing_hint, write_wall_boxes
+from stages.common.wall_hints import spacing_hint, stray_text, write_wall_boxes
 from stages.mesh_import.builtin import builtin_corners
 
 from .mesh_distance import band_distance, inside_votes
@@ -702,6 +702,12 @@ class Open3dBake(Stage):
                              + " + ".join("x".join(map(str, shape)) for shape in shapes))
         except StageError as e:  # a model in millimetres in a metre scene: say so beside "make the scene smaller"
             hint = spacing_hint(wm.vertices.min(axis=0), wm.vertices.max(axis=0), l0) if len(wm.vertices) else ""
+            # a stray triangle far off is the likelier cause than the units (2 km away, the advice was meters_per_unit)
+            stray = next(((i, w) for i, w in enumerate(wm.walls) if (w.get("report") or {}).get("stray_part")), None)
+            if stray is not None:
+                i, w = stray
+                hint = (f"; wall {i} ({w.get('source')}) has {stray_text(w['report']['stray_part'])}: delete it from "
+                        "the file, or give a scene.domain around the fluid")
             raise StageError(f"{e}{hint}") from None
         shells = wall_thicknesses(wm, l0, params, ctx.log)
         # a moving wall is baked apart, in its own frame (bodies/); sdf.npz holds the static walls only
