@@ -16,13 +16,15 @@ from stages.simulate import validation as val
 G = 9.81
 
 
-def write_run(folder, *, front, spacing, fps=60.0, mpu=1.0, axis=0, up_axis="Z", frames=None, density=1000.0):
+def write_run(folder, *, front, spacing, fps=60.0, mpu=1.0, axis=0, up_axis="Z", frames=None, density=1000.0,
+              gravity=None):
     """A simulate stage's output folder: meta.json with per-frame extent_max (front - spacing / 2 along
     ``axis``) and optionally particle frames."""
     ext = np.zeros((len(front), 3))
     ext[:, axis] = np.asarray(front) - 0.5 * spacing
     meta = {"spacing": spacing, "fps": fps, "meters_per_unit": mpu, "up_axis": up_axis, "density": density,
-            "frame_count": len(frames) if frames else len(front), "stats": {"extent_max": ext.tolist()}}
+            "frame_count": len(frames) if frames else len(front), "stats": {"extent_max": ext.tolist()},
+            **({"gravity": gravity} if gravity is not None else {})}
     (folder / "particles").mkdir(parents=True)
     (folder / "particles" / "meta.json").write_text(json.dumps(meta))
     for k, f in enumerate(frames or []):
@@ -41,6 +43,28 @@ def test_front_speed_error_against_ritter(tmp_path, mpu, factor):
     run = write_run(tmp_path / "r", front=x_m / mpu, spacing=0.0125 / mpu, mpu=mpu)
     err = val.front_speed_error(run, column_height=H_m / mpu, t_min=0.1, t_max=0.2)
     assert err == pytest.approx(abs(factor - 1.0), abs=1e-9)
+
+
+def test_a_studys_metric_reads_lengths_with_units_and_the_runs_own_gravity(tmp_path):
+    """A study sweeping the units gives every variant one set of metric arguments: a column height as a number
+    was in each run's scene units, so the centimetre variant's front speed error read 1.34 against 0.77 (a
+    tester's units study). "0.5 m" reads alike in every run; g defaults to the gravity the run recorded (a
+    gravity sweep's g = 2.45 run was judged at 9.81)."""
+    def run(name, mpu, g):
+        u = 0.9 * 2.0 * math.sqrt(g * 0.5)  # m/s: 10 % behind Ritter's front at this run's gravity
+        t = np.arange(25) / 60.0
+        return write_run(tmp_path / name, front=(0.25 + u * t) / mpu, spacing=0.0125 / mpu, mpu=mpu, gravity=g)
+
+    for name, mpu in (("m", 1.0), ("cm", 0.01), ("mm", 0.001)):
+        r = run(name, mpu, G)
+        for height in ("0.5 m", "50 cm", "500 mm"):
+            assert val.front_speed_error(r, column_height=height) == pytest.approx(0.1, abs=1e-9), (name, height)
+        assert val.front_speed_error(r, column_height=0.5 / mpu) == pytest.approx(0.1, abs=1e-9)
+    moon = run("moon", 1.0, 1.62)
+    assert val.front_speed_error(moon, column_height="0.5 m") == pytest.approx(0.1, abs=1e-9)
+    assert val.front_speed_error(moon, column_height="0.5 m", g=G) == pytest.approx(1 - 0.9 * math.sqrt(1.62 / G))
+    with pytest.raises(ValueError, match="'0.5 furlong': a length is a number in scene units or '<number> <unit>'"):
+        val.front_speed_error(moon, column_height="0.5 furlong")
 
 
 def test_front_speed_needs_frames_in_the_window():

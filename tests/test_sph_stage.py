@@ -40,6 +40,7 @@ def test_stage_writes_frames_meta_usd_and_drops_particles_in_walls(tmp_path, cap
     with caplog.at_level(logging.WARNING):
         out = run_stage(SPHSimulate, tmp_path / "out", scene=SCENE, params={"threads": 1}, inputs={"sdf": sdf})
     meta = ParticleMeta.load(out)
+    assert meta.gravity == pytest.approx(9.81)  # what a study's metric judges the run by
     # the box starts 0.04 behind the x = 0 wall, where this SDF grid ends: two lattice columns (8 x 10 x 2 per
     # column) are dropped, counted as outside the domain (they were counted as in walls)
     assert meta.stats["dropped_outside_domain"] == 2 * 10 * 10 and meta.stats["dropped_in_wall"] == 0

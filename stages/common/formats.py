@@ -57,6 +57,7 @@ class ParticleMeta:
     meters_per_unit: float  # metres per scene unit of every length in the artifact
     solver: str
     stats: dict[str, Any] = field(default_factory=dict)
+    gravity: float | None = None  # |g| of the gravity effect, m/s^2 (0 without one; None: not recorded)
 
     def volume(self, rho: np.ndarray | float) -> np.ndarray:
         """Particle volume m / rho in scene units^3, for densities ``rho`` in kg/m^3 (m / rho is in m^3;

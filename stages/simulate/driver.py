@@ -952,7 +952,7 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
     mpu = setup.meters_per_unit
     meta = ParticleMeta(spacing=setup.spacing / mpu, mass=solver.mass, density=setup.density, support=solver.h / mpu, fps=fps,
                         frame_count=count, up_axis=scene.units.up_axis, meters_per_unit=setup.meters_per_unit,
-                        solver=solver_name, stats=stats)
+                        solver=solver_name, stats=stats, gravity=float(np.linalg.norm(setup.gravity)))
     meta.save(ctx.out_dir)
     write_points_layer(ctx.out_dir / "particles.usdc", iter_frames(ctx.out_dir, count), spacing=setup.spacing / mpu,
                        up_axis=scene.units.up_axis, meters_per_unit=setup.meters_per_unit, fps=fps, count=count,

@@ -1,5 +1,9 @@
 """Validation metrics computed from a simulate stage's output, for `pipeline study` (``function:``
-metrics) and the benchmarks: the simulation against experiment, not against itself."""
+metrics) and the benchmarks: the simulation against experiment, not against itself.
+
+Lengths (``column_width``, ``length``, ...) are numbers in the run's scene units, or text with a unit ("0.146 m",
+"14.6 cm"), which every variant of a study sweeping the units reads alike (one number was 100 x off in the
+centimetre variant). ``g`` defaults to the gravity the run recorded (a study sweeping gravity was judged at 9.81)."""
 from __future__ import annotations
 
 import csv
@@ -10,6 +14,28 @@ from pathlib import Path
 import numpy as np
 
 AXES = {"x": 0, "y": 1, "z": 2}
+UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "km": 1000.0, "in": 0.0254, "ft": 0.3048}
+
+
+def scene_length(value: float | str, meta: dict) -> float:
+    """A metric's length in the run's scene units: a number as it is, "<number> <unit>" converted."""
+    if not isinstance(value, str):
+        return float(value)
+    number, _, unit = value.strip().partition(" ")
+    if unit.strip() not in UNITS:
+        raise ValueError(f"{value!r}: a length is a number in scene units or '<number> <unit>', unit one of "
+                         f"{', '.join(UNITS)}")
+    return float(number) * UNITS[unit.strip()] / float(meta.get("meters_per_unit", 1.0))
+
+
+def gravity(g: float | None, meta: dict) -> float:
+    """The metric's g: given, else the run's (meta.json), else 9.81."""
+    if g is not None:
+        return float(g)
+    recorded = meta.get("gravity")
+    return float(recorded) if recorded else 9.81
+
+
 
 
 def read_reference(path: Path, series: str | None = None) -> np.ndarray:
@@ -20,19 +46,21 @@ def read_reference(path: Path, series: str | None = None) -> np.ndarray:
     return np.array([(float(r["T"]), float(r[zkey])) for r in rows if series is None or r.get("series") == series])
 
 
-def surge_front(out_dir: Path, *, column_width: float, back_wall: float, axis: str = "x", g: float = 9.81):
+def surge_front(out_dir: Path, *, column_width: float | str, back_wall: float | str, axis: str = "x",
+                g: float | None = None):
     """Dimensionless surge front of a dam break: T = t sqrt(2 g / a) and Z/a = (front - back wall) / a per
     frame, the front being the fluid's furthest extent along ``axis`` (per-frame stats of the simulate
     stage: the outermost particle centre, plus half a spacing for the particle's own extent).
     ``column_width`` a and ``back_wall`` are in scene units."""
     t, ext, meta = front_history(out_dir, axis=axis)
+    column_width, back_wall = scene_length(column_width, meta), scene_length(back_wall, meta)
     a_m = column_width * float(meta.get("meters_per_unit", 1.0))
-    return t * math.sqrt(2.0 * g / a_m), (ext - back_wall) / column_width
+    return t * math.sqrt(2.0 * gravity(g, meta) / a_m), (ext - back_wall) / column_width
 
 
-def surge_front_error(out_dir: Path, *, study_dir: Path | None = None, reference: str, column_width: float,
-                      back_wall: float, axis: str = "x", series: str | None = None, t_max: float = 3.0,
-                      g: float = 9.81) -> float:
+def surge_front_error(out_dir: Path, *, study_dir: Path | None = None, reference: str, column_width: float | str,
+                      back_wall: float | str, axis: str = "x", series: str | None = None, t_max: float = 3.0,
+                      g: float | None = None) -> float:
     """RMS relative error of the surge front against a published one (e.g. Martin & Moyce 1952, T <= t_max).
     ``reference`` is relative to ``study_dir``."""
     ref = read_reference(Path(study_dir or ".") / reference, series)
@@ -63,8 +91,8 @@ def front_speed(t: np.ndarray, front: np.ndarray, t_min: float, t_max: float) ->
     return float(np.polyfit(t[sel], front[sel], 1)[0])
 
 
-def front_speed_error(out_dir: Path, *, study_dir: Path | None = None, column_height: float, axis: str = "x",
-                      t_min: float = 0.1, t_max: float = 0.2, g: float = 9.81) -> float:
+def front_speed_error(out_dir: Path, *, study_dir: Path | None = None, column_height: float | str, axis: str = "x",
+                      t_min: float = 0.1, t_max: float = 0.2, g: float | None = None) -> float:
     """|u / (2 sqrt(g H)) - 1|: the dam-break front speed u fitted over [t_min, t_max] s against Ritter's
     shallow-water front speed for a column H high (``column_height``, scene units). Ritter's is the inviscid
     shallow-water limit: the Euler (and a real) front approaches it from below, so this error falls with
@@ -72,12 +100,12 @@ def front_speed_error(out_dir: Path, *, study_dir: Path | None = None, column_he
     t, front, meta = front_history(out_dir, axis=axis)
     mpu = float(meta.get("meters_per_unit", 1.0))
     u = front_speed(t, front, t_min, t_max) * mpu
-    return abs(u / (2.0 * math.sqrt(g * column_height * mpu)) - 1.0)
+    return abs(u / (2.0 * math.sqrt(gravity(g, meta) * scene_length(column_height, meta) * mpu)) - 1.0)
 
 
 def hydrostatic_pressure_error(out_dir: Path, *, study_dir: Path | None = None, frames: int = 5,
                                min_depth: float = 2.0, max_depth: float = 8.0, wall_margin: float = 2.0,
-                               g: float = 9.81) -> float:
+                               g: float | None = None) -> float:
     """|sum p / sum rho0 g d - 1| over the last ``frames`` frames, for the particles between ``min_depth`` and
     ``max_depth`` spacings below the free surface (the mean height of the top layer plus half a spacing) and at
     least ``wall_margin`` spacings inside the fluid's horizontal extent: the settled pressure against rho0 g d."""
@@ -86,6 +114,7 @@ def hydrostatic_pressure_error(out_dir: Path, *, study_dir: Path | None = None, 
     meta = json.loads((folder / "meta.json").read_text())
     l0, mpu, rho0 = float(meta["spacing"]), float(meta.get("meters_per_unit", 1.0)), float(meta["density"])
     up = AXES[str(meta.get("up_axis", "Z")).lower()]
+    g = gravity(g, meta)
     side = [a for a in range(3) if a != up]
     n = int(meta["frame_count"])
     num = den = 0.0
@@ -140,8 +169,8 @@ def sloshing_f1(length: float, depth: float, g: float = 9.81) -> float:
     return math.sqrt(g * k * math.tanh(k * depth)) / (2.0 * math.pi)
 
 
-def sloshing_history(out_dir: Path, *, length: float, width: float, axis: str = "x",
-                     wall: float = 0.0) -> tuple[np.ndarray, np.ndarray, dict]:
+def sloshing_history(out_dir: Path, *, length: float | str, width: float | str, axis: str = "x",
+                     wall: float | str = 0.0) -> tuple[np.ndarray, np.ndarray, dict]:
     """Per frame: time (s) and the first mode's surface elevation at the wall x = ``wall`` (scene units),
     eta1 = (2 / L) sum_i V_i cos(k (x_i - wall)) / width, k = pi / L, V_i = l0^3 each particle's volume. The
     first mode's amplitude: the cos-weighted volume of the water per unit width, blind to the other modes
@@ -150,6 +179,7 @@ def sloshing_history(out_dir: Path, *, length: float, width: float, axis: str = 
     folder = Path(out_dir) / "particles"
     meta = json.loads((folder / "meta.json").read_text())
     l0 = float(meta["spacing"])
+    length, width, wall = (scene_length(v, meta) for v in (length, width, wall))
     k = math.pi / length
     a = AXES[axis]
     eta = []
@@ -159,27 +189,33 @@ def sloshing_history(out_dir: Path, *, length: float, width: float, axis: str = 
     return np.arange(len(eta)) / float(meta["fps"]), np.asarray(eta), meta
 
 
-def _sloshing_fit(out_dir: Path, length: float, width: float, axis: str, wall: float, t_min: float):
+def _sloshing_fit(out_dir: Path, length, width, axis: str, wall, t_min: float):
+    """The first mode's (frequency, decay rate) and the run's meta."""
     t, eta, meta = sloshing_history(out_dir, length=length, width=width, axis=axis, wall=wall)
     sel = t >= t_min - 1e-9
     if sel.sum() < 8:
         raise ValueError(f"{out_dir}: fewer than 8 frames after t = {t_min} s to fit the sloshing mode")
-    return damped_frequency(t[sel], eta[sel]), float(meta.get("meters_per_unit", 1.0))
+    return damped_frequency(t[sel], eta[sel]), meta
 
 
-def sloshing_frequency_error(out_dir: Path, *, study_dir: Path | None = None, length: float, depth: float,
-                             width: float, axis: str = "x", wall: float = 0.0, t_min: float = 0.0,
-                             g: float = 9.81) -> float:
+def _si(meta: dict, *lengths) -> list[float]:
+    mpu = float(meta.get("meters_per_unit", 1.0))
+    return [scene_length(v, meta) * mpu for v in lengths]
+
+
+def sloshing_frequency_error(out_dir: Path, *, study_dir: Path | None = None, length: float | str,
+                             depth: float | str, width: float | str, axis: str = "x", wall: float | str = 0.0,
+                             t_min: float = 0.0, g: float | None = None) -> float:
     """|f / f1 - 1|: the first sloshing mode's frequency f, a damped sinusoid fitted to its elevation at the
     wall (sloshing_history) from ``t_min`` s on, against linear theory's f1 for a tank ``length`` long with
     water ``depth`` deep (scene units). Linear theory is the limit the solvers converge to for small
     amplitudes (k A << 1: the weakly nonlinear shift is O((k A)^2))."""
-    (f, _), mpu = _sloshing_fit(out_dir, length, width, axis, wall, t_min)
-    return abs(f / sloshing_f1(length * mpu, depth * mpu, g) - 1.0)
+    (f, _), meta = _sloshing_fit(out_dir, length, width, axis, wall, t_min)
+    return abs(f / sloshing_f1(*_si(meta, length, depth), gravity(g, meta)) - 1.0)
 
 
-def sloshing_damping(out_dir: Path, *, study_dir: Path | None = None, length: float, width: float,
-                     axis: str = "x", wall: float = 0.0, t_min: float = 0.0) -> float:
+def sloshing_damping(out_dir: Path, *, study_dir: Path | None = None, length: float | str, width: float | str,
+                     axis: str = "x", wall: float | str = 0.0, t_min: float = 0.0) -> float:
     """The first sloshing mode's damping ratio zeta = delta / (2 pi f) from the same fit (negative: the
     oscillation grows)."""
     (f, delta), _ = _sloshing_fit(out_dir, length, width, axis, wall, t_min)
@@ -204,15 +240,15 @@ def sloshing_kinetic_energy_ratio(out_dir: Path, *, study_dir: Path | None = Non
     return float(np.mean(ke[len(ke) // 2:]) / ke[0])
 
 
-def sloshing_damping_error(out_dir: Path, *, study_dir: Path | None = None, length: float, depth: float,
-                           width: float, axis: str = "x", wall: float = 0.0, t_min: float = 0.0,
-                           nu: float = 1.0e-6, g: float = 9.81) -> float:
+def sloshing_damping_error(out_dir: Path, *, study_dir: Path | None = None, length: float | str,
+                           depth: float | str, width: float | str, axis: str = "x", wall: float | str = 0.0,
+                           t_min: float = 0.0, nu: float = 1.0e-6, g: float | None = None) -> float:
     """|zeta - zeta_water|: the first mode's damping ratio against the one water's viscosity gives through
     the walls' boundary layers (sloshing_viscous_damping: 0.006 in configs/sloshing.yaml's tank). The rest
     is the method's numerical dissipation (or, negative, energy it creates), which a convergent solver loses
     with resolution."""
-    (f, delta), mpu = _sloshing_fit(out_dir, length, width, axis, wall, t_min)
-    water = sloshing_viscous_damping(length * mpu, width * mpu, depth * mpu, nu, g)
+    (f, delta), meta = _sloshing_fit(out_dir, length, width, axis, wall, t_min)
+    water = sloshing_viscous_damping(*_si(meta, length, width, depth), nu, gravity(g, meta))
     return abs(delta / (2.0 * math.pi * f) - water)
 
 
@@ -278,7 +314,7 @@ def _finest_by_name(out_dir: Path, finest: dict) -> Path:
     return out_dir.parent / "_".join(parts)
 
 
-def distance_to_finest(out_dir: Path, *, study_dir: Path | None = None, finest: dict, column_width: float,
+def distance_to_finest(out_dir: Path, *, study_dir: Path | None = None, finest: dict, column_width: float | str,
                        axis: str = "x") -> float:
     """RMS over frames of the surge-front position's distance to the same solver's finest run of the study,
     over the column width a: the self-convergence error (0 for the finest run itself). The study measures
@@ -290,12 +326,14 @@ def distance_to_finest(out_dir: Path, *, study_dir: Path | None = None, finest: 
     if not (ref / "particles" / "meta.json").is_file():
         raise ValueError(f"distance_to_finest: no finest run {ref}: is {finest} one of the study's sweep values "
                          "(and did it run)?")
-    t0, f0, _ = front_history(out_dir, axis=axis)
-    t1, f1, _ = front_history(ref, axis=axis)
+    t0, f0, m0 = front_history(out_dir, axis=axis)
+    t1, f1, m1 = front_history(ref, axis=axis)
     if len(f0) != len(f1) or not np.allclose(t0, t1):
         raise ValueError(f"distance_to_finest: the finest run {ref.name} has {len(f1)} frames, this one {len(f0)}: "
                          "compare runs of the same shot")
-    return float(np.sqrt(np.mean((f0 - f1) ** 2)) / column_width)
+    (a,) = _si(m0, column_width)  # in metres: the finest run may be in other units
+    f0, f1 = f0 * float(m0.get("meters_per_unit", 1.0)), f1 * float(m1.get("meters_per_unit", 1.0))
+    return float(np.sqrt(np.mean((f0 - f1) ** 2)) / a)
 
 
 def observed_order(spacings, errors) -> float:
