@@ -40,7 +40,9 @@ containers as solids with thickness (mesh_import's builtin open_box does) and fl
 may leave them. Walls are combined by the minimum over walls: a point is fluid only if every wall
 allows it. ``sign: auto`` (the default) is parity, but a wall whose closed parts cut into each other
 (``interpenetrating_parts``; a tank kitbashed from overlapping boxes) is signed by the winding number: parity
-calls their overlap open space, and the water filled the tank's wall posts.
+calls their overlap open space, and the water filled the tank's wall posts. A shell wall whose closed parts
+mesh_import made solids (an open tank and a rock in one file) is baked as its open parts' shell and its closed
+parts' solid, folded in by the minimum (``wall_pieces``).
 
 Moving walls (walls.json "motion"): each is baked alone, in its rest pose, on its own bounds padded
 by band + margin at the same node spacing (the whole band: beyond its box a body reads its border's nodes,
@@ -69,7 +71,7 @@ from stages.common.wall_hints import spacing_hint, write_wall_boxes
 from stages.mesh_import.builtin import builtin_corners
 
 from .mesh_distance import band_distance, inside_votes
-from .parts import mesh_parts, weld_equal
+from .parts import mesh_parts, solid_faces, weld_equal
 
 if TYPE_CHECKING:  # imported where used (about 1.7 s); here for the annotations only
     import open3d as o3d
@@ -171,10 +173,10 @@ def wall_fields(wm: WallMesh, sign_rays: int, shells: np.ndarray | None = None) 
     shells = wm.shell_thickness() if shells is None else shells
     fields = []
     for i, info in enumerate(wm.walls):
-        f = wm.faces[wm.wall_id == i]
-        if len(f):
-            fields.append(WallField(wm.vertices, f, info["fluid"], bool(info.get("report", {}).get("watertight", False)),
-                                    sign_rays, float(shells[i])))
+        tri = wm.vertices[wm.faces[wm.wall_id == i]]
+        for tri, fluid, shell, watertight in wall_pieces(tri, info, float(shells[i])):
+            faces = np.arange(3 * len(tri)).reshape(-1, 3)
+            fields.append(WallField(tri.reshape(-1, 3), faces, fluid, watertight, sign_rays, shell))
     return fields
 
 
@@ -601,25 +603,36 @@ def bake(wm: WallMesh, lo: np.ndarray, hi: np.ndarray, h: float, band: float, ex
     winding: dict[str, int] = {}  # the same, signed by the winding number instead (sign: auto)
     for i, info in enumerate(wm.walls):
         tri = wm.vertices[wm.faces[wm.wall_id == i]]
-        if not len(tri):
-            continue
         name = info.get("name") or f"walls[{i}]"
-        how = "parity" if sign == "auto" else sign
-        if sign != "winding" and not shells[i] > 0:  # parity calls the overlap of two closed parts outside
-            n = interpenetrating_parts(tri)
-            if n and sign == "auto":
-                how, winding[name] = "winding", n
-            elif n:
-                cutting[name] = n
-        c = bake_wall(tri, info["fluid"], np.asarray(lo, np.float64), h, shape, band, exact_reach, sign_rays, dist,
-                      seconds, shell=float(shells[i]), sign=how, min_thickness=min_thickness,
-                      watertight=bool(info.get("report", {}).get("watertight", False)))
-        counts = {k: counts[k] + c[k] for k in counts}
+        for piece, fluid, shell, watertight in wall_pieces(tri, info, float(shells[i])):
+            how = "parity" if sign == "auto" else sign
+            if sign != "winding" and not shell > 0:  # parity calls the overlap of two closed parts outside
+                n = interpenetrating_parts(piece)
+                if n and sign == "auto":
+                    how, winding[name] = "winding", n
+                elif n:
+                    cutting[name] = n
+            c = bake_wall(piece, fluid, np.asarray(lo, np.float64), h, shape, band, exact_reach, sign_rays, dist,
+                          seconds, shell=shell, sign=how, min_thickness=min_thickness, watertight=watertight)
+            counts = {k: counts[k] + c[k] for k in counts}
     stats = {"shape": list(shape), "nodes": int(np.prod(shape)), "seconds": time.perf_counter() - t0,
              "distance_seconds": seconds["distance"], "sign_seconds": seconds["sign"], **counts,
              "interpenetrating": cutting, "winding": winding}
     return SDFGrid(origin=np.asarray(lo, np.float64), spacing=float(h), dist=dist, band=float(band),
                    shell_thickness=shells), stats
+
+
+def wall_pieces(tri: np.ndarray, info: dict, shell: float) -> list[tuple[np.ndarray, str, float, bool]]:
+    """One wall's triangles as baked, (triangles, fluid side, shell thickness, watertight) each: the whole wall,
+    or, for a shell whose closed parts mesh_import made solids (report["parts"]), its open parts as the shell
+    and its closed parts as a solid with the fluid outside, folded in by the minimum (the union of the two)."""
+    report = info.get("report", {})
+    split = report.get("parts")
+    if not (shell > 0 and split):
+        return [(tri, info["fluid"], shell, bool(report.get("watertight", False)))] if len(tri) else []
+    solid, parts = solid_faces(tri, float(split["closed_holes_up_to"]))
+    closed = bool(parts.closed[parts.part[solid]].all())
+    return [p for p in ((tri[~solid], "both", shell, False), (tri[solid], "outside", 0.0, closed)) if len(p[0])]
 
 
 def say_signs(log, stats: dict) -> None:

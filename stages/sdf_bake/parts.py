@@ -4,7 +4,9 @@ Two triangles are joined across an edge only they use; a shared vertex, or an ed
 where two boxes share it), joins nothing, and open pieces whose free edges meet once each way are joined again
 (a box whose every bottom edge another box uses too falls apart there into its bottom and the rest). So the
 boxes of a kitbashed tank that share corner vertices are separate closed parts, as the sign of their overlap
-needs them (``open3d_bake.interpenetrating_parts``).
+needs them (``open3d_bake.interpenetrating_parts``); an open tank and a closed rock exported in one file are
+two parts, one a shell and one a solid (``solid_faces``: mesh_import chooses per part with it, and sdf_bake
+bakes what it chose from the same triangles).
 """
 from __future__ import annotations
 
@@ -105,3 +107,11 @@ def _widest_holes(vertices: np.ndarray, edges: np.ndarray, edge_part: np.ndarray
     np.maximum.at(widest, loop_part, np.linalg.norm(hi - lo, axis=1))
     return widest
 
+
+def solid_faces(tri: np.ndarray, small_hole: float) -> tuple[np.ndarray, Parts]:
+    """(T,) bool: the triangles (T, 3, 3) of the parts closed, or closed but for holes no wider than
+    ``small_hole`` (scene units): the parts mesh_import makes solids (fluid outside) in a wall whose other
+    parts are shells; and the parts."""
+    parts = mesh_parts(*weld_equal(tri))
+    solid = (parts.boundary_edges == 0) | (parts.widest_hole <= small_hole)
+    return solid[parts.part], parts
