@@ -309,3 +309,63 @@ def test_a_10_m_s_jet_does_not_cross_the_wall_of_a_cup_0_2_l0_thick(solver, tmp_
     assert min(g.min() for g in gap) > r_out, [g.min() for g in gap]  # nobody inside the cup's side
     assert min(g.min() for g in gap[2:]) < r_out + 1.5 * l0  # the jet reached the cup
     assert stats["left_domain"] == 0
+
+
+def _tank_and_rock_obj(path: Path, k: float, up: str) -> None:
+    """One OBJ of two objects, as a set exports them: an open tank of 5 quads (1 x 1 x 0.6 m, no lid) and a
+    closed rock (a 0.3 m cube on its floor), ``k`` file units a metre, ``up`` its up axis."""
+    tank = np.array([[x, y, z] for z in (0, 0.6) for x, y in ((-.5, -.5), (.5, -.5), (.5, .5), (-.5, .5))])
+    quads = [[1, 4, 3, 2], [1, 2, 6, 5], [2, 3, 7, 6], [3, 4, 8, 7], [4, 1, 5, 8]]
+    rock = trimesh.creation.box(extents=[0.3, 0.3, 0.3]).apply_translation([0, 0, 0.15])
+    to_file = (lambda v: v) if up == "Z" else (lambda v: v[:, [0, 2, 1]] * [1, 1, -1])
+    lines = ["o Tank"] + [f"v {x:.17g} {y:.17g} {z:.17g}" for x, y, z in to_file(tank * k)]
+    lines += [f"f {' '.join(map(str, q))}" for q in quads] + ["o Rock"]
+    lines += [f"v {x:.17g} {y:.17g} {z:.17g}" for x, y, z in to_file(rock.vertices * k)]
+    lines += [f"f {' '.join(str(i + 9) for i in f)}" for f in rock.faces]
+    path.write_text("\n".join(lines) + "\n")
+
+
+@pytest.mark.parametrize("mpu, up, config", [(1.0, "Z", {}), (0.01, "Y", {}), (0.001, "Z", {}),
+                                             (1.0, "Z", {"motion": {"keyframes": [{"time": 0.0}, {"time": 1.0}]}}),
+                                             (1.0, "Z", {"shell": {"thickness": 0.06}}), (1.0, "Z", {"fluid": "outside"})])
+def test_a_closed_rock_in_the_file_of_an_open_tank_stays_solid(mpu, up, config, tmp_path, caplog):
+    """An open tank and a closed rock in one wall file: the wall was one open mesh (4 boundary edges), all a
+    shell, so the rock was hollow and an emitter over the tank filled it (16 particles). Chosen per part now:
+    the tank a shell, the rock a solid (its middle 0.15 m deep in it), said per part; in cm Y-up and mm as in m,
+    and for a moving wall. A config's shell: or fluid: is the whole wall's (the rock hollow in an explicit shell)."""
+    from stages.common.sdf import load_bodies, posed_field
+
+    k = 1.0 / mpu
+    _tank_and_rock_obj(tmp_path / "tank_rock.obj", k, up)
+    config = {key: ({"thickness": 0.06 * k} if key == "shell" else v) for key, v in config.items()}
+    z = (lambda p: np.asarray(p, float)) if up == "Z" else (lambda p: np.asarray(p, float)[..., [0, 2, 1]] * [1, 1, -1])
+    box = z([-.4, -.4, .05]), z([.4, .4, .55])  # an emitter over the tank
+    (tmp_path / "scene.yaml").write_text(yaml.safe_dump({
+        "config_version": 1, "scene": {"name": "rock", "units": {"meters_per_unit": mpu, "up_axis": up},
+                                       "frames": {"fps": 10, "count": 1}},
+        "walls": [{"file": "tank_rock.obj", **config}],
+        "fluid": {"spacing": 0.1 * k, "emitters": [{"box": {"min": (np.minimum(*box) * k).tolist(),
+                                                            "max": (np.maximum(*box) * k).tolist()}}]},
+        "outputs": ["sdf"]}))
+    with caplog.at_level(logging.INFO):
+        report = pipeline.run(tmp_path / "scene.yaml", registry=Registry.from_entry_points(),
+                              cache_dir=tmp_path / "cache", out_dir=tmp_path / "out")
+    folder = Path(report.outputs["sdf"])
+    grid = posed_field(SDFGrid.load(folder), load_bodies(folder), 0.0)
+    probes = z([[0.08, 0, 0.15],  # in the rock, 0.07 m from its nearest face
+                [0.1, 0.05, 0.2],  # in the rock, 0.05 m from its nearest face
+                [0.3, 0.3, 0.45],  # the tank's water, above the rock's side
+                [0.49, 0.0, 0.3]]) * k  # by the tank's side: in the shell
+    d = grid.sample(probes)[0] / k
+    if "shell" in config:  # the config's shell is the whole wall's: the rock is a shell too
+        assert d[0] == pytest.approx(0.07 - 0.03, abs=2e-3) and d[3] < 0, d
+        assert "1 closed part" not in caplog.text
+        return
+    if "fluid" in config:  # a solid, as said: the open tank's inside too (closed as by a lid)
+        assert "1 closed part" not in caplog.text and d[2] < 0, d
+        return
+    assert d[0] == pytest.approx(-0.07, abs=2e-3), d  # solid, its exact depth (was +0.04: a hollow shell)
+    assert d[1] < -0.03 and d[2] > 0.1 and d[3] < 0, d
+    assert f"wall 0 (tank_rock): 1 open part (4 boundary edges) -> shell {0.06 * k:.4g} (0.6 l0) thick" in caplog.text, \
+        caplog.text
+    assert ", 1 closed part -> solid, fluid outside" in caplog.text, caplog.text

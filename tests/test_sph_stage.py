@@ -291,3 +291,39 @@ def test_an_emitter_reaching_into_a_wall_is_told_so_not_about_tilted_walls(caplo
     assert dropped == 2 * 10 * 5 and len(x) == 10 * 10 * 5
     assert "100 inside a wall's solid: the emitter reaches into it" in caplog.text
     assert "not aligned" not in caplog.text
+
+
+@pytest.mark.parametrize("mpu", [1.0, 0.001])
+def test_no_particles_in_a_thick_tank_marked_fluid_inside_says_to_remove_it(tmp_path, mpu):
+    """A closed thick-walled tank (outer walls, rim, inner walls; its cavity, open at the top, outside its
+    material) marked fluid: inside, the emitter in its cavity: the fluid region is the tank's material, so every
+    particle was dropped and the error advised "... unless its walls[] entry says fluid: inside", which it did,
+    without naming the wall. It names the wall now and says to remove fluid: inside."""
+    import trimesh
+
+    from pipeline.stage import StageError
+    from stages.mesh_import.trimesh_import import TrimeshImport
+    from stages.sdf_bake.open3d_bake import Open3dBake
+
+    k = 1.0 / mpu
+    a, b, h, f = 0.15, 0.11, 0.3, 0.04  # outer and inner half widths, height, floor
+    v = np.array([[x, y, z] for z in (0, h) for x, y in ((-a, -a), (a, -a), (a, a), (-a, a))]
+                 + [[x, y, z] for z in (h, f) for x, y in ((-b, -b), (b, -b), (b, b), (-b, b))]) * k
+    quads = [[0, 3, 2, 1], [0, 1, 5, 4], [1, 2, 6, 5], [2, 3, 7, 6], [3, 0, 4, 7],  # outside, normals out
+             [4, 5, 9, 8], [5, 6, 10, 9], [6, 7, 11, 10], [7, 4, 8, 11],  # rim
+             [8, 9, 13, 12], [9, 10, 14, 13], [10, 11, 15, 14], [11, 8, 12, 15], [12, 13, 14, 15]]  # cavity
+    tank = trimesh.Trimesh(v, [[q[0], q[i], q[i + 1]] for q in quads for i in (1, 2)], process=False)
+    assert tank.is_watertight and tank.volume > 0
+    tank.export(tmp_path / "thick_tank.obj")
+    scene = {**SCENE, "scene": {**SCENE["scene"], "units": {"up_axis": "Z", "meters_per_unit": mpu}},
+             "walls": [{"file": str(tmp_path / "thick_tank.obj"), "fluid": "inside"}],
+             "fluid": {"spacing": L0 * k, "emitters": [{"box": {"min": [-0.08 * k, -0.08 * k, 0.06 * k],
+                                                                "max": [0.08 * k, 0.08 * k, 0.2 * k]}}]}}
+    walls = run_stage(TrimeshImport, tmp_path / "walls", scene=scene, config_dir=tmp_path)
+    sdf = run_stage(Open3dBake, tmp_path / "sdf", scene=scene, inputs={"walls": walls})
+    with pytest.raises(StageError) as e:
+        run_stage(SPHSimulate, tmp_path / "out", scene=scene, params={"threads": 1}, inputs={"sdf": sdf})
+    text = str(e.value)
+    assert "unless its walls[] entry says fluid: inside" not in text, text
+    assert "wall 0 (thick_tank.obj, fluid: inside) holds the fluid inside its closed mesh" in text, text
+    assert text.endswith("remove fluid: inside from its walls[] entry"), text

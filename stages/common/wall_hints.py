@@ -80,6 +80,12 @@ def no_fluid_hint(boxes: list[dict] | None, points: np.ndarray) -> str:
         if b["fluid"] == "inside" and inside < 0.5:
             parts.append(f"{name} is a container and the emitters lie outside its box ({box_text(blo, bhi)}): "
                          "move them into it")
+        elif b["fluid"] == "inside" and not str(b["source"]).startswith("builtin:"):
+            # the emitters in its box and still all in walls: the mesh's closed volume is its material, as a
+            # thick-walled tank's is (the old advice told such a wall to say fluid: inside, which it did)
+            parts.append(f"{name} holds the fluid inside its closed mesh, and the emitters in its box are not in "
+                         "that volume: if it is a thick-walled tank (the water in a cavity outside its material), "
+                         "remove fluid: inside from its walls[] entry")
         elif b["fluid"] == "outside" and inside >= 0.5:
             parts.append(f"{name} is a solid around the emitters: set fluid: inside on its walls[] entry if it is "
                          "a container, or move the emitters out of it")

@@ -370,7 +370,7 @@ class TrimeshImport(Stage):
                 ctx.log.warning("%s: %s (and the SDF grid with it): delete it from the file if it is not meant to "
                                 "be there", where, stray_text(stray))
             label = Path(source).stem if not isinstance(w, BuiltinWall) else w.builtin
-            fluid, shell = self._solid_or_shell(ctx, i, label, w, fluid, report)
+            fluid, shell = self._solid_or_shell(ctx, i, label, w, fluid, report, mesh)
             if fluid == "inside":
                 mesh.invert()  # container: normals into the fluid, i.e. inwards
             asset_to_scene = extra.pop("asset_to_scene", None)
@@ -427,14 +427,18 @@ class TrimeshImport(Stage):
 
     @staticmethod
     def _solid_or_shell(ctx: Context, i: int, label: str, w: Any, fluid: str | None,
-                        report: dict) -> tuple[str, float | None]:
+                        report: dict, mesh: Any = None) -> tuple[str, float | None]:
         """(fluid side, shell thickness in scene units) of wall ``i``: what the config says, else a shell
         for an open mesh (an opening wider than SMALL_HOLE l0) and a solid obstacle otherwise. A shell's fluid is "both"; its
-        thickness is None when left to sdf_bake's default (no fluid spacing here)."""
+        thickness is None when left to sdf_bake's default (no fluid spacing here). Chosen per part (sets of
+        faces joined across edges, stages.sdf_bake.parts) when the config says neither: a closed rock in the
+        file of an open tank stays solid (report["parts"], which sdf_bake reads, says so), where the whole wall
+        became a shell and the rock hollow (the emitter filled it)."""
         shell = getattr(w, "shell", None)
         if fluid is not None and shell is None:
             return fluid, None
         spacing = ctx.scene["fluid"].spacing if ctx.scene.get("fluid") is not None else None
+        closed = ""
         if shell is not None and shell.thickness is not None:
             thickness, why = shell.thickness, "shell in the config"
         else:
@@ -451,9 +455,20 @@ class TrimeshImport(Stage):
                 return "outside", None
             thickness = DEFAULT_SHELL_THICKNESS * spacing if spacing else None  # None: sdf_bake's default
             why = "shell in the config" if shell is not None else f"open mesh ({report['boundary_edges']} boundary edges)"
+            if shell is None and mesh is not None:
+                from stages.sdf_bake.parts import solid_faces
+
+                small = SMALL_HOLE * spacing if spacing else 0.0
+                solid, parts = solid_faces(np.asarray(mesh.vertices)[np.asarray(mesh.faces)], small)
+                n_solid = int(len(np.unique(parts.part[solid])))
+                if n_solid:
+                    n_open = parts.count - n_solid
+                    report["parts"] = {"open": n_open, "closed": n_solid, "closed_holes_up_to": small}
+                    why = f"{n_open} open part{'s' * (n_open > 1)} ({report['boundary_edges']} boundary edges)"
+                    closed = f", {n_solid} closed part{'s' * (n_solid > 1)} -> solid, fluid outside"
         size = f"{thickness:.4g} ({thickness / spacing:.3g} l0)" if spacing else f"{DEFAULT_SHELL_THICKNESS} l0"
-        tail = "" if shell is not None else "; set fluid: inside/outside to override"
-        ctx.log.info("wall %d (%s): %s -> shell %s thick%s", i, label, why, size, tail)
+        tail = "" if shell is not None else f"; set fluid: inside/outside to override{' (the whole wall)' * bool(closed)}"
+        ctx.log.info("wall %d (%s): %s -> shell %s thick%s%s", i, label, why, size, closed, tail)
         return "both", thickness
 
     def _read(self, ctx: Context, w: Any, params: ImportParams) -> tuple[np.ndarray, np.ndarray, str, str, dict]:

@@ -38,7 +38,11 @@ opening, fluid "inside"), the cavity below the rim votes inside (five of six lin
 twice) and the space above the opening outside, as if the bowl had a lid at its rim. Model open
 containers as solids with thickness (mesh_import's builtin open_box does) and fluid "outside" so fluid
 may leave them. Walls are combined by the minimum over walls: a point is fluid only if every wall
-allows it.
+allows it. ``sign: auto`` (the default) is parity, but a wall whose closed parts cut into each other
+(``interpenetrating_parts``; a tank kitbashed from overlapping boxes) is signed by the winding number: parity
+calls their overlap open space, and the water filled the tank's wall posts. A shell wall whose closed parts
+mesh_import made solids (an open tank and a rock in one file) is baked as its open parts' shell and its closed
+parts' solid, folded in by the minimum (``wall_pieces``).
 
 Moving walls (walls.json "motion"): each is baked alone, in its rest pose, on its own bounds padded
 by band + margin at the same node spacing (the whole band: beyond its box a body reads its border's nodes,
@@ -67,6 +71,7 @@ from stages.common.wall_hints import spacing_hint, stray_text, write_wall_boxes
 from stages.mesh_import.builtin import builtin_corners
 
 from .mesh_distance import band_distance, inside_votes
+from .parts import mesh_parts, solid_faces, weld_equal
 
 if TYPE_CHECKING:  # imported where used (about 1.7 s); here for the annotations only
     import open3d as o3d
@@ -91,8 +96,11 @@ class BakeParams(Params):
                                "outwards from neighbours (a reach >= band / cell makes the whole band brute force)")
     sign_rays: int = Field(7, ge=1, le=99, description="random rays voting on inside/outside where the six grid-line "
                            "votes tie (odd)")
-    sign: Literal["parity", "winding"] = Field("parity", description="inside/outside of a solid wall: parity votes "
-                                               "along the grid lines, or the generalized winding number (libigl)")
+    sign: Literal["auto", "parity", "winding"] = Field("auto", description="inside/outside of a solid wall: parity "
+                                                       "votes along the grid lines, or the generalized winding number "
+                                                       "(libigl); auto: parity, and the winding number for a wall "
+                                                       "whose closed parts cut into each other (parity calls their "
+                                                       "overlap open space)")
     min_thickness: float | None = Field(None, ge=0, le=10, description="shells and the parts of watertight solids "
                                         "thinner than this (in l0) are baked this thick, so no particle crosses them; "
                                         "default: the least proven leak-free at this cell for WCSPH and MPS steps "
@@ -165,10 +173,10 @@ def wall_fields(wm: WallMesh, sign_rays: int, shells: np.ndarray | None = None) 
     shells = wm.shell_thickness() if shells is None else shells
     fields = []
     for i, info in enumerate(wm.walls):
-        f = wm.faces[wm.wall_id == i]
-        if len(f):
-            fields.append(WallField(wm.vertices, f, info["fluid"], bool(info.get("report", {}).get("watertight", False)),
-                                    sign_rays, float(shells[i])))
+        tri = wm.vertices[wm.faces[wm.wall_id == i]]
+        for tri, fluid, shell, watertight in wall_pieces(tri, info, float(shells[i])):
+            faces = np.arange(3 * len(tri)).reshape(-1, 3)
+            fields.append(WallField(tri.reshape(-1, 3), faces, fluid, watertight, sign_rays, shell))
     return fields
 
 
@@ -181,32 +189,19 @@ def exact_signed_distance(fields: list[WallField], pts: np.ndarray) -> np.ndarra
 
 
 def _closed_parts(tri: np.ndarray):
-    """The parts of ``tri`` (T, 3, 3) (vertices welded where equal; a part is a connected set of triangles)
-    and which are closed shells (every edge met once each way): (part of each triangle, number of parts,
-    the closed shells, each part's box lo / hi and size eps / 1000, each triangle's centroid moved a hair into
-    its part); None for fewer than two parts or no closed shell."""
-    from scipy import sparse
-    from scipy.sparse.csgraph import connected_components
-
+    """The parts of ``tri`` (T, 3, 3) (vertices welded where equal; parts.mesh_parts: triangles joined across
+    edges) and which are closed shells (every edge of the part met once each way): (part of each triangle,
+    number of parts, the closed shells, each part's box lo / hi and size eps / 1000, each triangle's centroid
+    moved a hair into its part); None for fewer than two parts or no closed shell."""
     if len(tri) < 8:
         return None
-    verts, inv = np.unique(tri.reshape(-1, 3), axis=0, return_inverse=True)
-    faces = inv.reshape(-1, 3).astype(np.int64)
-    nv = len(verts)
-    e = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
-    graph = sparse.coo_matrix((np.ones(len(e), np.int8), (e[:, 0], e[:, 1])), shape=(nv, nv))
-    n_parts, vlabel = connected_components(graph, directed=False)
-    part = vlabel[faces[:, 0]]
+    # parts joined across edges, not vertices: kitbashed boxes sharing corners (or an edge) were one part,
+    # and their overlap went unsaid (parts.mesh_parts)
+    found = mesh_parts(*weld_equal(tri))
+    part, n_parts = found.part, found.count
     if n_parts < 2:
         return None
-    key = e[:, 0] * nv + e[:, 1]
-    uniq, counts = np.unique(key, return_counts=True)
-    rev = e[:, 1] * nv + e[:, 0]
-    at = np.minimum(np.searchsorted(uniq, rev), len(uniq) - 1)
-    good = (counts[np.searchsorted(uniq, key)] == 1) & (uniq[at] == rev) & (counts[at] == 1)
-    closed = np.ones(n_parts, np.bool_)
-    closed[part[~good.reshape(-1, 3).all(axis=1)]] = False
-    shells = np.flatnonzero(closed)
+    shells = np.flatnonzero(found.closed)
     if len(shells) == 0:
         return None
     cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
@@ -531,6 +526,7 @@ def bake_bodies(wm: WallMesh, out_dir: Path, l0: float, p: BakeParams, shells: n
         if log is not None:
             log.info("moving wall %d (%s): body sdf %s nodes, %.2f s", i, wm.walls[i]["name"],
                      "x".join(map(str, stats["shape"])), stats["seconds"])
+            say_signs(log, stats)
     (out_dir / BODIES_FILE).write_text(json.dumps(entries, indent=2, sort_keys=True))
     return entries
 
@@ -603,24 +599,52 @@ def bake(wm: WallMesh, lo: np.ndarray, hi: np.ndarray, h: float, band: float, ex
     dist = np.full(shape, band, np.float32)
     seconds = {"distance": 0.0, "sign": 0.0}
     counts = {"exact_nodes": 0, "propagated_nodes": 0, "sign_ties": 0, "thin_faces": 0}
-    cutting: dict[str, int] = {}  # wall -> pairs of its closed parts that cut into each other
+    cutting: dict[str, int] = {}  # wall -> pairs of its closed parts that cut into each other (sign: parity)
+    winding: dict[str, int] = {}  # the same, signed by the winding number instead (sign: auto)
     for i, info in enumerate(wm.walls):
         tri = wm.vertices[wm.faces[wm.wall_id == i]]
-        if not len(tri):
-            continue
-        c = bake_wall(tri, info["fluid"], np.asarray(lo, np.float64), h, shape, band, exact_reach, sign_rays, dist,
-                      seconds, shell=float(shells[i]), sign=sign, min_thickness=min_thickness,
-                      watertight=bool(info.get("report", {}).get("watertight", False)))
-        counts = {k: counts[k] + c[k] for k in counts}
-        if sign == "parity" and not shells[i] > 0:  # parity calls the overlap of two closed parts outside
-            n = interpenetrating_parts(tri)
-            if n:
-                cutting[info.get("name") or f"walls[{i}]"] = n
+        name = info.get("name") or f"walls[{i}]"
+        for piece, fluid, shell, watertight in wall_pieces(tri, info, float(shells[i])):
+            how = "parity" if sign == "auto" else sign
+            if sign != "winding" and not shell > 0:  # parity calls the overlap of two closed parts outside
+                n = interpenetrating_parts(piece)
+                if n and sign == "auto":
+                    how, winding[name] = "winding", n
+                elif n:
+                    cutting[name] = n
+            c = bake_wall(piece, fluid, np.asarray(lo, np.float64), h, shape, band, exact_reach, sign_rays, dist,
+                          seconds, shell=shell, sign=how, min_thickness=min_thickness, watertight=watertight)
+            counts = {k: counts[k] + c[k] for k in counts}
     stats = {"shape": list(shape), "nodes": int(np.prod(shape)), "seconds": time.perf_counter() - t0,
              "distance_seconds": seconds["distance"], "sign_seconds": seconds["sign"], **counts,
-             "interpenetrating": cutting}
+             "interpenetrating": cutting, "winding": winding}
     return SDFGrid(origin=np.asarray(lo, np.float64), spacing=float(h), dist=dist, band=float(band),
                    shell_thickness=shells), stats
+
+
+def wall_pieces(tri: np.ndarray, info: dict, shell: float) -> list[tuple[np.ndarray, str, float, bool]]:
+    """One wall's triangles as baked, (triangles, fluid side, shell thickness, watertight) each: the whole wall,
+    or, for a shell whose closed parts mesh_import made solids (report["parts"]), its open parts as the shell
+    and its closed parts as a solid with the fluid outside, folded in by the minimum (the union of the two)."""
+    report = info.get("report", {})
+    split = report.get("parts")
+    if not (shell > 0 and split):
+        return [(tri, info["fluid"], shell, bool(report.get("watertight", False)))] if len(tri) else []
+    solid, parts = solid_faces(tri, float(split["closed_holes_up_to"]))
+    closed = bool(parts.closed[parts.part[solid]].all())
+    return [p for p in ((tri[~solid], "both", shell, False), (tri[solid], "outside", 0.0, closed)) if len(p[0])]
+
+
+def say_signs(log, stats: dict) -> None:
+    """The walls whose closed parts cut into each other: signed by the winding number (sign: auto), or, with
+    sign: parity, a warning that their overlap is open space."""
+    for wall, n in stats["winding"].items():
+        log.info("sdf_bake: %s: %d pair(s) of its closed parts cut into each other: signed by the winding number "
+                 "(parity would call their overlap open space, and fluid fill it)", wall, n)
+    for wall, n in stats["interpenetrating"].items():
+        log.warning("sdf_bake: %s: %d pair(s) of its closed parts cut into each other; the parity sign calls "
+                    "their overlap open space (fluid may fill it): set sdf_bake: {sign: winding} (or auto) for "
+                    "such a model", wall, n)
 
 
 def accuracy(grid: SDFGrid, fields: list[WallField], wm: WallMesh, n_points: int = 20000, seed: int = 0) -> dict:
@@ -650,7 +674,7 @@ class Open3dBake(Stage):
 
     kind = "sdf_bake"
     name = "open3d"
-    version = "7"
+    version = "8"
     Params = BakeParams
     inputs = ("walls",)
     outputs = ("sdf",)
@@ -721,7 +745,4 @@ class Open3dBake(Stage):
         ctx.log.info("sdf %s nodes, %d exact + %d propagated band nodes, %d tied signs, %d faces of thin parts "
                      "thickened, %.2f s", "x".join(map(str, stats["shape"])), stats["exact_nodes"],
                      stats["propagated_nodes"], stats["sign_ties"], stats["thin_faces"], stats["seconds"])
-        for wall, n in stats["interpenetrating"].items():
-            ctx.log.warning("sdf_bake: %s: %d pair(s) of its closed parts cut into each other; the parity sign calls "
-                            "their overlap open space (fluid may fill it): set sdf_bake: {sign: winding} for such a "
-                            "model", wall, n)
+        say_signs(ctx.log, stats)
