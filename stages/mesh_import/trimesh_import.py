@@ -431,7 +431,7 @@ class TrimeshImport(Stage):
         """(fluid side, shell thickness in scene units) of wall ``i``: what the config says, else a shell
         for an open mesh (an opening wider than SMALL_HOLE l0) and a solid obstacle otherwise. A shell's fluid is "both"; its
         thickness is None when left to sdf_bake's default (no fluid spacing here). Chosen per part (sets of
-        faces joined across edges, stages.sdf_bake.parts) when the config says neither: a closed rock in the
+        faces joined across edges, stages.common.parts) when the config says neither: a closed rock in the
         file of an open tank stays solid (report["parts"], which sdf_bake reads, says so), where the whole wall
         became a shell and the rock hollow (the emitter filled it)."""
         shell = getattr(w, "shell", None)
@@ -456,7 +456,7 @@ class TrimeshImport(Stage):
             thickness = DEFAULT_SHELL_THICKNESS * spacing if spacing else None  # None: sdf_bake's default
             why = "shell in the config" if shell is not None else f"open mesh ({report['boundary_edges']} boundary edges)"
             if shell is None and mesh is not None:
-                from stages.sdf_bake.parts import solid_faces
+                from stages.common.parts import solid_faces
 
                 small = SMALL_HOLE * spacing if spacing else 0.0
                 solid, parts = solid_faces(np.asarray(mesh.vertices)[np.asarray(mesh.faces)], small)

@@ -71,7 +71,7 @@ from stages.common.wall_hints import spacing_hint, stray_text, write_wall_boxes
 from stages.mesh_import.builtin import builtin_corners
 
 from .mesh_distance import band_distance, inside_votes
-from .parts import mesh_parts, solid_faces, weld_equal
+from stages.common.parts import mesh_parts, solid_faces, weld_equal
 
 if TYPE_CHECKING:  # imported where used (about 1.7 s); here for the annotations only
     import open3d as o3d
