@@ -65,13 +65,13 @@ from pipeline.memory import human
 from pipeline.stage import Artifact, Context, Params, Stage, StageError
 from stages.common.formats import WallMesh
 from stages.common.meshes import winding_number
+from stages.common.parts import mesh_parts, solid_faces, weld_equal
 from stages.common.sdf import BODIES_DIR, BODIES_FILE, DEFAULT_SHELL_THICKNESS, SDFGrid, min_shell_thickness
 from stages.common.sizes import BYTES_PER_SDF_NODE, sdf_estimate
 from stages.common.wall_hints import spacing_hint, stray_text, write_wall_boxes
 from stages.mesh_import.builtin import builtin_corners
 
 from .mesh_distance import band_distance, inside_votes
-from stages.common.parts import mesh_parts, solid_faces, weld_equal
 
 if TYPE_CHECKING:  # imported where used (about 1.7 s); here for the annotations only
     import open3d as o3d
