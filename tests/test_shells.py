@@ -369,3 +369,14 @@ def test_a_closed_rock_in_the_file_of_an_open_tank_stays_solid(mpu, up, config, 
     assert f"wall 0 (tank_rock): 1 open part (4 boundary edges) -> shell {0.06 * k:.4g} (0.6 l0) thick" in caplog.text, \
         caplog.text
     assert ", 1 closed part -> solid, fluid outside" in caplog.text, caplog.text
+    # wall_snap puts the surface on the rock's faces, not half a shell's thickness off them (and on the tank's
+    # shell face as before)
+    from stages.common.formats import WallMesh
+    from stages.wall_snap.distance import WallProjector
+
+    walls = WallMesh.load(Path(report.outputs["walls"]) if "walls" in report.outputs else
+                          next((tmp_path / "cache" / "mesh_import").glob("*/*/walls.json")).parent)
+    near = WallProjector(walls.posed(0.0), SDFGrid.load(folder).shell_thickness)(
+        z([[0.2, 0.0, 0.15], [0.35, 0.0, 0.1]]) * k)[0] / k
+    np.testing.assert_allclose(near[0], z([0.15, 0.0, 0.15]), atol=1e-9)  # the rock's face at x = 0.15
+    np.testing.assert_allclose(near[1], z([0.35, 0.0, 0.03]), atol=1e-9)  # the tank floor's shell face, 0.03 up
