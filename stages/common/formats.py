@@ -166,12 +166,28 @@ class WallMesh:
     faces: np.ndarray  # (F, 3) int32
     wall_id: np.ndarray  # (F,) int32
     walls: list[dict[str, Any]]  # per wall: name, fluid ("inside"/"outside"/"both"), source, report, [shell], [motion]
+    # (F,) bool: the faces of a shell wall's closed parts, which mesh_import made solids (an open tank and a rock in
+    # one file); None: no such face. The bake folds them in as a solid, the snap puts the surface on them
+    solid: np.ndarray | None = None
 
     def shell_thickness(self, default: float = 0.0) -> np.ndarray:
         """(walls,) float64: each wall's shell thickness as imported (scene units; ``default`` where the
         import left it open), 0 for a solid."""
         return np.array([0.0 if w.get("fluid") != "both" else default if w.get("shell") is None else float(w["shell"])
                          for w in self.walls], np.float64)
+
+    def face_shells(self, shells: np.ndarray) -> np.ndarray:
+        """(F,) each face's shell thickness from ``shells`` (per wall), 0 on the solid faces of a shell wall."""
+        out = np.asarray(shells, np.float64)[self.wall_id]
+        if self.solid is not None:
+            out[self.solid] = 0.0
+        return out
+
+    def subset(self, keep: np.ndarray) -> "WallMesh":
+        """The faces ``keep`` (a mask or indices) with every vertex and the whole walls list, so per-wall arrays
+        keep their indices."""
+        return WallMesh(self.vertices, self.faces[keep], self.wall_id[keep], self.walls,
+                        None if self.solid is None else self.solid[keep])
 
     def motions(self) -> list[tuple[int, RigidMotion]]:
         """(wall index, motion) of every moving wall."""
@@ -187,18 +203,20 @@ class WallMesh:
         for i, m in moving:
             idx = np.unique(self.faces[self.wall_id == i])
             v[idx] = m.to_world(self.vertices[idx], t)
-        return WallMesh(v, self.faces, self.wall_id, self.walls)
+        return WallMesh(v, self.faces, self.wall_id, self.walls, self.solid)
 
     def save(self, folder: Path) -> None:
+        extra = {} if self.solid is None or not self.solid.any() else {"solid": self.solid.astype(np.bool_)}
         np.savez(Path(folder) / WALLS_FILE, vertices=self.vertices.astype(np.float64),
-                 faces=self.faces.astype(np.int32), wall_id=self.wall_id.astype(np.int32))
+                 faces=self.faces.astype(np.int32), wall_id=self.wall_id.astype(np.int32), **extra)
         (Path(folder) / WALLS_INFO).write_text(json.dumps(self.walls, indent=2, sort_keys=True))
 
     @classmethod
     def load(cls, folder: Path) -> "WallMesh":
         with np.load(Path(folder) / WALLS_FILE) as z:
             v, f, w = z["vertices"], z["faces"], z["wall_id"]
-        return cls(v, f, w, json.loads((Path(folder) / WALLS_INFO).read_text()))
+            solid = z["solid"] if "solid" in z.files else None
+        return cls(v, f, w, json.loads((Path(folder) / WALLS_INFO).read_text()), solid)
 
 
 def skipped_frame_marker(folder: Path, frame: int) -> Path:

@@ -5,8 +5,8 @@ where two boxes share it), joins nothing, and open pieces whose free edges meet 
 (a box whose every bottom edge another box uses too falls apart there into its bottom and the rest). So the
 boxes of a kitbashed tank that share corner vertices are separate closed parts, as the sign of their overlap
 needs them (``open3d_bake.interpenetrating_parts``); an open tank and a closed rock exported in one file are
-two parts, one a shell and one a solid (``solid_faces``: mesh_import chooses per part with it, and sdf_bake
-bakes what it chose from the same triangles).
+two parts, one a shell and one a solid (``solid_faces``: mesh_import chooses per part with it and flags the
+solid faces, WallMesh.solid, which sdf_bake and wall_snap read).
 """
 from __future__ import annotations
 

@@ -20,6 +20,7 @@ from pipeline.scene import BuiltinWall, FileWall, UsdWall
 from pipeline.stage import Artifact, Context, Params, Stage, StageError
 from stages.common.formats import WallMesh
 from stages.common.motion import RigidMotion, config_motion
+from stages.common.parts import solid_faces
 from stages.common.sdf import DEFAULT_SHELL_THICKNESS
 from stages.common.wall_hints import stray_text
 
@@ -338,7 +339,7 @@ class TrimeshImport(Stage):
         import trimesh
         scene = ctx.scene["scene"]
         walls = ctx.scene["walls"]
-        verts, faces, ids, info = [], [], [], []
+        verts, faces, ids, solids, info = [], [], [], [], []
         offset = 0
         bar = ctx.progress("importing walls", len(walls))
         spacing = ctx.scene["fluid"].spacing if ctx.scene.get("fluid") is not None else None
@@ -370,7 +371,7 @@ class TrimeshImport(Stage):
                 ctx.log.warning("%s: %s (and the SDF grid with it): delete it from the file if it is not meant to "
                                 "be there", where, stray_text(stray))
             label = Path(source).stem if not isinstance(w, BuiltinWall) else w.builtin
-            fluid, shell = self._solid_or_shell(ctx, i, label, w, fluid, report, mesh)
+            fluid, shell, solid = self._solid_or_shell(ctx, i, label, w, fluid, report, mesh)
             if fluid == "inside":
                 mesh.invert()  # container: normals into the fluid, i.e. inwards
             asset_to_scene = extra.pop("asset_to_scene", None)
@@ -400,10 +401,13 @@ class TrimeshImport(Stage):
             verts.append(np.asarray(mesh.vertices, np.float64))
             faces.append(np.asarray(mesh.faces, np.int64) + offset)
             ids.append(np.full(len(mesh.faces), i, np.int32))
+            solids.append(np.zeros(len(mesh.faces), np.bool_) if solid is None else solid)
             offset += len(mesh.vertices)
             bar.advance()
         if verts:
-            wm = WallMesh(np.concatenate(verts), np.concatenate(faces).astype(np.int32), np.concatenate(ids), info)
+            solid = np.concatenate(solids)
+            wm = WallMesh(np.concatenate(verts), np.concatenate(faces).astype(np.int32), np.concatenate(ids), info,
+                          solid if solid.any() else None)
         else:
             wm = WallMesh(np.zeros((0, 3)), np.zeros((0, 3), np.int32), np.zeros(0, np.int32), info)
         wm.save(ctx.out_dir)
@@ -427,16 +431,17 @@ class TrimeshImport(Stage):
 
     @staticmethod
     def _solid_or_shell(ctx: Context, i: int, label: str, w: Any, fluid: str | None,
-                        report: dict, mesh: Any = None) -> tuple[str, float | None]:
-        """(fluid side, shell thickness in scene units) of wall ``i``: what the config says, else a shell
-        for an open mesh (an opening wider than SMALL_HOLE l0) and a solid obstacle otherwise. A shell's fluid is "both"; its
-        thickness is None when left to sdf_bake's default (no fluid spacing here). Chosen per part (sets of
-        faces joined across edges, stages.common.parts) when the config says neither: a closed rock in the
-        file of an open tank stays solid (report["parts"], which sdf_bake reads, says so), where the whole wall
-        became a shell and the rock hollow (the emitter filled it)."""
+                        report: dict, mesh: Any) -> tuple[str, float | None, np.ndarray | None]:
+        """(fluid side, shell thickness in scene units, the shell's solid faces) of wall ``i``: what the config
+        says, else a shell for an open mesh (an opening wider than SMALL_HOLE l0) and a solid obstacle otherwise.
+        A shell's fluid is "both"; its thickness is None when left to sdf_bake's default (no fluid spacing here).
+        Chosen per part (sets of faces joined across edges, stages.common.parts) when the config says neither: a
+        closed rock in the file of an open tank stays solid (its faces flagged, WallMesh.solid), where the whole
+        wall became a shell and the rock hollow (the emitter filled it)."""
         shell = getattr(w, "shell", None)
+        solid = None
         if fluid is not None and shell is None:
-            return fluid, None
+            return fluid, None, None
         spacing = ctx.scene["fluid"].spacing if ctx.scene.get("fluid") is not None else None
         closed = ""
         if shell is not None and shell.thickness is not None:
@@ -445,31 +450,29 @@ class TrimeshImport(Stage):
             if shell is None and report["boundary_edges"] == 0:
                 ctx.log.info("wall %d (%s): closed mesh -> solid, fluid outside; set fluid: inside for a container",
                              i, label)
-                return "outside", None
+                return "outside", None, None
             if shell is None and spacing and report["largest_hole"] <= SMALL_HOLE * spacing:
                 # closed but messy (scan holes, stray faces): no fluid passes an opening this narrow
                 # either way, and a solid keeps its inside/outside (the sign vote outvotes the holes)
                 ctx.log.info("wall %d (%s): closed but for small holes (%d boundary edges, widest %.2g l0) -> "
                              "solid, fluid outside; set fluid: or shell: to override", i, label,
                              report["boundary_edges"], report["largest_hole"] / spacing)
-                return "outside", None
+                return "outside", None, None
             thickness = DEFAULT_SHELL_THICKNESS * spacing if spacing else None  # None: sdf_bake's default
             why = "shell in the config" if shell is not None else f"open mesh ({report['boundary_edges']} boundary edges)"
-            if shell is None and mesh is not None:
-                from stages.common.parts import solid_faces
-
+            if shell is None:
                 small = SMALL_HOLE * spacing if spacing else 0.0
                 solid, parts = solid_faces(np.asarray(mesh.vertices)[np.asarray(mesh.faces)], small)
                 n_solid = int(len(np.unique(parts.part[solid])))
                 if n_solid:
                     n_open = parts.count - n_solid
-                    report["parts"] = {"open": n_open, "closed": n_solid, "closed_holes_up_to": small}
+                    report["parts"] = {"open": n_open, "closed": n_solid}
                     why = f"{n_open} open part{'s' * (n_open > 1)} ({report['boundary_edges']} boundary edges)"
                     closed = f", {n_solid} closed part{'s' * (n_solid > 1)} -> solid, fluid outside"
         size = f"{thickness:.4g} ({thickness / spacing:.3g} l0)" if spacing else f"{DEFAULT_SHELL_THICKNESS} l0"
         tail = "" if shell is not None else f"; set fluid: inside/outside to override{' (the whole wall)' * bool(closed)}"
         ctx.log.info("wall %d (%s): %s -> shell %s thick%s%s", i, label, why, size, closed, tail)
-        return "both", thickness
+        return "both", thickness, solid if closed else None
 
     def _read(self, ctx: Context, w: Any, params: ImportParams) -> tuple[np.ndarray, np.ndarray, str, str, dict]:
         units = ctx.scene["scene"].units

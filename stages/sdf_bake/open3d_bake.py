@@ -41,8 +41,8 @@ may leave them. Walls are combined by the minimum over walls: a point is fluid o
 allows it. ``sign: auto`` (the default) is parity, but a wall whose closed parts cut into each other
 (``interpenetrating_parts``; a tank kitbashed from overlapping boxes) is signed by the winding number: parity
 calls their overlap open space, and the water filled the tank's wall posts. A shell wall whose closed parts
-mesh_import made solids (an open tank and a rock in one file) is baked as its open parts' shell and its closed
-parts' solid, folded in by the minimum (``wall_pieces``).
+mesh_import made solids (an open tank and a rock in one file; WallMesh.solid) is baked as its open parts' shell
+and its closed parts' solid, folded in by the minimum (``wall_pieces``).
 
 Moving walls (walls.json "motion"): each is baked alone, in its rest pose, on its own bounds padded
 by band + margin at the same node spacing (the whole band: beyond its box a body reads its border's nodes,
@@ -64,8 +64,8 @@ from pydantic import Field, field_validator
 from pipeline.memory import human
 from pipeline.stage import Artifact, Context, Params, Stage, StageError
 from stages.common.formats import WallMesh
-from stages.common.meshes import winding_number
-from stages.common.parts import mesh_parts, solid_faces, weld_equal
+from stages.common.meshes import boundary_edge_count, winding_number
+from stages.common.parts import mesh_parts, weld_equal
 from stages.common.sdf import BODIES_DIR, BODIES_FILE, DEFAULT_SHELL_THICKNESS, SDFGrid, min_shell_thickness
 from stages.common.sizes import BYTES_PER_SDF_NODE, sdf_estimate
 from stages.common.wall_hints import spacing_hint, stray_text, write_wall_boxes
@@ -172,9 +172,8 @@ class WallField:
 def wall_fields(wm: WallMesh, sign_rays: int, shells: np.ndarray | None = None) -> list[WallField]:
     shells = wm.shell_thickness() if shells is None else shells
     fields = []
-    for i, info in enumerate(wm.walls):
-        tri = wm.vertices[wm.faces[wm.wall_id == i]]
-        for tri, fluid, shell, watertight in wall_pieces(tri, info, float(shells[i])):
+    for i in range(len(wm.walls)):
+        for tri, fluid, shell, watertight in wall_pieces(wm, i, float(shells[i])):
             faces = np.arange(3 * len(tri)).reshape(-1, 3)
             fields.append(WallField(tri.reshape(-1, 3), faces, fluid, watertight, sign_rays, shell))
     return fields
@@ -505,8 +504,7 @@ def split_moving(wm: WallMesh) -> tuple[WallMesh, list[tuple[int, WallMesh]]]:
     every part keeps the whole walls list, so per-wall arrays (shell thickness) keep their indices."""
     moving = [i for i, info in enumerate(wm.walls) if info.get("motion") is not None]
     static = ~np.isin(wm.wall_id, moving)
-    part = lambda keep: WallMesh(wm.vertices, wm.faces[keep], wm.wall_id[keep], wm.walls)  # noqa: E731
-    return part(static), [(i, part(wm.wall_id == i)) for i in moving]
+    return wm.subset(static), [(i, wm.subset(wm.wall_id == i)) for i in moving]
 
 
 def bake_bodies(wm: WallMesh, out_dir: Path, l0: float, p: BakeParams, shells: np.ndarray, log=None) -> list[dict]:
@@ -602,9 +600,8 @@ def bake(wm: WallMesh, lo: np.ndarray, hi: np.ndarray, h: float, band: float, ex
     cutting: dict[str, int] = {}  # wall -> pairs of its closed parts that cut into each other (sign: parity)
     winding: dict[str, int] = {}  # the same, signed by the winding number instead (sign: auto)
     for i, info in enumerate(wm.walls):
-        tri = wm.vertices[wm.faces[wm.wall_id == i]]
         name = info.get("name") or f"walls[{i}]"
-        for piece, fluid, shell, watertight in wall_pieces(tri, info, float(shells[i])):
+        for piece, fluid, shell, watertight in wall_pieces(wm, i, float(shells[i])):
             how = "parity" if sign == "auto" else sign
             if sign != "winding" and not shell > 0:  # parity calls the overlap of two closed parts outside
                 n = interpenetrating_parts(piece)
@@ -622,17 +619,18 @@ def bake(wm: WallMesh, lo: np.ndarray, hi: np.ndarray, h: float, band: float, ex
                    shell_thickness=shells), stats
 
 
-def wall_pieces(tri: np.ndarray, info: dict, shell: float) -> list[tuple[np.ndarray, str, float, bool]]:
-    """One wall's triangles as baked, (triangles, fluid side, shell thickness, watertight) each: the whole wall,
-    or, for a shell whose closed parts mesh_import made solids (report["parts"]), its open parts as the shell
-    and its closed parts as a solid with the fluid outside, folded in by the minimum (the union of the two)."""
-    report = info.get("report", {})
-    split = report.get("parts")
-    if not (shell > 0 and split):
-        return [(tri, info["fluid"], shell, bool(report.get("watertight", False)))] if len(tri) else []
-    solid, parts = solid_faces(tri, float(split["closed_holes_up_to"]))
-    closed = bool(parts.closed[parts.part[solid]].all())
-    return [p for p in ((tri[~solid], "both", shell, False), (tri[solid], "outside", 0.0, closed)) if len(p[0])]
+def wall_pieces(wm: WallMesh, i: int, shell: float) -> list[tuple[np.ndarray, str, float, bool]]:
+    """Wall ``i``'s triangles as baked, (triangles, fluid side, shell thickness, watertight) each: the whole wall,
+    or, for a shell with solid faces (its closed parts, WallMesh.solid), its open faces as the shell and the
+    solid ones as a solid with the fluid outside, folded in by the minimum (the union of the two)."""
+    info, faces = wm.walls[i], np.flatnonzero(wm.wall_id == i)
+    solid = wm.solid[faces] if wm.solid is not None and shell > 0 else np.zeros(len(faces), np.bool_)
+    if not solid.any():
+        tri = wm.vertices[wm.faces[faces]]
+        return [(tri, info["fluid"], shell, bool(info.get("report", {}).get("watertight", False)))] if len(tri) else []
+    closed = boundary_edge_count(wm.faces[faces[solid]]) == 0  # else closed but for small holes
+    return [p for p in ((wm.vertices[wm.faces[faces[~solid]]], "both", shell, False),
+                        (wm.vertices[wm.faces[faces[solid]]], "outside", 0.0, closed)) if len(p[0])]
 
 
 def say_signs(log, stats: dict) -> None:

@@ -46,7 +46,6 @@ from stages.common.formats import (ParticleMeta, SurfaceMesh, WallMesh, load_par
                                    save_surface)
 from stages.common.meshes import bounds, face_normals, tidy, vertex_normals
 from stages.common.motion import RigidMotion
-from stages.common.parts import solid_faces
 from stages.common.sdf import SDFGrid, field, file_stamps, sdf_sample
 
 
@@ -261,15 +260,10 @@ class WallProjector:
         if reach is None:
             reach = self.extent / 32.0
         self.closest = ClosestPoints(walls.vertices, walls.faces, reach)
-        half = 0.5 * np.asarray(walls.shell_thickness() if shells is None else shells, np.float64)
-        self.offset = half[walls.wall_id] if len(half) and half.any() else None  # per face
-        for i, info in enumerate(walls.walls if self.offset is not None else ()):
-            split = (info.get("report") or {}).get("parts")
-            if split and half[i] > 0:  # a shell whose closed parts were baked solid (a rock in an open tank's file):
-                # their faces are the wall itself, not a shell's (the surface stood 0.3 l0 off the rock)
-                faces = np.flatnonzero(walls.wall_id == i)
-                solid, _ = solid_faces(walls.vertices[walls.faces[faces]], float(split["closed_holes_up_to"]))
-                self.offset[faces[solid]] = 0.0
+        # per face; none on the solid faces of a shell wall (a rock in an open tank's file: the surface stood 0.3 l0
+        # off it)
+        half = 0.5 * walls.face_shells(walls.shell_thickness() if shells is None else shells)
+        self.offset = half if half.any() else None
 
     def __call__(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         near, normals, ids = self.closest(points)
