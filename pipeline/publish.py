@@ -5,11 +5,11 @@ published name (``frames``, ``usd``, ``run.json``...) with the files it held. A 
 when the record lists it and it holds no file the record does not list; anything else in the folder
 (a user's ``walls/`` folder, notes, renders) is never replaced or removed: the run stops with exit 2
 instead, before any stage runs. The record also keeps each published file's size and modification time: a
-published file changed since (a lighter's edit to scene.usda, a retouched frame) is the user's, and the run stops
-the same way (it was replaced by the cache's copy without a word). Every write goes to a ``.pipeline-tmp.*`` name first and is renamed
-into place; the record lists the union of old and new files while a replacement is under way, so a
-run killed at any point leaves a folder the next run can still replace. ``.pipeline-tmp.*`` entries
-left by a killed run are removed when their process is provably dead (see ``cache.owner_is_dead``).
+published file changed since (a lighter's edit to scene.usda, a retouched frame) is the user's, and the run
+stops the same way (it was replaced by the cache's copy without a word). Every write goes to a
+``.pipeline-tmp.*`` name first and is renamed into place; the record lists the union of old and new files
+while a replacement is under way, so a run killed at any point leaves a folder the next run can still replace.
+``.pipeline-tmp.*`` entries left by a killed run are removed when their process is provably dead (see ``cache.owner_is_dead``).
 """
 from __future__ import annotations
 

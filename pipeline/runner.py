@@ -18,7 +18,7 @@ from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, NoReturn
 
 from .cache import Cache, hash_key, owner_tag, unwritable
 from .config import OUTPUT_NAMES, Config, load_config
@@ -271,6 +271,17 @@ def interrupt_in(exc: BaseException) -> KeyboardInterrupt | None:
         seen.add(id(exc))
         exc = exc.__cause__ or exc.__context__
     return None
+
+
+def _raise_failed(node: Node, key: str, config: Config, exc: BaseException, cache: Cache, hook: str) -> NoReturn:
+    """A stage hook's exception as the run says it: an interrupt (a library's wrapping of one too) as itself, the
+    hook's own sys.exit() and anything else as a failed stage, its traceback saved."""
+    interrupt = interrupt_in(exc)
+    if interrupt is not None:
+        raise interrupt from None
+    if isinstance(exc, SystemExit):
+        exc = StageFailed(f"{hook} called sys.exit({exc.code!r})", user_error=False).with_traceback(exc.__traceback__)
+    raise _fail(node, key, config, exc, cache) from exc
 
 
 def _fail(node: Node, key: str, config: Config, exc: BaseException, cache: Cache) -> StageFailed:
@@ -530,14 +541,7 @@ def _run_whole(p: Plan, node: Node, key: str, inputs: dict[str, Artifact], runna
                 "components": p.components[node.kind]})
         except BaseException as exc:
             cache.discard(tmp)
-            if isinstance(exc, KeyboardInterrupt):
-                raise
-            if interrupt_in(exc) is not None:
-                raise interrupt_in(exc) from None
-            if isinstance(exc, SystemExit):  # the stage's own sys.exit(): a failed stage, said as one
-                exc = StageFailed(f"the stage called sys.exit({exc.code!r})", user_error=False).with_traceback(
-                    exc.__traceback__)
-            raise _fail(node, key, config, exc, cache) from exc
+            _raise_failed(node, key, config, exc, cache, "the stage")
         shutil.rmtree(cache.checkpoint_dir(key), ignore_errors=True)
         if resume:
             record_resume(cache, node.kind, resume, key)
@@ -585,23 +589,16 @@ def _run_per_frame(p: Plan, node: Node, key: str, inputs: dict[str, Artifact], r
             sr.cpu_seconds += cpu
             bar.advance()
     except BaseException as exc:
-        if isinstance(exc, (KeyboardInterrupt, SystemExit)):
+        if isinstance(exc, SystemExit):
             raise
-        if interrupt_in(exc) is not None:
-            raise interrupt_in(exc) from None
-        raise _fail(node, key, config, exc, cache) from exc
+        _raise_failed(node, key, config, exc, cache, "the stage")
     sr.status = "forced" if forced else "ran"
     frames = dict(sorted(frames.items()))
     if sr.frames_ran:  # each worker saw only its own frames: the stage's word on all of them, once, here
         try:
             node.cls().summarise(context(config, node, None, p.frames), node.params, frames)
-        except KeyboardInterrupt:
-            raise
         except BaseException as exc:  # noqa: BLE001 - a failed summary is a failed stage, with its traceback saved
-            if isinstance(exc, SystemExit):
-                exc = StageFailed(f"its summarise() called sys.exit({exc.code!r})", user_error=False).with_traceback(
-                    exc.__traceback__)
-            raise _fail(node, key, config, exc, cache) from exc
+            _raise_failed(node, key, config, exc, cache, "its summarise()")
     return sr, frames
 
 
