@@ -137,7 +137,7 @@ def emit(emitters, l0: float, resolve: Callable[[str], Path], meters_per_unit: f
             # points on the sphere (a radius of whole spacings) are in, in any units: by rounding, the metre
             # scene kept 3 of 6 such points and the cm and mm scenes all 6 (254 against 257 particles)
             pts = pts[np.linalg.norm(pts - c, axis=1) <= r + LATTICE_SLACK * l0]
-            if 2 * r < l0 * (1 - LATTICE_SLACK):
+            if narrower_than_a_spacing(em, l0):
                 # as a box: narrower than a spacing emits nothing (its centre point was 138 x the water of a
                 # radius of 0.12 spacings, in silence)
                 pts = pts[:0]
@@ -471,6 +471,16 @@ def emitter_files(ctx) -> list[Path]:
             for f in (usd_dependencies if is_usd(em.mesh) else mesh_file_dependencies)(ctx.resolve(em.mesh))]
 
 
+def narrower_than_a_spacing(em, l0: float) -> bool:
+    """A box or sphere emitter that emits nothing: some side under a spacing (a lattice fills whole spacings), a
+    diameter under one. A mesh emitter's size is known only once it is read: False."""
+    if isinstance(em, BoxEmitter):
+        return bool(np.any(lattice_counts(em.box.min, em.box.max, l0) <= 0))
+    if isinstance(em, SphereEmitter):
+        return 2 * em.sphere.radius < l0 * (1 - LATTICE_SLACK)
+    return False
+
+
 def check_emitters(ctx, who: str) -> None:
     """The simulate stages' ``check``: a fluid of boxes and spheres all narrower than a spacing, with no inflow,
     is refused before anything runs (it was refused when simulate started, after the import and the bake).
@@ -479,12 +489,6 @@ def check_emitters(ctx, who: str) -> None:
     if fluid is None or not fluid.emitters or fluid.inflow:
         return
     l0 = fluid.spacing
-    for em in fluid.emitters:
-        if isinstance(em, BoxEmitter) and np.all(lattice_counts(em.box.min, em.box.max, l0) > 0):
-            return
-        if isinstance(em, SphereEmitter) and 2 * em.sphere.radius >= l0 * (1 - LATTICE_SLACK):
-            return
-        if not isinstance(em, (BoxEmitter, SphereEmitter)):
-            return
-    raise StageError(f"{who}: the emitters produced no particles in the fluid region: every emitter is smaller than "
-                     f"fluid.spacing ({l0:g}) or empty")
+    if all(narrower_than_a_spacing(em, l0) for em in fluid.emitters):
+        raise StageError(f"{who}: the emitters produced no particles in the fluid region: every emitter is smaller "
+                         f"than fluid.spacing ({l0:g}) or empty")
