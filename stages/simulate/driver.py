@@ -800,9 +800,11 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
     # stopped at its first frame's end)
     least = STEP_SPLIT * solver.guard.dt_floor
 
+    def where(dt: float) -> str:
+        return "below" if dt < solver.guard.dt_floor else f"within {STEP_SPLIT:g} x of"
+
     def near_floor(dt: float) -> str:
-        where = "below" if dt < solver.guard.dt_floor else f"within {STEP_SPLIT:g} x of"
-        return (f"{where} this scene's floor of {solver.guard.dt_floor:.3g} s (a blow-up; a frame's last steps are "
+        return (f"{where(dt)} this scene's floor of {solver.guard.dt_floor:.3g} s (a blow-up; a frame's last steps are "
                 "split)")
 
     mu = float(setup.effects.viscosity.mu) if setup.effects.viscosity is not None else 0.0
@@ -843,8 +845,7 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
         dt = getattr(params, field, None)
         if dt is not None and dt < least:
             # it stopped at the first step as a blow-up whose advice (a smaller cfl) made it worse
-            where = "below" if dt < solver.guard.dt_floor else f"within {STEP_SPLIT:g} x of"
-            raise StageError(f"simulate.{solver_name}: {field} {dt:g} s is {where} this scene's time-step floor of "
+            raise StageError(f"simulate.{solver_name}: {field} {dt:g} s is {where(dt)} this scene's time-step floor of "
                              f"{solver.guard.dt_floor:.3g} s (1e-3 spacings at its ballistic speed bound "
                              f"{solver.guard.v_bound:.3g} m/s), where a run counts as blown up (a frame's last steps "
                              f"are split): raise it, or leave it out for the solver's own step")
