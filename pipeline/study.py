@@ -182,8 +182,7 @@ def _value_name(value: Any) -> str:
     """A swept value in a folder name: a number or a plain word as written (spacing-0.05, use-sph); anything
     else (a list of emitters, a path, spaces, quotes) a readable prefix and a hash of the whole value
     (str() of an emitter list made a name too long to create, with brackets and quotes in it)."""
-    text = str(value) if isinstance(value, (int, float, str, bool)) or value is None else \
-        json.dumps(value, sort_keys=True, separators=(",", ":"))
+    text = _text(value)
     if (isinstance(value, (int, float)) or _PLAIN.match(text)) and text not in (".", ".."):
         return text
     prefix = re.sub(r"[^A-Za-z0-9.+-]+", "-", text).strip("-.")[:24].rstrip("-.")
