@@ -366,8 +366,9 @@ def extract(x: np.ndarray, vol: np.ndarray, l0: float, params: MarchingCubesPara
 
 def diagnostics_file(frame: int) -> str:
     """What ``run_frame`` found in a frame (particles, empty, volume_ratio), beside its surface: the frames may run
-    in several worker processes, and only ``summarise`` sees them all."""
-    return f"surface_{frame:05d}.json"
+    in several worker processes, and only ``summarise`` sees them all. A dotfile: the cache entry's bookkeeping, not
+    published with the surfaces."""
+    return f".surface_{frame:05d}.json"
 
 
 def frame_list(frames, most: int = 6) -> str:
