@@ -70,7 +70,10 @@ def connect(scheduler: str | None, workers: int = 1):
     # memory; placement by the plan's memory estimate (the "memory" resource) is what keeps them apart
     cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, resources=resources,
                            memory_limit=0,
-                           dashboard_address=":0", silence_logs=logging.ERROR,
+                           # CRITICAL: a worker's "failed to communicate with scheduler during heartbeat" traceback,
+                           # when Ctrl-C closes the scheduler first, broke the interrupt's one line (a task's own
+                           # failure reaches the run through its future, not through these logs)
+                           dashboard_address=":0", silence_logs=logging.CRITICAL,
                            env={"NUMBA_NUM_THREADS": str(threads), "OMP_NUM_THREADS": str(threads),
                                 "NUMBA_THREADING_LAYER": os.environ.get("NUMBA_THREADING_LAYER", "omp")})
     return Client(cluster)
