@@ -26,7 +26,7 @@ class StageStatus:
     seconds: float | None
 
 
-def _diff(old: dict[str, Any], new: dict[str, Any], graph: Graph) -> str:
+def _diff(old: dict[str, Any], new: dict[str, Any], graph: Graph, config_dir: Path) -> str:
     if old.get("stage") != new.get("stage"):
         return f"implementation {old.get('stage')} -> {new.get('stage')}"
     if old.get("version") != new.get("version"):
@@ -51,6 +51,9 @@ def _diff(old: dict[str, Any], new: dict[str, Any], graph: Graph) -> str:
     of, nf = old.get("files", {}), new.get("files", {})
     for name in sorted(set(of) | set(nf)):
         if of.get(name) != nf.get(name):
+            if name not in nf:  # a layer a USD no longer composes: gone (the run refuses it), or no longer named
+                gone = not Path(config_dir, name).exists()
+                return f"input file {'missing' if gone else 'no longer read'}: {name}"
             return f"input file changed: {name}"
     return "key schema changed"
 
@@ -100,7 +103,7 @@ def status(config_path: str | Path, *, registry: Registry | None = None, overrid
             extends = f"; continues the cached shorter run ({node.cls.extends})"
         if prev.get("key") and prev["key"] != key:
             rows.append(StageStatus(kind, node.cls.name, key, "stale",
-                                    _diff(prev.get("components", {}), p.components[kind], graph) + extends,
+                                    _diff(prev.get("components", {}), p.components[kind], graph, config.dir) + extends,
                                     prev.get("seconds")))
         elif (holder := running(cache, key)) is not None:
             rows.append(StageStatus(kind, node.cls.name, key, "running", f"being computed by {holder}", None))

@@ -165,6 +165,36 @@ def test_a_camera_usds_sublayer_is_in_the_render_and_export_keys(tmp_path):
     assert after["simulate"] == before["simulate"]
 
 
+def test_status_says_a_sublayer_gone_is_missing_not_changed(tmp_path):
+    """A USD wall's sublayer deleted or renamed: status says the file is missing (it said "changed", sending a
+    user to look for an edit); one the root layer no longer composes is "no longer read"."""
+    from pxr import Sdf, Usd, UsdGeom
+
+    sub = Usd.Stage.CreateNew(str(tmp_path / "sub.usda"))
+    UsdGeom.Cube.Define(sub, "/W/box").GetSizeAttr().Set(1.0)
+    sub.GetRootLayer().Save()
+    root = Sdf.Layer.CreateNew(str(tmp_path / "walls.usda"))
+    root.subLayerPaths.append("sub.usda")
+    root.Save()
+    config = tmp_path / "c.yaml"
+    config.write_text("config_version: 1\nscene: {name: t, frames: {fps: 20, count: 2}}\nwalls: [{usd: walls.usda}]\n"
+                      "outputs: [walls]\n")
+    pipeline.run(config, progress=False)
+    reg = Registry.from_entry_points()
+
+    def reason() -> str:
+        (row,) = pipeline.status(config, registry=reg)
+        assert row.state == "stale"
+        return row.reason
+
+    (tmp_path / "sub.usda").rename(tmp_path / "moved.usda")
+    assert reason() == "input file missing: sub.usda"
+    (tmp_path / "moved.usda").rename(tmp_path / "sub.usda")
+    root.subLayerPaths.clear()
+    root.Save()
+    assert reason() == "input file no longer read: sub.usda"
+
+
 def test_another_spelling_of_the_same_input_path_keeps_the_keys(tmp_path):
     """'./drop.obj', 'sub/../drop.obj' and 'drop.obj' name one file: the same keys (each spelling re-ran every
     stage from the one that reads the file)."""
