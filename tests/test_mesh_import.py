@@ -552,6 +552,31 @@ def test_a_nan_in_a_vertex_no_face_uses_is_left_out_and_in_a_used_one_refused(tm
         _import(tmp_path, [{"file": "used.obj"}])
 
 
+@pytest.mark.parametrize("fmt", ["obj", "usda"])
+def test_a_vertex_no_face_uses_does_not_shape_a_fit(tmp_path, fmt):
+    """`fit:` scales a wall into a box by the model's own box: a leftover vertex 10 x away counted in it, so the
+    unit tetrahedron fitted into a 2 m box came in 0.2 m wide. The fit now sees the vertices faces use, and a USD
+    wall's asset-to-scene matrix (export references the asset by it) places the asset's points where the wall is."""
+    corners = [(0, 0, 0), (1, 0, 0), (0, 1, 0), (0, 0, 1), (10, 10, 10)]  # the last one no face uses
+    tris = [(0, 2, 1), (0, 1, 3), (0, 3, 2), (1, 2, 3)]
+    if fmt == "obj":
+        _write(tmp_path, "w.obj", "".join(f"v {x} {y} {z}\n" for x, y, z in corners)
+               + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in tris))
+    else:
+        _write(tmp_path, "w.usda", '#usda 1.0\n(\n    metersPerUnit = 1\n    upAxis = "Z"\n)\ndef Mesh "tet"\n{\n'
+               f"    point3f[] points = [{', '.join(str(c) for c in corners)}]\n"
+               f"    int[] faceVertexCounts = {[3] * len(tris)}\n"
+               f"    int[] faceVertexIndices = {[i for t in tris for i in t]}\n}}\n")
+    wall = {"file" if fmt == "obj" else "usd": f"w.{fmt}", "fit": {"min": [0, 0, 0], "max": [2, 2, 2]}}
+    wm = _import(tmp_path, [wall])
+    np.testing.assert_allclose(wm.vertices.min(axis=0), 0, atol=1e-12)
+    np.testing.assert_allclose(wm.vertices.max(axis=0), 2, atol=1e-12)
+    if fmt == "usda":
+        m = np.asarray(wm.walls[0]["asset_to_scene"]).reshape(4, 4)
+        placed = np.asarray(corners[:4], float) @ m[:3, :3].T + m[:3, 3]
+        np.testing.assert_allclose(np.sort(placed, axis=0), np.sort(wm.vertices, axis=0), atol=1e-12)
+
+
 def test_a_tiny_part_far_from_the_rest_of_a_wall_is_said_and_kept_in_the_report(tmp_path, caplog):
     """A 1 mm triangle left 50 m from a 1 m tank widened the wall's box (and the SDF grid: 1254 x 83 x 54 instead
     of 83 x 83 x 54) without a word. It is said now, with its box, triangle count and how much it widens the

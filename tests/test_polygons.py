@@ -352,3 +352,23 @@ def test_binary_ply_of_quads_and_hexagons_reads_as_the_ascii_one(tmp_path, endia
         with pytest.raises(StageError, match=r"cut\.ply: cannot read as PLY \(binary PLY cut off") as err:
             read_mesh_file(tmp_path / "cut.ply")
         assert "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize("endian", ["little", "big"])
+def test_a_binary_ply_of_triangles_with_bytes_after_its_data_is_read_and_said(tmp_path, caplog, endian):
+    """A binary PLY of triangles with padding after its faces (an exporter's or a copy's) was refused by trimesh
+    as 'PLY is unexpected length!'; its data is whole, so it is read, and the bytes after it said in one line."""
+    import logging
+
+    box = trimesh.creation.box(extents=(1.0, 2.0, 3.0))
+    data = _ply_binary(box.vertices, box.faces.tolist(), endian)
+    (tmp_path / "plain.ply").write_bytes(data)
+    (tmp_path / "padded.ply").write_bytes(data + b"\n\0\0\0junk")
+    v0, f0 = read_mesh_file(tmp_path / "plain.ply")
+    with caplog.at_level(logging.WARNING):
+        v, f = read_mesh_file(tmp_path / "padded.ply")
+    np.testing.assert_array_equal(v, v0)
+    np.testing.assert_array_equal(f, f0)
+    assert trimesh.Trimesh(v, f, process=False).volume == pytest.approx(6.0)
+    assert [r.getMessage() for r in caplog.records] == [f"{tmp_path / 'padded.ply'}: 8 bytes after the data its PLY "
+                                                        "header declares: ignored"]

@@ -313,13 +313,14 @@ _PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short":
               "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
 
 
-def ply_binary_polygons(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """(vertices, counts, indices) of a binary PLY whose faces are not all of one size (Blender's quads and
-    triangles: trimesh's binary reader takes every list to be as long as the first and refused the file as
-    'unexpected length'); None for ASCII PLY, a header not understood here, or faces all of one size (trimesh
-    reads those as before). Other vertex and face properties, before or after, and any list count type are
-    skipped. Raises ValueError when the file ends before the data its header promises (a truncated copy),
-    or on a face index out of range."""
+def ply_binary_polygons(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray, int] | None:
+    """(vertices, counts, indices, bytes after the data the header declares) of a binary PLY whose faces are not
+    all of one size (Blender's quads and triangles: trimesh's binary reader takes every list to be as long as the
+    first and refused the file as 'unexpected length'), or that has bytes after its data (padding an exporter or
+    a copy added: trimesh refused that too); None for ASCII PLY, a header not understood here, or faces all of
+    one size and nothing after them (trimesh reads those as before). Other vertex and face properties, before or
+    after, and any list count type are skipped. Raises ValueError when the file ends before the data its header
+    promises (a truncated copy), or on a face index out of range."""
     data = data.removeprefix(UTF8_BOM)
     end = data.find(b"end_header", 0, 1 << 16)
     if not data.startswith(b"ply") or end < 0:
@@ -365,7 +366,8 @@ def ply_binary_polygons(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray
         return None
     where, (_, count_type, item_type) = face[lists[0]]
     counts = _gather(buf, where, count_type).astype(np.int64)
-    if len(counts) == 0 or (counts == counts[0]).all():
+    extra = len(data) - pos
+    if len(counts) == 0 or ((counts == counts[0]).all() and not extra):
         return None
     counts_at = where + np.dtype(count_type).itemsize
     size = np.dtype(item_type).itemsize
@@ -380,7 +382,7 @@ def ply_binary_polygons(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray
     if len(indices) and (indices.min() < 0 or indices.max() >= len(verts)):
         bad = int(indices[(indices < 0) | (indices >= len(verts))][0])
         raise ValueError(f"face index {bad} out of range (only {len(verts)} vertices)")
-    return verts, counts, indices
+    return verts, counts, indices, extra
 
 
 def _gather(buf: np.ndarray, offsets: np.ndarray, dtype: str) -> np.ndarray:

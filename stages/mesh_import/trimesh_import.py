@@ -9,6 +9,7 @@ in walls.json.
 """
 from __future__ import annotations
 
+import logging
 import re
 from pathlib import Path
 from typing import Any, Mapping
@@ -29,6 +30,8 @@ from .cleanup import clean_mesh
 from .polygons import UTF8_BOM
 from stages.common.placement import apply_placement, placement_matrix, up_axis_matrix
 
+# what a file reader says outside a stage's ctx.log (read_mesh_file is also the emitters' reader): under the stage's name
+LOG = logging.getLogger("stage.mesh_import.trimesh")
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
 USD_FILE = "walls.usdc"
 # OBJ that trimesh misreads (valid OBJ all the same): a relative (negative) index, which trimesh resolves against
@@ -102,8 +105,6 @@ def _stl_with_a_wrong_count(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
     any other file (trimesh refused these as 'not a valid STL file'). A file that ends inside a record short of
     the count it states is cut off (a download or copy that stopped): refused, not read as the records it kept
     (a tank with most of its walls missing)."""
-    import logging
-
     data = path.read_bytes()
     if len(data) < 84 + 50:
         return None
@@ -122,9 +123,8 @@ def _stl_with_a_wrong_count(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
     tri = np.frombuffer(data, record, held, 84)["v"].astype(np.float64)
     if not np.isfinite(tri).all():
         return None
-    logging.getLogger("stage.mesh_import.trimesh").warning(
-        "%s: binary STL whose header says %d triangles and whose size holds %d%s: read %d", path, stated, held,
-        f" and {partial} bytes more" if partial else "", held)
+    LOG.warning("%s: binary STL whose header says %d triangles and whose size holds %d%s: read %d", path, stated, held,
+                f" and {partial} bytes more" if partial else "", held)
     return tri.reshape(-1, 3), np.arange(3 * held, dtype=np.int64).reshape(-1, 3)
 
 
@@ -154,7 +154,9 @@ def read_mesh_file(path: Path) -> tuple[np.ndarray, np.ndarray]:
         except ValueError as e:
             raise StageError(f"{path}: cannot read as PLY ({str(e)[:160]})") from None
         if polygons is not None:
-            return polygons[0], triangulate(*polygons)[0]
+            if polygons[3]:
+                LOG.warning("%s: %d bytes after the data its PLY header declares: ignored", path, polygons[3])
+            return polygons[0], triangulate(*polygons[:3])[0]
     if suffix == ".obj":
         data = path.read_bytes()
         if _obj_trimesh_misreads(data):
@@ -350,14 +352,15 @@ class TrimeshImport(Stage):
                 raise StageError(f"{where}: {_why_no_faces(where)}")
             if f.min() < 0 or f.max() >= len(v):
                 raise StageError(f"{where}: face index {int(f.max())} out of range (mesh has {len(v)} vertices)")
-            if not np.isfinite(v).all():
-                # a vertex no face uses shapes nothing (the clean-up drops it): only a used one refuses the file
-                used, inverse = np.unique(f, return_inverse=True)
-                if not np.isfinite(v[used]).all():
-                    raise StageError(f"{where}: vertex coordinates contain NaN or Inf")
+            used, inverse = np.unique(f, return_inverse=True)
+            if len(used) < len(v):
+                # a vertex no face uses shapes nothing: left out before the placement, whose fit: box it widened
+                # (a stray point 10 x away shrank the wall 10 x), and a NaN in one does not refuse the file
                 ctx.log.info("%s: %d vertices no face uses left out (%d with NaN or Inf coordinates)", where,
                              len(v) - len(used), int((~np.isfinite(v).all(axis=1)).sum()))
                 v, f = v[used], inverse.reshape(-1, 3)
+            if not np.isfinite(v).all():
+                raise StageError(f"{where}: vertex coordinates contain NaN or Inf")
             v = apply_placement(v, w)
             motion = self._motion(w, v, extra.pop("animation", None), f"{where}:{extra['prims'][0]}" if "prims" in extra else where)
             diag = float(np.linalg.norm(v.max(axis=0) - v.min(axis=0))) or 1.0
@@ -488,7 +491,7 @@ class TrimeshImport(Stage):
             v, f, prims, to_units, animation, cages = read_usd_wall(path, w, units.meters_per_unit, units.up_axis,
                                                                     ctx.log)
             # the asset's frame -> the scene's, so export can reference the asset in place
-            to_scene = placement_matrix(v, w) @ to_units
+            to_scene = placement_matrix(v[np.unique(f)], w) @ to_units  # as run() places them: used vertices
             extra = {"prims": prims, "asset_to_scene": to_scene.ravel().tolist()}
             if cages:
                 extra["subdivision"] = cages
