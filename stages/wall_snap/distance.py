@@ -208,9 +208,18 @@ def keep_contacts(near: np.ndarray, normal: np.ndarray, ok: np.ndarray, raw: np.
         return lost
     cand = np.flatnonzero(ok)
     dry = cand[~touching(water, near[cand], normal[cand], l0)]
+    probe = raw[dry] - WET_PROBE * l0 * raw_normals[dry]
+    # only where the probe lies behind the face found, i.e. that face is a thin wall's dry one; a probe in front
+    # of it means the vertex faces its wet face across a gap: a free surface beside a wall's corner, and the next
+    # face the probe found (the floor under a film of water in the corner of a tipped glass) lay across the water,
+    # which that move flattened to nothing
+    behind = np.einsum("ij,ij->i", probe - near[dry], normal[dry]) < 0.0
+    ok[dry[~behind]] = False
+    lost[dry[~behind]] = True
+    dry, probe = dry[behind], probe[behind]
     if not len(dry):
         return lost
-    near2, normal2 = project(raw[dry] - WET_PROBE * l0 * raw_normals[dry])
+    near2, normal2 = project(probe)
     found = touching(water, near2, normal2, l0) & (np.linalg.norm(near2 - raw[dry], axis=1) < reach)
     near[dry[found]] = near2[found]
     normal[dry[found]] = normal2[found]
@@ -828,7 +837,7 @@ def projector(walls_dir: Path, walls_stamps: tuple, sdf_dir: Path, sdf_stamps: t
 class DistanceSnap(Stage):
     kind = "wall_snap"
     name = "distance"
-    version = "10"
+    version = "11"
     Params = DistanceSnapParams
     inputs = ("raw_surface", "sdf", "particles")  # particles: for l0 (band and tolerance are in l0)
     optional_inputs = ("walls",)
