@@ -41,7 +41,8 @@ class SPHParams(Params):
                                                      "the mirrored wall pressure are fitted to, and the default with them")
     eos: Literal["linear", "tait"] = Field("linear", description="eq. 5 p = k (rho - rho0), k = c^2; or Tait, B = rho0 c^2 / 7")
     sound_speed: float | None = Field(None, gt=0, description="numerical speed of sound c, m/s; default 10 x the expected "
-                                      "top speed (sqrt(2 g H) of the fluid column, or the emitters' speed)")
+                                      "top speed (sqrt(v0^2 + 2 g H): v0 the emitters' or inflows' top speed, H from the fluid's top to the wall "
+                                      "under it, plus wind and an attractor's speed)")
     cfl: float = Field(0.4, gt=0, le=1.0, description="advective limit dt <= cfl l0 / v_max")
     time_step: float | None = Field(None, gt=0, description="a fixed time step, s, instead of the adaptive one "
                                     "(stability studies: a step above the stable one stops the run with a blow-up error); a frame's last two "
