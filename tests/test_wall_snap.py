@@ -291,17 +291,9 @@ def test_water_in_a_thin_walled_glass_ends_on_the_glass_inside_not_its_outside(t
     assert signed_volume(v, snapped.faces) == pytest.approx(len(x) * L0 ** 3, rel=0.12)
 
 
-def test_a_drop_hanging_over_the_floor_keeps_its_shape_and_a_drop_on_it_meets_it(tmp_path):
-    """A lone particle 1.0 or 1.4 l0 above the floor is a drop that does not touch it (a resting first layer is
-    0.5 l0 off), but its underside faces the floor within the snap band: it was pulled down onto the floor (at
-    1.4 l0 four vertices went 0.84 l0 straight down, +72 % volume; a splash's droplets grew 20-65 %). It now keeps
-    its extracted shape; a drop resting on the floor (0.5 l0) still meets it."""
-    import trimesh
-
-    heights = {"resting": 0.5, "hanging": 1.0, "higher": 1.4}
-    x = np.array([[0.05 + 0.05 * k, 0.1, h * L0] for k, h in enumerate(heights.values())])
-    exact = box_interior_sdf(LO, HI)
-    sdf = grid_from_function(exact, LO, HI, L0 / 2, band=4 * L0)
+def extract_and_snap_in_the_tank(tmp_path, x: np.ndarray):
+    """(raw, snapped) surface folders of the particles ``x`` (one frame) in the box tank LO-HI, its exact field."""
+    sdf = grid_from_function(box_interior_sdf(LO, HI), LO, HI, L0 / 2, band=4 * L0)
     (tmp_path / "sdf").mkdir()
     sdf.save(tmp_path / "sdf")
     (tmp_path / "p").mkdir()
@@ -311,6 +303,19 @@ def test_a_drop_hanging_over_the_floor_keeps_its_shape_and_a_drop_on_it_meets_it
     snap_dir = run_stage(DistanceSnap, tmp_path / "snap", scene=SCENE, frames=(0,),
                          inputs={"raw_surface": raw_dir, "sdf": tmp_path / "sdf", "particles": src,
                                  "walls": tank_walls(tmp_path / "walls")})
+    return raw_dir, snap_dir
+
+
+def test_a_drop_hanging_over_the_floor_keeps_its_shape_and_a_drop_on_it_meets_it(tmp_path):
+    """A lone particle 1.0 or 1.4 l0 above the floor is a drop that does not touch it (a resting first layer is
+    0.5 l0 off), but its underside faces the floor within the snap band: it was pulled down onto the floor (at
+    1.4 l0 four vertices went 0.84 l0 straight down, +72 % volume; a splash's droplets grew 20-65 %). It now keeps
+    its extracted shape; a drop resting on the floor (0.5 l0) still meets it."""
+    import trimesh
+
+    heights = {"resting": 0.5, "hanging": 1.0, "higher": 1.4}
+    x = np.array([[0.05 + 0.05 * k, 0.1, h * L0] for k, h in enumerate(heights.values())])
+    raw_dir, snap_dir = extract_and_snap_in_the_tank(tmp_path, x)
 
     def drops(folder):  # per particle: (lowest point, volume) of the piece around it, in l0 and l0^3
         m = load_surface(folder, 0)
@@ -343,16 +348,7 @@ def test_a_film_on_the_floor_short_of_a_side_wall_stays_inside_the_surface(tmp_p
 
     i, j, k = np.meshgrid(np.arange(6), np.arange(8), np.arange(layers), indexing="ij")
     x = np.stack([(gap + i.ravel()) * L0, (2 + j.ravel()) * L0, (0.5 + k.ravel()) * L0], axis=1)
-    sdf = grid_from_function(box_interior_sdf(LO, HI), LO, HI, L0 / 2, band=4 * L0)
-    (tmp_path / "sdf").mkdir()
-    sdf.save(tmp_path / "sdf")
-    (tmp_path / "p").mkdir()
-    src = particles(tmp_path / "p", [x])
-    raw_dir = run_stage(MarchingCubes, tmp_path / "raw", scene=SCENE, inputs={"particles": src, "sdf": tmp_path / "sdf"},
-                        frames=(0,))
-    snap_dir = run_stage(DistanceSnap, tmp_path / "snap", scene=SCENE, frames=(0,),
-                         inputs={"raw_surface": raw_dir, "sdf": tmp_path / "sdf", "particles": src,
-                                 "walls": tank_walls(tmp_path / "walls")})
+    raw_dir, snap_dir = extract_and_snap_in_the_tank(tmp_path, x)
     for folder in (raw_dir, snap_dir):
         m = load_surface(folder, 0)
         inside = igl.winding_number(m.vertices.astype(np.float64), m.faces.astype(np.int64), x) > 0.5
