@@ -569,25 +569,28 @@ def scene_corners(setup: "Setup") -> np.ndarray:
     return np.array([[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1]) for c in (lo[2], hi[2])])
 
 
-def floor_below(walls: SDFGrid, x: np.ndarray, up: np.ndarray, l0: float, samples: int = 4096) -> float:
-    """The lowest wall point (along ``up``) straight under the fluid at ``x``, or the bottom of the walls' grid
-    where nothing is under it: each of up to ``samples`` particles (evenly through the array) marches down by its
-    distance to the walls (a sphere trace: never past a wall; at least l0 / 4 a step, so a wall thinner than a
-    step is still met within l0 / 4) until it is within l0 / 4 of one."""
-    pts = np.asarray(x, np.float64)[:: max(1, len(x) // samples)].copy()
-    corners = np.array([[a, b, c] for a in (walls.origin[0], walls.upper[0]) for b in (walls.origin[1], walls.upper[1])
-                        for c in (walls.origin[2], walls.upper[2])])
-    bottom = float((corners @ up).min())
-    active = np.ones(len(pts), np.bool_)
-    for _ in range(int(4.0 * (float((pts @ up).max()) - bottom) / l0) + 2):
-        if not active.any():
-            break
-        d, _ = walls.sample(pts[active])
-        step = np.where(d < 0.25 * l0, 0.0, np.maximum(d, 0.25 * l0))
-        moving = np.flatnonzero(active)
-        pts[moving] -= step[:, None] * up
-        active[moving[(step == 0.0) | (pts[moving] @ up <= bottom)]] = False
-    return max(float((pts @ up).min()), bottom)
+# a wall this many spacings under the fluid's lowest particle is a drop it falls down (a fluid resting on a floor starts
+# half a spacing above it, and its sound speed stays its column's)
+FALL = 2.0
+
+
+def floor_below(walls: SDFGrid, x: np.ndarray, up: np.ndarray, samples: int = 4096) -> float:
+    """The lowest wall under the fluid at ``x``, along ``up`` (a grid axis): for up to ``samples`` particles (evenly
+    through the array), the highest node of the walls' grid in the particle's column, at or below it, that is within
+    0.3 node spacings of a wall or inside one; the grid's bottom where none is. On the nodes, not a trace between
+    them: the same scene in other units or far from the origin finds the same floor (a trace's last step differed
+    by up to a quarter spacing, and so did the sound speed and the flow)."""
+    axis = int(np.argmax(np.abs(up)))
+    dist = np.moveaxis(walls.dist, axis, -1)  # (columns a, columns b, nodes along up)
+    rel = (np.asarray(x, np.float64)[:: max(1, len(x) // samples)] - walls.origin) / walls.spacing
+    across = [a for a in range(3) if a != axis]
+    ia = np.clip(np.rint(rel[:, across[0]]).astype(np.int64), 0, dist.shape[0] - 1)
+    ib = np.clip(np.rint(rel[:, across[1]]).astype(np.int64), 0, dist.shape[1] - 1)
+    below = np.clip(np.floor(rel[:, axis]).astype(np.int64), -1, dist.shape[2] - 1)
+    k = np.arange(dist.shape[2])
+    wall = (dist[ia, ib, :] < 0.3 * walls.spacing) & (k[None, :] <= below[:, None])
+    top_wall = np.where(wall.any(axis=1), dist.shape[2] - 1 - np.argmax(wall[:, ::-1], axis=1), 0)
+    return float(walls.origin[axis] + walls.spacing * top_wall.min())
 
 
 def _fluid_top(setup: "Setup") -> float:
@@ -607,7 +610,8 @@ class Setup:
     density: float
     gravity: np.ndarray  # acceleration vector, m/s^2 (zero without the gravity effect)
     up: np.ndarray
-    v_ref: float  # expected top speed: sqrt(v0^2 + 2 g H), v0 the emitters' or jets' top speed, H from the fluid's top to the wall under it
+    v_ref: float  # expected top speed: sqrt(2 g H) of the fluid column, or the emitters' speed
+    v_land: float  # and the speed the fluid lands at where it starts over a drop (WCSPH's stiffness; below v_ref none)
     domain: tuple[np.ndarray, np.ndarray] | None
     effects: Any  # pipeline.scene.Effects
     meters_per_unit: float  # of the scene: frames are written back in scene units
@@ -658,7 +662,7 @@ def prepare(ctx: Context, inputs: Mapping[str, Artifact], who: str, moving_walls
     counts: dict = {}
     walls_at_start = posed_field(sdf, bodies, 0.0)
     x, v, dropped = drop_inside_walls(x, v, walls_at_start, l0, ctx.log, counts=counts, progress=ctx.progress)
-    floor = floor_below(walls_at_start, x, up, l0) if len(x) else None
+    floor = floor_below(walls_at_start, x, up) if len(x) else None
     if len(x) == 0 and not fluid.inflow:
         if emitted == 0:
             why = f"every emitter is smaller than fluid.spacing ({l0:g}) or empty"
@@ -690,20 +694,24 @@ def prepare(ctx: Context, inputs: Mapping[str, Artifact], who: str, moving_walls
     _warn_idle_flows(inflows, sinks, x, (scene.frames.count - 1) / scene.frames.fps, sdf, l0, ctx.log)
     gravity = np.zeros(3)
     v_ref = max([float(np.linalg.norm(v, axis=1).max()) if len(v) else 0.0] + [jet.top_speed() for jet in inflows])
+    v_land = 0.0
     if effects.gravity is not None:
         g = effects.gravity.g
         gravity = -g * up
-        # the emitted fluid falls to the wall under it (a block released over a floor lands at sqrt(2 g H): its own
-        # thickness alone gave the open bowl's slab a sound speed of 9.7 m/s for a 2.6 m/s landing, 6.3 % compressed)
-        heights = [x @ up] + [jet.swept_points() @ up for jet in inflows] + ([np.array([floor])] if floor is not None else [])
+        heights = [x @ up] + [jet.swept_points() @ up for jet in inflows]
         if inflows:  # a jet falls to the bottom of the domain
             lo, hi = domain if domain is not None else (sdf.origin, sdf.upper)
             heights.append(np.array([min(lo @ up, hi @ up)]))
         h = np.concatenate(heights)
         height = float(h.max() - h.min()) + l0
-        # the fastest a particle gets falling from the top: a jet's or an emitter's speed adds (energy) to the free fall
-        v_top = max(v_ref, max([jet.top_speed() for jet in inflows], default=0.0))
+        # the fastest a particle gets falling from the top: a jet's speed adds (energy) to the free fall
+        v_top = max([jet.top_speed() for jet in inflows], default=0.0)
         v_ref = max(v_ref, math.sqrt(v_top ** 2 + 2.0 * g * height))
+        if floor is not None and floor < h.min() - FALL * l0:
+            # fluid released over a drop lands at sqrt(v0^2 + 2 g H), H from its top to the wall under it: its own
+            # thickness alone gave the open bowl's slab a sound speed of 9.7 m/s for a 2.6 m/s landing, 63 % compressed
+            v0 = float(np.linalg.norm(v, axis=1).max()) if len(v) else 0.0
+            v_land = math.sqrt(max(v0, v_top) ** 2 + 2.0 * g * (float(h.max()) - floor + l0))
     v_ref = max(v_ref, capillary_speed(effects, fluid.density, l0))  # a droplet's own sound speed
     if fluid.settle > 0 and bodies:
         # the config refuses settling with emitter velocities, jets, sinks and walls[].motion (scene.py); walls
@@ -711,6 +719,7 @@ def prepare(ctx: Context, inputs: Mapping[str, Artifact], who: str, moving_walls
         raise StageError(f"{who}: fluid.settle is for a fluid among walls at rest, but the scene has walls animated "
                          "in their USD file; set fluid.settle to 0")
     return Setup(x=x, v=v, sdf=sdf, spacing=l0, density=fluid.density, gravity=gravity, up=up, v_ref=v_ref,
+                 v_land=max(v_land, v_ref),
                  domain=domain, effects=effects, meters_per_unit=mpu, dropped=counts["in_wall"],
                  dropped_outside=counts["outside"], inflows=inflows, sinks=sinks,
                  bodies=bodies, settle=fluid.settle)

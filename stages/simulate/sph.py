@@ -41,8 +41,8 @@ class SPHParams(Params):
                                                      "the mirrored wall pressure are fitted to, and the default with them")
     eos: Literal["linear", "tait"] = Field("linear", description="eq. 5 p = k (rho - rho0), k = c^2; or Tait, B = rho0 c^2 / 7")
     sound_speed: float | None = Field(None, gt=0, description="numerical speed of sound c, m/s; default 10 x the expected "
-                                      "top speed (sqrt(v0^2 + 2 g H): v0 the emitters' or inflows' top speed, H from the fluid's top to the wall "
-                                      "under it, plus wind and an attractor's speed)")
+                                      "top speed (sqrt(2 g H) of the fluid column, or the emitters' speed; where the fluid starts over a drop, "
+                                      "sqrt(v0^2 + 2 g H) from its top to the wall under it), plus wind and an attractor's speed")
     cfl: float = Field(0.4, gt=0, le=1.0, description="advective limit dt <= cfl l0 / v_max")
     time_step: float | None = Field(None, gt=0, description="a fixed time step, s, instead of the adaptive one "
                                     "(stability studies: a step above the stable one stops the run with a blow-up error); a frame's last two "
@@ -349,8 +349,9 @@ class SPHSimulate(Stage):
         effects = compile_effects(setup.effects, meters_per_unit=setup.meters_per_unit, rho0=setup.density,
                                   l0=setup.spacing, h=h, table_samples=params.table_samples)
         # the default sound speed is 10 x the expected speed, wind and an attractor's included (an attractor left it
-        # at falling's 44 m/s while it pulled at 1e3 m/s: the tank's water compressed 280-fold)
-        v_ref = setup.v_ref + effects_speed(effects, scene_corners(setup))
+        # at falling's 44 m/s while it pulled at 1e3 m/s: the tank's water compressed 280-fold), and a fluid's
+        # landing where it starts over a drop
+        v_ref = setup.v_land + effects_speed(effects, scene_corners(setup))
         solver = SPHSolver(setup.x, setup.v, np.arange(len(setup.x), dtype=np.int32), setup.sdf, spacing=setup.spacing,
                            rho0=setup.density, params=params, gravity=setup.gravity, v_ref=v_ref,
                            domain=setup.domain, effects=effects, bodies=setup.bodies)
