@@ -577,9 +577,8 @@ FALL = 2.0
 def floor_below(walls: SDFGrid, x: np.ndarray, up: np.ndarray, samples: int = 4096) -> float:
     """The lowest wall under the fluid at ``x``, along ``up`` (a grid axis): for up to ``samples`` particles (evenly
     through the array), the highest node of the walls' grid in the particle's column, at or below it, that is within
-    0.3 node spacings of a wall or inside one; the grid's bottom where none is. On the nodes, not a trace between
-    them: the same scene in other units or far from the origin finds the same floor (a trace's last step differed
-    by up to a quarter spacing, and so did the sound speed and the flow)."""
+    0.3 node spacings of a wall or inside one; the grid's bottom where none is. On the nodes, so the same scene in
+    other units or with the other up axis finds the same floor (tests/stability/test_blowup.py, m Z-up and cm Y-up)."""
     axis = int(np.argmax(np.abs(up)))
     dist = np.moveaxis(walls.dist, axis, -1)  # (columns a, columns b, nodes along up)
     rel = (np.asarray(x, np.float64)[:: max(1, len(x) // samples)] - walls.origin) / walls.spacing
