@@ -661,7 +661,8 @@ def prepare(ctx: Context, inputs: Mapping[str, Artifact], who: str, moving_walls
     counts: dict = {}
     walls_at_start = posed_field(sdf, bodies, 0.0)
     x, v, dropped = drop_inside_walls(x, v, walls_at_start, l0, ctx.log, counts=counts, progress=ctx.progress)
-    floor = floor_below(walls_at_start, x, up) if len(x) else None
+    # what the fluid falls to (with an inflow, the fall to the domain's bottom counts anyway)
+    floor = floor_below(walls_at_start, x, up) if len(x) and effects.gravity is not None and not fluid.inflow else None
     if len(x) == 0 and not fluid.inflow:
         if emitted == 0:
             why = f"every emitter is smaller than fluid.spacing ({l0:g}) or empty"
@@ -692,7 +693,8 @@ def prepare(ctx: Context, inputs: Mapping[str, Artifact], who: str, moving_walls
         _clear_of_walls(jet, i, sdf, bodies, domain, l0, who, ctx.log)
     _warn_idle_flows(inflows, sinks, x, (scene.frames.count - 1) / scene.frames.fps, sdf, l0, ctx.log)
     gravity = np.zeros(3)
-    v_ref = max([float(np.linalg.norm(v, axis=1).max()) if len(v) else 0.0] + [jet.top_speed() for jet in inflows])
+    v_emit = float(np.linalg.norm(v, axis=1).max()) if len(v) else 0.0
+    v_ref = max([v_emit] + [jet.top_speed() for jet in inflows])
     v_land = 0.0
     if effects.gravity is not None:
         g = effects.gravity.g
@@ -709,8 +711,7 @@ def prepare(ctx: Context, inputs: Mapping[str, Artifact], who: str, moving_walls
         if floor is not None and floor < h.min() - FALL * l0:
             # fluid released over a drop lands at sqrt(v0^2 + 2 g H), H from its top to the wall under it: its own
             # thickness alone gave the open bowl's slab a sound speed of 9.7 m/s for a 2.6 m/s landing, 63 % compressed
-            v0 = float(np.linalg.norm(v, axis=1).max()) if len(v) else 0.0
-            v_land = math.sqrt(max(v0, v_top) ** 2 + 2.0 * g * (float(h.max()) - floor + l0))
+            v_land = math.sqrt(max(v_emit, v_top) ** 2 + 2.0 * g * (float(h.max()) - floor + l0))
     v_ref = max(v_ref, capillary_speed(effects, fluid.density, l0))  # a droplet's own sound speed
     if fluid.settle > 0 and bodies:
         # the config refuses settling with emitter velocities, jets, sinks and walls[].motion (scene.py); walls
