@@ -57,8 +57,8 @@ def env_seconds(name: str, default: float) -> float:
         value = float(text)
     except ValueError:
         value = float("nan")
-    if not value >= 0:  # negative or NaN
-        raise ConfigError(f"environment variable {name}={text!r}: expected a number of seconds >= 0")
+    if not (value >= 0 and math.isfinite(value)):  # negative, NaN or inf (the lock's wait is refused at inf)
+        raise ConfigError(f"environment variable {name}={text!r}: expected a finite number of seconds >= 0")
     return value
 
 
@@ -73,6 +73,12 @@ def default_lock_timeout() -> float:
 def check_env() -> None:
     """ConfigError for a bad value of an environment variable the pipeline reads (the CLI calls it first)."""
     tmp_max_age()
+    default_lock_timeout()
+    threads = os.environ.get("NUMBA_NUM_THREADS", "")
+    if threads.strip() and not (threads.strip().isdigit() and int(threads) >= 1):
+        # numba printed a traceback for 'abc' and went on; 0 failed in a stage's import, blamed on the config line
+        raise ConfigError(f"environment variable NUMBA_NUM_THREADS={threads!r}: expected a whole number of threads "
+                          ">= 1 (or leave it unset: every core)")
     default_lock_timeout()
 
 def file_in_the_way(path: Path) -> Path | None:

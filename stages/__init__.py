@@ -10,8 +10,10 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import logging
 import os
 import shutil
+import tempfile
 import time
 from pathlib import Path
 
@@ -46,33 +48,57 @@ def numba_cache_for(file: str | os.PathLike):
     """
     import numba
 
-    base, _ = _numba_base()
-    path = numba_cache_dir(Path(file).resolve().parent, os.path.join(base, "plugins"))
+    path = _usable_cache_dir(Path(file).resolve().parent, "plugins")
     before = numba.config.CACHE_DIR
-    try:
-        os.makedirs(path, exist_ok=True)
+    if path is not None:
         numba.config.CACHE_DIR = path
-    except OSError:
-        pass  # a read-only home: numba keeps its own cache locations
     try:
         yield path
     finally:
         numba.config.CACHE_DIR = before
 
 
-def _use_versioned_numba_cache() -> None:
-    base, user_base = _numba_base()
-    path = numba_cache_dir(Path(__file__).resolve().parent, base)
+def _writable(path: str) -> bool:
     try:
         os.makedirs(path, exist_ok=True)
-        os.utime(path)
+        with tempfile.TemporaryFile(dir=path):
+            pass
+        return True
     except OSError:
-        return  # a read-only home: numba keeps its own cache locations
+        return False
+
+
+def _usable_cache_dir(root: Path, sub: str = "") -> str | None:
+    """The versioned cache folder for the sources under ``root`` in the first base that can be written: the
+    user's NUMBA_CACHE_DIR or the home's cache, else one in the temporary folder (a farm's service user has no
+    writable home). None if none can: numba then refuses to cache, which names the file, rather than write beside
+    the sources (its own fallback: a NUMBA_CACHE_DIR it could not write sent 46 files into stages/*/__pycache__)."""
+    base, user_base = _numba_base()
+    fallback = os.path.join(tempfile.gettempdir(), f"fluid-pipeline-{getattr(os, 'getuid', lambda: 'user')()}", "numba")
+    for b in (base, fallback):
+        path = numba_cache_dir(root, os.path.join(b, sub) if sub else b)
+        if _writable(path):
+            if b != base:
+                logging.getLogger(__name__).warning(
+                    "%s %s cannot be written: numba's compiled kernels are cached in %s instead",
+                    "NUMBA_CACHE_DIR" if user_base else "the numba cache folder", base, fallback)
+            return path
+    return None
+
+
+def _use_versioned_numba_cache() -> None:
     import numba
 
+    # only the folder set here, never the source tree's __pycache__ or numba's own user-wide folder
+    numba.config.CACHE_LOCATOR_CLASSES = "UserProvidedCacheLocator"
+    base, user_base = _numba_base()
+    path = _usable_cache_dir(Path(__file__).resolve().parent)
+    if path is None:
+        return
+    os.utime(path)
     numba.config.CACHE_DIR = path  # read when each cached function is decorated: before any stage module
-    if user_base:
-        return  # the user's folder: not ours to tidy
+    if user_base or not path.startswith(base):
+        return  # the user's folder, or the fallback: not ours to tidy
     try:
         old = time.time() - KEEP_DAYS * 86400
         for entry in os.scandir(base):

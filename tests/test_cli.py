@@ -254,15 +254,29 @@ def test_a_file_above_the_cache_folder_is_refused(toy_config, tmp_path):
 
 
 @pytest.mark.parametrize("name", ["PIPELINE_LOCK_TIMEOUT", "PIPELINE_TMP_MAX_AGE"])
-@pytest.mark.parametrize("value", ["abc", "-5", "nan"])
+@pytest.mark.parametrize("value", ["abc", "-5", "nan", "inf"])
 def test_a_bad_environment_variable_is_one_line_exit_2(name, value, toy_config, tmp_path):
     """PIPELINE_LOCK_TIMEOUT=abc was a traceback at import (exit 1); -5 was accepted though --lock-timeout -5
-    is refused. A real subprocess: the values were read when pipeline.cache was imported."""
+    is refused; inf was said as "--lock-timeout None", a flag never given. A real subprocess: the values were read
+    when pipeline.cache was imported."""
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(TESTS), str(REPO)]), **{name: value})
     r = subprocess.run([sys.executable, "-m", "pipeline", "run", str(toy_config), "--cache", str(tmp_path / "c"),
                         "--out", str(tmp_path / "o")], env=env, capture_output=True, text=True, timeout=120)
     assert r.returncode == 2, r.stderr
-    assert r.stderr.strip() == f"error: environment variable {name}={value!r}: expected a number of seconds >= 0"
+    assert r.stderr.strip() == f"error: environment variable {name}={value!r}: expected a finite number of seconds >= 0"
+    assert not (tmp_path / "c").exists() and not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("value", ["abc", "0", "-2", "1.5"])
+def test_a_bad_numba_thread_count_is_one_line_exit_2(value, toy_config, tmp_path):
+    """NUMBA_NUM_THREADS=abc printed numba's traceback and the run went on; 0 failed in a stage's import, said as
+    the config's simulate line being wrong."""
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(TESTS), str(REPO)]), NUMBA_NUM_THREADS=value)
+    r = subprocess.run([sys.executable, "-m", "pipeline", "run", str(toy_config), "--cache", str(tmp_path / "c"),
+                        "--out", str(tmp_path / "o")], env=env, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.strip() == (f"error: environment variable NUMBA_NUM_THREADS={value!r}: expected a whole number of "
+                                "threads >= 1 (or leave it unset: every core)")
     assert not (tmp_path / "c").exists() and not (tmp_path / "o").exists()
 
 

@@ -3,6 +3,7 @@ input files, the code; a longer shot continues from the cached shorter one, bitw
 from __future__ import annotations
 
 import logging
+import os
 from pathlib import Path
 
 import numpy as np
@@ -393,6 +394,37 @@ def test_numba_cache_folder_follows_every_stage_source(tmp_path):
     assert second != first
     (tree / "walls" / "maps.py").rename(tree / "walls" / "other.py")  # same bytes, another module
     assert numba_cache_dir(tree, "base") not in (first, second)
+
+
+@pytest.mark.parametrize("how", ["below_a_file", "read_only_home"])
+def test_a_numba_cache_folder_that_cannot_be_written_is_not_replaced_by_the_source_tree(how, tmp_path):
+    """NUMBA_CACHE_DIR below a file, or no NUMBA_CACHE_DIR and a home that cannot be written (a farm's service
+    user): the first sent numba's cache files into stages/*/__pycache__ beside the sources (46 of them, which a
+    later run loaded whatever its callees' sources), the second stopped the run at a stage's import, said as its
+    config line. The versioned folder now goes under the temporary folder, said in one line."""
+    import subprocess
+    import sys
+
+    (tmp_path / "afile").write_text("")
+    (tmp_path / "tmp").mkdir()
+    (tmp_path / "m").mkdir()
+    (tmp_path / "m" / "kern.py").write_text("import numba\n\n@numba.njit(cache=True)\ndef f(x):\n    return x + 1\n")
+    env = dict(os.environ, TMPDIR=str(tmp_path / "tmp"), PYTHONPATH=str(Path(pipeline.__file__).parents[1]))
+    env.pop("XDG_CACHE_HOME", None)
+    if how == "below_a_file":
+        env["NUMBA_CACHE_DIR"] = str(tmp_path / "afile" / "numba")
+    else:
+        env.pop("NUMBA_CACHE_DIR", None)
+        env["HOME"] = str(tmp_path / "afile")  # ~/.cache cannot be made below a file
+    code = ("import logging, sys; logging.basicConfig(); import stages, numba; sys.path.insert(0, %r); import kern; "
+            "assert kern.f(1) == 2; print(numba.config.CACHE_DIR)" % str(tmp_path / "m"))
+    r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    cache = Path(r.stdout.strip())
+    assert cache.is_relative_to(tmp_path / "tmp"), cache
+    assert list(cache.rglob("kern.f-*.nbi")), sorted(cache.rglob("*"))  # the kernel is cached there
+    assert not list((tmp_path / "m").rglob("*.nbi"))  # and not beside its source
+    assert "cannot be written: numba's compiled kernels are cached in" in r.stderr, r.stderr
 
 
 def test_a_missing_input_file_names_the_config_line(toy_config):
