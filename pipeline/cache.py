@@ -74,6 +74,7 @@ def check_env() -> None:
     """ConfigError for a bad value of an environment variable the pipeline reads (the CLI calls it first)."""
     tmp_max_age()
     default_lock_timeout()
+    env_seconds("PIPELINE_LOG_EVERY", 0.0)  # pipeline.runner's progress lines in a log file
     threads = os.environ.get("NUMBA_NUM_THREADS", "")
     if threads.strip() and not (threads.strip().isdigit() and int(threads) >= 1):
         # numba printed a traceback for 'abc' and went on; 0 failed in a stage's import, blamed on the config line

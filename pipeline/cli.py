@@ -183,7 +183,7 @@ def run(configs, overrides, cache_dir, frames, out_dir, only, from_, until, forc
     try:
         report = runner.run(config, overrides=tuple(overrides), cache_dir=cache_dir, out_dir=out_dir, only=only,
                             from_=from_, until=until, force=tuple(force), frames=runner.parse_frames(frames),
-                            executor=ex, progress=not quiet and sys.stderr.isatty(), lock_timeout=lock_timeout,
+                            executor=ex, progress=_progress_mode(quiet), lock_timeout=lock_timeout,
                             allow_large=allow_large)
     except BaseException:
         ex.abort()  # stop the workers now (Ctrl-C, a failed frame): do not wait for queued or running jobs
@@ -200,6 +200,11 @@ def run(configs, overrides, cache_dir, frames, out_dir, only, from_, until, forc
             shown = ", ".join(files[:3]) + (f" ... ({total} files)" if total > min(len(files), 3) else "")
             click.echo(f"  -> {name}: {path}/  [{shown}]")
         click.echo(f"done in {report.seconds:.2f} s; report: {Path(report.out) / 'run.json'}")
+
+
+def _progress_mode(quiet: bool) -> bool | str:
+    """Bars on a terminal; a line every half minute of a long stage in a log file (a farm's); nothing when quiet."""
+    return False if quiet else (True if sys.stderr.isatty() else "log")
 
 
 def _run_batch(configs, options, executor, workers, scheduler, quiet) -> None:

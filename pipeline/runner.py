@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, NoReturn
 
-from .cache import Cache, hash_key, owner_tag, unwritable
+from .cache import Cache, env_seconds, hash_key, owner_tag, unwritable
 from .config import OUTPUT_NAMES, Config, load_config
 from .errors import CacheMissError, CodeChanged, ConfigError, FrameError, PipelineError, StageFailed
 from .estimate import check_size, check_stages
@@ -185,15 +185,23 @@ def _frame_job(job: FrameJob) -> tuple[int, str, float, float, bool]:
 Events = Callable[[dict], None]
 
 
-class _Progress:
-    """Rich progress bars for long stages; silent when quiet or not on a terminal. With ``events`` (a
-    live view of several shots, pipeline.live), every advance is also sent there as
-    ``{"task": description, "done": n, "total": total}``."""
+# a run whose stderr is no terminal (a farm's log file) says a long stage's progress in a line this often (s;
+# env PIPELINE_LOG_EVERY)
+LOG_EVERY = 30.0
 
-    def __init__(self, enabled: bool, events: Events | None = None) -> None:
+
+class _Progress:
+    """Rich progress bars for long stages when ``enabled`` is True; with "log" (stderr is no terminal: a
+    render farm's log, which had nothing from a 2-minute simulation until its end) a logged line every LOG_EVERY
+    seconds (env PIPELINE_LOG_EVERY) of a stage that runs that long; silent when quiet. With ``events`` (a live view of several shots,
+    pipeline.live), every advance is also sent there as ``{"task": description, "done": n, "total": total}``."""
+
+    def __init__(self, enabled: bool | str, events: Events | None = None) -> None:
         self._bar = None
         self._events = events
-        if enabled:
+        self._lines = enabled == "log"
+        self._every = env_seconds("PIPELINE_LOG_EVERY", LOG_EVERY)
+        if enabled is True:
             from rich.progress import BarColumn, MofNCompleteColumn, Progress as RichProgress, TextColumn, TimeElapsedColumn
 
             self._bar = RichProgress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
@@ -209,17 +217,27 @@ class _Progress:
             self._bar.stop()
 
     def make(self, description: str, total: float) -> Progress:
-        if self._bar is None and self._events is None:
+        if self._bar is None and self._events is None and not self._lines:
             return Progress()
         task = None if self._bar is None else self._bar.add_task(description, total=total)
         done = [0.0]
+        start = time.monotonic()
+        said = [start]  # when the last line was logged
 
         def update(amount: float) -> None:
+            done[0] += amount
             if task is not None:
                 self._bar.advance(task, amount)
             if self._events is not None:
-                done[0] += amount
                 self._events({"task": description, "done": done[0], "total": total})
+            now = time.monotonic()
+            finished = done[0] >= total
+            if self._lines and (now - said[0] >= self._every or (finished and said[0] > start)):
+                said[0] = now
+                spent = now - start
+                left = f", about {spent * (total - done[0]) / done[0]:.0f} s left" if 0 < done[0] < total else ""
+                log.info("%s: %g of %g (%.0f %%) in %.0f s%s", description, done[0], total,
+                         100.0 * min(done[0] / total, 1.0) if total else 100.0, spent, left)
 
         return Progress(update)
 
@@ -317,7 +335,7 @@ def _outside(what: str, exc: BaseException, cache: Cache) -> StageFailed:
 
 
 def execute(p: Plan, *, out_dir: Path, force: frozenset[str] = frozenset(), executor: Executor | None = None,
-            progress: bool = False, events: Events | None = None, allow_large: bool = False) -> RunReport:
+            progress: bool | str = False, events: Events | None = None, allow_large: bool = False) -> RunReport:
     """Run the plan. Inline, stages go one by one in dependency order; with a pool executor, independent
     branches (e.g. render frames and export) are driven concurrently by threads of this process while
     their per-frame jobs run in the pool's worker processes. faulthandler writes native crashes (VTK,
@@ -351,7 +369,7 @@ def execute(p: Plan, *, out_dir: Path, force: frozenset[str] = frozenset(), exec
             pass
 
 
-def _execute(p: Plan, out_dir: Path, force: frozenset[str], executor: Executor | None, progress: bool,
+def _execute(p: Plan, out_dir: Path, force: frozenset[str], executor: Executor | None, progress: bool | str,
              fault_log: str, events: Events | None = None, allow_large: bool = False) -> RunReport:
     config, graph, cache = p.config, p.graph, p.cache
     t_start = time.perf_counter()
@@ -651,7 +669,7 @@ def run(config_path: str | Path, *, registry: Registry | None = None, overrides:
         cache_dir: str | Path | None = None, out_dir: str | Path | None = None, only: str | None = None,
         from_: str | None = None, until: str | None = None, force: tuple[str, ...] = (),
         frames: tuple[int, ...] | None = None, executor: Executor | None = None,
-        progress: bool = False, lock_timeout: float | None = None, allow_large: bool = False,
+        progress: bool | str = False, lock_timeout: float | None = None, allow_large: bool = False,
         events: Events | None = None, workers: int = 1) -> RunReport:
     """Run what the config's outputs need; returns the report (also written to out/run.json).
 

@@ -253,7 +253,7 @@ def test_a_file_above_the_cache_folder_is_refused(toy_config, tmp_path):
     assert not (tmp_path / "o").exists()
 
 
-@pytest.mark.parametrize("name", ["PIPELINE_LOCK_TIMEOUT", "PIPELINE_TMP_MAX_AGE"])
+@pytest.mark.parametrize("name", ["PIPELINE_LOCK_TIMEOUT", "PIPELINE_TMP_MAX_AGE", "PIPELINE_LOG_EVERY"])
 @pytest.mark.parametrize("value", ["abc", "-5", "nan", "inf"])
 def test_a_bad_environment_variable_is_one_line_exit_2(name, value, toy_config, tmp_path):
     """PIPELINE_LOCK_TIMEOUT=abc was a traceback at import (exit 1); -5 was accepted though --lock-timeout -5
@@ -278,6 +278,29 @@ def test_a_bad_numba_thread_count_is_one_line_exit_2(value, toy_config, tmp_path
     assert r.stderr.strip() == (f"error: environment variable NUMBA_NUM_THREADS={value!r}: expected a whole number of "
                                 "threads >= 1 (or leave it unset: every core)")
     assert not (tmp_path / "c").exists() and not (tmp_path / "o").exists()
+
+
+def test_a_run_logged_to_a_file_says_a_long_stages_progress(toy_config, tmp_path, monkeypatch, caplog):
+    """A render farm's log (stderr no terminal) had nothing from a 2-minute simulation until the run's end: the
+    bars are drawn on a terminal only. A stage now says where it is every PIPELINE_LOG_EVERY seconds (30 by
+    default, so the toy's short stages say nothing)."""
+    import logging
+
+    from pipeline import cli, runner
+
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: False)
+    assert cli._progress_mode(quiet=False) == "log" and cli._progress_mode(quiet=True) is False
+    monkeypatch.setenv("PIPELINE_LOG_EVERY", "0")
+    with caplog.at_level(logging.INFO, logger="pipeline"):
+        runner.run(toy_config, cache_dir=tmp_path / "c1", out_dir=tmp_path / "o1", progress="log")
+    lines = [r.getMessage() for r in caplog.records if "render frames:" in r.getMessage()]
+    assert any(ln.startswith("render frames: 4 of 4 (100 %) in") for ln in lines), lines
+    assert any(ln.endswith("s left") for ln in lines), lines  # and how long is left on the way
+    caplog.clear()
+    monkeypatch.delenv("PIPELINE_LOG_EVERY")
+    with caplog.at_level(logging.INFO, logger="pipeline"):
+        runner.run(toy_config, cache_dir=tmp_path / "c2", out_dir=tmp_path / "o2", progress="log")
+    assert not [r for r in caplog.records if "render frames:" in r.getMessage()]
 
 
 def test_a_good_environment_variable_is_used(monkeypatch, tmp_path):

@@ -61,18 +61,17 @@ def frame_png(folder: Path, frame: int) -> Path:
 def check_movie(movie: Path, frames: int) -> None:
     """The encoder's output holds every frame sent: imageio-ffmpeg does not check ffmpeg's exit, so a full disk
     ("Error writing trailer"), a file-size limit or a killed ffmpeg left a truncated, unplayable movie.mp4 that
-    the cache then served as finished."""
+    the cache then served as finished. An OSError, not a StageError: the machine failed, not the input (exit 1,
+    which a farm retries, and the log saved; it was exit 2, a user's mistake)."""
     import imageio_ffmpeg
 
     try:
         n, _ = imageio_ffmpeg.count_frames_and_secs(str(movie))
     except Exception as e:  # ffmpeg cannot read it: no moov atom, truncated
         reason = str(e).strip().splitlines()[-1] if str(e).strip() else type(e).__name__
-        raise StageError(f"movie.ffmpeg: the encoder did not finish {movie.name} (disk full or ffmpeg stopped?): "
-                         f"{reason}") from None
+        raise OSError(f"the encoder did not finish {movie.name} (disk full or ffmpeg stopped?): {reason}") from None
     if n != frames:
-        raise StageError(f"movie.ffmpeg: {movie.name} holds {n} of the {frames} frames sent (disk full or ffmpeg "
-                         "stopped?)")
+        raise OSError(f"{movie.name} holds {n} of the {frames} frames sent (disk full or ffmpeg stopped?)")
 
 
 def encode(movie: Path, size: tuple[int, int], fps: float, params: MovieParams, images) -> list[str]:
