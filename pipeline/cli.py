@@ -28,6 +28,11 @@ def _setup_logging(verbose: int, quiet: bool) -> None:
     from rich.logging import RichHandler
 
     level = logging.WARNING if quiet else (logging.DEBUG if verbose else logging.INFO)
+    if not sys.stderr.isatty():  # a log file: whole lines (rich wrapped them at 80 columns), each with its time
+        handler = logging.StreamHandler(sys.stderr)
+        handler.setFormatter(logging.Formatter("[%(asctime)s] %(levelname)-7s %(message)s", datefmt="%X"))
+        logging.basicConfig(level=level, handlers=[handler], force=True)
+        return
     logging.basicConfig(level=level, format="%(message)s", datefmt="[%X]",
                         handlers=[RichHandler(console=Console(stderr=True), show_path=False, rich_tracebacks=False, markup=False)], force=True)
 
