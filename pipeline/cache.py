@@ -127,7 +127,21 @@ class CacheBusy(StageFailed):
 
 
 # -- who wrote a temporary file: host, pid, start time ------------------------------------------------
-_HOST = re.sub(r"[^A-Za-z0-9-]", "-", socket.gethostname())[:64] or "host"
+def _machine() -> str:
+    """This process's host as a temporary file's owner tag names it: the host name, then (where Linux says them)
+    the boot's id and the pid namespace. Containers with the host's network share its name but not its process
+    ids (a second container's run took a live run's pid for a dead one and removed its temporary folder), and
+    two machines may share a name; a writer on another machine is never judged by this one's pids."""
+    name = re.sub(r"[^A-Za-z0-9-]", "-", socket.gethostname())[:64] or "host"
+    try:
+        boot = Path("/proc/sys/kernel/random/boot_id").read_text().strip().replace("-", "")[:8]
+        pid_ns = os.stat("/proc/self/ns/pid").st_ino
+    except OSError:
+        return name
+    return f"{name}-b{boot}n{pid_ns}"
+
+
+_HOST = _machine()
 _STARTED = int(time.time())
 
 

@@ -568,3 +568,35 @@ def test_the_sweep_removes_only_its_own_temporary_names(tmp_path):
         os.utime(p, (old, old))
     assert cache.sweep_tmp() == len(ours)
     assert sorted(tmp.iterdir()) == sorted(mine)
+
+
+def test_a_live_run_in_another_pid_namespace_of_the_same_host_name_keeps_its_temporary_folder(tmp_path):
+    """Two containers with the host's network (one host name, their own process ids) sharing a cache: a run in
+    one took the other's live pid (not running here) for a dead writer and removed its temporary folder mid-run
+    (FileNotFoundError in simulate). The owner tag names the boot and the pid namespace too; a writer in
+    another namespace waits for the age limit, as one on another host does."""
+    import shutil
+    import subprocess
+    import sys
+
+    if shutil.which("unshare") is None or not os.path.exists("/proc/self/ns/pid"):
+        pytest.skip("needs Linux's unshare")
+    r = subprocess.run(["unshare", "-p", "-f", "--mount-proc", sys.executable, "-c",
+                        "from pipeline.cache import owner_tag; print(owner_tag())"],
+                       capture_output=True, text=True, env=dict(os.environ, PYTHONPATH=str(Path(__file__).parents[2])))
+    if r.returncode != 0:
+        pytest.skip(f"unshare refused here: {r.stderr.strip()}")
+    theirs = r.stdout.strip()  # their pid is 1 in their namespace, with their start time
+    host, pid, started = theirs.rsplit("-", 2)
+    assert host.split("-b")[0] == owner_tag().rsplit("-", 2)[0].split("-b")[0]  # the same host name
+    assert host != owner_tag().rsplit("-", 2)[0]
+    cache = Cache(tmp_path / "c")
+    tmp = cache.root / "tmp"
+    tmp.mkdir(parents=True)
+    live = tmp / f"{'0' * 64}.{host}-{pid}-{started}.0123abcd"
+    live.mkdir()
+    assert cache.sweep_tmp() == 0 and live.exists()
+    # the same name in our namespace, with a pid that is gone, is swept as before
+    dead = tmp / f"{'1' * 64}.{owner_tag().rsplit('-', 2)[0]}-999999-{started}.0123abcd"
+    dead.mkdir()
+    assert cache.sweep_tmp() == 1 and live.exists() and not dead.exists()
