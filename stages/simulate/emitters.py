@@ -15,6 +15,7 @@ import numpy as np
 from pipeline.scene import BoxEmitter, MeshEmitter, SphereEmitter, is_usd
 from pipeline.stage import StageError
 from stages.common.sdf import DEFAULT_SHELL_THICKNESS
+from stages.common.sizes import LATTICE_SLACK, lattice_counts
 from stages.common.wall_hints import box_text
 
 from .kernels import rest_lattice
@@ -22,22 +23,8 @@ from .neighbours import cell_coords
 from .walls.spline import flat_wall_tables, spline_coefs, spline_f, spline_np, spline_w
 
 
-# a size within this many spacings of a whole number of them counts as that number
-LATTICE_SLACK = 1e-4
-
 
 MAX_MESH_LATTICE = 1e8  # a mesh emitter's box tested point by point (2.4 GB of points): beyond, surely a scale slip
-
-
-def lattice_counts(lo, hi, l0: float) -> np.ndarray:
-    """Lattice points per axis in the box [lo, hi): its size in whole spacings."""
-    lo = np.asarray(lo, float)
-    hi = np.asarray(hi, float)
-    # sizes typed to 6-7 digits after a unit conversion are a whole number of spacings to 1e-6 of it (a box of
-    # 8 spacings in feet read 7.999994 and lost a layer, 23 % of the water); the tolerance also grows with the
-    # coordinates: (hi - lo) of a box 1e7 m off the origin is off by ~1e-9 m, which dropped a whole row there
-    slack = LATTICE_SLACK + 16 * np.finfo(float).eps * np.maximum(np.abs(lo), np.abs(hi)) / l0
-    return np.floor((hi - lo) / l0 + slack).astype(int)
 
 
 def lattice(lo, hi, l0: float) -> np.ndarray:

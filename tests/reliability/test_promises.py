@@ -477,6 +477,19 @@ def test_plan_size_names_particles_sdf_nodes_steps_and_memory(tmp_path, caplog):
     assert not (tmp_path / "c").exists()  # nothing written before the plan is accepted
 
 
+@pytest.mark.parametrize("spacing, box", [(0.0066666667, (0.1, 0.04, 0.25)), (0.1 / 3, (0.3, 0.2, 0.1)), (0.0125, (0.3, 0.2, 0.25))])
+def test_the_plans_particle_count_is_the_emitters(spacing, box):
+    """A spacing typed as a rounded fraction (2/3 cm as 0.0066666667) planned 1,525 particles for the 2,232 emitted:
+    the plan floored each axis's spacings without the lattice's slack, and lost a row along each."""
+    from types import SimpleNamespace as N
+
+    from stages.common.sizes import emitted_particles
+    from stages.simulate.emitters import lattice
+
+    em = N(box=N(min=[0.0, 0.0, 0.0], max=list(box)))
+    assert emitted_particles(N(spacing=spacing, inflow=[], emitters=[em])) == len(lattice([0, 0, 0], box, spacing))
+
+
 @pytest.mark.parametrize("fps, said", [(0.01, True), (30, False)])
 def test_a_plan_of_millions_of_steps_is_said_before_it_runs(tmp_path, caplog, fps, said):
     """scene.frames.fps 0.01 made 15 frames a 1,500 s shot, about 2 M steps of a dam break: said only in the plan's
