@@ -291,6 +291,12 @@ def test_an_emitter_reaching_into_a_wall_is_told_so_not_about_tilted_walls(caplo
     assert dropped == 2 * 10 * 5 and len(x) == 10 * 10 * 5
     assert "100 inside a wall's solid: the emitter reaches into it" in caplog.text
     assert "not aligned" not in caplog.text
+    # points on the wall (a water mesh sharing its container's faces) are near it, not in its solid
+    caplog.clear()
+    pts = lattice([-0.01, 0.0, 0.0], [0.19, 0.2, 0.1], l0)  # the first column on the wall x = 0
+    with caplog.at_level(logging.WARNING):
+        x, _, dropped = drop_inside_walls(pts, np.zeros_like(pts), sdf, l0, logging.getLogger("t"))
+    assert "inside a wall's solid" not in caplog.text and "50 within 0.5 l0 of one" in caplog.text, caplog.text
 
 
 @pytest.mark.parametrize("mpu", [1.0, 0.001])

@@ -195,7 +195,10 @@ def drop_inside_walls(x: np.ndarray, v: np.ndarray, sdf, l0: float, log: logging
         # inside a wall's solid (the emitter reaches into it: an open_box's walls stand inside its size) and only
         # near one (a wall off the lattice's axes) are different mistakes: the hint about tilted walls was given
         # for an emitter filling an axis-aligned open_box to its outer size
-        solid, close = int((in_grid & ~clear & (d <= 0)).sum()), int((in_grid & ~clear & (d > 0)).sum())
+        # a point on a wall (d = 0 to the float32 SDF's round-off: a water mesh sharing a tilted container's faces)
+        # is near it, not in it
+        inside = d < -1e-3 * l0
+        solid, close = int((in_grid & ~clear & inside).sum()), int((in_grid & ~clear & ~inside).sum())
         why = []
         if solid:
             why.append(f"{solid} inside a wall's solid: the emitter reaches into it (an open_box's walls are "
