@@ -347,6 +347,35 @@ def test_extending_a_shot_resumes_and_equals_a_fresh_run(tmp_path, caplog):
         assert frame_path(a, f).read_bytes() == frame_path(b, f).read_bytes(), f"frame {f} differs"
 
 
+def test_an_extension_stopped_midway_resumes_from_its_own_checkpoints(tmp_path, caplog, monkeypatch):
+    """A 60-frame extension of a 30-frame shot killed at frame 48 went back to frame 29 on the next run: its
+    checkpoints (frames 30 and 40) were passed over, since its checkpoint folder holds only the frames after the
+    shorter run's. Here 3 -> 7 frames, stopped writing frame 5."""
+    import stages.simulate.driver as driver
+
+    config = tiny(tmp_path, frames=3, outputs="[particles]")
+    sets = ("scene.frames.count=7", "simulate.checkpoint_every=1")
+    pipeline.run(config, overrides=sets[1:])
+    real = driver.write_frame
+
+    def stops_at_5(out_dir, frame, *a, **k):
+        if frame == 5:
+            raise RuntimeError("killed")
+        return real(out_dir, frame, *a, **k)
+
+    monkeypatch.setattr(driver, "write_frame", stops_at_5)
+    with pytest.raises(pipeline.StageFailed):
+        pipeline.run(config, overrides=sets)
+    monkeypatch.setattr(driver, "write_frame", real)
+    with caplog.at_level(logging.INFO, logger="stage.simulate.sph"):
+        longer = pipeline.run(config, overrides=sets)
+    assert "resumed from the checkpoint at frame 4" in caplog.text, caplog.text
+    fresh = pipeline.run(config, overrides=sets, cache_dir=tmp_path / "fresh", out_dir=tmp_path / "fresh_out")
+    a, b = Path(longer.outputs["particles"]), Path(fresh.outputs["particles"])
+    for f in range(7):
+        assert frame_path(a, f).read_bytes() == frame_path(b, f).read_bytes(), f"frame {f} differs"
+
+
 def test_an_unreadable_input_file_is_one_line_exit_2_and_nothing_written(tmp_path, monkeypatch):
     """Issue 15: permission denied while hashing an input file (as root chmod does not deny, so the
     read fails by injection): exit 2, one line naming the file, no cache or output folder."""

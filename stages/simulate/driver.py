@@ -811,10 +811,12 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
                    "density_error_mean": [],
                    "density_error_max": [], "inside_wall": [], "extent_min": [], "extent_max": [],
                    "wall_seconds": 0.0}
-    resumed, source = latest_checkpoint(ckpt_dir, count), ckpt_dir
-    if resumed is None and getattr(ctx, "resume_from", None) is not None:
+    earlier = getattr(ctx, "resume_from", None)
+    earlier = Path(earlier) if earlier is not None else None
+    resumed, source = latest_checkpoint(ckpt_dir, count, earlier), ckpt_dir
+    if resumed is None and earlier is not None:
         # the cached entry of a shorter run of this shot (Stage.extends): continue from its last frame
-        source = Path(ctx.resume_from)
+        source = earlier
         resumed = latest_checkpoint(source, count)
     progress = ctx.progress(f"simulating ({solver_name})", count)
     solver.attach_flows(setup.inflows, setup.sinks, ctx.log)
@@ -888,7 +890,7 @@ def drive(ctx: Context, solver: Solver, setup: Setup, *, solver_name: str, check
         solver.load_state(state)
         solver.guard.load_state(state)
         stats = _stats_from(state, stats)
-        restore_frames(source, ctx.out_dir, start)
+        restore_frames(source, ctx.out_dir, start, earlier)
         ctx.log.info("resumed from the checkpoint at frame %d", start)
         progress.advance(start + 1)
     else:

@@ -42,8 +42,12 @@ def save_checkpoint(checkpoint_dir: Path, frame: int, state: dict) -> Path:
     return dst
 
 
-def latest_checkpoint(checkpoint_dir: Path | None, frame_count: int) -> tuple[int, dict] | None:
-    """(frame, state) of the newest readable checkpoint whose frames are all present, else None."""
+def latest_checkpoint(checkpoint_dir: Path | None, frame_count: int,
+                      earlier: Path | None = None) -> tuple[int, dict] | None:
+    """(frame, state) of the newest readable checkpoint whose frames are all present, else None. ``earlier``:
+    the entry of the shorter run a longer shot continued from (Stage.extends), which holds its first frames: a
+    killed extension's checkpoint folder has only the frames after them, and its checkpoints were passed over
+    (frames 30-48 of a 60-frame extension of a 30-frame shot done again)."""
     if checkpoint_dir is None or not Path(checkpoint_dir).is_dir():
         return None
     found = sorted((int(m.group(1)), p) for p in Path(checkpoint_dir).iterdir() if (m := _CKPT.match(p.name)))
@@ -55,16 +59,24 @@ def latest_checkpoint(checkpoint_dir: Path | None, frame_count: int) -> tuple[in
                 state = {k: z[k] for k in z.files}
         except Exception:  # noqa: BLE001 - a damaged checkpoint is skipped, an older one used
             continue
-        if all(frame_path(checkpoint_dir, f).exists() for f in range(frame + 1)):
+        if all(_frame_source(checkpoint_dir, f, earlier) is not None for f in range(frame + 1)):
             return frame, state
     return None
 
 
-def restore_frames(checkpoint_dir: Path, out_dir: Path, upto: int) -> None:
-    """Copy the frames 0..upto written before the interruption into the new output folder."""
+def _frame_source(checkpoint_dir: Path, frame: int, earlier: Path | None) -> Path | None:
+    for folder in (checkpoint_dir, earlier):
+        if folder is not None and frame_path(folder, frame).exists():
+            return frame_path(folder, frame)
+    return None
+
+
+def restore_frames(checkpoint_dir: Path, out_dir: Path, upto: int, earlier: Path | None = None) -> None:
+    """Copy the frames 0..upto written before the interruption (or, for an extension, by the shorter run:
+    ``earlier``) into the new output folder."""
     (Path(out_dir) / FRAMES_DIR).mkdir(parents=True, exist_ok=True)
     for f in range(upto + 1):
-        shutil.copyfile(frame_path(checkpoint_dir, f), frame_path(out_dir, f))
+        shutil.copyfile(_frame_source(checkpoint_dir, f, earlier), frame_path(out_dir, f))
 
 
 def iter_frames(out_dir: Path, count: int):
