@@ -38,11 +38,30 @@ def _setup_logging(verbose: int, quiet: bool) -> None:
 
 
 class Terminated(KeyboardInterrupt):
-    """SIGTERM (a batch scheduler's time limit or preemption, docker stop): stopped like Ctrl-C, exit 143."""
+    """SIGTERM (a batch scheduler's time limit or preemption, docker stop) or SIGHUP (the ssh session that started
+    the run closed; it ended without a word, exit 129): stopped like Ctrl-C, exit 128 + the signal's number."""
+
+    def __init__(self, signum: int = signal.SIGTERM) -> None:
+        super().__init__()
+        self.signum = int(signum)
 
 
 def _terminated(signum, frame):
-    raise Terminated()
+    raise Terminated(signum)
+
+
+def _hang_up_handled() -> None:
+    """SIGHUP stops the run like SIGTERM. multiprocessing's resource tracker (a process of the run's group, which
+    ignores SIGINT and SIGTERM itself) is started first with SIGHUP ignored, which it keeps: killed by the hang-up,
+    it printed a KeyError for each of the stopped pool's semaphores."""
+    signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    try:
+        from multiprocessing import resource_tracker
+
+        resource_tracker.ensure_running()
+    except Exception:  # noqa: BLE001 - best effort: without it the hang-up is still handled
+        pass
+    signal.signal(signal.SIGHUP, _terminated)
 
 
 def _guard(fn):
@@ -55,14 +74,20 @@ def _guard(fn):
             _check_options(kwargs)
             if threading.current_thread() is threading.main_thread():
                 signal.signal(signal.SIGTERM, _terminated)
+                if signal.getsignal(signal.SIGHUP) is signal.SIG_DFL:  # not under nohup, which ignores it
+                    _hang_up_handled()
             return fn(*args, **kwargs)
         except PipelineError as e:
             click.echo(f"error: {_one_line(e)}", err=True)
             sys.exit(e.exit_code)
         except KeyboardInterrupt as e:
-            term = isinstance(e, Terminated)
-            click.echo(f"{'terminated (SIGTERM)' if term else 'interrupted'}; the cache holds only finished entries "
-                       "(unfinished ones are swept by the next run)", err=True)
+            signum = e.signum if isinstance(e, Terminated) else signal.SIGINT
+            what = {signal.SIGTERM: "terminated (SIGTERM)", signal.SIGHUP: "hung up (SIGHUP)"}.get(signum, "interrupted")
+            try:  # after a hang-up the terminal may be gone
+                click.echo(f"{what}; the cache holds only finished entries (unfinished ones are swept by the next run)",
+                           err=True)
+            except OSError:
+                pass
             # a stage may still run in a thread (a simulation): exit now instead of waiting for it, after
             # multiprocessing's own exit clean-up (the stopped pool's semaphores, no warnings)
             try:
@@ -73,7 +98,7 @@ def _guard(fn):
                 pass
             sys.stderr.flush()
             sys.stdout.flush()
-            os._exit(143 if term else 130)
+            os._exit(128 + int(signum))
         except click.exceptions.Exit:
             raise
         except BrokenPipeError:  # `pipeline stages | head`: the reader left; nothing to say to it

@@ -20,8 +20,9 @@ def _lines(path: Path) -> int:
 
 
 def _start(*args: str, env: dict | None = None) -> subprocess.Popen:
+    # SIGHUP as a terminal leaves it, even where the tests run under nohup (which ignores it, and children inherit that)
     return subprocess.Popen(cli_cmd(*args), env=cli_env(env), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, start_new_session=True)
+                            text=True, start_new_session=True, preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_DFL))
 
 
 def test_two_concurrent_runs_of_the_same_config(tmp_path):
@@ -217,18 +218,20 @@ def test_ctrl_c_during_a_long_whole_run_stage_stops_quickly(tmp_path):
     _resume_is_consistent(tmp_path)
 
 
+@pytest.mark.parametrize("sig, said", [(signal.SIGTERM, "terminated (SIGTERM)"), (signal.SIGHUP, "hung up (SIGHUP)")])
 @pytest.mark.parametrize("marker, sleep", [("ran_simulate.log", "simulate.sleep=60"), ("ran_render.log", "render.sleep=30")])
-def test_sigterm_stops_like_ctrl_c(tmp_path, marker, sleep):
+def test_sigterm_stops_like_ctrl_c(tmp_path, marker, sleep, sig, said):
     """A batch scheduler's time limit or preemption (SLURM, docker stop, Kubernetes) sends SIGTERM to the
     group: it ended with 143 and nothing said (with workers, the resource tracker's leaked-semaphore noise).
-    Now one line, exit 143, and the next run resumes."""
-    proc, seconds, err = _interrupt_when(tmp_path, marker, sleep, sig=signal.SIGTERM)
-    assert proc.returncode == 143, err
+    Now one line, exit 143, and the next run resumes. The same for SIGHUP (the ssh session closed), which
+    ended with 129 and nothing said."""
+    proc, seconds, err = _interrupt_when(tmp_path, marker, sleep, sig=sig)
+    assert proc.returncode == 128 + sig, err
     assert seconds < 5, f"took {seconds:.1f} s to stop"
     # (multiprocessing's resource tracker, its own process, may warn of the stopped pool's semaphore: Python's
     # noise, as after Ctrl-C)
     lines = [ln for ln in err.strip().splitlines() if "resource_tracker" not in ln and "warnings.warn" not in ln]
-    assert len(lines) == 1 and lines[0].startswith("terminated (SIGTERM)"), err
+    assert len(lines) == 1 and lines[0].startswith(said), err
     _resume_is_consistent(tmp_path)
 
 
