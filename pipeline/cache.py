@@ -311,8 +311,17 @@ class Cache:
     def _runs_lock(self):
         """The file runs share and clean takes alone (open for flock)."""
         path = self.root / "locks" / "runs.lock"
-        path.parent.mkdir(parents=True, exist_ok=True)
-        return open(path, "a+")
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            return open(path, "a+")
+        except PermissionError as exc:
+            try:  # a cache another user made: flock needs no write access, and a run that finds all cached only reads
+                return open(path, "r")
+            except OSError:
+                pass
+            # one line naming it, exit 2 as for a cache folder that cannot be written (it was a raw PermissionError, 1)
+            raise ConfigError(f"cache {self.root}: {path.relative_to(self.root)} cannot be opened ({exc.strerror}): "
+                              "a cache another user made? choose one you can write with --cache") from None
 
     @contextmanager
     def lock(self, key: str, what: str = "") -> Iterator[None]:

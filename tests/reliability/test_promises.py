@@ -613,3 +613,34 @@ def test_a_live_run_in_another_pid_namespace_of_the_same_host_name_keeps_its_tem
     dead = tmp / f"{'1' * 64}.{owner_tag().rsplit('-', 2)[0]}-999999-{started}.0123abcd"
     dead.mkdir()
     assert cache.sweep_tmp() == 1 and live.exists() and not dead.exists()
+
+
+def test_a_cache_another_user_made_is_used_to_read_or_refused_in_one_line(tmp_path, monkeypatch):
+    """A shared cache whose locks/ another user owns: every run, even one that found all cached, stopped on a raw
+    PermissionError for locks/runs.lock (exit 1). The lock is now taken on a read-only handle where the file can be
+    read (flock needs no write access), and otherwise refused in one line naming it (exit 2)."""
+    import builtins
+
+    import pipeline.cache as cache_module
+    from pipeline.errors import ConfigError
+
+    cache = Cache(tmp_path / "c")
+    with cache.in_use():
+        pass  # made by its owner
+    real = builtins.open
+
+    def other_user(path, mode="r", *a, **k):
+        if str(path).endswith("runs.lock") and (mode != "r" or deny_read):
+            raise PermissionError(13, "Permission denied", str(path))
+        return real(path, mode, *a, **k)
+
+    monkeypatch.setattr(cache_module, "open", other_user, raising=False)
+    deny_read = False
+    with cache.in_use():
+        pass
+    deny_read = True
+    with pytest.raises(ConfigError) as err:
+        with cache.in_use():
+            pass
+    assert str(err.value) == (f"cache {cache.root}: locks/runs.lock cannot be opened (Permission denied): a cache "
+                              "another user made? choose one you can write with --cache")
