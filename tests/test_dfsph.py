@@ -344,3 +344,15 @@ def test_a_solve_stopped_at_its_cap_is_named_as_a_blow_ups_likely_cause():
     solved.advance_to(0.002)
     assert solved.unconverged() is None
     assert "the pressure solve" in Guard(v_bound=2.0, l0=L0)._cause(solved, 0.002)
+
+
+def test_the_energy_warning_names_dfsphs_churn_for_dfsph_only():
+    """A DFSPH U-tube 6 spacings wide made 48 % more energy and was told to look for a passage narrower than 3
+    spacings: the warning now names DFSPH's churn in slow water, and sph for such scenes, where DFSPH runs."""
+    from types import SimpleNamespace
+
+    from stages.simulate.driver import EnergyBudget
+
+    dfsph = EnergyBudget.causes(SimpleNamespace(kappa_v=np.zeros(3)))
+    assert "DFSPH's churn in slow or still water" in dfsph and "simulate: {use: sph}" in dfsph
+    assert "DFSPH" not in EnergyBudget.causes(SimpleNamespace()) and "narrower than about 3" in EnergyBudget.causes(SimpleNamespace())

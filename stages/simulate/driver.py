@@ -1068,10 +1068,18 @@ class EnergyBudget:
         if ref > 0.0 and now > (1.0 + self.RISE) * ref:
             self.said = (frame, now / ref - 1.0)
             log.warning("frame %d: the fluid's energy (kinetic + gravitational) is %.0f %% above the start's%s, with "
-                        "nothing in the scene to give it: energy the method made (a passage narrower than about 3 "
-                        "spacings, a time step too long?); check the frames, or try a finer spacing or another "
-                        "solver", frame, 100.0 * self.said[1],
-                        " and what the inflows brought" if solver.inflows else "")
+                        "nothing in the scene to give it: energy the method made (%s); check the frames, or try a "
+                        "finer spacing or another solver", frame, 100.0 * self.said[1],
+                        " and what the inflows brought" if solver.inflows else "", self.causes(solver))
+
+    @staticmethod
+    def causes(solver: "SolverBase") -> str:
+        """What is known to make energy: said for every solver, a U-tube 6 spacings wide was told to look for a
+        passage narrower than 3 (DFSPH's own churn, which grows with a finer spacing there: session 46's tester)."""
+        known = "a passage narrower than about 3 spacings, a time step too long"
+        if hasattr(solver, "kappa_v"):
+            return known + ", or DFSPH's churn in slow or still water (README, Water at rest): try simulate: {use: sph}"
+        return known + "?"
 
 
 def _blow_up_line(e: BlowUp, frame: int, solver: Solver, solver_name: str, ckpt_dir: Path | None) -> str:
