@@ -228,6 +228,23 @@ def keep_contacts(near: np.ndarray, normal: np.ndarray, ok: np.ndarray, raw: np.
     return lost
 
 
+def wet_face(near: np.ndarray, normal: np.ndarray, ok: np.ndarray, at: np.ndarray, surface_normals: np.ndarray,
+             project: "WallProjector", water: "Water", l0: float) -> None:
+    """For vertices joining the wall to unpin a fold (in place on ``near``, ``normal``, ``ok``): where no water
+    touches the face found and a point WET_PROBE l0 back into the water lies behind it (a thin wall's dry face),
+    that point's face; where the probe lies in front, the vertex is left out (ok False)."""
+    dry = np.flatnonzero(ok)
+    dry = dry[~touching(water, near[dry], normal[dry], l0)]
+    if not len(dry):
+        return
+    probe = at[dry] - WET_PROBE * l0 * surface_normals[dry]
+    behind = np.einsum("ij,ij->i", probe - near[dry], normal[dry]) < 0.0
+    ok[dry[~behind]] = False
+    dry = dry[behind]
+    if len(dry):
+        near[dry], normal[dry] = project(probe[behind])
+
+
 def snap_to_walls(v: np.ndarray, normals: np.ndarray, sdf: SDFGrid, bodies: list[tuple[SDFGrid, RigidMotion]],
                   t: float, band: float, only_contact: bool, on_wall: float, tol: float, iterations: int,
                   out: np.ndarray, moved: np.ndarray) -> None:
@@ -772,8 +789,12 @@ def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapPa
         near, normal = project(landed)
         # only where the SDF step landed on this wall (not on a far one through a thin gap)
         ok = np.linalg.norm(near - landed, axis=1) < 1.5 * sdf.spacing
+        # or where the step crossed the face found, from behind it to beyond it: through a thin wall's flat field (a
+        # 0.5 l0 glass's contact vertex landed 0.8 l0 outside it, and the fold pass then put it on its outside face)
+        raw_at = v.take(idx, axis=0)
+        ok |= (np.einsum("ij,ij->i", landed - near, normal) > 0.0) & (np.einsum("ij,ij->i", raw_at - near, normal) < 0.0)
         if params.only_contact:
-            lost = keep_contacts(near, normal, ok, v.take(idx, axis=0),
+            lost = keep_contacts(near, normal, ok, raw_at,
                                  mesh.normals.take(idx, axis=0).astype(np.float64), project, water, l0,
                                  (params.band + WET_PROBE) * l0)
             out[idx[lost]] = v[idx[lost]]  # no water touches a wall there: as extracted
@@ -789,8 +810,12 @@ def snap_mesh(mesh: SurfaceMesh, sdf: SDFGrid, l0: float, params: DistanceSnapPa
                 # join the snapped ones
                 ends = np.unique(f[folds.flipped()])
                 ends = ends[~on_wall[ends]]
-                near, _ = project(out[ends]) if len(ends) else (out[ends], None)
+                near, normal = project(out[ends]) if len(ends) else (out[ends], out[ends])
                 close = np.linalg.norm(near - out[ends], axis=1) < params.band * l0
+                if water is not None and len(ends):
+                    # onto the face their water touches: in a thin wall's flat field the nearer face of a vertex
+                    # past its middle is the dry one (a 0.5 l0 glass's contact line grew a vertex onto its outside)
+                    wet_face(near, normal, close, out[ends], mesh.normals[ends].astype(np.float64), project, water, l0)
                 if not close.any():
                     break
                 out[ends[close]] = near[close]
@@ -837,7 +862,7 @@ def projector(walls_dir: Path, walls_stamps: tuple, sdf_dir: Path, sdf_stamps: t
 class DistanceSnap(Stage):
     kind = "wall_snap"
     name = "distance"
-    version = "11"
+    version = "12"
     Params = DistanceSnapParams
     inputs = ("raw_surface", "sdf", "particles")  # particles: for l0 (band and tolerance are in l0)
     optional_inputs = ("walls",)
